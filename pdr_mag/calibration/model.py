@@ -1,0 +1,212 @@
+"""The calibration result: ``m_cal = soft_iron @ (m_raw - offset)``, with its quality and JSON form.
+
+The JSON object is the one of ``../shared/INTERFACE.md`` (``calibrate --json``), which is also the
+calibration file that ``replay --calibration`` reads.  Keys beyond the contract are added, never renamed.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MagCalibration:
+    """A magnetometer calibration.
+
+    Model: ``m_cal = soft_iron @ (m_raw - offset)``; ``soft_iron`` symmetric positive definite,
+    ``|m_cal| ≈ field_uT``.
+
+    Attributes
+    ----------
+    offset : tuple of 3 float
+        Hard-iron offset b, µT, device (magnetometer) frame.
+    soft_iron : tuple of 3 tuples of 3 float
+        Symmetric positive-definite correction matrix (identity for an offset-only fit).
+    field_uT : float
+        Radius of the calibrated sphere, µT (the local field strength as the fit sees it).
+    method : str
+        ``sphere``, ``ellipsoid``, ``als``, ``ml``, … — which estimator produced it.
+    residual_rms_uT : float
+        RMS of ``|m_cal| − field_uT`` over the samples used, µT.
+    offset_std_uT : tuple of 3 float
+        1-σ uncertainty of the offset, µT (from the parameter covariance).
+    n_samples : int
+        Number of samples the fit used.
+    coverage : float
+        Share of orientation space covered by the samples, in [0, 1].
+    accepted : bool
+        Whether the acceptance rules passed; ``reasons`` say why not.
+    reasons : tuple of str
+        Human-readable reasons for refusal (empty when accepted).
+    covariance : tuple or None
+        Covariance of the estimated parameters (row-major nested tuples), in the order given by
+        ``extra["covariance_params"]`` when present.
+    mag_to_imu : tuple or None
+        Rotation matrix from magnetometer to IMU axes when estimated (alignment); None = identity.
+    extra : dict
+        Further method-specific figures (iterations, noise estimate, information criteria, …).
+    """
+
+    offset: tuple[float, float, float]
+    soft_iron: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    field_uT: float = float("nan")
+    method: str = "sphere"
+    residual_rms_uT: float = float("nan")
+    offset_std_uT: tuple[float, float, float] = (float("nan"),) * 3
+    n_samples: int = 0
+    coverage: float = float("nan")
+    accepted: bool = True
+    reasons: tuple[str, ...] = ()
+    covariance: tuple | None = None
+    mag_to_imu: tuple | None = None
+    extra: dict = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_arrays(cls, offset, soft_iron=None, **kwargs) -> MagCalibration:
+        """Build from numpy arrays, validating shapes and symmetry."""
+        b = np.asarray(offset, dtype=float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"offset: expected 3 finite values in µT, got {offset!r}")
+        a = np.eye(3) if soft_iron is None else np.asarray(soft_iron, dtype=float)
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise ValueError(f"soft_iron: expected a finite 3×3 matrix, got shape {a.shape}")
+        a = 0.5 * (a + a.T)
+        for key in ("offset_std_uT",):
+            if key in kwargs and kwargs[key] is not None:
+                kwargs[key] = tuple(float(v) for v in np.asarray(kwargs[key], dtype=float).ravel())
+        if kwargs.get("covariance") is not None:
+            kwargs["covariance"] = _tuplify(np.asarray(kwargs["covariance"], dtype=float))
+        if kwargs.get("mag_to_imu") is not None:
+            kwargs["mag_to_imu"] = _tuplify(np.asarray(kwargs["mag_to_imu"], dtype=float))
+        if "reasons" in kwargs:
+            kwargs["reasons"] = tuple(kwargs["reasons"])
+        return cls(offset=tuple(float(v) for v in b), soft_iron=_tuplify(a), **kwargs)
+
+    def with_acceptance(self, accepted: bool, reasons) -> MagCalibration:
+        """A copy with the acceptance verdict replaced."""
+        return replace(self, accepted=bool(accepted), reasons=tuple(reasons))
+
+    # ------------------------------------------------------------------ use
+    @property
+    def offset_array(self) -> np.ndarray:
+        return np.asarray(self.offset, dtype=float)
+
+    @property
+    def soft_iron_array(self) -> np.ndarray:
+        return np.asarray(self.soft_iron, dtype=float)
+
+    def apply(self, mag_raw: np.ndarray) -> np.ndarray:
+        """Calibrated field ``soft_iron @ (m_raw − offset)`` for samples of shape (3,) or (N, 3), µT.
+
+        When ``mag_to_imu`` is set, the result is also rotated into the IMU axes.
+        """
+        m = np.asarray(mag_raw, dtype=float)
+        if m.shape[-1] != 3:
+            raise ValueError(f"mag_raw: expected shape (…, 3) in µT, got {m.shape}")
+        a = self.soft_iron_array
+        if self.mag_to_imu is not None:
+            a = np.asarray(self.mag_to_imu, dtype=float) @ a
+        return (m - self.offset_array) @ a.T
+
+    # ------------------------------------------------------------------ JSON
+    def to_dict(self) -> dict:
+        """The ``calibrate --json`` object (INTERFACE.md), plus extra keys."""
+        d = asdict(self)
+        out = {
+            "format_version": FORMAT_VERSION,
+            "method": self.method,
+            "offset_uT": list(self.offset),
+            "soft_iron": [list(r) for r in self.soft_iron],
+            "field_uT": _num(self.field_uT),
+            "residual_rms_uT": _num(self.residual_rms_uT),
+            "offset_std_uT": [_num(v) for v in self.offset_std_uT],
+            "n_samples": int(self.n_samples),
+            "coverage": _num(self.coverage),
+            "accepted": bool(self.accepted),
+            "reasons": list(self.reasons),
+        }
+        if self.covariance is not None:
+            out["covariance"] = [list(r) for r in d["covariance"]]
+        if self.mag_to_imu is not None:
+            out["mag_to_imu"] = [list(r) for r in d["mag_to_imu"]]
+        if self.extra:
+            out["extra"] = _jsonable(self.extra)
+        return out
+
+    def to_json(self, path: str | Path | None = None) -> str:
+        text = json.dumps(self.to_dict(), indent=1)
+        if path is not None:
+            Path(path).write_text(text + "\n")
+        return text
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MagCalibration:
+        """Parse a ``calibrate --json`` object; raises ValueError naming the bad key."""
+        if not isinstance(d, dict):
+            raise ValueError("calibration: expected a JSON object")
+        version = d.get("format_version")
+        if version != FORMAT_VERSION:
+            raise ValueError(f"calibration: format_version {version!r} is not supported (expected 1)")
+        for key in ("offset_uT", "soft_iron"):
+            if key not in d:
+                raise ValueError(f"calibration: missing key {key!r}")
+        try:
+            return cls.from_arrays(
+                d["offset_uT"],
+                d["soft_iron"],
+                field_uT=float(d.get("field_uT") if d.get("field_uT") is not None else float("nan")),
+                method=str(d.get("method", "unknown")),
+                residual_rms_uT=_float(d.get("residual_rms_uT")),
+                offset_std_uT=[_float(v) for v in d.get("offset_std_uT", [None] * 3)],
+                n_samples=int(d.get("n_samples", 0)),
+                coverage=_float(d.get("coverage")),
+                accepted=bool(d.get("accepted", True)),
+                reasons=d.get("reasons", []),
+                covariance=d.get("covariance"),
+                mag_to_imu=d.get("mag_to_imu"),
+                extra=dict(d.get("extra", {})),
+            )
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"calibration: {exc}") from exc
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> MagCalibration:
+        try:
+            d = json.loads(Path(path).read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from exc
+        return cls.from_dict(d)
+
+
+def _tuplify(a: np.ndarray) -> tuple:
+    return tuple(tuple(float(v) for v in row) for row in a)
+
+
+def _num(v: float):
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _float(v) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return _num(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    return obj

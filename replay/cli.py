@@ -1,0 +1,64 @@
+"""``pdr-mag``: simulate, calibrate, replay, diagnose.  Thin: parses, calls, prints.
+
+Every command lives in ``replay/commands/<name>.py`` as a ``click`` command named ``command``.
+Bad input ends with exit code 2 and one line on stderr (``pdr-mag: FILE[:LINE]: problem``), never a
+traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from replay.errors import InputError
+
+COMMANDS = ("simulate", "calibrate", "replay", "diagnose")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="pdr_mag")
+def cli() -> None:
+    """pdr_mag — magnetometer calibration and heading for pedestrian navigation with phones."""
+
+
+for _name in COMMANDS:
+    try:
+        _mod = importlib.import_module(f"replay.commands.{_name}")
+    except ModuleNotFoundError as _exc:  # a command not built yet is simply absent
+        if _exc.name != f"replay.commands.{_name}":
+            raise
+        continue
+    cli.add_command(_mod.command, name=_name)
+
+
+def _fail(message: str) -> int:
+    click.echo(f"pdr-mag: {message}", err=True)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the console script and of ``python -m pdr_mag``; returns the exit code."""
+    try:
+        rv = cli.main(args=argv, prog_name="pdr-mag", standalone_mode=False)
+    except InputError as exc:
+        return _fail(str(exc))
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.Abort:
+        return _fail("aborted")
+    except click.ClickException as exc:
+        return _fail(exc.format_message().replace("\n", " "))
+    except BrokenPipeError:
+        return 1
+    return rv if isinstance(rv, int) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+def run() -> None:
+    """Console-script wrapper: exit with :func:`main`'s code."""
+    sys.exit(main())

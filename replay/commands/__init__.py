@@ -1,0 +1,1 @@
+"""One module per ``pdr-mag`` subcommand, each exposing a click command named ``command``."""

@@ -1,0 +1,65 @@
+"""The in-memory form of a recording that every reader produces (units and frames of INTERFACE.md)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Stream:
+    """One sensor stream: strictly increasing times ``t`` (s, N) and values ``xyz`` (N, 3)."""
+
+    t: np.ndarray
+    xyz: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0]) if len(self.t) > 1 else 0.0
+
+    @property
+    def rate_hz(self) -> float:
+        return (len(self.t) - 1) / self.duration if self.duration > 0 else float("nan")
+
+
+@dataclass
+class Recording:
+    """A phone recording in the contract's units and device frame.
+
+    Attributes
+    ----------
+    mag : Stream
+        Raw magnetometer, µT.
+    accel, gyro : Stream or None
+        Accelerometer (m/s², specific force) and gyroscope (rad/s).
+    meta : dict
+        ``device``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` — all optional.
+    truth : (t (N,), q_wxyz (N, 4)) or None
+        True orientation, device → ENU true north; for evaluation only.
+    source : str
+        Where it came from (path) and ``format``: the reader's name.
+    dropped : Counter
+        Odd samples the reader skipped, by ``"stream:reason"``.
+    """
+
+    mag: Stream
+    accel: Stream | None = None
+    gyro: Stream | None = None
+    meta: dict = field(default_factory=dict)
+    truth: tuple[np.ndarray, np.ndarray] | None = None
+    source: str = ""
+    format: str = ""
+    dropped: Counter = field(default_factory=Counter)
+
+    @property
+    def t0(self) -> float:
+        return float(min(s.t[0] for s in (self.mag, self.accel, self.gyro) if s is not None and len(s)))
+
+    @property
+    def t1(self) -> float:
+        return float(max(s.t[-1] for s in (self.mag, self.accel, self.gyro) if s is not None and len(s)))

@@ -1,0 +1,23 @@
+"""Shared test helpers: the real recordings in ../shared/datasets, skipped with a reason when absent
+(except under CI=true, where their absence is an error)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+DATASETS = (ROOT / ".." / "shared" / "datasets").resolve()
+
+
+def dataset(*parts: str) -> Path:
+    """Path to a file or folder under ../shared/datasets; skip (or fail under CI=true) if absent."""
+    p = DATASETS.joinpath(*parts)
+    if not p.exists():
+        msg = f"real recording {p} not found (../shared/datasets is not beside this checkout)"
+        if os.environ.get("CI") == "true":
+            pytest.fail(msg + " — required under CI=true")
+        pytest.skip(msg)
+    return p
