@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 #: ``replay --out-csv`` columns (INTERFACE.md); more may follow, none renamed.
-CSV_COLUMNS = ("t", "qw", "qx", "qy", "qz", "heading_deg", "heading_std_deg", "mag_used", "interference", "cal_state")
+CSV_COLUMNS = (
+    "t", "qw", "qx", "qy", "qz", "heading_deg", "heading_std_deg", "mag_used", "interference", "cal_state",
+)
 
 #: Calibration states written in ``cal_state``.
 CAL_STATES = ("none", "offset", "ellipsoid", "recalibrating")
