@@ -1,23 +1,90 @@
 """Readers: one module per format, each converting units and axes into the contract (INTERFACE.md).
 
 :func:`read_recording` detects the format of a path and returns a :class:`replay.recording.Recording`.
+
+Detection
+---------
+Every reader module has ``NAME`` (str), ``detect(path) -> bool`` and ``read(path) -> Recording``.
+``detect`` is cheap and certain: it looks at file names, a header line or a file's magic bytes — never at the
+whole file — and it never raises. :data:`READERS` lists the modules in the order they are asked; the first
+that recognises the path reads it. A path that no reader recognises is an :class:`InputError`.
+A reader may also be chosen by name with ``read_recording(path, fmt=NAME)``.
 """
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 from replay.errors import InputError
 from replay.recording import Recording
 
+#: Reader modules (under ``replay.formats``), in detection order: specific layouts before generic ones.
+READERS = (
+    "pdrcsv",
+    "tyrex",
+    "sunsided",
+    "sensorlogger",
+    "phyphox",
+    "msindoor",
+    "ipin",
+    "matimu",
+    "pdrmcap",
+    "rosmcap",
+)
 
-def read_recording(path) -> Recording:
+
+def _modules():
+    for name in READERS:
+        try:
+            yield importlib.import_module(f"replay.formats.{name}")
+        except ModuleNotFoundError as exc:  # a reader not written yet is simply absent
+            if exc.name != f"replay.formats.{name}":
+                raise
+
+
+def formats() -> list[str]:
+    """Names of the formats the readers recognise."""
+    return [m.NAME for m in _modules()]
+
+
+def detect(path) -> str | None:
+    """Name of the format of ``path``, or None."""
+    p = Path(path)
+    for mod in _modules():
+        try:
+            if mod.detect(p):
+                return mod.NAME
+        except OSError:
+            continue
+    return None
+
+
+def read_recording(path, fmt: str | None = None) -> Recording:
     """Read any recording a reader recognises; raises :class:`InputError` otherwise."""
-    from replay.formats import pdrcsv
-
     p = Path(path)
     if not p.exists():
         raise InputError(p, "no such file or directory")
-    if pdrcsv.detect(p):
-        return pdrcsv.read(p)
-    raise InputError(p, "not a recording in a known format (expected a pdr-csv directory with mag.csv)")
+    mods = list(_modules())
+    if fmt is not None:
+        for mod in mods:
+            if mod.NAME == fmt:
+                return mod.read(p)
+        raise InputError(p, f"unknown format {fmt!r} (known: {', '.join(m.NAME for m in mods)})")
+    for mod in mods:
+        try:
+            hit = mod.detect(p)
+        except OSError:
+            hit = False
+        if hit:
+            return mod.read(p)
+    if p.is_file():
+        with p.open("rb") as fh:
+            head = fh.read(8)
+        if head.startswith(b"\x89MCAP"):
+            from replay.formats import _mcap
+
+            raise InputError(p, _mcap.why_unknown(p))
+    raise InputError(
+        p, "not a recording in a known format (expected one of: " + ", ".join(m.NAME for m in mods) + ")"
+    )

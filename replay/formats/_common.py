@@ -1,0 +1,193 @@
+"""Shared pieces of the readers: a stream accumulator that cleans rows as they arrive, unit checks, parsing.
+
+Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilder`, which
+
+* drops a row with a NaN/inf value (``"<key>:nan"``) and a row whose time repeats the previous one
+  (``"<key>:duplicate_t"``), counting both in the recording's ``dropped`` counter;
+* raises :class:`~replay.errors.InputError` naming the file and line when time goes backwards;
+* flags (keeps, but counts as ``"<key>:saturated"``) samples with an axis at the sensor's range limit,
+  when the reader knows that limit;
+* stores values in compact ``array('d')`` buffers (8 bytes a number, not a Python float object each).
+
+:func:`finish` converts to a :class:`~replay.recording.Stream` in the contract's units and checks that the
+median vector norm is plausible for the stream (µT, m/s², rad/s), which catches a file in the wrong unit.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from replay.errors import InputError
+from replay.recording import Stream
+
+# Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
+UNIT_RANGES = {
+    "mag": (5.0, 2000.0, "µT"),
+    "accel": (3.0, 30.0, "m/s²"),
+    "gyro": (0.0, 20.0, "rad/s"),
+}
+
+
+def is_float(v: str) -> bool:
+    try:
+        float(v)
+        return True
+    except ValueError:
+        return False
+
+
+def floats(path, lineno: int | None, parts) -> list[float]:
+    """``[float(p) for p in parts]``, or InputError naming the first cell that is not a number."""
+    try:
+        return [float(p) for p in parts]
+    except ValueError:
+        bad = next(p for p in parts if not is_float(p))
+        raise InputError(path, f"not a number: {bad.strip()!r}", lineno) from None
+
+
+def open_text(path: Path):
+    """Open a text file for line-by-line reading, InputError if it cannot be opened."""
+    try:
+        return Path(path).open("r", encoding="utf-8", errors="replace", newline="")
+    except OSError as exc:
+        raise InputError(path, f"cannot open ({exc.strerror})") from exc
+
+
+def check_units(path, key: str, xyz: np.ndarray, unit_hint: str = "") -> None:
+    """InputError when the median vector norm is outside the plausible range of ``key``."""
+    lo, hi, unit = UNIT_RANGES[key]
+    med = float(np.median(np.linalg.norm(xyz, axis=1)))
+    if not (lo <= med <= hi):
+        what = f" (read as {unit_hint})" if unit_hint else ""
+        raise InputError(
+            path,
+            f"median |{key}| is {med:.4g} {unit}{what}, outside the plausible {lo:g}–{hi:g} {unit} "
+            "(wrong unit?)",
+        )
+
+
+class StreamBuilder:
+    """Accumulate (t, x, y, z) rows of one stream, cleaning as they come.
+
+    Parameters
+    ----------
+    path : path-like
+        File named in errors.
+    key : str
+        ``"mag"``, ``"accel"``, ``"gyro"`` (or ``"truth"``, with ``width=4``).
+    dropped : Counter
+        The recording's counter of odd samples.
+    width : int
+        Number of values after the time (3 for vectors, 4 for quaternions).
+    limit : float, optional
+        Sensor range in the *source* units: a sample with any ``|axis| >= limit`` is counted as saturated.
+    """
+
+    def __init__(self, path, key: str, dropped: Counter, width: int = 3, limit: float | None = None):
+        self.path = path
+        self.key = key
+        self.dropped = dropped
+        self.width = width
+        self.limit = limit
+        self.t = array("d")
+        self.v = array("d")
+        self.last_t = -math.inf
+        self.last_line: int | None = None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def add(self, lineno: int | None, t: float, vals) -> bool:
+        """Add one row; returns False when it was dropped (NaN, duplicate time)."""
+        if not math.isfinite(t) or not all(math.isfinite(v) for v in vals):
+            self.dropped[f"{self.key}:nan"] += 1
+            return False
+        if t == self.last_t:
+            self.dropped[f"{self.key}:duplicate_t"] += 1
+            return False
+        if t < self.last_t:
+            raise InputError(
+                self.path, f"{self.key}: time goes backwards ({t!r} after {self.last_t!r})", lineno
+            )
+        if self.limit is not None and any(abs(v) >= self.limit for v in vals):
+            self.dropped[f"{self.key}:saturated"] += 1
+        self.last_t = t
+        self.last_line = lineno
+        self.t.append(t)
+        self.v.extend(vals)
+        return True
+
+    def add_block(self, t: np.ndarray, vals: np.ndarray, first_line: int | None = None) -> None:
+        """Add many rows at once (arrays already in memory, e.g. from a MATLAB file), same cleaning."""
+        t = np.asarray(t, dtype=float)
+        vals = np.asarray(vals, dtype=float).reshape(len(t), self.width)
+        good = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
+        self.dropped[f"{self.key}:nan"] += int((~good).sum())
+        t, vals = t[good], vals[good]
+        rows = np.flatnonzero(good)
+        if len(t) == 0:
+            return
+        prev = np.concatenate([[self.last_t], t[:-1]])
+        back = np.flatnonzero(t < prev)
+        if len(back):
+            i = back[0]
+            line = None if first_line is None else first_line + int(rows[i])
+            raise InputError(self.path, f"{self.key}: time goes backwards ({t[i]!r} after {prev[i]!r})", line)
+        keep = t != prev
+        self.dropped[f"{self.key}:duplicate_t"] += int((~keep).sum())
+        t, vals = t[keep], vals[keep]
+        if self.limit is not None:
+            self.dropped[f"{self.key}:saturated"] += int(np.any(np.abs(vals) >= self.limit, axis=1).sum())
+        if len(t):
+            self.last_t = float(t[-1])
+            self.t.extend(t.tolist())
+            self.v.extend(vals.ravel().tolist())
+        for k in ("nan", "duplicate_t", "saturated"):  # no zero entries in the summary
+            if self.dropped.get(f"{self.key}:{k}") == 0:
+                del self.dropped[f"{self.key}:{k}"]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        t = np.frombuffer(self.t, dtype=float).copy()
+        v = np.frombuffer(self.v, dtype=float).copy().reshape(-1, self.width)
+        return t, v
+
+
+def finish(
+    b: StreamBuilder,
+    scale: float = 1.0,
+    axes: np.ndarray | None = None,
+    t_offset: float = 0.0,
+    unit_hint: str = "",
+    check: bool = True,
+    min_samples: int = 2,
+) -> Stream:
+    """Convert a builder to a Stream in the contract: ``xyz = scale * (axes @ v)``, ``t = t_raw + t_offset``.
+
+    ``axes`` is the 3×3 matrix taking a source-frame vector into the Android device frame (a signed
+    permutation for the devices here). Raises InputError for an empty/too short stream or an implausible unit.
+    """
+    if len(b) < min_samples:
+        what = "no valid samples" if len(b) == 0 else f"only {len(b)} valid sample(s)"
+        raise InputError(b.path, f"{b.key}: empty stream ({what})")
+    t, v = b.arrays()
+    if axes is not None:
+        v = v @ np.asarray(axes, dtype=float).T
+    if scale != 1.0:
+        v *= scale
+    if t_offset:
+        t += t_offset
+    if check:
+        check_units(b.path, b.key, v, unit_hint)
+    return Stream(t=t, xyz=v)
+
+
+def require(path: Path, what: str) -> Path:
+    """``path`` if it is a file, else InputError (a stream missing)."""
+    if not path.is_file():
+        raise InputError(path, f"missing ({what})")
+    return path

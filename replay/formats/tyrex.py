@@ -1,0 +1,203 @@
+"""The smartphone attitude benchmark layouts (Inria Tyrex, "On Attitude Estimation with Smartphones").
+
+A recording is a folder of space-separated text files without header, time in seconds in the first column.
+
+Android (Senslogs app), recognised by ``record.properties``:
+
+==========================  =======================================================================
+``accelerometer.txt``       t, ax, ay, az — m/s², specific force (``TYPE_ACCELEROMETER``)
+``gyroscope.txt``           t, wx, wy, wz, drift x, y, z — rad/s, uncalibrated (only wx, wy, wz read)
+``magnetometer.txt``        t, mx, my, mz, bias x, y, z — µT, raw (uncalibrated; only mx, my, mz read)
+``record.properties``       ``Model``, ``Manufacturer``, ``StartTime`` (Unix s) of the record clock
+==========================  =======================================================================
+
+Android's device frame is the contract's: no axis change, no unit change.
+
+iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, with
+
+* time in seconds since boot: ``t = t_file - BootTime``;
+* ``accelerometer.txt`` in g with iOS's sign (≈ −1 g on z lying flat, screen up), so
+  ``accel = -9.80665 * a`` (iOS's device axes are Android's: x right, y top, z out of the screen);
+* ``gyroscope.txt`` rad/s and ``magnetometer.txt`` µT (raw ``CMMagnetometerData``), unchanged.
+
+Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
+(Δ, with ``t_qualisys = t_phone + Δ``) are present, the Qualisys rigid-body rotation (device → ENU, true
+north) becomes :attr:`Recording.truth` at ``t = i / FrameRate - Δ`` on the phone clock. NaN frames are
+dropped (``truth:nan``), as are the mocap glitches that the benchmark's authors exclude by hand
+(``truth:glitch``). In that case ``meta`` also gets the benchmark's place and date (Kinovis room, Inria
+Grenoble; the values the upstream code uses for the reference field).
+"""
+
+from __future__ import annotations
+
+import configparser
+import datetime as dt
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, floats, open_text, require
+from replay.recording import Recording
+
+NAME = "tyrex"
+GRAVITY = 9.80665
+
+# Mocap glitches excluded by hand upstream (qualisys seconds).
+_GLITCHES = {
+    "Thibaud_Nexus5_Dist_FrontPocket": [(40.0, 52.6)],
+    "Thibaud_Nexus5_Dist_Swinging": [(105.45, 105.5)],
+    "Thibaud_Nexus5_NoDist_Swinging": [(36.8, 37.2)],
+}
+# Where and when the benchmark was recorded (upstream's reference-field inputs).
+_BENCH_META = {
+    "latitude_deg": 45.187778,
+    "longitude_deg": 5.726945,
+    "altitude_m": 200.0,
+    "date": "2016-05-31",
+}
+
+
+def _platform(path: Path) -> str | None:
+    if not path.is_dir() or not (path / "magnetometer.txt").is_file():
+        return None
+    if (path / "record.properties").is_file():
+        return "android"
+    if (path / "description.txt").is_file():
+        return "ios"
+    return None
+
+
+def detect(path: Path) -> bool:
+    return _platform(path) is not None
+
+
+def _properties(path: Path) -> configparser.ConfigParser:
+    cp = configparser.ConfigParser(strict=False)
+    try:
+        cp.read_string(path.read_text(encoding="utf-8", errors="replace"), source=str(path))
+    except configparser.Error as exc:
+        raise InputError(path, f"not a properties file ({exc.message.splitlines()[0]})") from None
+    return cp
+
+
+def read_columns(path: Path, key: str, dropped: Counter, ncol: int = 3) -> StreamBuilder:
+    """Stream a header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` into a builder."""
+    b = StreamBuilder(path, key, dropped)
+    with open_text(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            parts = line.split()
+            if not parts:
+                continue
+            if len(parts) < ncol + 1:
+                raise InputError(
+                    path, f"expected at least {ncol + 1} columns, got {len(parts)} (truncated?)", lineno
+                )
+            vals = floats(path, lineno, parts[: ncol + 1])
+            b.add(lineno, vals[0], vals[1:])
+    return b
+
+
+def _truth(path: Path, dropped: Counter):
+    """Qualisys orientation on the phone clock, or None when the mocap file is not beside the trial."""
+    mat = path.parent.parent / "qualisys" / f"{path.name}.mat"
+    align = path / "timeAlignment.txt"
+    if not (mat.is_file() and align.is_file()):
+        return None
+    try:
+        delta = float(align.read_text().split()[0])
+    except (ValueError, IndexError):
+        raise InputError(align, "expected one number (seconds)", 1) from None
+    from scipy.io import loadmat
+
+    try:
+        m = loadmat(mat, squeeze_me=True, struct_as_record=False)
+        body = m[path.name]
+        rate = float(body.FrameRate)
+        rot = np.asarray(body.RigidBodies.Rotations, dtype=float)
+    except (KeyError, AttributeError, ValueError, OSError) as exc:
+        raise InputError(mat, f"not a Qualisys export with RigidBodies.Rotations ({exc})") from None
+    if rot.ndim != 2 or rot.shape[0] != 9:
+        raise InputError(mat, f"RigidBodies.Rotations has shape {rot.shape}, expected 9×N")
+    t_q = np.arange(rot.shape[1]) / rate
+    good = np.all(np.isfinite(rot), axis=0)
+    dropped["truth:nan"] += int((~good).sum())
+    glitch = np.zeros_like(good)
+    for a, b in _GLITCHES.get(path.name, []):
+        glitch |= (t_q >= a) & (t_q <= b)
+    dropped["truth:glitch"] += int((glitch & good).sum())
+    keep = good & ~glitch
+    # Column-major 3×3 per frame: R maps phone-body vectors into the mocap (ENU, true north) world frame.
+    mats = rot[:, keep].T.reshape(-1, 3, 3).transpose(0, 2, 1)
+    from pdr_mag.conventions import rot_to_quat
+
+    q = rot_to_quat(mats)
+    q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+    for k in ("truth:nan", "truth:glitch"):
+        if dropped.get(k) == 0:
+            del dropped[k]
+    return t_q[keep] - delta, q
+
+
+def read(path) -> Recording:
+    """Read an Android (Senslogs) or iOS trial folder of the benchmark into a :class:`Recording`."""
+    p = Path(path)
+    platform = _platform(p)
+    if platform is None:
+        raise InputError(
+            p, "not a tyrex benchmark folder (magnetometer.txt + record.properties/description.txt)"
+        )
+    dropped: Counter = Counter()
+    meta: dict = {"platform": platform}
+    if platform == "android":
+        cp = _properties(p / "record.properties")
+        model = cp.get("Device", "Model", fallback="").strip()
+        maker = cp.get("Device", "Manufacturer", fallback="").strip()
+        if model:
+            meta["device"] = f"{maker} {model}".strip()
+        start = cp.get("Time", "StartTime", fallback="").strip()
+        if start:
+            try:
+                start_s = float(start)
+            except ValueError:
+                raise InputError(p / "record.properties", f"StartTime is not a number: {start!r}") from None
+            meta["start_time_unix"] = start_s
+            meta["date"] = dt.datetime.fromtimestamp(start_s, dt.UTC).date().isoformat()
+        t_off = 0.0
+    else:
+        cp = _properties(p / "description.txt")
+        boot = cp.get("Time", "BootTime", fallback=None)
+        if boot is None:
+            raise InputError(p / "description.txt", "no BootTime under [Time]")
+        try:
+            t_off = -float(boot)
+        except ValueError:
+            raise InputError(p / "description.txt", f"BootTime is not a number: {boot!r}") from None
+        meta["device"] = "iPhone"
+        meta["boot_time"] = -t_off
+
+    mag_b = read_columns(require(p / "magnetometer.txt", "magnetometer stream"), "mag", dropped)
+    acc_b = read_columns(require(p / "accelerometer.txt", "accelerometer stream"), "accel", dropped)
+    gyr_b = read_columns(require(p / "gyroscope.txt", "gyroscope stream"), "gyro", dropped)
+    mag = finish(mag_b, t_offset=t_off, unit_hint="µT")
+    if platform == "android":
+        accel = finish(acc_b, unit_hint="m/s²")
+    else:
+        accel = finish(acc_b, scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign")
+    gyro = finish(gyr_b, t_offset=t_off, unit_hint="rad/s")
+
+    truth = _truth(p, dropped)
+    if truth is not None:
+        meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})
+        meta["truth_north"] = "true"
+    return Recording(
+        mag=mag,
+        accel=accel,
+        gyro=gyro,
+        meta=meta,
+        truth=truth,
+        source=str(p),
+        format=f"{NAME}-{platform}",
+        dropped=dropped,
+    )

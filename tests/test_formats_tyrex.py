@@ -1,0 +1,108 @@
+"""The tyrex benchmark layouts (Android Senslogs, iOS): real trials against their pdr-csv conversions, and
+malformed input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pdr_mag.conventions import quat_to_rot
+from replay.errors import InputError
+from replay.formats import detect, pdrcsv, read_recording, tyrex
+from tests.conftest import dataset
+
+
+def _same(a, b):
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a.t, b.t, atol=1e-6)  # pdr-csv keeps 6 decimals of time
+    np.testing.assert_allclose(a.xyz, b.xyz, rtol=1e-7, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "platform,trial",
+    [
+        ("android", "Thibaud_Nexus5_Dist_FrontPocket"),
+        ("ios", "Thibaud_iPhone5_NoDist_Texting"),
+        ("android", "calib_mag_Nexus5_d2"),
+        ("ios", "calib_mag_iPhone5_d3"),
+    ],
+)
+def test_raw_trial_matches_converted(platform, trial):
+    raw = dataset("tyrex-attitude", platform, trial)
+    ref = pdrcsv.read(dataset("tyrex-pdrcsv", trial))
+    assert detect(raw) == "tyrex"
+    rec = read_recording(raw)
+    assert rec.format == f"tyrex-{platform}"
+    for k in ("mag", "accel", "gyro"):
+        _same(getattr(rec, k), getattr(ref, k))
+    if ref.truth is not None:
+        assert rec.truth is not None and rec.meta["truth_north"] == "true"
+        np.testing.assert_allclose(rec.truth[0], ref.truth[0], atol=1e-6)
+        dots = np.abs(np.sum(rec.truth[1] * ref.truth[1], axis=1))
+        assert np.all(dots > 1 - 1e-8)
+        # axes and sign against the mocap: the specific force rotated into ENU points up (+g on z)
+        tq, q = rec.truth
+        i = np.clip(np.searchsorted(tq, rec.accel.t), 0, len(tq) - 1)
+        near = np.abs(tq[i] - rec.accel.t) < 0.02
+        up = np.einsum("nij,nj->ni", quat_to_rot(q[i[near]]), rec.accel.xyz[near])
+        np.testing.assert_allclose(np.median(up, axis=0), [0, 0, 9.8], atol=0.3)
+
+
+def test_glitches_and_nan_frames_counted():
+    rec = tyrex.read(dataset("tyrex-attitude", "android", "Thibaud_Nexus5_Dist_FrontPocket"))
+    assert rec.dropped["truth:nan"] == 498
+    assert rec.dropped["truth:glitch"] == 634
+    assert len(rec.truth[0]) == 7200 - 498 - 634
+    assert rec.meta["date"] == "2016-06-02" and rec.meta["device"] == "LGE Nexus 5"
+
+
+def _android(tmp_path, mag="0.0 30 0 -30 0 0 0\n0.02 30 1 -30 0 0 0\n0.04 31 1 -30 0 0 0\n"):
+    d = tmp_path / "rec"
+    d.mkdir()
+    (d / "record.properties").write_text("[Device]\nModel = Phone\n\n[Time]\nStartTime = 1464686052\n")
+    (d / "magnetometer.txt").write_text(mag)
+    (d / "accelerometer.txt").write_text("0.0 0 0 9.8\n0.01 0 0 9.81\n0.02 0 0 9.8\n")
+    (d / "gyroscope.txt").write_text("0.0 0 0 0.01 0 0 0\n0.01 0 0 0.01 0 0 0\n")
+    return d
+
+
+def test_fixture_android_nan_and_duplicate(tmp_path):
+    d = _android(tmp_path, "0.0 30 0 -30\n0.02 nan 1 -30\n0.02 30 1 -30\n0.02 30 1 -30\n0.04 31 1 -30\n")
+    rec = read_recording(d)
+    assert len(rec.mag) == 3 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
+    assert rec.truth is None and "latitude_deg" not in rec.meta
+
+
+@pytest.mark.parametrize(
+    "mag,problem,line",
+    [
+        ("0.0 30 0 -30\n0.02 30 x -30\n", "not a number: 'x'", 2),
+        ("0.0 30 0 -30\n0.02 30 0 -30\n0.01 30 0 -30\n", "time goes backwards", 3),
+        ("0.0 30 0 -30\n0.02 30 0 -30\n0.04 30\n", "truncated", 3),
+        ("0.0 30000 0 -30000\n0.02 30000 0 -30000\n", "wrong unit", None),
+        ("", "empty stream", None),
+    ],
+)
+def test_malformed(tmp_path, mag, problem, line):
+    d = _android(tmp_path, mag)
+    with pytest.raises(InputError) as ei:
+        read_recording(d)
+    assert problem in ei.value.problem
+    assert ei.value.line == line
+    assert "magnetometer.txt" in str(ei.value)
+
+
+def test_stream_missing(tmp_path):
+    d = _android(tmp_path)
+    (d / "gyroscope.txt").unlink()
+    with pytest.raises(InputError, match=r"gyroscope\.txt: missing"):
+        read_recording(d)
+
+
+def test_ios_bad_boot_time(tmp_path):
+    d = tmp_path / "ios"
+    d.mkdir()
+    (d / "description.txt").write_text("[Time]\nBootTime = soon\n")
+    (d / "magnetometer.txt").write_text("1 30 0 -30\n2 30 0 -30\n")
+    with pytest.raises(InputError, match="BootTime is not a number"):
+        read_recording(d)
