@@ -1,0 +1,152 @@
+"""The Indoor Location Competition 2.0 path logs (Microsoft / XYZ10 shopping-mall traces).
+
+One tab-separated text file per walk. ``#`` lines are the header (``startTime:<unix ms>``, site and floor,
+``Brand``/``Model``, one line per sensor with ``type:<android type>`` and ``maximumRange``, ``endTime``).
+Data lines are ``<unix ms> <TAB> TYPE_… <TAB> values…``:
+
+======================================  ===================================================
+``TYPE_ACCELEROMETER``                  x, y, z (m/s², Android frame), accuracy
+``TYPE_GYROSCOPE``                      x, y, z (rad/s), accuracy
+``TYPE_GYROSCOPE_UNCALIBRATED``         x, y, z (rad/s), drift x, y, z, accuracy
+``TYPE_MAGNETIC_FIELD``                 x, y, z (µT, calibrated by the OS), accuracy
+``TYPE_MAGNETIC_FIELD_UNCALIBRATED``    x, y, z (µT, raw), bias x, y, z, accuracy
+``TYPE_WAYPOINT``                       x, y (metres on the floor map: x east, y north)
+======================================  ===================================================
+
+Android's frame and units are the contract's, so nothing is converted. The raw streams are preferred:
+the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope from
+``TYPE_GYROSCOPE_UNCALIBRATED``; the calibrated types are used only when the raw ones are absent (then
+``meta["mag_os_calibrated"]`` is True); the OS's last hard-iron estimate is kept as
+``meta["mag_os_bias_uT"]``. Times are seconds since the header's ``startTime``
+(``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
+(truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
+header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections import Counter
+from pathlib import Path
+
+from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.recording import Recording
+
+NAME = "ms-indoor"
+
+# data type → (stream, rank: lower is preferred), Android sensor type number of its header line
+_TYPES = {
+    "TYPE_MAGNETIC_FIELD_UNCALIBRATED": ("mag", 0, 14),
+    "TYPE_MAGNETIC_FIELD": ("mag", 1, 2),
+    "TYPE_ACCELEROMETER": ("accel", 0, 1),
+    "TYPE_GYROSCOPE_UNCALIBRATED": ("gyro", 0, 16),
+    "TYPE_GYROSCOPE": ("gyro", 1, 4),
+}
+
+
+def detect(path: Path) -> bool:
+    if not path.is_file():
+        return False
+    with path.open("rb") as fh:
+        head = fh.read(4096)
+    return head.startswith(b"#\tstartTime:") or (
+        b"\tTYPE_ACCELEROMETER\t" in head and not head.startswith(b"\x89")
+    )
+
+
+def _header(line: str, meta: dict, ranges: dict) -> None:
+    fields = {}
+    for cell in line.lstrip("#").strip().split("\t"):
+        k, sep, v = cell.partition(":")
+        if sep:
+            fields[k.strip()] = v.strip()
+    if "startTime" in fields:
+        meta["start_time_unix"] = float(fields["startTime"]) / 1000.0
+    if "Model" in fields:
+        meta["device"] = f"{fields.get('Brand', '')} {fields['Model']}".strip()
+    if "FloorName" in fields:
+        meta["site"] = f"{fields.get('SiteName', '')} {fields['FloorName']}".strip()
+    if "type" in fields and "maximumRange" in fields:
+        try:
+            ranges[int(fields["type"])] = float(fields["maximumRange"])
+        except ValueError:
+            pass
+
+
+def read(path) -> Recording:
+    """Read one path log (streaming line by line) into a :class:`Recording`."""
+    p = Path(path)
+    dropped: Counter = Counter()
+    meta: dict = {}
+    ranges: dict[int, float] = {}
+    builders: dict[str, StreamBuilder] = {}
+    waypoints: list[list[float]] = []
+    t0_ms: float | None = None
+    last_bias: list[str] | None = None
+    with open_text(p) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if line.startswith("#"):
+                try:
+                    _header(line, meta, ranges)
+                except ValueError:
+                    raise InputError(p, f"bad header line {line.strip()!r}", lineno) from None
+                continue
+            parts = line.rstrip("\r\n").split("\t")
+            if len(parts) < 2:
+                if line.strip():
+                    raise InputError(p, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", lineno)
+                continue
+            kind = parts[1]
+            if kind not in _TYPES and kind != "TYPE_WAYPOINT":
+                continue
+            if t0_ms is None:
+                t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
+            nval = 2 if kind == "TYPE_WAYPOINT" else 3
+            if len(parts) < 2 + nval:
+                raise InputError(
+                    p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno
+                )
+            vals = floats(p, lineno, [parts[0], *parts[2 : 2 + nval]])
+            t = (vals[0] - t0_ms) / 1000.0
+            if kind == "TYPE_WAYPOINT":
+                waypoints.append([t, vals[1], vals[2]])
+                continue
+            b = builders.get(kind)
+            if b is None:
+                key = _TYPES[kind][0]
+                limit = ranges.get(_TYPES[kind][2])
+                b = builders[kind] = StreamBuilder(p, key, Counter(), limit=limit)
+            b.add(lineno, t, vals[1:])
+            if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(parts) >= 8:
+                last_bias = parts[5:8]
+    chosen: dict[str, StreamBuilder] = {}
+    for kind, (key, rank, _) in sorted(_TYPES.items(), key=lambda kv: kv[1][1]):
+        if kind in builders and len(builders[kind]) and key not in chosen:
+            chosen[key] = builders[kind]
+            dropped.update(builders[kind].dropped)
+            if key == "mag":
+                meta["mag_os_calibrated"] = rank > 0
+    if "mag" not in chosen:
+        raise InputError(p, "no magnetometer lines (TYPE_MAGNETIC_FIELD[_UNCALIBRATED])")
+    if last_bias is not None and not meta["mag_os_calibrated"]:
+        try:
+            meta["mag_os_bias_uT"] = [float(v) for v in last_bias]
+        except ValueError:
+            pass
+    if "start_time_unix" in meta:
+        meta["date"] = dt.datetime.fromtimestamp(meta["start_time_unix"], dt.UTC).date().isoformat()
+    if waypoints:
+        waypoints.sort()
+        meta["waypoints"] = waypoints
+        meta["waypoints_frame"] = "floor map, metres, x east, y north (true)"
+    streams = {k: finish(b, unit_hint=f"{k} in Android units") for k, b in chosen.items()}
+    return Recording(
+        mag=streams["mag"],
+        accel=streams.get("accel"),
+        gyro=streams.get("gyro"),
+        meta=meta,
+        source=str(p),
+        format=NAME,
+        dropped=dropped,
+    )
