@@ -28,7 +28,7 @@ READERS = (
     "phyphox",
     "msindoor",
     "ipin",
-    "matimu",
+    "broad",
     "pdrmcap",
     "rosmcap",
 )
@@ -85,6 +85,11 @@ def read_recording(path, fmt: str | None = None) -> Recording:
             from replay.formats import _mcap
 
             raise InputError(p, _mcap.why_unknown(p))
+        if head.startswith(b"MATLAB"):
+            raise InputError(
+                p,
+                "a MATLAB file without a known layout's variables (imu_mag, imu_acc, imu_gyr), or truncated",
+            )
     raise InputError(
         p, "not a recording in a known format (expected one of: " + ", ".join(m.NAME for m in mods) + ")"
     )
