@@ -1,0 +1,769 @@
+"""Online (streaming) hard-iron calibration, stale-calibration test and figure-8 recalibration (seed 003).
+
+Three pieces, all with bounded memory:
+
+1. A **diversity buffer** of raw magnetometer samples ``m`` (with the gravity direction ``u`` at that
+   instant).  A new sample is rejected when a kept sample lies within ``min_sep_frac · F`` of it in raw µT
+   space *and* had nearly the same gravity direction: repeated orientations add no information but would
+   dominate a least-squares fit.  When full, the most redundant sample is evicted; a kept sample older
+   than ``refresh_s`` may be replaced by a close new one, so the buffer follows slow drift.
+
+2. **Refits** of the hard-iron offset ``b`` on the buffer:
+
+   * the linear least-squares sphere fit of seed 003 (eqs. 3–16,
+     :func:`pdr_mag.calibration.sphere.fit_sphere`), which needs samples over the whole sphere;
+   * a **gravity-aided fit**, which does not.  Phone walks rarely cover the sphere (texting pose: mostly yaw
+     turns about the vertical).  With the accelerometer's (or the attitude filter's) unit up vector ``u_i``
+     in the device frame, and the Earth field of strength ``F`` and inclination ``I`` (positive down), every
+     sample obeys two equations::
+
+         |m_i − b|        = F                  (strength)
+         (m_i − b) · u_i  = −F · sin I         (dip: the field points below the horizon)
+
+     Under pure yaw the points ``m_i`` lie on a circle about the axis ``u``: the circle's centre gives the
+     two components of ``b`` across ``u``, and the dip equation the component along ``u`` — so ``b`` is
+     observable from yaw rotations alone.  Without the World Magnetic Model, ``F`` and ``F sin I`` are
+     taken from the last accepted calibration (fitted radius and mean dip) or, failing that, estimated as two
+     more unknowns (which then needs some tilt diversity).  Solved by a linear initial value (the strength
+     equation written as ``2 m·b − |b|² = |m|² − F²`` with ``k = |b|²`` a free unknown, plus the dip rows)
+     followed by Gauss–Newton with Huber reweighting, residuals scaled by ``sigma_strength_uT`` and
+     ``F · sigma_tilt``;
+   * the calibration core's full fit (``pdr_mag.calibration.calibrate``, ellipsoid / ML) once the coverage
+     allows it.
+
+   Every refit goes through the acceptance rules (the calibration core's
+   :mod:`pdr_mag.calibration.coverage` when present) before it replaces the calibration.
+
+3. A **stale-calibration test** telling a passing disturbance from an offset that moved (e.g. the phone got a
+   magnetised case).  The physics: a new device-fixed offset ``δ`` adds the same vector to the calibrated
+   field in the device frame whatever the orientation, so ``|m_cal| − F ≈ δ · m̂_cal`` varies with
+   orientation in a fixed, repeatable way and the *gravity-aided fit of δ on recent calibrated samples*
+   explains it down to the noise, with the same ``δ`` from the older and the newer half of the window.  An
+   external anomaly is fixed in the world (or moves with the walker's position), so it rotates with the
+   device like the Earth's field: no constant device-frame ``δ`` explains it, the two halves disagree and
+   the fit residual stays large; and it passes.  Only the first case requests a recalibration: the provisional
+   offset ``b + S⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
+   rotation-rich episode (a figure-8: gyro rate above ``episode_rate`` for a while) with enough coverage gives
+   the new calibration (``recalibrated``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.sphere import fit_sphere
+
+# ---------------------------------------------------------------------------------------------- settings
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """Settings of the online calibrator (defaults suit 20–200 Hz phone magnetometers).
+
+    Attributes
+    ----------
+    buffer_size : int
+        Maximum number of samples in the diversity buffer.
+    min_sep_frac : float
+        A new sample closer than ``min_sep_frac · F`` (raw µT) to a kept one with a similar gravity
+        direction is redundant.
+    min_sep_up_deg : float
+        Gravity directions closer than this count as similar.
+    refresh_s : float
+        A redundant new sample replaces its kept neighbour when that one is older than this.
+    refit_period_s : float
+        Stream time between refit attempts (before the first acceptance: ``refit_period_s / 2``).
+    min_samples : int
+        Fewer samples in the buffer: no refit.
+    sigma_strength_uT : float
+        1-σ of the strength equation (noise + unmodelled soft iron), µT.
+    sigma_tilt_deg : float
+        1-σ of the gravity direction, deg (the dip equation's σ is ``F · sin(sigma_tilt)``).
+    max_offset_std_uT : float
+        A gravity/sphere refit is accepted only when every offset σ is below this.
+    max_rms_frac : float
+        Accepted only when the robust residual RMS is below ``max_rms_frac · F``.
+    max_offset_uT : float
+        Offsets beyond this are implausible.
+    strength_tol_frac : float
+        After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
+        and count as deviating in the stale test.
+    ellipsoid_coverage : float
+        Coverage from which the core's full (ellipsoid) fit is attempted.
+    sphere_coverage : float
+        Coverage from which the sphere LLS fit is attempted.
+    stale_window_s, stale_check_s, stale_min_frac, stale_min_shift_uT : float
+        Stale test: recent window length, check period, share of deviating samples in the last third of the
+        window needed to run the test, and the least offset shift (also ≥ 4 σ) that counts.
+    stale_rate_hz : float
+        Decimation of the recent window.
+    episode_rate : float
+        Smoothed gyro rate (rad/s) above which a rotation-rich episode (figure-8) is on; off below half.
+    recal_fallback_s : float
+        While recalibrating without a figure-8, an accepted gravity-aided refit on the new buffer older
+        than this ends the recalibration.
+    """
+
+    buffer_size: int = 400
+    min_sep_frac: float = 0.12
+    min_sep_up_deg: float = 6.0
+    refresh_s: float = 120.0
+    refit_period_s: float = 2.0
+    min_samples: int = 12
+    sigma_strength_uT: float = 1.0
+    sigma_tilt_deg: float = 3.0
+    max_offset_std_uT: float = 2.0
+    max_rms_frac: float = 0.08
+    max_offset_uT: float = 2000.0
+    strength_tol_frac: float = 0.15
+    ellipsoid_coverage: float = 0.6
+    sphere_coverage: float = 0.4
+    stale_window_s: float = 30.0
+    stale_check_s: float = 2.0
+    stale_min_frac: float = 0.5
+    stale_min_shift_uT: float = 6.0
+    stale_rate_hz: float = 10.0
+    episode_rate: float = 1.5
+    recal_fallback_s: float = 20.0
+
+
+# ---------------------------------------------------------------------------------------------- the fit
+
+
+def gravity_aided_offset(
+    mag: np.ndarray,
+    up: np.ndarray,
+    strength: float | None = None,
+    sin_dip: float | None = None,
+    sigma_strength_uT: float = 1.0,
+    sigma_tilt_deg: float = 3.0,
+    iterations: int = 8,
+) -> MagCalibration:
+    """Hard-iron offset from strength and dip constraints (see the module docstring for the model).
+
+    Parameters
+    ----------
+    mag : ndarray (N, 3)
+        Raw magnetometer samples m_i, µT, device frame.
+    up : ndarray (N, 3)
+        Unit up vectors u_i in the device frame (normalised specific force at rest).
+    strength, sin_dip : float, optional
+        F (µT) and sin I of the Earth field; both estimated when omitted.
+    sigma_strength_uT, sigma_tilt_deg : float
+        1-σ of the two residuals (µT, and deg of tilt).
+
+    Returns
+    -------
+    MagCalibration
+        ``method="gravity"``, identity soft iron, ``field_uT`` = F, offset covariance, ``extra`` with
+        ``sin_dip`` and ``dip_rms_uT``.  Acceptance is not judged here.
+    """
+    m = np.asarray(mag, dtype=float)
+    u = np.asarray(up, dtype=float)
+    if m.ndim != 2 or m.shape[1] != 3 or u.shape != m.shape:
+        raise ValueError(f"mag, up: expected two (N, 3) arrays, got {m.shape} and {u.shape}")
+    if len(m) < 5:
+        raise ValueError(f"mag: need at least 5 samples, got {len(m)}")
+    un = np.linalg.norm(u, axis=1, keepdims=True)
+    if not (np.all(np.isfinite(m)) and np.all(np.isfinite(u)) and np.all(un > 0)):
+        raise ValueError("mag, up: contain NaN, infinite or zero vectors")
+    u = u / un
+    free = strength is None or sin_dip is None
+    n = len(m)
+    centre = m.mean(axis=0)
+    mc = m - centre  # centred for conditioning
+    f_guess = float(strength) if strength is not None else 50.0
+    # ---- linear initial value
+    if free:
+        # unknowns (b, c, s): 2 m·b + c = |m|², u·b − s = m·u   (c = F² − |b|², s = F sin I)
+        a1 = np.column_stack([2 * mc, np.ones(n), np.zeros(n)]) / (2 * f_guess)
+        y1 = np.einsum("ij,ij->i", mc, mc) / (2 * f_guess)
+        a2 = np.column_stack([u, np.zeros(n), -np.ones(n)])
+    else:
+        # unknowns (b, k): 2 m·b − k = |m|² − F²,  u·b = m·u + s
+        s_ref = float(strength) * float(sin_dip)
+        a1 = np.column_stack([2 * mc, -np.ones(n)]) / (2 * f_guess)
+        y1 = (np.einsum("ij,ij->i", mc, mc) - float(strength) ** 2) / (2 * f_guess)
+        a2 = np.column_stack([u, np.zeros(n)])
+    y2 = np.einsum("ij,ij->i", mc, u) + (0.0 if free else s_ref)
+    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
+    a = np.vstack([a1 / sigma_strength_uT, a2 / sig2])
+    y = np.concatenate([y1 / sigma_strength_uT, y2 / sig2])
+    sol, _, rank, sv = np.linalg.lstsq(a, y, rcond=None)
+    if rank < a.shape[1] or sv[-1] < 1e-9 * sv[0]:
+        raise ValueError("mag, up: offset not observable from these samples (degenerate geometry)")
+    b = sol[:3].copy()
+    if free:
+        s = float(sol[4])
+        f = float(np.sqrt(max(sol[3] + b @ b, 1e-6)))
+    else:
+        f, s = float(strength), s_ref
+    # ---- Gauss–Newton with Huber weights
+    huber = 2.5
+    npar = 5 if free else 3
+    for _ in range(iterations):
+        d = mc - b
+        nd = np.linalg.norm(d, axis=1)
+        r1 = (nd - f) / sigma_strength_uT
+        r2 = (np.einsum("ij,ij->i", d, u) + s) / sig2
+        r = np.concatenate([r1, r2])
+        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
+        j1 = np.zeros((n, npar))
+        j1[:, :3] = -d / nd[:, None] / sigma_strength_uT
+        j2 = np.zeros((n, npar))
+        j2[:, :3] = -u / sig2
+        if free:
+            j1[:, 3] = -1.0 / sigma_strength_uT
+            j2[:, 4] = 1.0 / sig2
+        jac = np.vstack([j1, j2])
+        jw = jac * w[:, None]
+        h = jac.T @ jw
+        g = jw.T @ r
+        try:
+            step = np.linalg.solve(h, -g)
+        except np.linalg.LinAlgError as exc:
+            raise ValueError("mag, up: singular normal equations") from exc
+        b = b + step[:3]
+        if free:
+            f += float(step[3])
+            s += float(step[4])
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    d = mc - b
+    nd = np.linalg.norm(d, axis=1)
+    e1 = nd - f
+    e2 = np.einsum("ij,ij->i", d, u) + s
+    r = np.concatenate([e1 / sigma_strength_uT, e2 / sig2])
+    w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
+    chi2 = float(np.sum(w * r**2)) / max(len(r) - npar, 1)
+    try:
+        cov = np.linalg.inv(h) * max(chi2, 1.0)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("mag, up: singular normal equations") from exc
+    cov_b = cov[:3, :3]
+    w1 = w[:n]
+    rms = float(np.sqrt(np.sum(w1 * e1**2) / max(np.sum(w1), 1e-12)))
+    return MagCalibration.from_arrays(
+        b + centre,
+        None,
+        field_uT=f,
+        method="gravity",
+        residual_rms_uT=rms,
+        offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+        n_samples=n,
+        covariance=cov_b,
+        extra={
+            "covariance_params": ["offset_x", "offset_y", "offset_z"],
+            "sin_dip": s / f if f > 0 else float("nan"),
+            "dip_rms_uT": float(np.sqrt(np.mean(e2**2))),
+            "strength_estimated": bool(free),
+        },
+    )
+
+
+# ---------------------------------------------------------------------------------------------- coverage
+
+_N_DIRS = 64
+_GOLD = np.pi * (3.0 - np.sqrt(5.0))
+_zs = 1.0 - 2.0 * (np.arange(_N_DIRS) + 0.5) / _N_DIRS
+_DIRS = np.column_stack(
+    [
+        np.sqrt(1 - _zs**2) * np.cos(_GOLD * np.arange(_N_DIRS)),
+        np.sqrt(1 - _zs**2) * np.sin(_GOLD * np.arange(_N_DIRS)),
+        _zs,
+    ]
+)
+
+
+def direction_coverage(mag_cal: np.ndarray) -> float:
+    """Share of 64 near-uniform directions with a calibrated sample direction within 30°, in [0, 1].
+
+    Used only when the calibration core's :mod:`pdr_mag.calibration.coverage` is not available.
+    """
+    m = np.asarray(mag_cal, dtype=float)
+    if len(m) == 0:
+        return 0.0
+    d = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+    return float(np.mean(np.max(d @ _DIRS.T, axis=0) > np.cos(np.radians(30.0))))
+
+
+def _coverage(mag_cal: np.ndarray) -> float:
+    try:
+        from pdr_mag.calibration import coverage as core_cov
+    except ImportError:
+        return direction_coverage(mag_cal)
+    fn = getattr(core_cov, "coverage", None) or getattr(core_cov, "orientation_coverage", None)
+    if fn is None:
+        return direction_coverage(mag_cal)
+    try:
+        return float(fn(mag_cal))
+    except Exception:  # noqa: BLE001 - a foreign signature: fall back, never raise in the loop
+        return direction_coverage(mag_cal)
+
+
+def judge(cal: MagCalibration, settings: OnlineSettings, field_ref: float | None) -> MagCalibration:
+    """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
+
+    The calibration core's rules (``coverage.accept``/``acceptance``) are applied when present; the online
+    rules below are applied in any case: offset σ, residual RMS relative to F, offset magnitude, radius
+    against the reference strength.
+    """
+    reasons: list[str] = []
+    try:
+        from pdr_mag.calibration import coverage as core_cov
+
+        rule = getattr(core_cov, "accept", None) or getattr(core_cov, "acceptance", None)
+    except ImportError:
+        rule = None
+    if rule is not None and cal.method != "gravity":
+        try:
+            verdict = rule(cal, field=field_ref) if field_ref is not None else rule(cal)
+            if isinstance(verdict, MagCalibration):
+                reasons += list(verdict.reasons) if not verdict.accepted else []
+            elif isinstance(verdict, tuple) and len(verdict) == 2:
+                reasons += [] if verdict[0] else list(verdict[1])
+        except Exception:  # noqa: BLE001 - foreign signature; online rules still apply
+            pass
+    std = np.asarray(cal.offset_std_uT, dtype=float)
+    f = cal.field_uT
+    if not np.all(np.isfinite(std)) or np.max(std) > settings.max_offset_std_uT:
+        reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {settings.max_offset_std_uT:g} µT")
+    if not np.isfinite(f) or f <= 0:
+        reasons.append("no finite field radius")
+    elif cal.residual_rms_uT > settings.max_rms_frac * f:
+        reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {settings.max_rms_frac:.0%} of F")
+    if np.linalg.norm(cal.offset_array) > settings.max_offset_uT:
+        reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
+    if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > 0.25:
+        reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
+    return cal.with_acceptance(not reasons, reasons)
+
+
+def _full_fit(mag: np.ndarray, field_ref: float | None) -> MagCalibration:
+    """The calibration core's fit (ellipsoid/ML) when present, else the sphere LLS."""
+    try:
+        from pdr_mag.calibration import calibrate  # type: ignore[attr-defined]
+    except ImportError:
+        return fit_sphere(mag)
+    try:
+        return calibrate(mag, method="auto")
+    except TypeError:
+        return calibrate(mag)
+
+
+# ---------------------------------------------------------------------------------------------- calibrator
+
+
+class OnlineCalibrator:
+    """The streaming calibration state machine: ``none`` → ``offset``/``ellipsoid`` ⇄ ``recalibrating``.
+
+    Feed it magnetometer samples in time order with :meth:`update`; read :attr:`calibration` and
+    :attr:`cal_state`; it returns :class:`pdr_mag.estimates.Event`-ready ``(t, kind, data)`` tuples.
+
+    Parameters
+    ----------
+    settings : OnlineSettings
+    calibration : MagCalibration, optional
+        A device calibration to start from (``cal_state`` ``offset`` or ``ellipsoid``).
+    strength, sin_dip : float, optional
+        Earth field strength F (µT) and sin of the inclination from the WMM; None when unknown.
+    """
+
+    def __init__(
+        self,
+        settings: OnlineSettings | None = None,
+        calibration: MagCalibration | None = None,
+        strength: float | None = None,
+        sin_dip: float | None = None,
+    ):
+        self.settings = settings or OnlineSettings()
+        self.strength_wmm = None if strength is None else float(strength)
+        self.sin_dip_wmm = None if sin_dip is None else float(sin_dip)
+        self.calibration = calibration
+        self.cal_state = "none" if calibration is None else _state_of(calibration)
+        self.provided = calibration is not None
+        s = self.settings
+        self._buf = np.full((s.buffer_size, 7), np.nan)  # t, m(3), u(3)
+        self._nbuf = 0
+        nrec = int(s.stale_window_s * s.stale_rate_hz) + 1
+        self._rec = np.full((nrec, 7), np.nan)  # ring of recent samples
+        self._rec_i = 0
+        self._last_rec_t = -np.inf
+        self._next_refit_t = -np.inf
+        self._next_stale_t = -np.inf
+        self._rate_ema = 0.0
+        self._episode = False
+        self._episode_seen = False
+        self._recal_t = np.nan
+        self._n_refits = 0
+        self._last_reject_t = -np.inf
+
+    # ------------------------------------------------------------------ reference field
+    @property
+    def field_ref(self) -> float | None:
+        """F, µT: the WMM strength, else the radius of the current calibration."""
+        if self.strength_wmm is not None:
+            return self.strength_wmm
+        if self.calibration is not None and np.isfinite(self.calibration.field_uT):
+            return float(self.calibration.field_uT)
+        return None
+
+    @property
+    def sin_dip_ref(self) -> float | None:
+        if self.sin_dip_wmm is not None:
+            return self.sin_dip_wmm
+        if self.calibration is not None:
+            v = self.calibration.extra.get("sin_dip") if isinstance(self.calibration.extra, dict) else None
+            if v is not None and np.isfinite(v):
+                return float(v)
+        return None
+
+    @property
+    def episode(self) -> bool:
+        """Whether a rotation-rich episode (figure-8) is on."""
+        return self._episode
+
+    @property
+    def buffer(self) -> np.ndarray:
+        """The diversity buffer's raw samples, (n, 3) µT (a copy)."""
+        return self._buf[: self._nbuf, 1:4].copy()
+
+    def coverage(self) -> float:
+        if self._nbuf == 0:
+            return 0.0
+        m = self._buf[: self._nbuf, 1:4]
+        centre = self.calibration.offset_array if self.calibration is not None else m.mean(axis=0)
+        return _coverage(m - centre)
+
+    # ------------------------------------------------------------------ the loop
+    def update(self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray) -> list:
+        """Take raw magnetometer samples (time-ordered) with up vectors and gyro rates; return events.
+
+        Never raises on odd data: samples with NaN are skipped.
+        """
+        events: list = []
+        s = self.settings
+        for i in range(len(t)):
+            ti = float(t[i])
+            mi = mag[i]
+            ui = up[i]
+            if not (np.all(np.isfinite(mi)) and np.all(np.isfinite(ui))):
+                continue
+            ri = float(rate[i]) if np.isfinite(rate[i]) else 0.0
+            self._track_episode(ti, ri, events)
+            ok = self._consistent(mi)
+            if ti - self._last_rec_t >= 1.0 / s.stale_rate_hz:
+                self._rec[self._rec_i % len(self._rec)] = (ti, *mi, *ui)
+                self._rec_i += 1
+                self._last_rec_t = ti
+            if ok or self.cal_state in ("none", "recalibrating"):
+                self._add(ti, mi, ui)
+            if ti >= self._next_refit_t:
+                period = s.refit_period_s if self.calibration is not None else 0.5 * s.refit_period_s
+                self._next_refit_t = ti + period
+                self._refit(ti, events)
+            if (
+                ti >= self._next_stale_t
+                and self.calibration is not None
+                and self.cal_state != "recalibrating"
+            ):
+                self._next_stale_t = ti + s.stale_check_s
+                self._stale_check(ti, events)
+        return events
+
+    def _consistent(self, m: np.ndarray) -> bool:
+        f = self.field_ref
+        if self.calibration is None or f is None:
+            return True
+        mc = self.calibration.apply(m)
+        return abs(float(np.sqrt(mc @ mc)) - f) < self.settings.strength_tol_frac * f
+
+    def _track_episode(self, t: float, rate: float, events: list) -> None:
+        s = self.settings
+        self._rate_ema += 0.02 * (rate - self._rate_ema)  # ~1 s at 50 Hz
+        if not self._episode and self._rate_ema > s.episode_rate:
+            self._episode = True
+            self._episode_seen = True
+            events.append((t, "rotation_episode_start", {}))
+        elif self._episode and self._rate_ema < 0.5 * s.episode_rate:
+            self._episode = False
+            events.append((t, "rotation_episode_end", {}))
+            self._next_refit_t = t  # try the full fit right away
+
+    # ------------------------------------------------------------------ diversity buffer
+    def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
+        s = self.settings
+        n = self._nbuf
+        f = self.field_ref or 50.0
+        if n:
+            kept = self._buf[:n]
+            dm = np.sum((kept[:, 1:4] - m) ** 2, axis=1)
+            du = kept[:, 4:7] @ u
+            close = (dm < (s.min_sep_frac * f) ** 2) & (du > np.cos(np.radians(s.min_sep_up_deg)))
+            if np.any(close):
+                j = int(np.flatnonzero(close)[np.argmin(kept[close, 0])])
+                if t - kept[j, 0] > s.refresh_s:
+                    self._buf[j] = (t, *m, *u)
+                return
+        if n < s.buffer_size:
+            self._buf[n] = (t, *m, *u)
+            self._nbuf += 1
+            return
+        kept = self._buf[:n, 1:4]
+        d2 = np.sum((kept[:, None, :] - kept[None, :, :]) ** 2, axis=2)
+        np.fill_diagonal(d2, np.inf)
+        j = int(np.argmin(np.min(d2, axis=1)))
+        self._buf[j] = (t, *m, *u)
+
+    def clear_buffer(self) -> None:
+        self._buf[:] = np.nan
+        self._nbuf = 0
+
+    # ------------------------------------------------------------------ refits
+    def _refit(self, t: float, events: list) -> None:
+        s = self.settings
+        n = self._nbuf
+        if n < s.min_samples:
+            return
+        m = self._buf[:n, 1:4]
+        u = self._buf[:n, 4:7]
+        f_ref = self.field_ref
+        cands: list[MagCalibration] = []
+        centre = self.calibration.offset_array if self.calibration is not None else None
+        try:
+            g = gravity_aided_offset(
+                m,
+                u,
+                f_ref,
+                self.sin_dip_ref if f_ref is not None else None,
+                s.sigma_strength_uT,
+                s.sigma_tilt_deg,
+            )
+            cands.append(g)
+            centre = g.offset_array
+        except ValueError:
+            pass
+        cov = _coverage(m - (centre if centre is not None else m.mean(axis=0)))
+        if cov >= s.sphere_coverage:
+            try:
+                sp = fit_sphere(m)
+                sp = replace(sp, coverage=cov, extra={**sp.extra, "sin_dip": _mean_sin_dip(m, u, sp)})
+                cands.append(sp)
+            except ValueError:
+                pass
+        if cov >= s.ellipsoid_coverage and (self._episode_seen or self.cal_state == "none"):
+            try:
+                full = _full_fit(m, f_ref)
+                full = replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
+                full = replace(full, extra={**full.extra, "sin_dip": _mean_sin_dip(m, u, full)})
+                cands.append(full)
+            except ValueError:
+                pass
+        judged = [judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref) for c in cands]
+        good = [c for c in judged if c.accepted]
+        if not good:
+            if judged and self.calibration is None and t - self._last_reject_t > 30.0:
+                self._last_reject_t = t
+                best = judged[-1]
+                events.append(
+                    (t, "calibration_rejected", {"method": best.method, "reasons": list(best.reasons)})
+                )
+            return
+        # prefer the richest model that passed: ellipsoid/ml > sphere > gravity
+        rank = {"gravity": 0, "sphere": 1}
+        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
+        self._accept(t, best, events)
+
+    def _accept(self, t: float, cal: MagCalibration, events: list) -> None:
+        s = self.settings
+        old = self.calibration
+        if self.cal_state == "recalibrating":
+            rich = cal.method != "gravity" and self._episode_seen
+            waited = np.isfinite(self._recal_t) and t - self._recal_t > s.recal_fallback_s
+            if not (rich or waited):
+                # provisional: keep refining the offset, stay in "recalibrating"
+                self.calibration = cal
+                return
+            self.calibration = cal
+            self.cal_state = _state_of(cal)
+            self._recal_t = np.nan
+            events.append((t, "recalibrated", {**_cal_summary(cal), "figure8": bool(rich)}))
+            return
+        if old is not None:
+            # do not replace a richer calibration by a poorer one, nor churn on noise
+            if _state_of(old) == "ellipsoid" and cal.method == "gravity":
+                return
+            if self.provided and cal.method in ("gravity", "sphere"):
+                return
+            shift = np.linalg.norm(cal.offset_array - old.offset_array)
+            std_new = float(np.max(cal.offset_std_uT))
+            std_old = float(np.max(old.offset_std_uT)) if np.all(np.isfinite(old.offset_std_uT)) else np.inf
+            upgrade = _state_of(cal) == "ellipsoid" and _state_of(old) != "ellipsoid"
+            if not upgrade and shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old:
+                return
+        self.calibration = cal
+        self.cal_state = _state_of(cal)
+        self._n_refits += 1
+        events.append((t, "calibration_accepted", _cal_summary(cal)))
+
+    # ------------------------------------------------------------------ stale test
+    def _recent(self, t: float) -> np.ndarray:
+        r = self._rec[np.isfinite(self._rec[:, 0])]
+        r = r[r[:, 0] > t - self.settings.stale_window_s]
+        return r[np.argsort(r[:, 0])]
+
+    def _stale_check(self, t: float, events: list) -> None:
+        s = self.settings
+        cal = self.calibration
+        f = self.field_ref
+        sd = self.sin_dip_ref
+        if cal is None or f is None or sd is None:
+            return
+        r = self._recent(t)
+        if len(r) < 40 or r[-1, 0] - r[0, 0] < 0.6 * s.stale_window_s:
+            return
+        mc = cal.apply(r[:, 1:4])
+        dev = np.abs(np.linalg.norm(mc, axis=1) - f) > s.strength_tol_frac * f * 0.5
+        last = r[:, 0] > t - s.stale_window_s / 3
+        if np.mean(dev[last]) < s.stale_min_frac or np.mean(dev) < 0.5 * s.stale_min_frac:
+            return
+        half = len(r) // 2
+        try:
+            whole = gravity_aided_offset(mc, r[:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
+            a = gravity_aided_offset(mc[:half], r[:half, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
+            b = gravity_aided_offset(mc[half:], r[half:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
+        except ValueError:
+            return
+        delta = whole.offset_array
+        sig = np.asarray(whole.offset_std_uT)
+        sig_ab = np.sqrt(np.asarray(a.offset_std_uT) ** 2 + np.asarray(b.offset_std_uT) ** 2)
+        shift = float(np.linalg.norm(delta))
+        consistent = bool(np.all(np.abs(a.offset_array - b.offset_array) < np.maximum(3 * sig_ab, 3.0)))
+        explained = whole.residual_rms_uT < 0.5 * s.strength_tol_frac * f
+        significant = shift > s.stale_min_shift_uT and shift > 4 * float(np.linalg.norm(sig))
+        well_posed = float(np.max(sig)) < 2 * s.max_offset_std_uT
+        if not (consistent and explained and significant and well_posed):
+            return
+        a_inv = np.linalg.inv(cal.soft_iron_array)
+        if cal.mag_to_imu is not None:
+            a_inv = a_inv @ np.asarray(cal.mag_to_imu, dtype=float).T
+        new_offset = cal.offset_array + a_inv @ delta
+        provisional = MagCalibration.from_arrays(
+            new_offset,
+            cal.soft_iron_array,
+            field_uT=cal.field_uT,
+            method="gravity",
+            residual_rms_uT=whole.residual_rms_uT,
+            offset_std_uT=whole.offset_std_uT,
+            n_samples=whole.n_samples,
+            mag_to_imu=cal.mag_to_imu,
+            extra={"sin_dip": sd, "provisional": True},
+        )
+        events.append(
+            (
+                t,
+                "recalibration_requested",
+                {
+                    "reason": "offset moved: orientation-dependent, time-stable strength residual",
+                    "offset_shift_uT": [float(v) for v in a_inv @ delta],
+                    "residual_rms_uT": float(whole.residual_rms_uT),
+                },
+            )
+        )
+        self.calibration = provisional
+        self.cal_state = "recalibrating"
+        self.provided = False
+        self._recal_t = t
+        self._episode_seen = self._episode
+        self.clear_buffer()
+        self._rec[:] = np.nan
+
+    # ------------------------------------------------------------------ state
+    def get_state(self) -> dict:
+        return {
+            "calibration": None if self.calibration is None else self.calibration.to_dict(),
+            "cal_state": self.cal_state,
+            "provided": self.provided,
+            "buf": _arr(self._buf[: self._nbuf]),
+            "rec": _arr(self._rec),
+            "rec_i": self._rec_i,
+            "last_rec_t": _f(self._last_rec_t),
+            "next_refit_t": _f(self._next_refit_t),
+            "next_stale_t": _f(self._next_stale_t),
+            "rate_ema": self._rate_ema,
+            "episode": self._episode,
+            "episode_seen": self._episode_seen,
+            "recal_t": _f(self._recal_t),
+            "n_refits": self._n_refits,
+            "last_reject_t": _f(self._last_reject_t),
+        }
+
+    def set_state(self, st: dict) -> None:
+        self.calibration = None if st["calibration"] is None else MagCalibration.from_dict(st["calibration"])
+        self.cal_state = st["cal_state"]
+        self.provided = bool(st["provided"])
+        buf = _unarr(st["buf"], 7)
+        self._buf[:] = np.nan
+        self._buf[: len(buf)] = buf
+        self._nbuf = len(buf)
+        self._rec = _unarr(st["rec"], 7)
+        self._rec_i = int(st["rec_i"])
+        self._last_rec_t = _uf(st["last_rec_t"])
+        self._next_refit_t = _uf(st["next_refit_t"])
+        self._next_stale_t = _uf(st["next_stale_t"])
+        self._rate_ema = float(st["rate_ema"])
+        self._episode = bool(st["episode"])
+        self._episode_seen = bool(st["episode_seen"])
+        self._recal_t = _uf(st["recal_t"])
+        self._n_refits = int(st["n_refits"])
+        self._last_reject_t = _uf(st["last_reject_t"])
+
+
+def _state_of(cal: MagCalibration) -> str:
+    a = cal.soft_iron_array
+    return "offset" if np.allclose(a, np.eye(3), atol=1e-9) else "ellipsoid"
+
+
+def _mean_sin_dip(m: np.ndarray, u: np.ndarray, cal: MagCalibration) -> float:
+    mc = cal.apply(m)
+    nm = np.linalg.norm(mc, axis=1)
+    v = -np.einsum("ij,ij->i", mc, u) / np.maximum(nm, 1e-9)
+    return float(np.median(v))
+
+
+def _cal_summary(cal: MagCalibration) -> dict:
+    return {
+        "method": cal.method,
+        "offset_uT": [round(float(v), 3) for v in cal.offset],
+        "offset_std_uT": [round(float(v), 3) if np.isfinite(v) else None for v in cal.offset_std_uT],
+        "field_uT": round(float(cal.field_uT), 3) if np.isfinite(cal.field_uT) else None,
+        "residual_rms_uT": round(float(cal.residual_rms_uT), 3) if np.isfinite(cal.residual_rms_uT) else None,
+        "coverage": round(float(cal.coverage), 3) if np.isfinite(cal.coverage) else None,
+        "n_samples": int(cal.n_samples),
+    }
+
+
+def _f(v: float):
+    v = float(v)
+    if np.isnan(v):
+        return "nan"
+    if np.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return v
+
+
+def _uf(v) -> float:
+    return float(v)
+
+
+def _arr(a: np.ndarray) -> list:
+    return [[_f(x) for x in row] for row in np.asarray(a, dtype=float)]
+
+
+def _unarr(rows: list, ncol: int) -> np.ndarray:
+    if not rows:
+        return np.empty((0, ncol))
+    return np.asarray([[float(x) for x in row] for row in rows], dtype=float)
