@@ -1,0 +1,114 @@
+"""The breadboard MARG recordings (MPU6050 + HMC5883L, sunsided/sensor-fusion "set-2").
+
+A recording is a folder with two CSV files (header row first), times in seconds of the logging host:
+
+==================  ===================================================================================
+``mpu6050.csv``     ``t_s, acc_x_g, acc_y_g, acc_z_g, gyro_x_dps, gyro_y_dps, gyro_z_dps, temp_C``
+``hmc5883l.csv``    ``t_s, mag_x_gauss, mag_y_gauss, mag_z_gauss``
+==================  ===================================================================================
+
+(decoded from the upstream MATLAB v7.3 buffers ``original_mat/*.mat``; those are HDF5 files, which need
+``h5py`` — a folder with only them is reported as such).
+
+Units: accel in g, gyro in deg/s, mag in gauss (1 G = 100 µT).
+
+Axes. The board's axes are x forward, y left, z up (``A``). In ``A``:
+
+* the accelerometer reads the gravity vector (≈ −1 g on z lying level), so specific force ``f_A = -g a``;
+* the magnetometer reads the field in the same axes: ``m_A = 100 m`` (level, x to the north, it reads
+  ≈ (0.2, −0.1, −0.3) G: north and down);
+* the gyroscope's x **and** y signs are flipped: ``ω_A = (-g_x, -g_y, g_z)``. This was measured, not taken
+  from the upstream notes (which mention only x): on every rotation recording, the kinematic relation
+  ``df/dt = -ω × f`` of the accelerometer and ``dm/dt = -ω × (m - b)`` of the magnetometer hold best with
+  exactly these signs (relative residual of the magnetometer's relation 0.14–0.21 on five recordings,
+  next best sign choice 0.28–0.91); the scripted turns about z and x then come out counter-clockwise.
+
+The device frame of the contract (x right, y top, z out of the screen) is the board laid flat with its
+forward axis as the "top": ``x_d = -y_A``, ``y_d = x_A``, ``z_d = z_A``, so the heading is the direction of
+the board's forward axis.
+
+Saturation: the MPU6050 ran at ±2 g and ±250 deg/s; samples with an axis at the range limit are counted as
+``accel:saturated`` / ``gyro:saturated`` (22 gyro samples in ``full-sphere``). Timestamps are host arrival
+times and come in bursts (median 2 ms, gaps of 42 ms); they are kept as they are.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.recording import Recording
+
+NAME = "sunsided-marg"
+GRAVITY = 9.80665
+UT_PER_GAUSS = 100.0
+DEG = np.pi / 180.0
+
+MPU_HEADER = ["t_s", "acc_x_g", "acc_y_g", "acc_z_g", "gyro_x_dps", "gyro_y_dps", "gyro_z_dps"]
+HMC_HEADER = ["t_s", "mag_x_gauss", "mag_y_gauss", "mag_z_gauss"]
+
+#: board axes A (x forward, y left, z up) → device frame (x right, y top = forward, z up)
+A_TO_DEVICE = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+#: raw gyro axes → A: x and y flipped (measured; see the module docstring)
+GYRO_TO_A = np.diag([-1.0, -1.0, 1.0])
+
+ACCEL_LIMIT_G = 1.999  # ±2 g range, 16-bit: the largest code is 1.99994 g
+GYRO_LIMIT_DPS = 250.0  # ±250 deg/s range: the largest codes are 250.13 deg/s
+
+
+def detect(path: Path) -> bool:
+    if not path.is_dir():
+        return False
+    if (path / "hmc5883l.csv").is_file():
+        return True
+    return (path / "original_mat" / "hmc5883l_compass.mat").is_file()
+
+
+def _read_csv(path: Path, header: list[str], builders: list[tuple[StreamBuilder, slice]]) -> None:
+    with open_text(path) as fh:
+        first = fh.readline()
+        got = [c.strip() for c in first.strip().split(",")]
+        if got[: len(header)] != header:
+            raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}…", 1)
+        ncol = len(header)
+        for lineno, line in enumerate(fh, start=2):
+            s = line.strip()
+            if not s:
+                continue
+            parts = s.split(",")
+            if len(parts) < ncol:
+                raise InputError(path, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
+            vals = floats(path, lineno, parts[:ncol])
+            for b, cols in builders:
+                b.add(lineno, vals[0], vals[cols])
+
+
+def read(path) -> Recording:
+    """Read a set-2 recording folder (the CSV pair) into a :class:`Recording` in the contract's frame."""
+    p = Path(path)
+    mpu, hmc = p / "mpu6050.csv", p / "hmc5883l.csv"
+    if not hmc.is_file():
+        raise InputError(
+            hmc,
+            "missing (only MATLAB v7.3/HDF5 buffers in original_mat/: decode them to CSV, or install h5py)",
+        )
+    dropped: Counter = Counter()
+    mag_b = StreamBuilder(hmc, "mag", dropped)
+    _read_csv(hmc, HMC_HEADER, [(mag_b, slice(1, 4))])
+    mag = finish(mag_b, scale=UT_PER_GAUSS, axes=A_TO_DEVICE, unit_hint="gauss × 100")
+    accel = gyro = None
+    if mpu.is_file():
+        acc_b = StreamBuilder(mpu, "accel", dropped, limit=ACCEL_LIMIT_G)
+        gyr_b = StreamBuilder(mpu, "gyro", dropped, limit=GYRO_LIMIT_DPS)
+        _read_csv(mpu, MPU_HEADER, [(acc_b, slice(1, 4)), (gyr_b, slice(4, 7))])
+        accel = finish(acc_b, scale=-GRAVITY, axes=A_TO_DEVICE, unit_hint="g, gravity sign")
+        gyro = finish(gyr_b, scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s")
+    meta = {
+        "device": "MPU6050 + HMC5883L breadboard",
+        "axes": "device x = -board y, y = board x (forward), z = z",
+    }
+    return Recording(mag=mag, accel=accel, gyro=gyro, meta=meta, source=str(p), format=NAME, dropped=dropped)
