@@ -1,0 +1,243 @@
+"""McapSink: write synthetic inputs and estimates, read them back with mcap's own reader."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mcap")
+
+from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
+
+from pdr_mag.calibration.model import MagCalibration  # noqa: E402
+from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
+from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event  # noqa: E402
+from pdr_mag.sinks.mcap import INPUT_TOPICS, SCHEMAS, McapSink  # noqa: E402
+
+
+def _unit_quats(rng, n):
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    return q * np.where(q[:, :1] < 0, -1.0, 1.0)
+
+
+def _batch(rng, t):
+    n = len(t)
+    diag = {k: rng.normal(40.0, 5.0, n) for k in DIAG_KEYS}
+    diag["dip_deg"][::5] = np.nan
+    return EstimateBatch(
+        t=t,
+        q_wd=_unit_quats(rng, n),
+        heading_deg=rng.uniform(0, 360, n),
+        heading_std_deg=rng.uniform(0.5, 5, n),
+        mag_used=rng.random(n) < 0.5,
+        interference=rng.random(n) < 0.2,
+        cal_state=np.array(["none", "offset", "ellipsoid"])[rng.integers(0, 3, n)],
+        diag=diag,
+    )
+
+
+@pytest.fixture
+def written(tmp_path):
+    """A file written in several chunks of each kind, with irregular, non-round times."""
+    rng = np.random.default_rng(5)
+    path = tmp_path / "out.mcap"
+    sink = McapSink(path, chunk_size=64 * 1024)  # small chunks: many chunks even for a short test
+    inputs = {k: ([], []) for k in INPUT_TOPICS}
+    batches = []
+    sink.open({"device": "synthetic", "north": "magnetic", "field_uT": 48.5, "latitude_deg": 52.1})
+    t_start = 1234.5678901
+    for c in range(6):
+        for kind, rate in (("accel", 200.0), ("gyro", 200.0), ("mag", 50.0)):
+            n = int(rate * 2)
+            t = t_start + 2.0 * c + np.sort(rng.uniform(0, 2.0, n))
+            xyz = rng.normal(0, 30, (n, 3)) * rng.choice([1e-7, 1.0, 1e5], (n, 1))
+            sink.inputs(kind, t, xyz)
+            inputs[kind][0].append(t)
+            inputs[kind][1].append(xyz)
+            if kind == "mag":
+                sink.mag_calibrated(t, xyz - 1.0)
+        tb = t_start + 2.0 * c + np.arange(400) / 200.0
+        b = _batch(rng, tb)
+        sink.estimates(b)
+        batches.append(b)
+    tr = t_start + np.arange(2400) / 200.0
+    q_truth = _unit_quats(rng, len(tr))
+    sink.reference("truth", tr, q_truth)
+    sink.event(Event(t_start + 3.0, "interference_start", {"score": np.float64(1.7), "axis": "strength"}))
+    sink.event(Event(t_start + 4.0, "interference_end"))
+    cal = MagCalibration.from_arrays([10.0, -5.0, 3.0], np.diag([1.1, 0.9, 1.0]), field_uT=48.2, method="ml")
+    sink.calibration(t_start + 1.5, cal)
+    sink.close()
+    return {
+        "path": path,
+        "inputs": {k: (np.concatenate(v[0]), np.concatenate(v[1])) for k, v in inputs.items()},
+        "batch": EstimateBatch.concat(batches),
+        "truth": (tr, q_truth),
+        "cal": cal,
+        "sink": sink,
+    }
+
+
+def _messages(path, topic):
+    with open(path, "rb") as f:
+        r = make_reader(f, validate_crcs=True)
+        return [
+            (m.log_time, m.publish_time, json.loads(m.data)) for _, _, m in r.iter_messages(topics=[topic])
+        ]
+
+
+def test_topics_schemas_and_counts(written):
+    with open(written["path"], "rb") as f:
+        r = make_reader(f, validate_crcs=True)
+        summary = r.get_summary()
+    topics = {c.topic: c for c in summary.channels.values()}
+    expected = {
+        "/imu/accel": "pdr_mag.Vector3Stamped",
+        "/imu/gyro": "pdr_mag.Vector3Stamped",
+        "/mag/raw": "pdr_mag.Vector3Stamped",
+        "/mag/calibrated": "pdr_mag.Vector3Stamped",
+        "/pdr/orientation": "foxglove.PoseInFrame",
+        "/pdr/heading": "pdr_mag.Heading",
+        "/pdr/diag": "pdr_mag.Diagnostics",
+        "/pdr/calibration": "pdr_mag.MagCalibration",
+        "/pdr/events": "foxglove.Log",
+        "/reference/truth/orientation": "foxglove.PoseInFrame",
+        "/reference/truth/heading": "pdr_mag.HeadingReference",
+    }
+    assert set(topics) == set(expected)
+    for topic, schema_name in expected.items():
+        ch = topics[topic]
+        schema = summary.schemas[ch.schema_id]
+        assert ch.message_encoding == "json"
+        assert schema.name == schema_name and schema.encoding == "jsonschema"
+        assert json.loads(schema.data) == SCHEMAS[schema_name]
+    counts = {
+        topics_by_id.topic: n
+        for topics_by_id, n in (
+            (summary.channels[i], n) for i, n in summary.statistics.channel_message_counts.items()
+        )
+    }
+    n_est = len(written["batch"])
+    assert counts["/imu/accel"] == len(written["inputs"]["accel"][0])
+    assert counts["/mag/raw"] == counts["/mag/calibrated"] == len(written["inputs"]["mag"][0])
+    assert counts["/pdr/orientation"] == counts["/pdr/heading"] == counts["/pdr/diag"] == n_est
+    assert counts["/pdr/events"] == 2 and counts["/pdr/calibration"] == 1
+    assert summary.statistics.message_count == sum(counts.values())
+    assert summary.statistics.chunk_count > 10  # streamed in many bounded chunks
+    # all messages readable when streaming the file front to back (no summary used)
+    with open(written["path"], "rb") as f:
+        n_stream = sum(1 for _ in NonSeekingReader(f, validate_crcs=True).iter_messages())
+    assert n_stream == summary.statistics.message_count
+
+
+def test_inputs_read_back_bit_exact_with_ns_log_times(written):
+    for kind, topic in INPUT_TOPICS.items():
+        t, xyz = written["inputs"][kind]
+        msgs = sorted(_messages(written["path"], topic), key=lambda m: m[2]["t"])
+        t_back = np.array([m[2]["t"] for m in msgs])
+        xyz_back = np.array([[m[2]["x"], m[2]["y"], m[2]["z"]] for m in msgs])
+        order = np.argsort(t, kind="stable")
+        np.testing.assert_array_equal(t_back, t[order])  # bit-exact, not approximately
+        np.testing.assert_array_equal(xyz_back, xyz[order])
+        log_times = np.array([m[0] for m in msgs])
+        np.testing.assert_array_equal(log_times, np.round(t[order] * 1e9).astype(np.int64))
+        assert all(m[0] == m[1] for m in msgs)
+
+
+def test_outputs_values(written):
+    b = written["batch"]
+    heading = _messages(written["path"], "/pdr/heading")
+    assert [m[2]["t"] for m in heading] == b.t.tolist()
+    np.testing.assert_allclose([m[2]["heading_deg"] for m in heading], b.heading_deg, rtol=1e-8)
+    np.testing.assert_allclose([m[2]["heading_std_deg"] for m in heading], b.heading_std_deg, rtol=1e-8)
+    assert [m[2]["mag_used"] for m in heading] == b.mag_used.tolist()
+    assert [m[2]["interference"] for m in heading] == b.interference.tolist()
+    assert [m[2]["cal_state"] for m in heading] == b.cal_state.tolist()
+
+    pose = _messages(written["path"], "/pdr/orientation")
+    q = np.array([[p["pose"]["orientation"][k] for k in "wxyz"] for _, _, p in pose])
+    np.testing.assert_allclose(q, b.q_wd, atol=1e-8)
+    for log_time, _, p in pose[:50]:
+        assert p["frame_id"] == "enu"
+        assert p["timestamp"]["sec"] * 1_000_000_000 + p["timestamp"]["nsec"] == log_time
+
+    diag = _messages(written["path"], "/pdr/diag")
+    dip = np.array([m[2]["dip_deg"] if m[2]["dip_deg"] is not None else np.nan for m in diag])
+    np.testing.assert_allclose(dip, b.diag["dip_deg"], rtol=1e-8)  # NaN written as null, read back as NaN
+    upper = np.array([m[2]["strength_upper_uT"] for m in diag])
+    np.testing.assert_allclose(upper, b.diag["field_ref_uT"] + b.diag["strength_tol_uT"], rtol=1e-8)
+    assert set(diag[0][2]) == {
+        "t",
+        *DIAG_KEYS,
+        "strength_lower_uT",
+        "strength_upper_uT",
+        "dip_lower_deg",
+        "dip_upper_deg",
+    }
+
+    tr, q_truth = written["truth"]
+    ref = _messages(written["path"], "/reference/truth/heading")
+    np.testing.assert_allclose([m[2]["heading_deg"] for m in ref], heading_deg_from_quat(q_truth), rtol=1e-8)
+
+
+def test_events_calibration_and_metadata(written):
+    events = _messages(written["path"], "/pdr/events")
+    assert [e[2]["level"] for e in events] == [3, 2]  # WARNING, INFO
+    assert events[0][2]["message"].startswith("interference_start")
+    assert '"score": 1.7' in events[0][2]["message"]
+    assert events[0][2]["name"] == "pdr_mag"
+    cal_msgs = _messages(written["path"], "/pdr/calibration")
+    assert len(cal_msgs) == 1
+    back = MagCalibration.from_dict({k: v for k, v in cal_msgs[0][2].items() if k != "t"})
+    assert back.to_dict() == written["cal"].to_dict()
+
+    with open(written["path"], "rb") as f:
+        meta = {}
+        for m in make_reader(f).iter_metadata():
+            meta.setdefault(m.name, []).append(dict(m.metadata))
+    assert set(meta) == {"recording", "calibration", "pdr_mag"}
+    rec = meta["recording"][0]
+    assert rec["device"] == "synthetic" and json.loads(rec["field_uT"]) == 48.5
+    assert json.loads(meta["calibration"][0]["json"]) == written["cal"].to_dict()
+    info = meta["pdr_mag"][0]
+    assert info["time_offset_ns"] == "0" and info["clamped_log_times"] == "0"
+    assert json.loads(info["message_counts"]) == written["sink"].counts
+
+
+def test_negative_times_offset_and_clamp(tmp_path):
+    p = tmp_path / "neg.mcap"
+    sink = McapSink(p, compression="lz4")
+    sink.open({"t0": -2.5})
+    sink.inputs("mag", np.array([-2.5, -1.0, 0.25]), np.zeros((3, 3)))
+    sink.close()
+    msgs = _messages(p, "/mag/raw")
+    assert [m[0] for m in msgs] == [500_000_000, 2_000_000_000, 3_250_000_000]  # offset 3 s
+    assert [m[2]["t"] for m in msgs] == [-2.5, -1.0, 0.25]
+
+    # without meta t0, the first time seen decides; anything earlier still is clamped to 0 and counted
+    p2 = tmp_path / "neg2.mcap"
+    sink = McapSink(p2, compression="none")
+    sink.open({})
+    sink.inputs("gyro", np.array([-0.4, 0.0]), np.ones((2, 3)))
+    sink.inputs("accel", np.array([-7.0, -0.2]), np.ones((2, 3)))
+    sink.close()
+    assert sink.time_offset_ns == 1_000_000_000
+    assert [m[0] for m in _messages(p2, "/imu/accel")] == [0, 800_000_000]
+    with open(p2, "rb") as f:
+        info = [dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "pdr_mag"][0]
+    assert info["clamped_log_times"] == "1" and info["time_offset_ns"] == "1000000000"
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="compression"):
+        McapSink(tmp_path / "x.mcap", compression="gzip")
+    sink = McapSink(tmp_path / "y.mcap")
+    with pytest.raises(RuntimeError, match="open"):
+        sink.inputs("mag", np.zeros(1), np.zeros((1, 3)))
+    sink.open({})
+    with pytest.raises(ValueError, match="kind"):
+        sink.inputs("baro", np.zeros(1), np.zeros((1, 3)))
+    sink.close()
