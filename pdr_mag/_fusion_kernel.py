@@ -1,0 +1,594 @@
+"""The compiled per-sample recursion of :class:`pdr_mag.attitude.FusionCore` (numba, ``cache=True``).
+
+Everything the filter carries from one sample to the next lives in one float64 state vector ``st``
+(layout: the ``S_*`` indices below), so a chunked run equals a single run and the state round-trips
+through JSON as a plain list.  Settings arrive packed in ``p`` (``P_*`` indices, built by
+:meth:`pdr_mag.attitude.FusionSettings.as_array`) and ``ip`` (:meth:`InterferenceSettings.as_array`).
+
+Filter (error-state / multiplicative EKF, world-frame attitude error)
+--------------------------------------------------------------------
+Nominal state: ``q`` (device → ENU true north, w-first), gyro bias ``b`` (device frame, rad/s).
+Error state ``δx = (δθ, δb)`` with ``R_true = Exp(δθ) R`` (δθ in the world frame, so ``δθ_z`` is the
+heading error and ``heading_std = sqrt(P[2, 2])``) and ``b_true = b + δb``.
+
+predict (per gyro sample, Δt)
+    ``q ← q ⊗ Exp((ω̄ − b) Δt)`` with ω̄ the mean of the last two gyro samples;
+    ``Φ = [[I, −R Δt], [0, I]]``, ``Q = diag(σ_g² Δt I, σ_b² Δt I)``, ``P ← Φ P Φᵀ + Q``.
+accelerometer (per accel sample)
+    ``u_w = R a/|a| ≈ e_z + (−δθ_y, δθ_x, 0)``: two scalar updates of the tilt errors only, noise
+    ``σ_a² = σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)²``; skipped when ``||a| − g| > gate · g``.
+magnetometer (calibrated, per sample, at most every ``mag_interval_s``)
+    heading-only: ``ψ = atan2(m_w,x, m_w,y)`` with ``m_w = R m_d``; residual ``r = wrap(ψ − D)`` (D the
+    declination, 0 for magnetic north) observes ``δθ_z`` alone (``H = e_3``), so a disturbed field can
+    never tilt the attitude; noise ``σ_ψ² = σ_h² + (σ_m / B_h)²`` with ``B_h`` the measured horizontal
+    strength.  Skipped when the interference flag is up, when the caller disallows it, or when the
+    innovation fails a χ² gate.
+zero-rate (per gyro sample while the device is still)
+    ``ω_m = b + δb + n``: three scalar updates of the bias.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pdr_mag.interference import (
+    I_CONS_K,
+    I_CONS_TOL,
+    I_CONS_WIN,
+    I_DIP_BAND,
+    I_DIP_TOL,
+    I_LEARN,
+    I_STR_BAND,
+    I_VAR_MAX,
+    I_VAR_WIN,
+    angle_deg,
+    dip_of,
+    ew_alpha,
+    hold_step,
+    strength_tol,
+)
+
+# ---------------------------------------------------------------- state layout
+S_Q = 0  # 4: q w,x,y,z
+S_B = 4  # 3: gyro bias
+S_P = 7  # 36: covariance 6x6 row-major
+S_INIT = 43  # 0 nothing, 1 tilt initialised, 2 heading initialised from the magnetometer
+S_TG = 44  # time of last gyro sample
+S_WG = 45  # 3: last raw gyro
+S_HAVEG = 48
+S_ACC = 49  # 3: last raw accel
+S_TA = 52
+S_HAVEA = 53
+S_GMEAN = 54  # 3: EW mean of gyro (still detection)
+S_GVAR = 57  # EW mean of |ω − mean|²
+S_AMEAN = 58  # 3: EW mean of accel
+S_AVAR = 61
+S_STILL_SINCE = 62
+S_NEXT_OUT = 63
+S_MAGUSED = 64  # magnetometer used since last output row
+S_FLAG = 65
+S_FLAG_SINCE = 66
+S_FM = 67  # EW mean of strength
+S_FM2 = 68  # EW mean of strength²
+S_TM = 69  # time of last magnetometer sample
+S_MW = 70  # 3: EW mean world field direction
+S_DIPLEARN = 73  # learnt dip reference (deg), NaN until first clean sample
+S_QG = 74  # 4: gyro-only quaternion
+S_D_F = 78  # diag: strength
+S_D_FREF = 79
+S_D_FTOL = 80
+S_D_DIP = 81
+S_D_DIPREF = 82
+S_D_DIPTOL = 83
+S_D_VAR = 84
+S_D_SCORE = 85
+S_TMU = 86  # time of last magnetometer update
+S_FREF = 87  # reference strength (NaN = unknown)
+S_DIPREF = 88  # reference inclination, deg (NaN = learn)
+S_DECL = 89  # declination, rad
+S_INTERF = 90  # interference seen since last output row
+S_NREJ = 91  # consecutive innovation-gate rejections
+S_CONS = 92  # diag: consistency angle
+S_FLEARN = 93  # learnt local strength (NaN until first clean sample)
+S_NLEARN = 94  # number of samples learnt from
+N_STATE = 96
+
+# ---------------------------------------------------------------- settings layout
+P_GYRO_NOISE = 0
+P_BIAS_RW = 1
+P_BIAS0 = 2
+P_ACC_NOISE = 3
+P_ACC_DYN = 4
+P_ACC_GATE = 5
+P_ACC_W = 6
+P_MAG_NOISE = 7  # rad
+P_MAG_NOISE_UT = 8
+P_MAG_INTERVAL = 9
+P_MAG_GATE = 10
+P_STILL_GYRO = 11
+P_STILL_ACC = 12
+P_STILL_TAU = 13
+P_STILL_MIN = 14
+P_ZUPT_NOISE = 15
+P_OUT_DT = 16
+P_TILT0 = 17
+P_GRAV = 18
+P_MAX_DT = 19
+N_PARAM = 20
+
+# ---------------------------------------------------------------- output diag columns
+D_GYRO_HEADING = 0
+D_F = 1
+D_FREF = 2
+D_FTOL = 3
+D_DIP = 4
+D_DIPREF = 5
+D_DIPTOL = 6
+D_VAR = 7
+D_SCORE = 8
+D_BX = 9
+D_BY = 10
+D_BZ = 11
+D_CONS = 12
+N_DIAG = 13
+
+
+def new_state() -> np.ndarray:
+    st = np.zeros(N_STATE)
+    st[S_Q] = 1.0
+    st[S_QG] = 1.0
+    for k in (
+        S_NEXT_OUT,
+        S_FLAG_SINCE,
+        S_FM,
+        S_TM,
+        S_MW,
+        S_DIPLEARN,
+        S_FLEARN,
+        S_TMU,
+        S_FREF,
+        S_DIPREF,
+        S_STILL_SINCE,
+        S_TG,
+        S_TA,
+    ):
+        st[k] = np.nan
+    for k in range(S_D_F, S_D_SCORE + 1):
+        st[k] = np.nan
+    st[S_CONS] = np.nan
+    return st
+
+
+# ---------------------------------------------------------------- small maths
+@njit(cache=True)
+def _rot(st, R):
+    w, x, y, z = st[S_Q], st[S_Q + 1], st[S_Q + 2], st[S_Q + 3]
+    R[0, 0] = 1 - 2 * (y * y + z * z)
+    R[0, 1] = 2 * (x * y - w * z)
+    R[0, 2] = 2 * (x * z + w * y)
+    R[1, 0] = 2 * (x * y + w * z)
+    R[1, 1] = 1 - 2 * (x * x + z * z)
+    R[1, 2] = 2 * (y * z - w * x)
+    R[2, 0] = 2 * (x * z - w * y)
+    R[2, 1] = 2 * (y * z + w * x)
+    R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def _qmul_right(st, k, vx, vy, vz):
+    """q[k:k+4] ← q ⊗ Exp(v) (v a rotation vector in the body frame)."""
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    if a < 1e-12:
+        c, s = 1.0, 0.5
+    else:
+        c, s = np.cos(0.5 * a), np.sin(0.5 * a) / a
+    bw, bx, by, bz = c, s * vx, s * vy, s * vz
+    aw, ax, ay, az = st[k], st[k + 1], st[k + 2], st[k + 3]
+    w = aw * bw - ax * bx - ay * by - az * bz
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    st[k], st[k + 1], st[k + 2], st[k + 3] = w / n, x / n, y / n, z / n
+
+
+@njit(cache=True)
+def _qmul_left(st, k, vx, vy, vz):
+    """q[k:k+4] ← Exp(v) ⊗ q (v a rotation vector in the world frame)."""
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    if a < 1e-12:
+        c, s = 1.0, 0.5
+    else:
+        c, s = np.cos(0.5 * a), np.sin(0.5 * a) / a
+    aw, ax, ay, az = c, s * vx, s * vy, s * vz
+    bw, bx, by, bz = st[k], st[k + 1], st[k + 2], st[k + 3]
+    w = aw * bw - ax * bx - ay * by - az * bz
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    st[k], st[k + 1], st[k + 2], st[k + 3] = w / n, x / n, y / n, z / n
+
+
+@njit(cache=True)
+def _heading(st, k):
+    w, x, y, z = st[k], st[k + 1], st[k + 2], st[k + 3]
+    r01 = 2.0 * (x * y - w * z)
+    r11 = 1.0 - 2.0 * (x * x + z * z)
+    return np.degrees(np.arctan2(r01, r11)) % 360.0
+
+
+@njit(cache=True)
+def _wrap(a):
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@njit(cache=True)
+def _upd(st, dx, j, s, r, rv):
+    """Scalar update with H = s·e_j; r is the residual before this update (dx applied inside)."""
+    P = st[S_P : S_P + 36]
+    r = r - s * dx[j]
+    S = P[j * 6 + j] + rv
+    if S <= 0.0:
+        return
+    col = np.empty(6)
+    for i in range(6):
+        col[i] = P[i * 6 + j]
+    for i in range(6):
+        dx[i] += s * col[i] * r / S
+    for i in range(6):
+        ci = col[i] / S
+        for m in range(6):
+            P[i * 6 + m] -= ci * col[m]
+
+
+@njit(cache=True)
+def _inject(st, dx):
+    _qmul_left(st, S_Q, dx[0], dx[1], dx[2])
+    for i in range(3):
+        st[S_B + i] += dx[3 + i]
+        dx[i] = 0.0
+        dx[3 + i] = 0.0
+    P = st[S_P : S_P + 36]
+    for i in range(6):  # keep P symmetric
+        for m in range(i + 1, 6):
+            v = 0.5 * (P[i * 6 + m] + P[m * 6 + i])
+            P[i * 6 + m] = v
+            P[m * 6 + i] = v
+
+
+@njit(cache=True)
+def _predict(st, R, wx, wy, wz, dt, p):
+    _qmul_right(st, S_Q, wx * dt, wy * dt, wz * dt)
+    _qmul_right(st, S_QG, wx * dt, wy * dt, wz * dt)
+    _rot(st, R)
+    P = st[S_P : S_P + 36]
+    # blocks A (att), B (att-bias), C (bias); G = -R dt
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    C = np.empty((3, 3))
+    for i in range(3):
+        for m in range(3):
+            A[i, m] = P[i * 6 + m]
+            B[i, m] = P[i * 6 + 3 + m]
+            C[i, m] = P[(3 + i) * 6 + 3 + m]
+    GC = np.empty((3, 3))  # G C
+    GB = np.empty((3, 3))  # G Bᵀ
+    for i in range(3):
+        for m in range(3):
+            s1 = 0.0
+            s2 = 0.0
+            for k in range(3):
+                s1 += R[i, k] * C[k, m]
+                s2 += R[i, k] * B[m, k]
+            GC[i, m] = -dt * s1
+            GB[i, m] = -dt * s2
+    qa = p[P_GYRO_NOISE] ** 2 * dt
+    qb = p[P_BIAS_RW] ** 2 * dt
+    for i in range(3):
+        for m in range(3):
+            gcg = 0.0
+            for k in range(3):
+                gcg += GC[i, k] * (-dt * R[m, k])
+            a = A[i, m] + GB[i, m] + GB[m, i] + gcg
+            if i == m:
+                a += qa
+            P[i * 6 + m] = a
+            bb = B[i, m] + GC[i, m]
+            P[i * 6 + 3 + m] = bb
+            P[(3 + m) * 6 + i] = bb
+            if i == m:
+                P[(3 + i) * 6 + 3 + m] = C[i, m] + qb
+
+
+@njit(cache=True)
+def _init_tilt(st, ax, ay, az, p):
+    """Attitude from one accelerometer sample, heading 0 (device +y horizontal projection to north)."""
+    n = np.sqrt(ax * ax + ay * ay + az * az)
+    ux, uy, uz = ax / n, ay / n, az / n
+    # north = device y projected on the horizontal plane (fallback: device -z, for a phone held upright)
+    d = uy
+    nx, ny, nz = -d * ux, 1.0 - d * uy, -d * uz
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn < 0.2:
+        d = -uz
+        nx, ny, nz = -d * ux, -d * uy, -1.0 - d * uz
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    ex, ey, ez = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+    # R rows = east, north, up in device coordinates
+    r00, r01, r02 = ex, ey, ez
+    r10, r11, r12 = nx, ny, nz
+    r20, r21, r22 = ux, uy, uz
+    tr = r00 + r11 + r22
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = np.sqrt(1.0 + r00 - r11 - r22) * 2
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = np.sqrt(1.0 + r11 - r00 - r22) * 2
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = np.sqrt(1.0 + r22 - r00 - r11) * 2
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    qn = np.sqrt(w * w + x * x + y * y + z * z)
+    st[S_Q], st[S_Q + 1], st[S_Q + 2], st[S_Q + 3] = w / qn, x / qn, y / qn, z / qn
+    for k in range(4):
+        st[S_QG + k] = st[S_Q + k]
+    P = st[S_P : S_P + 36]
+    for i in range(36):
+        P[i] = 0.0
+    t0 = p[P_TILT0] ** 2
+    P[0] = t0
+    P[7] = t0
+    P[14] = np.pi**2
+    b0 = p[P_BIAS0] ** 2
+    P[21] = b0
+    P[28] = b0
+    P[35] = b0
+    st[S_INIT] = 1.0
+
+
+@njit(cache=True)
+def _accel(st, R, ax, ay, az, t, p):
+    st[S_ACC], st[S_ACC + 1], st[S_ACC + 2] = ax, ay, az
+    # still detection statistics
+    if st[S_HAVEA] > 0 and np.isfinite(st[S_TA]):
+        a = ew_alpha(t - st[S_TA], p[P_STILL_TAU])
+        dx, dy, dz = ax - st[S_AMEAN], ay - st[S_AMEAN + 1], az - st[S_AMEAN + 2]
+        st[S_AVAR] += a * (dx * dx + dy * dy + dz * dz - st[S_AVAR])
+        st[S_AMEAN] += a * dx
+        st[S_AMEAN + 1] += a * dy
+        st[S_AMEAN + 2] += a * dz
+    else:
+        st[S_AMEAN], st[S_AMEAN + 1], st[S_AMEAN + 2] = ax, ay, az
+        st[S_AVAR] = 1.0
+    st[S_TA] = t
+    st[S_HAVEA] = 1.0
+    n = np.sqrt(ax * ax + ay * ay + az * az)
+    if n < 1e-6:
+        return
+    if st[S_INIT] == 0:
+        _init_tilt(st, ax, ay, az, p)
+        return
+    g = p[P_GRAV]
+    da = abs(n - g) / g
+    if da > p[P_ACC_GATE]:
+        return
+    wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
+    wn = np.sqrt(wx * wx + wy * wy + wz * wz)
+    rv = p[P_ACC_NOISE] ** 2 + (p[P_ACC_DYN] * da) ** 2 + (p[P_ACC_W] * wn) ** 2
+    _rot(st, R)
+    uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
+    uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
+    dx = np.zeros(6)
+    _upd(st, dx, 1, -1.0, uxw, rv)
+    _upd(st, dx, 0, 1.0, uyw, rv)
+    _inject(st, dx)
+
+
+@njit(cache=True)
+def _gyro(st, R, wx, wy, wz, t, p):
+    # still detection statistics
+    if st[S_HAVEG] > 0 and np.isfinite(st[S_TG]):
+        a = ew_alpha(t - st[S_TG], p[P_STILL_TAU])
+        dx, dy, dz = wx - st[S_GMEAN], wy - st[S_GMEAN + 1], wz - st[S_GMEAN + 2]
+        st[S_GVAR] += a * (dx * dx + dy * dy + dz * dz - st[S_GVAR])
+        st[S_GMEAN] += a * dx
+        st[S_GMEAN + 1] += a * dy
+        st[S_GMEAN + 2] += a * dz
+    else:
+        st[S_GMEAN], st[S_GMEAN + 1], st[S_GMEAN + 2] = wx, wy, wz
+        st[S_GVAR] = 1.0
+    if st[S_INIT] > 0 and st[S_HAVEG] > 0:
+        dt = t - st[S_TG]
+        if 0.0 < dt <= p[P_MAX_DT]:
+            ox = 0.5 * (wx + st[S_WG]) - st[S_B]
+            oy = 0.5 * (wy + st[S_WG + 1]) - st[S_B + 1]
+            oz = 0.5 * (wz + st[S_WG + 2]) - st[S_B + 2]
+            _predict(st, R, ox, oy, oz, dt, p)
+        # zero-rate update while still
+        still = (st[S_GVAR] < p[P_STILL_GYRO] ** 2) and (st[S_AVAR] < p[P_STILL_ACC] ** 2)
+        if still:
+            if not np.isfinite(st[S_STILL_SINCE]):
+                st[S_STILL_SINCE] = t
+            if t - st[S_STILL_SINCE] >= p[P_STILL_MIN]:
+                dx = np.zeros(6)
+                rv = p[P_ZUPT_NOISE] ** 2
+                _upd(st, dx, 3, 1.0, wx - st[S_B], rv)
+                _upd(st, dx, 4, 1.0, wy - st[S_B + 1], rv)
+                _upd(st, dx, 5, 1.0, wz - st[S_B + 2], rv)
+                _inject(st, dx)
+        else:
+            st[S_STILL_SINCE] = np.nan
+    st[S_WG], st[S_WG + 1], st[S_WG + 2] = wx, wy, wz
+    st[S_TG] = t
+    st[S_HAVEG] = 1.0
+
+
+@njit(cache=True)
+def _mag(st, R, mx, my, mz, t, allowed, p, ip):
+    if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or st[S_INIT] == 0:
+        return
+    _rot(st, R)
+    f = np.sqrt(mx * mx + my * my + mz * mz)
+    if f <= 0.0:
+        return
+    # --- detectors
+    dtm = t - st[S_TM] if np.isfinite(st[S_TM]) else np.inf
+    if dtm > 5.0 * ip[I_VAR_WIN] or not np.isfinite(st[S_FM]):
+        st[S_FM] = f
+        st[S_FM2] = f * f
+    else:
+        a = ew_alpha(dtm, ip[I_VAR_WIN])
+        st[S_FM] += a * (f - st[S_FM])
+        st[S_FM2] += a * (f * f - st[S_FM2])
+    var = max(st[S_FM2] - st[S_FM] ** 2, 0.0)
+    ux, uy, uz = R[2, 0], R[2, 1], R[2, 2]  # world up in device coordinates
+    dip = dip_of(mx, my, mz, ux, uy, uz)
+    mwx = (R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz) / f
+    mwy = (R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz) / f
+    mwz = (R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz) / f
+    if dtm > 5.0 * ip[I_CONS_WIN] or not np.isfinite(st[S_MW]):  # (re)start the mean direction
+        st[S_MW], st[S_MW + 1], st[S_MW + 2] = mwx, mwy, mwz
+        cons = 0.0
+    else:
+        cons = angle_deg(mwx, mwy, mwz, st[S_MW], st[S_MW + 1], st[S_MW + 2])
+        a = ew_alpha(dtm, ip[I_CONS_WIN])
+        st[S_MW] += a * (mwx - st[S_MW])
+        st[S_MW + 1] += a * (mwy - st[S_MW + 1])
+        st[S_MW + 2] += a * (mwz - st[S_MW + 2])
+    st[S_TM] = t
+    # strength and dip: against the learnt local values and, loosely, against the references
+    fref = st[S_FREF]
+    dipref = st[S_DIPREF]
+    band_f = abs(f - fref) / (ip[I_STR_BAND] * fref) if np.isfinite(fref) else 0.0
+    band_d = abs(dip - dipref) / ip[I_DIP_BAND] if np.isfinite(dipref) else 0.0
+    score_v = var / ip[I_VAR_MAX]
+    P = st[S_P : S_P + 36]
+    sb = np.sqrt(max(P[21] + P[28] + P[35], 0.0))
+    score_c = cons / (ip[I_CONS_TOL] + ip[I_CONS_K] * np.degrees(sb) * ip[I_CONS_WIN])
+    if max(max(band_f, band_d), max(score_v, score_c)) < 1.0:
+        # learn the local references (running mean of the first samples, then time constant learn_ref_s)
+        st[S_NLEARN] += 1.0
+        a = max(ew_alpha(min(dtm, 1.0), ip[I_LEARN]), 1.0 / st[S_NLEARN])
+        if not np.isfinite(st[S_FLEARN]):
+            st[S_FLEARN] = f
+            st[S_DIPLEARN] = dip
+        else:
+            st[S_DIPLEARN] += a * (dip - st[S_DIPLEARN])
+            st[S_FLEARN] += a * (f - st[S_FLEARN])
+    floc = st[S_FLEARN]
+    diploc = st[S_DIPLEARN]
+    ftol = strength_tol(fref if np.isfinite(fref) else floc, ip)
+    score_f = max(band_f, abs(f - floc) / ftol) if np.isfinite(floc) else band_f
+    score_d = max(band_d, abs(dip - diploc) / ip[I_DIP_TOL]) if np.isfinite(diploc) else band_d
+    score = max(max(score_f, score_d), max(score_v, score_c))
+    flag, since = hold_step(st[S_FLAG] > 0, st[S_FLAG_SINCE], score, t, ip)
+    st[S_FLAG] = 1.0 if flag else 0.0
+    st[S_FLAG_SINCE] = since
+    if flag:
+        st[S_INTERF] = 1.0
+    st[S_D_F] = f
+    st[S_D_FREF] = floc
+    st[S_D_FTOL] = ftol
+    st[S_D_DIP] = dip
+    st[S_D_DIPREF] = diploc
+    st[S_D_DIPTOL] = ip[I_DIP_TOL]
+    st[S_D_VAR] = var
+    st[S_D_SCORE] = score
+    st[S_CONS] = cons
+    # --- heading update
+    if not allowed:
+        return
+    if flag and not (st[S_INIT] < 2 and score_f < 1.0 and score_d < 1.0):
+        return
+    if np.isfinite(st[S_TMU]) and t - st[S_TMU] < p[P_MAG_INTERVAL]:
+        return
+    bh = np.sqrt(mwx * mwx + mwy * mwy) * f
+    if bh < 1e-3:
+        return
+    psi = np.arctan2(mwx, mwy)
+    r = _wrap(psi - st[S_DECL])
+    rv = p[P_MAG_NOISE] ** 2 + (p[P_MAG_NOISE_UT] / bh) ** 2
+    if st[S_INIT] < 2:
+        # first usable field (strength and dip right; variance and consistency need a history):
+        # set the heading directly, keep the tilt and bias
+        _qmul_left(st, S_Q, 0.0, 0.0, r)
+        _qmul_left(st, S_QG, 0.0, 0.0, r)
+        for i in range(6):
+            P[2 * 6 + i] = 0.0
+            P[i * 6 + 2] = 0.0
+        P[14] = rv
+        st[S_INIT] = 2.0
+        st[S_TMU] = t
+        st[S_MAGUSED] = 1.0
+        st[S_MW], st[S_MW + 1], st[S_MW + 2] = np.nan, 0.0, 0.0
+        return
+    S = P[14] + rv
+    if r * r > p[P_MAG_GATE] ** 2 * S:
+        st[S_NREJ] += 1.0
+        return
+    st[S_NREJ] = 0.0
+    dx = np.zeros(6)
+    _upd(st, dx, 2, 1.0, r, rv)
+    _inject(st, dx)
+    st[S_TMU] = t
+    st[S_MAGUSED] = 1.0
+
+
+@njit(cache=True)
+def run(kind, t, xyz, allowed, st, p, ip, out_t, out_q, out_std, out_mag, out_int, out_diag):
+    """Process a merged, time-ordered chunk; returns the number of output rows written."""
+    R = np.empty((3, 3))
+    n_out = 0
+    for i in range(len(t)):
+        k = kind[i]
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        ti = t[i]
+        if k == 0:
+            if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
+                _accel(st, R, x, y, z, ti, p)
+        elif k == 2:
+            _mag(st, R, x, y, z, ti, allowed[i], p, ip)
+        elif k == 1:
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                continue
+            _gyro(st, R, x, y, z, ti, p)
+            if st[S_INIT] == 0:
+                continue
+            nxt = st[S_NEXT_OUT]
+            if np.isfinite(nxt) and ti < nxt:
+                continue
+            if p[P_OUT_DT] > 0:
+                if not np.isfinite(nxt):
+                    nxt = ti
+                while nxt <= ti:
+                    nxt += p[P_OUT_DT]
+                st[S_NEXT_OUT] = nxt
+            out_t[n_out] = ti
+            for c in range(4):
+                out_q[n_out, c] = st[S_Q + c]
+            out_std[n_out] = np.degrees(np.sqrt(max(st[S_P + 14], 0.0)))
+            out_mag[n_out] = st[S_MAGUSED] > 0
+            out_int[n_out] = st[S_FLAG] > 0 or st[S_INTERF] > 0
+            st[S_MAGUSED] = 0.0
+            st[S_INTERF] = 0.0
+            out_diag[n_out, D_GYRO_HEADING] = _heading(st, S_QG) if st[S_INIT] >= 2 else np.nan
+            out_diag[n_out, D_F] = st[S_D_F]
+            out_diag[n_out, D_FREF] = st[S_D_FREF]
+            out_diag[n_out, D_FTOL] = st[S_D_FTOL]
+            out_diag[n_out, D_DIP] = st[S_D_DIP]
+            out_diag[n_out, D_DIPREF] = st[S_D_DIPREF]
+            out_diag[n_out, D_DIPTOL] = st[S_D_DIPTOL]
+            out_diag[n_out, D_VAR] = st[S_D_VAR]
+            out_diag[n_out, D_SCORE] = st[S_D_SCORE]
+            out_diag[n_out, D_BX] = st[S_B]
+            out_diag[n_out, D_BY] = st[S_B + 1]
+            out_diag[n_out, D_BZ] = st[S_B + 2]
+            out_diag[n_out, D_CONS] = st[S_CONS]
+            n_out += 1
+    return n_out

@@ -1,0 +1,334 @@
+"""Attitude fusion: gyroscope + accelerometer + calibrated magnetometer → orientation, heading, uncertainty.
+
+An error-state (multiplicative) extended Kalman filter with six error states — world-frame attitude error
+``δθ`` and gyroscope bias error ``δb`` — whose recursion is the compiled kernel
+:mod:`pdr_mag._fusion_kernel` (model and formulas in its docstring).  In short:
+
+* gyroscope: propagates ``q`` (device → ENU) with the bias-corrected rate; ``P`` grows with the gyro noise
+  and the bias random walk, so ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z]))`` grows while the
+  magnetometer is rejected;
+* accelerometer: corrects tilt only, with a noise that grows with ``||a| − g|`` and ``|ω|`` (walking
+  gives ±3 m/s² at ~2 Hz; a swinging arm adds centripetal acceleration), gated beyond ``acc_gate``;
+* magnetometer: corrects heading only (``H = e_z`` on ``δθ``), so a disturbed field can never corrupt the
+  tilt; used only when :mod:`pdr_mag.interference` does not flag it, the caller allows it (``mag_allowed``)
+  and the innovation passes a χ² gate;
+* gyroscope bias: observable through the heading (magnetometer) and tilt (accelerometer) corrections as
+  the device turns, plus a zero-rate update whenever the device is still (low gyro and accel variance for
+  ``still_min_s``).  The initial bias standard deviation (``bias0_std``, 10 °/s) covers the raw offsets
+  of real phone gyroscopes (4–6 °/s).
+
+Interface for :class:`pdr_mag.pipeline.HeadingPipeline`
+-------------------------------------------------------
+``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch``:
+
+``kind`` int8 (N,)
+    0 accelerometer (m/s²), 1 gyroscope (rad/s), 2 magnetometer (µT, **already calibrated**, device frame;
+    a row of NaN = no usable calibration yet: the detectors and the heading update skip it).
+``t`` float64 (N,)
+    Merged, time-ordered (non-decreasing) times, s.
+``xyz`` float64 (N, 3).
+``mag_allowed`` bool (N,) or None
+    Per-row permission to use a magnetometer row for the heading (the pipeline's recalibration state
+    machine); ignored for other kinds.  The detectors run on every finite magnetometer row regardless.
+
+Output: one row per gyroscope sample, decimated to ``settings.output_rate_hz`` on a grid anchored at the
+first gyroscope sample after the tilt has been initialised (a row at the first gyro sample at or after
+each grid time; ``output_rate_hz = 0`` gives every gyro sample).  No rows before the first accelerometer
+sample (the tilt is unknown).  Columns: ``t`` (gyro time), ``q_wd``, ``heading_deg``, ``heading_std_deg``,
+``mag_used`` (the magnetometer corrected the heading since the previous row), ``interference`` (flag up
+at, or since, the previous row), ``cal_state`` (placeholder ``"none"``; the pipeline overwrites it), and
+``diag`` with the :data:`pdr_mag.estimates.DIAG_KEYS` the core knows (all but ``coverage``) plus
+``consistency_deg``.  Before the first usable magnetometer sample the heading is arbitrary (device +y to
+north) with ``heading_std_deg = 180``.
+
+North: with a field that has a declination, the output is referenced to true north (the magnetometer
+residual is taken against the declination); with ``field=None`` to magnetic north.  The strength
+reference of the detectors is, in this order: the value passed to :meth:`FusionCore.set_reference_strength`
+(the pipeline passes its calibration radius, which is in the calibrated data's own scale), else the
+field's WMM strength, else none (the strength check is off).  The dip reference is the field's
+inclination, else learnt from clean samples.
+
+State: :meth:`get_state` / :meth:`set_state` round-trip a JSON-serialisable dict; splitting a stream into
+any chunks gives identical results (everything lives in one float vector).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from pdr_mag import _fusion_kernel as K
+from pdr_mag.estimates import EstimateBatch
+from pdr_mag.field import EarthField
+from pdr_mag.interference import InterferenceSettings
+
+STATE_VERSION = 1
+
+#: diag columns of the kernel output, in order
+_DIAG_NAMES = (
+    "gyro_heading_deg",
+    "field_strength_uT",
+    "field_ref_uT",
+    "strength_tol_uT",
+    "dip_deg",
+    "dip_ref_deg",
+    "dip_tol_deg",
+    "strength_var_uT2",
+    "interference_score",
+    "gyro_bias_x",
+    "gyro_bias_y",
+    "gyro_bias_z",
+    "consistency_deg",
+)
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """Noise model and gates of the fusion filter.
+
+    Attributes
+    ----------
+    gyro_noise : float
+        Gyroscope angle random walk, rad/s/√Hz (phones: 0.003–0.01).
+    bias_rw : float
+        Gyroscope bias random walk, rad/s/√s.
+    bias0_std : float
+        Initial bias standard deviation, rad/s (0.17 = 10 °/s: raw phone offsets are 4–6 °/s).
+    tilt0_std : float
+        Initial tilt standard deviation, rad.
+    acc_noise : float
+        Base noise of the normalised accelerometer direction, per sample (dimensionless ≈ rad).
+    acc_dyn : float
+        Noise added per unit of ``||a| − g| / g``.
+    acc_gyro : float
+        Noise added per rad/s of bias-corrected angular rate (centripetal / tangential acceleration).
+    acc_gate : float
+        Accelerometer samples with ``||a| − g| > acc_gate · g`` are not used.
+    mag_noise_deg : float
+        Heading noise of one magnetometer update, deg (calibration residual, time correlation).
+    mag_noise_uT : float
+        Field noise, µT; adds ``mag_noise_uT / B_h`` rad to the heading noise (B_h horizontal strength).
+    mag_interval_s : float
+        At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
+    mag_gate : float
+        χ² gate of the heading innovation, in standard deviations.
+    still_gyro : float
+        Still when the RMS deviation of the gyro from its running mean is below this, rad/s…
+    still_acc : float
+        …and that of the accelerometer below this, m/s²…
+    still_tau_s : float
+        …(running statistics with this time constant, s)…
+    still_min_s : float
+        …for at least this long, s; then zero-rate updates of the bias.
+    zupt_noise : float
+        Noise of a zero-rate update, rad/s.
+    output_rate_hz : float
+        Output rows per second (decimated gyro samples); 0 = one row per gyro sample.
+    gravity : float
+        m/s².
+    max_dt : float
+        Gyro gaps longer than this are not integrated, s.
+    interference : InterferenceSettings
+        Detector thresholds.
+    """
+
+    gyro_noise: float = 0.005
+    bias_rw: float = 2e-4
+    bias0_std: float = 0.17
+    tilt0_std: float = 0.2
+    acc_noise: float = 1.0
+    acc_dyn: float = 2.0
+    acc_gyro: float = 0.5
+    acc_gate: float = 0.5
+    mag_noise_deg: float = 5.0
+    mag_noise_uT: float = 1.0
+    mag_interval_s: float = 0.1
+    mag_gate: float = 4.0
+    still_gyro: float = 0.03
+    still_acc: float = 0.3
+    still_tau_s: float = 0.3
+    still_min_s: float = 0.5
+    zupt_noise: float = 0.02
+    output_rate_hz: float = 50.0
+    gravity: float = 9.80665
+    max_dt: float = 0.2
+    interference: InterferenceSettings = field(default_factory=InterferenceSettings)
+
+    def __post_init__(self):
+        for name, v in asdict(self).items():
+            if name == "interference":
+                continue
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
+        for name in (
+            "gyro_noise",
+            "bias0_std",
+            "tilt0_std",
+            "acc_noise",
+            "mag_gate",
+            "still_tau_s",
+            "gravity",
+            "max_dt",
+            "zupt_noise",
+        ):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+
+    def as_array(self) -> np.ndarray:
+        p = np.zeros(K.N_PARAM)
+        p[K.P_GYRO_NOISE] = self.gyro_noise
+        p[K.P_BIAS_RW] = self.bias_rw
+        p[K.P_BIAS0] = self.bias0_std
+        p[K.P_ACC_NOISE] = self.acc_noise
+        p[K.P_ACC_DYN] = self.acc_dyn
+        p[K.P_ACC_GATE] = self.acc_gate
+        p[K.P_ACC_W] = self.acc_gyro
+        p[K.P_MAG_NOISE] = np.radians(self.mag_noise_deg)
+        p[K.P_MAG_NOISE_UT] = self.mag_noise_uT
+        p[K.P_MAG_INTERVAL] = self.mag_interval_s
+        p[K.P_MAG_GATE] = self.mag_gate
+        p[K.P_STILL_GYRO] = self.still_gyro
+        p[K.P_STILL_ACC] = self.still_acc
+        p[K.P_STILL_TAU] = self.still_tau_s
+        p[K.P_STILL_MIN] = self.still_min_s
+        p[K.P_ZUPT_NOISE] = self.zupt_noise
+        p[K.P_OUT_DT] = 1.0 / self.output_rate_hz if self.output_rate_hz > 0 else 0.0
+        p[K.P_TILT0] = self.tilt0_std
+        p[K.P_GRAV] = self.gravity
+        p[K.P_MAX_DT] = self.max_dt
+        return p
+
+
+class FusionCore:
+    """The streaming fusion filter (see the module docstring for the interface).
+
+    Parameters
+    ----------
+    settings : FusionSettings, optional
+    field : EarthField or None
+        Reference field (declination → true north, inclination → dip check, strength → strength check).
+    """
+
+    def __init__(self, settings: FusionSettings | None = None, field: EarthField | None = None):
+        self.settings = settings or FusionSettings()
+        self._p = self.settings.as_array()
+        self._ip = self.settings.interference.as_array()
+        self._st = K.new_state()
+        self._ref_strength: float | None = None
+        self.field: EarthField | None = None
+        self.set_field(field)
+
+    # ------------------------------------------------------------------ configuration
+    def set_field(self, field: EarthField | None) -> None:
+        """Set (or clear) the reference Earth field."""
+        self.field = field
+        self._st[K.S_DECL] = np.radians(field.declination_deg) if field is not None else 0.0
+        self._st[K.S_DIPREF] = field.inclination_deg if field is not None else np.nan
+        self._apply_strength()
+
+    def set_reference_strength(self, strength_uT: float | None) -> None:
+        """Strength the detectors compare with (e.g. the calibration radius), µT; None = the field's."""
+        if strength_uT is not None and not (np.isfinite(strength_uT) and strength_uT > 0):
+            raise ValueError(f"strength_uT: expected a positive finite value in µT, got {strength_uT!r}")
+        self._ref_strength = None if strength_uT is None else float(strength_uT)
+        self._apply_strength()
+
+    def _apply_strength(self) -> None:
+        if self._ref_strength is not None:
+            self._st[K.S_FREF] = self._ref_strength
+        elif self.field is not None:
+            self._st[K.S_FREF] = self.field.strength
+        else:
+            self._st[K.S_FREF] = np.nan
+
+    @property
+    def north(self) -> str:
+        """``"true"`` when a declination is applied, else ``"magnetic"``."""
+        return "true" if self.field is not None else "magnetic"
+
+    # ------------------------------------------------------------------ processing
+    def process(self, kind, t, xyz, mag_allowed=None) -> EstimateBatch:
+        """Run a merged, time-ordered chunk through the filter; returns its output rows."""
+        kind = np.ascontiguousarray(kind, dtype=np.int8)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+        n = len(t)
+        if kind.shape != (n,) or xyz.shape != (n, 3):
+            raise ValueError(
+                f"kind, t, xyz: expected shapes (N,), (N,), (N, 3); got {kind.shape}, {t.shape}, {xyz.shape}"
+            )
+        if mag_allowed is None:
+            allowed = np.ones(n, dtype=np.bool_)
+        else:
+            allowed = np.ascontiguousarray(mag_allowed, dtype=np.bool_)
+            if allowed.shape != (n,):
+                raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
+        m = int(np.count_nonzero(kind == 1))
+        out_t = np.empty(m)
+        out_q = np.empty((m, 4))
+        out_std = np.empty(m)
+        out_mag = np.empty(m, dtype=np.bool_)
+        out_int = np.empty(m, dtype=np.bool_)
+        out_diag = np.empty((m, K.N_DIAG))
+        k = K.run(
+            kind,
+            t,
+            xyz,
+            allowed,
+            self._st,
+            self._p,
+            self._ip,
+            out_t,
+            out_q,
+            out_std,
+            out_mag,
+            out_int,
+            out_diag,
+        )
+        q = out_q[:k]
+        q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
+        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        heading = np.mod(np.degrees(np.arctan2(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z))), 360.0)
+        diag = {name: out_diag[:k, i].copy() for i, name in enumerate(_DIAG_NAMES)}
+        return EstimateBatch(
+            t=out_t[:k].copy(),
+            q_wd=q.copy(),
+            heading_deg=heading,
+            heading_std_deg=out_std[:k].copy(),
+            mag_used=out_mag[:k].copy(),
+            interference=out_int[:k].copy(),
+            cal_state=np.full(k, "none", dtype="<U13"),
+            diag=diag,
+        )
+
+    # ------------------------------------------------------------------ state
+    @property
+    def bias(self) -> np.ndarray:
+        """Current gyroscope bias estimate, rad/s (device frame)."""
+        return self._st[K.S_B : K.S_B + 3].copy()
+
+    @property
+    def interference_flag(self) -> bool:
+        return bool(self._st[K.S_FLAG] > 0)
+
+    def get_state(self) -> dict:
+        """JSON-serialisable state (NaN written as None)."""
+        return {
+            "version": STATE_VERSION,
+            "state": [None if not np.isfinite(v) else float(v) for v in self._st],
+            "reference_strength_uT": self._ref_strength,
+        }
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state from :meth:`get_state` (the settings and field stay those of this object,
+        except the strength reference, which is restored)."""
+        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+            raise ValueError(f"state: expected a FusionCore state dict of version {STATE_VERSION}")
+        vals = state.get("state")
+        if not isinstance(vals, list) or len(vals) != K.N_STATE:
+            raise ValueError(f"state['state']: expected a list of {K.N_STATE} numbers")
+        self._st = np.array([np.nan if v is None else float(v) for v in vals])
+        self._ref_strength = state.get("reference_strength_uT")
+        # the reference field of this object wins over the saved one
+        self.set_field(self.field)

@@ -1,0 +1,295 @@
+"""Magnetic interference detectors: is the calibrated field the Earth's?
+
+Four checks, each a score that is ≥ 1 when the field fails it (seed 003 §4 motivates the first two: "the
+modulus of the magnetometer and its variance as the criterion of magnetic interference"):
+
+strength
+    ``s_F = max(|F − F_loc| / tol_F, |F − F_ref| / (band · F_ref))`` with ``F = |m_d|`` the calibrated
+    strength, ``F_ref`` the reference strength (the calibration radius when the caller gives one, else the
+    World Magnetic Model), ``F_loc`` the local strength learnt from clean samples (starts at ``F_ref``,
+    time constant ``learn_ref_s``; indoor fields differ from the WMM by several µT) and
+    ``tol_F = max(strength_tol_uT, strength_tol_rel · F_ref)``.
+variance
+    ``s_V = var_τ(F) / var_max`` with ``var_τ`` an exponentially weighted variance of F over the time
+    constant ``τ = var_window_s`` (irregular sampling: weight ``α = 1 − exp(−Δt/τ)`` per sample).
+dip
+    ``s_I = max(|I − I_loc| / dip_tol_deg, |I − I_ref| / dip_band_deg)`` with the measured dip
+    ``I = asin(−(m_d · u_d) / |m_d|)`` from the calibrated field and the device-frame up direction ``u_d``
+    (the filter's gravity estimate), ``I_ref`` the reference inclination (WMM) and ``I_loc`` the local
+    dip learnt like ``F_loc`` (without a reference: learnt from the first clean samples).
+gyro consistency
+    a field fixed in the world frame stays fixed when rotated by the gyro-propagated attitude
+    ``m_w = R_wd m_d``; its direction is compared with an exponentially weighted mean direction
+    ``m̄_w`` (time constant ``consistency_window_s``):
+    ``s_G = ∠(m_w, m̄_w) / (consistency_tol_deg + k σ_b consistency_window_s)``, widened by the filter's
+    bias uncertainty σ_b so that drift the filter knows it may have does not fire it.
+    A field that turns in the device frame without the device turning (a passing magnet, a car) moves
+    ``m_w``; the Earth's does not.
+
+The score is ``max(s_F, s_V, s_I, s_G)``.  The flag uses hold-off timers so it neither flickers nor
+sticks: it rises after the score has been ≥ 1 for ``hold_on_s`` and falls after the score has stayed < 1
+for ``hold_off_s``.
+
+Two forms: scalar ``@njit`` step functions used from inside the fusion kernel (:mod:`pdr_mag._fusion_kernel`)
+and vectorised numpy functions for arrays (:func:`strength_score`, :func:`dip_deg`,
+:func:`windowed_variance`, :func:`consistency_angle_deg`, :func:`hold_off`) that give the same numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+
+@dataclass(frozen=True)
+class InterferenceSettings:
+    """Thresholds of the interference detectors (all documented in the module docstring).
+
+    Attributes
+    ----------
+    strength_tol_uT : float
+        Minimum half-width of the accepted strength band, µT.
+    strength_tol_rel : float
+        Half-width of the strength band relative to the reference strength.
+    var_window_s : float
+        Time constant of the exponentially weighted strength variance, s.
+    var_max_uT2 : float
+        Variance of the strength above which the field is flagged, µT².
+    dip_tol_deg : float
+        Half-width of the accepted dip band around the reference inclination, deg.
+    consistency_window_s : float
+        Time constant of the mean world-frame field direction, s.
+    consistency_tol_deg : float
+        Angle between the current and the mean world-frame field direction above which the field is
+        flagged, deg.
+    hold_on_s : float
+        The score must stay ≥ 1 this long before the flag rises, s.
+    hold_off_s : float
+        The score must stay < 1 this long before the flag falls, s.
+    learn_ref_s : float
+        Time constant with which the local strength and dip references are learnt from clean samples, s
+        (indoor fields differ from the WMM by several µT and degrees; the learnt values start at the
+        reference and follow the local field slowly).
+    strength_band_rel : float
+        The learnt strength may not leave ``F_ref (1 ± strength_band_rel)``: samples outside are flagged.
+    dip_band_deg : float
+        The learnt dip may not leave ``I_ref ± dip_band_deg``: samples outside are flagged.
+    consistency_bias_k : float
+        The consistency tolerance is widened by ``k · σ_b · consistency_window_s`` (σ_b the filter's gyro
+        bias uncertainty), so the check cannot fire on drift the filter knows it may have.
+    """
+
+    strength_tol_uT: float = 3.0
+    strength_tol_rel: float = 0.06
+    var_window_s: float = 1.0
+    var_max_uT2: float = 2.0
+    dip_tol_deg: float = 5.0
+    consistency_window_s: float = 2.0
+    consistency_tol_deg: float = 10.0
+    hold_on_s: float = 0.0
+    hold_off_s: float = 1.0
+    learn_ref_s: float = 30.0
+    strength_band_rel: float = 0.25
+    dip_band_deg: float = 15.0
+    consistency_bias_k: float = 3.0
+
+    def __post_init__(self):
+        for name in (
+            "strength_tol_uT",
+            "strength_tol_rel",
+            "var_window_s",
+            "var_max_uT2",
+            "dip_tol_deg",
+            "consistency_window_s",
+            "consistency_tol_deg",
+            "learn_ref_s",
+            "strength_band_rel",
+            "dip_band_deg",
+        ):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+        for name in ("hold_on_s", "hold_off_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
+
+    def as_array(self) -> np.ndarray:
+        """Packed for the compiled kernel (order of :data:`_FIELDS`)."""
+        return np.array([float(getattr(self, k)) for k in _FIELDS])
+
+
+_FIELDS = (
+    "strength_tol_uT",
+    "strength_tol_rel",
+    "var_window_s",
+    "var_max_uT2",
+    "dip_tol_deg",
+    "consistency_window_s",
+    "consistency_tol_deg",
+    "hold_on_s",
+    "hold_off_s",
+    "learn_ref_s",
+    "strength_band_rel",
+    "dip_band_deg",
+    "consistency_bias_k",
+)
+# indices into InterferenceSettings.as_array()
+(
+    I_STR_TOL,
+    I_STR_REL,
+    I_VAR_WIN,
+    I_VAR_MAX,
+    I_DIP_TOL,
+    I_CONS_WIN,
+    I_CONS_TOL,
+    I_HOLD_ON,
+    I_HOLD_OFF,
+    I_LEARN,
+    I_STR_BAND,
+    I_DIP_BAND,
+    I_CONS_K,
+) = range(13)
+
+
+# ----------------------------------------------------------------------------------------------- scalar
+@njit(cache=True)
+def strength_tol(ref_uT, p):
+    """Half-width of the accepted strength band, µT."""
+    return max(p[I_STR_TOL], p[I_STR_REL] * ref_uT)
+
+
+@njit(cache=True)
+def dip_of(mx, my, mz, ux, uy, uz):
+    """Dip (deg, positive below the horizon) of field m against the unit up direction u."""
+    n = np.sqrt(mx * mx + my * my + mz * mz)
+    if n <= 0.0:
+        return np.nan
+    s = -(mx * ux + my * uy + mz * uz) / n
+    s = min(1.0, max(-1.0, s))
+    return np.degrees(np.arcsin(s))
+
+
+@njit(cache=True)
+def ew_alpha(dt, tau):
+    """Weight of a new sample in an exponentially weighted mean with time constant tau."""
+    if dt <= 0.0:
+        return 0.0
+    return 1.0 - np.exp(-dt / tau)
+
+
+@njit(cache=True)
+def angle_deg(ax, ay, az, bx, by, bz):
+    """Angle between two vectors, deg."""
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return np.degrees(np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz))
+
+
+@njit(cache=True)
+def hold_step(flag, since, score, t, p):
+    """One step of the hold-off timer.
+
+    ``since`` is the time the score last changed side of 1 (NaN = unknown).  Returns (flag, since).
+    """
+    bad = score >= 1.0
+    if bad != flag:
+        if not np.isfinite(since):
+            since = t
+        wait = p[I_HOLD_ON] if bad else p[I_HOLD_OFF]
+        if t - since >= wait:
+            flag = bad
+            since = np.nan
+    else:
+        since = np.nan
+    return flag, since
+
+
+# ----------------------------------------------------------------------------------------------- arrays
+def strength_score(mag_d: np.ndarray, ref_uT: float, settings: InterferenceSettings | None = None):
+    """Strength F (µT), and score ``|F − F_ref| / tol_F`` for calibrated samples (N, 3)."""
+    s = settings or InterferenceSettings()
+    f = np.linalg.norm(np.asarray(mag_d, dtype=float), axis=-1)
+    tol = max(s.strength_tol_uT, s.strength_tol_rel * float(ref_uT))
+    return f, np.abs(f - ref_uT) / tol
+
+
+def dip_deg(mag_d: np.ndarray, up_d: np.ndarray) -> np.ndarray:
+    """Dip angle (deg, positive below the horizon) between calibrated field and device-frame up (N, 3)."""
+    m = np.asarray(mag_d, dtype=float)
+    u = np.asarray(up_d, dtype=float)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    s = -np.sum(m * u, axis=-1) / np.linalg.norm(m, axis=-1)
+    return np.degrees(np.arcsin(np.clip(s, -1.0, 1.0)))
+
+
+def windowed_variance(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+    """Exponentially weighted variance of x (time constant ``window_s``), sample by sample."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    return _ew_var(t, x, float(window_s))
+
+
+@njit(cache=True)
+def _ew_var(t, x, tau):
+    out = np.empty(len(x))
+    m = np.nan
+    m2 = 0.0
+    for i in range(len(x)):
+        if not np.isfinite(m):
+            m = x[i]
+            m2 = x[i] * x[i]
+        else:
+            a = ew_alpha(t[i] - t[i - 1], tau)
+            m += a * (x[i] - m)
+            m2 += a * (x[i] * x[i] - m2)
+        out[i] = max(m2 - m * m, 0.0)
+    return out
+
+
+def consistency_angle_deg(t: np.ndarray, mag_w: np.ndarray, window_s: float) -> np.ndarray:
+    """Angle (deg) between each world-frame field sample and the exponentially weighted mean direction
+    of the previous samples (time constant ``window_s``)."""
+    return _cons(np.asarray(t, dtype=float), np.asarray(mag_w, dtype=float), float(window_s))
+
+
+@njit(cache=True)
+def _cons(t, m, tau):
+    n = len(t)
+    out = np.empty(n)
+    mx = np.nan
+    my = 0.0
+    mz = 0.0
+    for i in range(n):
+        f = np.sqrt(m[i, 0] ** 2 + m[i, 1] ** 2 + m[i, 2] ** 2)
+        ux, uy, uz = m[i, 0] / f, m[i, 1] / f, m[i, 2] / f
+        if not np.isfinite(mx):
+            mx, my, mz = ux, uy, uz
+            out[i] = 0.0
+            continue
+        out[i] = angle_deg(ux, uy, uz, mx, my, mz)
+        a = ew_alpha(t[i] - t[i - 1], tau)
+        mx += a * (ux - mx)
+        my += a * (uy - my)
+        mz += a * (uz - mz)
+    return out
+
+
+def hold_off(t: np.ndarray, score: np.ndarray, settings: InterferenceSettings | None = None) -> np.ndarray:
+    """Flags (bool, N) from scores with the hold-on / hold-off timers."""
+    s = settings or InterferenceSettings()
+    return _hold(np.asarray(t, dtype=float), np.asarray(score, dtype=float), s.as_array())
+
+
+@njit(cache=True)
+def _hold(t, score, p):
+    out = np.empty(len(t), dtype=np.bool_)
+    flag = False
+    since = np.nan
+    for i in range(len(t)):
+        flag, since = hold_step(flag, since, score[i], t[i], p)
+        out[i] = flag
+    return out
