@@ -1,0 +1,504 @@
+"""HeadingPipeline: the streaming state machine that ties calibration, detection and fusion together.
+
+Data flow per sample stream (accelerometer, gyroscope, magnetometer — independent, irregular rates)::
+
+    push / push_arrays ─► per-stream buffers ─► time-ordered merge ─► blocks of ``block_s`` ─►
+        calibrate mag (current MagCalibration, ``mag_to_imu``) ─► FusionCore (detectors + filter) ─►
+        estimates (+ cal_state)  ─►  OnlineCalibrator (diversity buffer, refits, stale test) ─► events
+
+Determinism (streaming == batch).  Samples are released from the per-stream buffers only when they are
+older than the newest sample of *every* expected stream (so no later push can precede them; ties go
+accel < gyro < mag), and are processed in blocks aligned on multiples of ``block_s`` in stream time.  The
+calibration changes only between blocks.  Hence the output depends on the data alone, not on how it was
+cut into pushes: sample by sample, in chunks or all at once give identical rows.  The one exception is
+:meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
+waited for (its late samples are dropped and counted), which only happens when a stream stalls.
+
+Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data between polls (``push``
+processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
+estimates leave at every :meth:`poll`.
+
+Errors at the boundary, flags in the loop: a wrong shape or unknown stream name raises ``ValueError``; a
+NaN row, a repeated or backward timestamp is dropped and counted in :attr:`HeadingPipeline.dropped`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
+from pdr_mag.estimates import EstimateBatch, Event
+from pdr_mag.field import EarthField, earth_field_from_meta
+
+#: Stream names and their ``kind`` codes in the merged sample stream.
+KINDS = {"accel": 0, "gyro": 1, "mag": 2}
+_NAMES = {v: k for k, v in KINDS.items()}
+STATE_VERSION = 1
+
+
+def _default_fusion_settings():
+    from pdr_mag.attitude import FusionSettings
+
+    return FusionSettings()
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """Settings of :class:`HeadingPipeline`.
+
+    Attributes
+    ----------
+    block_s : float
+        Processing block length, s: the calibration may change every block; output latency ≈ one block.
+    max_lag_s : float
+        :meth:`HeadingPipeline.poll` does not wait for a stream more than this behind the newest sample, s.
+    max_pending : int
+        ``push`` processes what it safely can once this many samples are pending.
+    online : bool
+        Run the online calibrator (refits, stale test, recalibration).  False: the given calibration only.
+    online_settings : OnlineSettings
+        Its settings.
+    fusion : FusionSettings or None
+        Settings of :class:`pdr_mag.attitude.FusionCore` (None: its defaults).
+    keep_mag_calibrated : bool
+        Keep the calibrated magnetometer samples for :meth:`HeadingPipeline.pop_mag_calibrated` (sinks).
+    """
+
+    block_s: float = 0.25
+    max_lag_s: float = 1.0
+    max_pending: int = 20000
+    online: bool = True
+    online_settings: OnlineSettings = field(default_factory=OnlineSettings)
+    fusion: object | None = None
+    keep_mag_calibrated: bool = False
+
+    def __post_init__(self):
+        if not (np.isfinite(self.block_s) and self.block_s > 0):
+            raise ValueError(f"block_s: expected a positive number of seconds, got {self.block_s!r}")
+        if not (np.isfinite(self.max_lag_s) and self.max_lag_s > 0):
+            raise ValueError(f"max_lag_s: expected a positive number of seconds, got {self.max_lag_s!r}")
+        if int(self.max_pending) < 1:
+            raise ValueError(f"max_pending: expected a positive count, got {self.max_pending!r}")
+
+
+class _Stream:
+    """Pending samples of one input stream (chunks, appended in order)."""
+
+    __slots__ = ("t", "xyz", "n", "last_t")
+
+    def __init__(self):
+        self.t: list[np.ndarray] = []
+        self.xyz: list[np.ndarray] = []
+        self.n = 0
+        self.last_t = -np.inf
+
+    def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
+        if not self.n:
+            return np.empty(0), np.empty((0, 3))
+        t = np.concatenate(self.t)
+        xyz = np.concatenate(self.xyz)
+        k = int(np.searchsorted(t, t_end, side="left"))
+        self.t = [t[k:]] if k < len(t) else []
+        self.xyz = [xyz[k:]] if k < len(t) else []
+        self.n = len(t) - k
+        return t[:k], xyz[:k]
+
+
+class HeadingPipeline:
+    """Calibrated, interference-aware heading from streaming accelerometer, gyroscope and magnetometer.
+
+    Parameters
+    ----------
+    settings : PipelineSettings, optional
+    calibration : MagCalibration, optional
+        A device calibration (from ``pdr-mag calibrate``); None starts uncalibrated (online only).
+    meta : dict, optional
+        Recording metadata (``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date``): with position
+        and date, the WMM gives the reference field and the heading is true north.
+    fusion : object, optional
+        A fusion core to use instead of :class:`pdr_mag.attitude.FusionCore` (same interface; for tests).
+
+    Examples
+    --------
+    >>> pipe = HeadingPipeline(meta={"latitude_deg": 45.2, "longitude_deg": 5.7, "date": "2016-05-31"})
+    >>> pipe.push_arrays("gyro", t_g, gyro); pipe.push_arrays("accel", t_a, acc)   # doctest: +SKIP
+    >>> pipe.push_arrays("mag", t_m, mag); out = pipe.poll(); events = pipe.pop_events()  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        settings: PipelineSettings | None = None,
+        calibration: MagCalibration | None = None,
+        meta: dict | None = None,
+        fusion=None,
+    ):
+        if calibration is not None and not isinstance(calibration, MagCalibration):
+            raise ValueError(
+                f"calibration: expected a MagCalibration or None, got {type(calibration).__name__}"
+            )
+        if meta is not None and not isinstance(meta, dict):
+            raise ValueError(f"meta: expected a dict or None, got {type(meta).__name__}")
+        self.settings = settings or PipelineSettings()
+        self.meta = dict(meta or {})
+        try:
+            self.field: EarthField | None = earth_field_from_meta(self.meta)
+        except ValueError as exc:
+            raise ValueError(f"meta: {exc}") from exc
+        if fusion is None:
+            from pdr_mag.attitude import FusionCore
+
+            fusion = FusionCore(self.settings.fusion or _default_fusion_settings(), self.field)
+        self.fusion = fusion
+        f = self.field
+        self.online = OnlineCalibrator(
+            self.settings.online_settings,
+            calibration,
+            strength=None if f is None else f.strength,
+            sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
+        )
+        self._streams = {k: _Stream() for k in KINDS}
+        self._done_t = -np.inf  # everything before this time has been processed
+        self._block = None  # index of the block being filled by the last processed samples
+        self.dropped: Counter = Counter()
+        self._out: list[EstimateBatch] = []
+        self._events: list[Event] = []
+        self._magcal: list[tuple[np.ndarray, np.ndarray]] = []
+        self._interf = False
+        self._up = np.array([np.nan, np.nan, np.nan])
+        self._calibrations: list[tuple[float, MagCalibration]] = []
+        self._n_out = 0
+        self._t_first = np.nan
+        self._t_last = np.nan
+        self._sync_fusion_reference()
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def calibration(self) -> MagCalibration | None:
+        """The magnetometer calibration in use (None before the first accepted online fit)."""
+        return self.online.calibration
+
+    @property
+    def cal_state(self) -> str:
+        return self.online.cal_state
+
+    @property
+    def north(self) -> str:
+        """``"true"`` when the WMM declination is applied, else ``"magnetic"``."""
+        return "true" if self.field is not None else "magnetic"
+
+    @property
+    def calibrations(self) -> list[tuple[float, MagCalibration]]:
+        """Every calibration taken into use, with the stream time it started (the given one at -inf)."""
+        return list(self._calibrations)
+
+    @property
+    def n_outputs(self) -> int:
+        return self._n_out
+
+    def save_calibration(self, path) -> None:
+        """Write the current calibration as the ``calibrate --json`` file (ValueError when there is none)."""
+        if self.calibration is None:
+            raise ValueError("calibration: none yet (no accepted fit)")
+        self.calibration.to_json(path)
+
+    @staticmethod
+    def load_calibration(path) -> MagCalibration:
+        """Read a ``calibrate --json`` file (raises ValueError naming the file and the problem)."""
+        return MagCalibration.from_json(path)
+
+    # ------------------------------------------------------------------ input
+    def push(self, kind, t: float, xyz) -> None:
+        """Push one sample of stream ``kind`` (``"accel"``, ``"gyro"``, ``"mag"`` or 0/1/2)."""
+        self.push_arrays(kind, np.array([t], dtype=float), np.asarray(xyz, dtype=float).reshape(1, 3))
+
+    def push_arrays(self, kind, t, xyz) -> None:
+        """Push a chunk of one stream: times (N,) s and values (N, 3) in the contract's units.
+
+        Rows with NaN, and times not after the stream's previous sample, are dropped and counted.
+        """
+        name = _kind_name(kind)
+        t = np.asarray(t, dtype=float).reshape(-1)
+        xyz = np.asarray(xyz, dtype=float)
+        if xyz.ndim != 2 or xyz.shape != (len(t), 3):
+            raise ValueError(f"xyz: expected shape ({len(t)}, 3) for {len(t)} times, got {xyz.shape}")
+        if not len(t):
+            return
+        s = self._streams[name]
+        good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
+        if not np.all(good):
+            self.dropped[f"{name}:nan"] += int(np.count_nonzero(~good))
+            t, xyz = t[good], xyz[good]
+        if len(t):
+            # strictly increasing after the previous sample, and not before what has been processed
+            prev = np.maximum.accumulate(np.concatenate([[s.last_t], t]))[:-1]
+            ok = t > prev
+            late = ok & (t < self._done_t)
+            if np.any(~ok):
+                self.dropped[f"{name}:non_monotonic"] += int(np.count_nonzero(~ok))
+            if np.any(late):
+                self.dropped[f"{name}:late"] += int(np.count_nonzero(late))
+            keep = ok & ~late
+            t, xyz = t[keep], xyz[keep]
+        if len(t):
+            s.t.append(t.copy())
+            s.xyz.append(xyz.copy())
+            s.n += len(t)
+            s.last_t = float(t[-1])
+        if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+            self._process(self._safe_horizon())
+
+    # ------------------------------------------------------------------ output
+    def poll(self) -> EstimateBatch:
+        """Process what can be processed and return the estimates produced since the last poll."""
+        h = self._safe_horizon()
+        newest = max(s.last_t for s in self._streams.values())
+        if np.isfinite(newest):
+            h = max(h, newest - self.settings.max_lag_s)
+        self._process(h)
+        return self._take_out()
+
+    def flush(self) -> EstimateBatch:
+        """Process everything pending (end of stream) and return the remaining estimates."""
+        self._process(np.inf, final=True)
+        return self._take_out()
+
+    def pop_events(self) -> list[Event]:
+        """Events since the last call (interference_start/_end, calibration_accepted/_rejected,
+        recalibration_requested, recalibrated, rotation_episode_start/_end)."""
+        ev, self._events = self._events, []
+        return ev
+
+    def pop_mag_calibrated(self) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated magnetometer samples (t, xyz) since the last call (``keep_mag_calibrated``)."""
+        if not self._magcal:
+            return np.empty(0), np.empty((0, 3))
+        t = np.concatenate([a for a, _ in self._magcal])
+        x = np.concatenate([b for _, b in self._magcal])
+        self._magcal = []
+        return t, x
+
+    def run(self, streams: dict) -> EstimateBatch:
+        """Batch convenience: ``{"accel": (t, xyz), ...}`` all at once → every estimate (a loop over push)."""
+        for name, (t, xyz) in streams.items():
+            self.push_arrays(name, t, xyz)
+        return EstimateBatch.concat([self.poll(), self.flush()])
+
+    def _take_out(self) -> EstimateBatch:
+        out, self._out = self._out, []
+        return EstimateBatch.concat(out) if len(out) != 1 else out[0]
+
+    # ------------------------------------------------------------------ merge + blocks
+    def _safe_horizon(self) -> float:
+        return min(s.last_t for s in self._streams.values())
+
+    def _process(self, horizon: float, final: bool = False) -> None:
+        b = self.settings.block_s
+        if final:
+            t_end = np.inf
+        else:
+            if not np.isfinite(horizon):
+                return
+            t_end = np.floor(horizon / b) * b  # a block boundary at or before the horizon
+            if t_end <= self._done_t:
+                return
+        parts = []
+        for name, s in self._streams.items():
+            t, xyz = s.take_before(t_end)
+            if len(t):
+                parts.append((np.full(len(t), KINDS[name], dtype=np.int8), t, xyz))
+        if not final:
+            self._done_t = t_end
+        if not parts:
+            return
+        kind = np.concatenate([p[0] for p in parts])
+        t = np.concatenate([p[1] for p in parts])
+        xyz = np.concatenate([p[2] for p in parts])
+        order = np.lexsort((kind, t))
+        kind, t, xyz = kind[order], t[order], xyz[order]
+        if final:
+            self._done_t = max(self._done_t, float(t[-1]))
+        blk = np.floor(t / b)
+        cuts = np.flatnonzero(np.diff(blk)) + 1
+        for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(t)], strict=True):
+            self._run_block(kind[lo:hi], t[lo:hi], xyz[lo:hi])
+
+    def _run_block(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> None:
+        if not np.isfinite(self._t_first):
+            self._t_first = float(t[0])
+        self._t_last = float(t[-1])
+        is_mag = kind == 2
+        raw = xyz[is_mag]
+        cal = self.online.calibration
+        data = xyz.copy()
+        if cal is not None:
+            data[is_mag] = cal.apply(raw)
+        else:
+            data[is_mag] = np.nan
+        allowed = np.full(len(t), cal is not None)
+        state = self.online.cal_state
+        batch = self.fusion.process(kind, t, data, allowed)
+        n = len(batch)
+        if n:
+            batch.cal_state = np.full(n, state, dtype="<U13")
+            batch.diag["coverage"] = np.full(n, self.online.coverage())
+            self._interference_events(batch)
+            self._n_out += n
+            self._out.append(batch)
+        if self.settings.keep_mag_calibrated and np.any(is_mag) and cal is not None:
+            self._magcal.append((t[is_mag].copy(), data[is_mag].copy()))
+        if self.settings.online and np.any(is_mag):
+            up = self._up_at(t[is_mag], batch, kind, t, xyz)
+            rate = self._rate_at(t[is_mag], kind, t, xyz)
+            before = self.online.calibration
+            for te, k, d in self.online.update(t[is_mag], raw, up, rate):
+                self._events.append(Event(te, k, d))
+            if self.online.calibration is not before and self.online.calibration is not None:
+                self._calibrations.append((float(t[-1]), self.online.calibration))
+                self._sync_fusion_reference()
+
+    def _interference_events(self, batch: EstimateBatch) -> None:
+        flags = np.asarray(batch.interference, dtype=bool)
+        prev = np.r_[self._interf, flags[:-1]]
+        for i in np.flatnonzero(flags != prev):
+            kind = "interference_start" if flags[i] else "interference_end"
+            data = {}
+            for key in ("field_strength_uT", "dip_deg", "interference_score"):
+                v = batch.diag.get(key)
+                if v is not None and np.isfinite(v[i]):
+                    data[key] = round(float(v[i]), 3)
+            self._events.append(Event(float(batch.t[i]), kind, data))
+        self._interf = bool(flags[-1])
+
+    def _up_at(self, tm, batch, kind, t, xyz) -> np.ndarray:
+        """Device-frame up vector at each magnetometer time: the filter's tilt (third row of rot_wd) at the
+        nearest output row; before any output, the normalised accelerometer."""
+        if len(batch):
+            q = batch.q_wd
+            w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+            up_rows = np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+            j = np.clip(np.searchsorted(batch.t, tm), 0, len(batch) - 1)
+            up = up_rows[j]
+            self._up = up_rows[-1].copy()
+            return up
+        acc = xyz[kind == 0]
+        if len(acc):
+            a = acc.mean(axis=0)
+            self._up = a / max(np.linalg.norm(a), 1e-9)
+        return np.tile(self._up, (len(tm), 1))
+
+    @staticmethod
+    def _rate_at(tm, kind, t, xyz) -> np.ndarray:
+        g = kind == 1
+        if not np.any(g):
+            return np.zeros(len(tm))
+        tg = t[g]
+        rg = np.linalg.norm(xyz[g], axis=1)
+        j = np.clip(np.searchsorted(tg, tm), 0, len(tg) - 1)
+        return rg[j]
+
+    def _sync_fusion_reference(self) -> None:
+        cal = self.online.calibration
+        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
+            if not self._calibrations:
+                self._calibrations.append((-np.inf, cal))
+            self.fusion.set_reference_strength(float(cal.field_uT))
+
+    # ------------------------------------------------------------------ summary
+    def summary(self) -> dict:
+        """The run's summary for ``replay --json`` (INTERFACE.md keys and a few more)."""
+        dur = self._t_last - self._t_first if np.isfinite(self._t_first) else 0.0
+        return {
+            "n_outputs": int(self._n_out),
+            "duration_s": float(dur),
+            "north": self.north,
+            "cal_state": self.cal_state,
+            "calibrations": [
+                {"t": None if not np.isfinite(t) else float(t), **c.to_dict()} for t, c in self._calibrations
+            ],
+            "dropped_samples": dict(sorted(self.dropped.items())),
+            "field": None
+            if self.field is None
+            else {
+                "model": self.field.model,
+                "strength_uT": self.field.strength,
+                "inclination_deg": self.field.inclination_deg,
+                "declination_deg": self.field.declination_deg,
+            },
+        }
+
+    # ------------------------------------------------------------------ state
+    def get_state(self) -> dict:
+        """JSON-serialisable state (resume after a restart with :meth:`set_state` on a pipeline built with
+        the same settings and meta).  Pending samples are included; estimates and events not yet
+        polled are not — poll them first."""
+        pend = {}
+        for name, s in self._streams.items():
+            t = np.concatenate(s.t) if s.n else np.empty(0)
+            x = np.concatenate(s.xyz) if s.n else np.empty((0, 3))
+            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": _f(s.last_t)}
+        st = {
+            "version": STATE_VERSION,
+            "pending": pend,
+            "done_t": _f(self._done_t),
+            "dropped": dict(self.dropped),
+            "interf": self._interf,
+            "up": [_f(v) for v in self._up],
+            "n_out": self._n_out,
+            "t_first": _f(self._t_first),
+            "t_last": _f(self._t_last),
+            "calibrations": [[_f(t), c.to_dict()] for t, c in self._calibrations],
+            "fusion": self.fusion.get_state(),
+            "online": self.online.get_state(),
+        }
+        json.dumps(st)  # fail here, not at the caller's, if something is not serialisable
+        return st
+
+    def set_state(self, state: dict) -> None:
+        """Restore from :meth:`get_state` (ValueError when the dict is not such a state)."""
+        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+            raise ValueError(f"state: expected a HeadingPipeline state of version {STATE_VERSION}")
+        try:
+            for name, s in self._streams.items():
+                p = state["pending"][name]
+                t = np.asarray(p["t"], dtype=float)
+                x = np.asarray(p["xyz"], dtype=float).reshape(-1, 3)
+                s.t, s.xyz, s.n = ([t], [x], len(t)) if len(t) else ([], [], 0)
+                s.last_t = float(p["last_t"])
+            self._done_t = float(state["done_t"])
+            self.dropped = Counter(state["dropped"])
+            self._interf = bool(state["interf"])
+            self._up = np.asarray([float(v) for v in state["up"]])
+            self._n_out = int(state["n_out"])
+            self._t_first = float(state["t_first"])
+            self._t_last = float(state["t_last"])
+            self._calibrations = [(float(t), MagCalibration.from_dict(c)) for t, c in state["calibrations"]]
+            self.fusion.set_state(state["fusion"])
+            self.online.set_state(state["online"])
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"state: malformed ({exc!r})") from exc
+        self._out, self._events, self._magcal = [], [], []
+
+
+def _kind_name(kind) -> str:
+    if isinstance(kind, str):
+        if kind not in KINDS:
+            raise ValueError(f"kind: expected one of {sorted(KINDS)}, got {kind!r}")
+        return kind
+    try:
+        return _NAMES[int(kind)]
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
+
+
+def _f(v: float):
+    v = float(v)
+    if np.isnan(v):
+        return "nan"
+    if np.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return v

@@ -1,0 +1,67 @@
+"""``pdr-mag replay REC [--calibration FILE] [--out-csv FILE] [--mcap FILE] [--rrd FILE] [--json FILE]``."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+
+from replay.errors import InputError
+
+
+@click.command()
+@click.argument("rec", type=click.Path(path_type=Path))
+@click.option("--calibration", type=click.Path(path_type=Path), help="calibrate --json file of the device.")
+@click.option("--out-csv", type=click.Path(path_type=Path), help="Estimates, one row per output epoch.")
+@click.option(
+    "--mcap", type=click.Path(path_type=Path), help="MCAP file with inputs, outputs and references."
+)
+@click.option("--rrd", type=click.Path(path_type=Path), help="rerun recording (.rrd).")
+@click.option("--json", "json_path", type=click.Path(path_type=Path), help="Run summary as JSON.")
+@click.option(
+    "--progress/--no-progress", default=None, help="Progress bar (default: long recordings on a tty)."
+)
+@click.option("--quiet", "-q", is_flag=True, help="No summary table.")
+def command(rec, calibration, out_csv, mcap, rrd, json_path, progress, quiet):
+    """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
+    from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
+
+    cal = load_calibration(calibration) if calibration is not None else None
+    sinks = []
+    if mcap is not None:
+        sinks.append(make_sink("mcap", mcap))
+    if rrd is not None:
+        sinks.append(make_sink("rrd", rrd))
+    if out_csv is not None:
+        sinks.append(CsvSink(out_csv))
+    for p in (out_csv, json_path, mcap, rrd):
+        if p is not None and p.parent and not p.parent.exists():
+            try:
+                p.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise InputError(p, f"cannot create the folder ({exc.strerror})") from None
+    summary = replay(rec, calibration=cal, sinks=sinks, progress=progress)
+    if json_path is not None:
+        json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
+    if not quiet:
+        click.echo(summary_table(summary))
+    return 0
+
+
+def _clean(obj):
+    """JSON-safe copy: NaN/inf → null, numpy scalars → Python numbers."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (bool, str)) or obj is None:
+        return obj
+    if isinstance(obj, int) and not isinstance(obj, bool):
+        return obj
+    try:
+        v = float(obj)
+    except (TypeError, ValueError):
+        return str(obj)
+    return v if math.isfinite(v) else None

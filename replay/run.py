@@ -1,0 +1,301 @@
+"""Drive a recording through :class:`pdr_mag.pipeline.HeadingPipeline` and into the sinks.
+
+The recording's streams are pushed in slices of ``slice_s`` seconds of stream time (the way a phone would
+deliver them), the pipeline is polled after each slice, and everything it gives out — estimates, events,
+calibrations, calibrated magnetometer samples — goes to every sink through the
+:class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
+from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
+from replay.errors import InputError
+from replay.formats import read_recording
+from replay.recording import Recording
+
+#: Recordings with more samples than this get a progress bar.
+PROGRESS_MIN_SAMPLES = 200_000
+
+
+class CsvSink:
+    """``replay --out-csv``: one row per output epoch, columns exactly :data:`CSV_COLUMNS`."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._fh = None
+
+    def open(self, meta: dict) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = self.path.open("w", encoding="utf-8", newline="\n")
+        self._fh.write(",".join(CSV_COLUMNS) + "\n")
+
+    def inputs(self, kind, t, xyz) -> None:
+        pass
+
+    def mag_calibrated(self, t, xyz) -> None:
+        pass
+
+    def estimates(self, batch: EstimateBatch) -> None:
+        if not len(batch):
+            return
+        q = batch.q_wd
+        lines = [
+            f"{t:.6f},{a:.9f},{b:.9f},{c:.9f},{d:.9f},{h:.4f},{s:.4f},{int(m)},{int(i)},{cs}\n"
+            for t, a, b, c, d, h, s, m, i, cs in zip(
+                batch.t.tolist(),
+                q[:, 0].tolist(),
+                q[:, 1].tolist(),
+                q[:, 2].tolist(),
+                q[:, 3].tolist(),
+                batch.heading_deg.tolist(),
+                batch.heading_std_deg.tolist(),
+                batch.mag_used.tolist(),
+                batch.interference.tolist(),
+                batch.cal_state.tolist(),
+                strict=True,
+            )
+        ]
+        self._fh.writelines(lines)
+
+    def reference(self, name, t, q_wd) -> None:
+        pass
+
+    def event(self, ev) -> None:
+        pass
+
+    def calibration(self, t, cal) -> None:
+        pass
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def load_calibration(path) -> MagCalibration:
+    """Read a ``calibrate --json`` file; any problem is an :class:`InputError` naming the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "no such calibration file")
+    try:
+        return MagCalibration.from_json(p)
+    except ValueError as exc:
+        msg = str(exc)
+        prefix = f"{p}: "
+        raise InputError(p, msg[len(prefix) :] if msg.startswith(prefix) else msg) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read ({exc})") from None
+
+
+def make_sink(kind: str, path):
+    """An MCAP or rerun sink, or :class:`InputError` when that sink is not available in this build."""
+    try:
+        if kind == "mcap":
+            from pdr_mag.sinks.mcap import McapSink
+
+            return McapSink(path)
+        from pdr_mag.sinks.rerun import RerunSink
+
+        return RerunSink(path)
+    except ImportError:
+        raise InputError(path, f"--{'mcap' if kind == 'mcap' else 'rrd'} output not available yet") from None
+
+
+def os_reference(rec: Recording):
+    """The phone's own orientation (``os``), when the reader exposes it or the pdr-csv has ``os.csv``."""
+    ref = getattr(rec, "os", None)
+    if ref is not None:
+        return ref
+    refs = getattr(rec, "references", None)
+    if isinstance(refs, dict) and "os" in refs:
+        return refs["os"]
+    p = Path(rec.source) / "os.csv" if rec.source else None
+    if p is not None and p.is_file():
+        from replay.formats import pdrcsv
+
+        arr = pdrcsv._parse_csv(p, pdrcsv.TRUTH_HEADER, Counter(), "os")
+        return arr[:, 0].copy(), arr[:, 1:5].copy()
+    return None
+
+
+def replay(
+    rec_path,
+    calibration=None,
+    sinks=(),
+    settings: PipelineSettings | None = None,
+    progress: bool | None = None,
+    slice_s: float = 2.0,
+) -> dict:
+    """Replay a recording; return the run summary (the ``replay --json`` object).
+
+    Parameters
+    ----------
+    rec_path : path or Recording
+        A recording (any format a reader recognises) or one already read.
+    calibration : MagCalibration, path or None
+        The device calibration (a path is read as the ``calibrate --json`` file); None = online only.
+    sinks : sequence of Sink
+        Opened, fed and closed here.
+    settings : PipelineSettings, optional
+    progress : bool or None
+        Progress bar on stderr; None = only for long recordings on a terminal.
+    slice_s : float
+        Stream time pushed between polls, s.
+    """
+    rec = rec_path if isinstance(rec_path, Recording) else read_recording(rec_path)
+    if rec.accel is None or rec.gyro is None:
+        missing = "accel" if rec.accel is None else "gyro"
+        raise InputError(rec.source or rec_path, f"no {missing} stream (heading needs accel, gyro and mag)")
+    if calibration is not None and not isinstance(calibration, MagCalibration):
+        calibration = load_calibration(calibration)
+    try:
+        pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=rec.meta)
+    except ValueError as exc:
+        raise InputError(rec.source or rec_path, str(exc)) from None
+    streams = {"accel": rec.accel, "gyro": rec.gyro, "mag": rec.mag}
+    n_samples = sum(len(s) for s in streams.values())
+    meta = {
+        **rec.meta,
+        "source": rec.source,
+        "format": rec.format,
+        "north": pipe.north,
+        "t0": rec.t0,
+    }
+    if pipe.field is not None:
+        meta["field"] = {
+            "model": pipe.field.model,
+            "strength_uT": pipe.field.strength,
+            "inclination_deg": pipe.field.inclination_deg,
+            "declination_deg": pipe.field.declination_deg,
+        }
+    sinks = list(sinks)
+    for s in sinks:
+        s.open(meta)
+    if sinks:
+        if rec.truth is not None:
+            for s in sinks:
+                s.reference("truth", rec.truth[0], rec.truth[1])
+        osref = os_reference(rec)
+        if osref is not None:
+            for s in sinks:
+                s.reference("os", osref[0], osref[1])
+    if calibration is not None:
+        for s in sinks:
+            s.calibration(rec.t0, calibration)
+    if progress is None:
+        import sys
+
+        progress = n_samples >= PROGRESS_MIN_SAMPLES and sys.stderr.isatty()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_samples, unit="sample", unit_scale=True, desc="replay", leave=False)
+    events: list = []
+    state_counts: Counter = Counter()
+    n_cal_seen = len(pipe.calibrations)
+    idx = {k: 0 for k in streams}
+    t_start = time.perf_counter()
+    edges = np.arange(rec.t0 + slice_s, rec.t1 + slice_s, slice_s)
+    try:
+        for final, edge in [(False, e) for e in edges] + [(True, np.inf)]:
+            pushed = 0
+            for name, st in streams.items():
+                j = len(st.t) if final else int(np.searchsorted(st.t, edge, side="left"))
+                i = idx[name]
+                if j > i:
+                    pipe.push_arrays(name, st.t[i:j], st.xyz[i:j])
+                    for s in sinks:
+                        s.inputs(name, st.t[i:j], st.xyz[i:j])
+                    pushed += j - i
+                    idx[name] = j
+            batch = pipe.flush() if final else pipe.poll()
+            _emit(pipe, batch, sinks, events, state_counts)
+            cals = pipe.calibrations
+            for t_cal, cal in cals[n_cal_seen:]:
+                for s in sinks:
+                    s.calibration(t_cal, cal)
+            n_cal_seen = len(cals)
+            if bar is not None:
+                bar.update(pushed)
+    finally:
+        if bar is not None:
+            bar.close()
+        for s in sinks:
+            s.close()
+    elapsed = time.perf_counter() - t_start
+    summary = pipe.summary()
+    dropped = Counter(rec.dropped)
+    dropped.update(pipe.dropped)
+    summary.update(
+        {
+            "source": rec.source,
+            "format": rec.format,
+            "events": events,
+            "dropped_samples": dict(sorted(dropped.items())),
+            "n_samples": {k: len(v) for k, v in streams.items()},
+            "cal_state_rows": dict(sorted(state_counts.items())),
+            "calibration_given": calibration is not None,
+            "elapsed_s": elapsed,
+            "samples_per_s": n_samples / elapsed if elapsed > 0 else None,
+        }
+    )
+    return summary
+
+
+def _emit(pipe: HeadingPipeline, batch: EstimateBatch, sinks, events: list, state_counts: Counter) -> None:
+    evs = pipe.pop_events()
+    if pipe.settings.keep_mag_calibrated:
+        tm, xm = pipe.pop_mag_calibrated()
+        if len(tm):
+            for s in sinks:
+                s.mag_calibrated(tm, xm)
+    if len(batch):
+        vals, counts = np.unique(batch.cal_state, return_counts=True)
+        for v, c in zip(vals.tolist(), counts.tolist(), strict=True):
+            state_counts[v] += c
+        for s in sinks:
+            s.estimates(batch)
+    for ev in evs:
+        events.append(ev.to_dict())
+        for s in sinks:
+            s.event(ev)
+
+
+def summary_table(summary: dict) -> str:
+    """The human-readable table printed at the end of ``pdr-mag replay``."""
+    rows = [
+        ("recording", str(summary.get("source", ""))),
+        ("outputs", f"{summary['n_outputs']} over {summary['duration_s']:.1f} s"),
+        ("north", summary["north"]),
+        ("calibration", "given" if summary.get("calibration_given") else "online only"),
+        ("final cal_state", summary.get("cal_state", "")),
+    ]
+    rows.append(
+        ("rows per cal_state", ", ".join(f"{k} {v}" for k, v in summary.get("cal_state_rows", {}).items()))
+    )
+    kinds = Counter(e["kind"] for e in summary["events"])
+    rows.append(("events", ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"))
+    cals = summary["calibrations"]
+    if cals:
+        last = cals[-1]
+        off = ", ".join(f"{v:.1f}" for v in last["offset_uT"])
+        rows.append(
+            ("last calibration", f"{last['method']} offset ({off}) µT, field {last['field_uT'] or 0:.1f} µT")
+        )
+    dropped = summary["dropped_samples"]
+    rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
+    if summary.get("samples_per_s"):
+        rows.append(
+            ("throughput", f"{summary['samples_per_s']:.0f} samples/s ({summary['elapsed_s']:.2f} s)")
+        )
+    w = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
