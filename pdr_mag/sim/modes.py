@@ -1,0 +1,196 @@
+"""Motion modes: how the phone moves relative to the walker (texting, swinging, pocket, figure-8, still).
+
+A mode gives, as smooth analytic functions of time,
+
+* the chain angles relative to the walking direction: ``(yaw_rel, pitch, roll, twist)`` and their rates
+  (the trajectory adds ``−ψ(t)`` to the yaw, ψ being the heading of the walker, clockwise from north);
+* the phone's offset from the walker's reference point in the walker frame (x right, y forward, z up), m;
+* the walker's speed, m/s.
+
+Gait numbers: step frequency 1.6–2.0 Hz (stride half that), vertical bounce ±2.5 cm (≈ 3 m/s² at the
+step frequency), lateral sway ±3 cm at the stride frequency, arm swing ±35°, thigh swing ±25°.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+DEG = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class Sines:
+    """``f(t) = const + Σ_k amp_k sin(omega_k t + phase_k)`` and its derivative."""
+
+    const: float = 0.0
+    terms: tuple[tuple[float, float, float], ...] = ()  # (amp, omega rad/s, phase rad)
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = np.full(t.shape, float(self.const))
+        dv = np.zeros(t.shape)
+        for amp, om, ph in self.terms:
+            arg = om * t + ph
+            v += amp * np.sin(arg)
+            dv += amp * om * np.cos(arg)
+        return v, dv
+
+
+@dataclass(frozen=True)
+class Mode:
+    """A motion mode (see the module docstring)."""
+
+    name: str
+    angles_fn: tuple[Sines, Sines, Sines, Sines]
+    offset_fn: Callable[[np.ndarray], np.ndarray]
+    speed: float = 0.0
+    step_hz: float = 0.0
+
+    def angles(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Relative chain angles (N, 4) and rates (N, 4), radians, rad/s."""
+        out = [f(t) for f in self.angles_fn]
+        return np.stack([o[0] for o in out], axis=1), np.stack([o[1] for o in out], axis=1)
+
+    def offset(self, t: np.ndarray) -> np.ndarray:
+        """Phone offset (N, 3) in the walker frame (x right, y forward, z up), m."""
+        return self.offset_fn(t)
+
+
+def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(rng.uniform(lo, hi))
+
+
+def _ph(rng: np.random.Generator) -> float:
+    return float(rng.uniform(0.0, 2.0 * np.pi))
+
+
+def _gait(rng: np.random.Generator) -> tuple[float, float, float]:
+    """Step frequency (Hz), step angular frequency (rad/s), speed (m/s)."""
+    f = _u(rng, 1.6, 2.0)
+    step_len = _u(rng, 0.62, 0.75)
+    return f, 2.0 * np.pi * f, f * step_len
+
+
+def _bounce(rng: np.random.Generator, w: float) -> tuple[Sines, Sines, Sines]:
+    """Walker-frame (lateral, forward, vertical) trunk motion around zero."""
+    a = _ph(rng)
+    return (
+        Sines(0.0, ((_u(rng, 0.02, 0.035), 0.5 * w, a),)),
+        Sines(0.0, ((_u(rng, 0.01, 0.02), w, _ph(rng)),)),
+        Sines(0.0, ((_u(rng, 0.02, 0.03), w, a), (0.006, 2.0 * w, _ph(rng)))),
+    )
+
+
+def _stack(*fns) -> Callable[[np.ndarray], np.ndarray]:
+    def f(t: np.ndarray) -> np.ndarray:
+        return np.stack([fn(t)[0] for fn in fns], axis=1)
+
+    return f
+
+
+def texting(rng: np.random.Generator) -> Mode:
+    """Walking with the phone held in front for texting: tilted ~35° up, swaying with the steps."""
+    f, w, v = _gait(rng)
+    lat, fwd, up = _bounce(rng, w)
+    angles = (
+        Sines(0.0, ((2.5 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(_u(rng, 28, 42) * DEG, ((2.0 * DEG, w, _ph(rng)), (1.0 * DEG, 0.5 * w, _ph(rng)))),
+        Sines(_u(rng, -3, 3) * DEG, ((3.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(0.0, ((1.0 * DEG, 0.5 * w, _ph(rng)),)),
+    )
+    x0, y0, z0 = _u(rng, -0.05, 0.1), _u(rng, 0.25, 0.35), _u(rng, 1.15, 1.3)
+    offset = _stack(
+        lambda t: (x0 + lat(t)[0], None), lambda t: (y0 + fwd(t)[0], None), lambda t: (z0 + up(t)[0], None)
+    )
+    return Mode("texting", angles, offset, speed=v, step_hz=f)
+
+
+def swing(rng: np.random.Generator) -> Mode:
+    """Walking with the phone in the swinging hand: top down along the arm, screen sideways, ±35°."""
+    f, w, v = _gait(rng)
+    lat, fwd, up = _bounce(rng, w)
+    amp, ph = _u(rng, 28, 40) * DEG, _ph(rng)
+    swing_angle = Sines(0.0, ((amp, 0.5 * w, ph),))
+    arm = _u(rng, 0.6, 0.7)
+    angles = (
+        Sines(0.0, ((3.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(-90.0 * DEG, ((amp, 0.5 * w, ph),)),
+        Sines(90.0 * DEG, ((4.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(0.0, ((5.0 * DEG, 0.5 * w, _ph(rng)),)),
+    )
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        a = swing_angle(t)[0]
+        return np.stack(
+            [0.22 + lat(t)[0], fwd(t)[0] + arm * np.sin(a), 1.45 + up(t)[0] - arm * np.cos(a)], axis=1
+        )
+
+    return Mode("swing", angles, offset, speed=v, step_hz=f)
+
+
+def pocket(rng: np.random.Generator) -> Mode:
+    """Walking with the phone in a front trouser pocket: top up along the thigh, screen to the leg."""
+    f, w, v = _gait(rng)
+    lat, fwd, up = _bounce(rng, w)
+    amp, ph = _u(rng, 20, 30) * DEG, _ph(rng)
+    thigh = Sines(0.0, ((amp, 0.5 * w, ph),))
+    along = _u(rng, 0.15, 0.25)
+    angles = (
+        Sines(0.0, ((6.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(90.0 * DEG, ((amp, 0.5 * w, ph),)),
+        Sines(_u(rng, 5, 12) * DEG, ((3.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(0.0, ((2.0 * DEG, w, _ph(rng)),)),
+    )
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        b = thigh(t)[0]
+        return np.stack(
+            [0.12 + lat(t)[0], fwd(t)[0] + along * np.sin(b), 0.95 + up(t)[0] - along * np.cos(b)], axis=1
+        )
+
+    return Mode("pocket", angles, offset, speed=v, step_hz=f)
+
+
+def figure8(rng: np.random.Generator) -> Mode:
+    """Standing, the phone waved in figure-8s and rolled over: the calibration motion covering all
+    orientations (pitch ±75°, roll ±160°, yaw ±70°; peak rates ≈ 2 rad/s)."""
+    fp, fr, fy = _u(rng, 0.15, 0.2), _u(rng, 0.1, 0.13), _u(rng, 0.06, 0.08)
+    wp, wr, wy = 2 * np.pi * fp, 2 * np.pi * fr, 2 * np.pi * fy
+    angles = (
+        Sines(0.0, ((70.0 * DEG, wy, _ph(rng)),)),
+        Sines(0.0, ((75.0 * DEG, wp, _ph(rng)),)),
+        Sines(0.0, ((160.0 * DEG, wr, _ph(rng)), (10.0 * DEG, 3.1 * wr, _ph(rng)))),
+        Sines(0.0, ((20.0 * DEG, 1.7 * wp, _ph(rng)),)),
+    )
+    ph1, ph2 = _ph(rng), _ph(rng)
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        return np.stack(
+            [
+                0.2 * np.sin(wp * t + ph1),
+                0.35 + 0.05 * np.sin(wr * t + ph2),
+                1.2 + 0.12 * np.sin(2 * wp * t + ph1),
+            ],
+            axis=1,
+        )
+
+    return Mode("figure8", angles, offset)
+
+
+def still(rng: np.random.Generator) -> Mode:
+    """Lying still on a table, screen up."""
+    z = _u(rng, 0.72, 0.78)
+    angles = (Sines(0.0), Sines(0.0), Sines(0.0), Sines(0.0))
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(t), 3))
+        out[:, 1] = 0.3
+        out[:, 2] = z
+        return out
+
+    return Mode("still", angles, offset)
+
+
+MODES = {"texting": texting, "swing": swing, "pocket": pocket, "figure8": figure8, "still": still}

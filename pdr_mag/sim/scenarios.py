@@ -1,0 +1,204 @@
+"""Scenarios: named trajectories, their steel layouts and the default effects of a typical phone.
+
+Default effects (every scenario; ``--effect NAME=off`` removes one)::
+
+    hard_iron  = (22, −31, 48) µT                           a typical phone's own magnetisation
+    soft_iron  = [[1.04, 0.02, −0.01], [0.02, 0.97, 0.015], [−0.01, 0.015, 1.0]]   (correction matrix)
+    gyro_bias  = (0.6, −0.8, 0.5) °/s = (0.01047, −0.01396, 0.00873) rad/s
+    noise      = 0.4 µT
+    local_anomaly = 30 µT peak           mixed and chain only (a steel area on the walk)
+
+``time_offset``, ``mag_imu_misalignment`` and ``bias_drift`` are off by default.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pdr_mag.sensor_model import DipoleField
+from pdr_mag.sim import modes as M
+from pdr_mag.sim.trajectory import Heading, Trajectory
+
+DEG = np.pi / 180.0
+
+DEFAULT_EFFECTS: dict[str, object] = {
+    "hard_iron": (22.0, -31.0, 48.0),
+    "soft_iron": ((1.04, 0.02, -0.01), (0.02, 0.97, 0.015), (-0.01, 0.015, 1.0)),
+    "gyro_bias": tuple(round(float(v), 6) for v in np.radians([0.6, -0.8, 0.5])),
+    "noise": 0.4,
+}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A built scenario: the trajectory, its segments and where the steel areas are (time windows)."""
+
+    trajectory: Trajectory
+    segments: list[tuple[str, float, float]]
+    anomaly_windows: list[tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    default_duration_s: float
+    build: Callable[[float, np.random.Generator], Plan]
+    default_effects: dict = field(default_factory=dict)
+
+
+def _turns(rng: np.random.Generator, windows: list[tuple[float, float]]) -> np.ndarray:
+    """Random turns (t_center, dpsi, duration) inside walking windows, every 8–20 s."""
+    rows = []
+    for a, b in windows:
+        t = a + rng.uniform(6.0, 12.0)
+        while t < b - 4.0:
+            d = rng.choice([90.0, -90.0, 45.0, -45.0, 180.0, 90.0, -90.0])
+            dur = 1.5 + abs(d) / 90.0 * rng.uniform(0.6, 1.0)
+            rows.append((t, d * DEG, dur))
+            t += rng.uniform(8.0, 20.0)
+    return np.asarray(rows, dtype=float).reshape(-1, 3)
+
+
+def _wander(rng: np.random.Generator) -> np.ndarray:
+    return np.array(
+        [[rng.uniform(2.0, 4.0) * DEG, 2 * np.pi / rng.uniform(15.0, 30.0), rng.uniform(0, 2 * np.pi)]]
+    )
+
+
+def _plan(
+    rng: np.random.Generator,
+    duration: float,
+    parts: list[tuple[str, float]],
+    steel: list[tuple[float, float]] = (),
+) -> Plan:
+    """Modes in sequence with given durations (scaled to ``duration``); turns on walking parts."""
+    total = sum(p[1] for p in parts)
+    scale = duration / total
+    modes, bounds, segs, walking = [], [], [], []
+    t = 0.0
+    cache: dict[str, M.Mode] = {}
+    for i, (name, d) in enumerate(parts):
+        if name not in cache:  # the same person: one gait per mode kind
+            cache[name] = M.MODES[name](rng)
+        modes.append(cache[name])
+        t1 = duration if i == len(parts) - 1 else t + d * scale
+        segs.append((name, round(t, 6), round(t1, 6)))
+        if cache[name].speed > 0:
+            walking.append((t, t1))
+        if i < len(parts) - 1:
+            bounds.append(t1)
+        t = t1
+    heading = Heading(
+        psi0=float(rng.uniform(0, 2 * np.pi)),
+        turns=_turns(rng, walking),
+        wander=_wander(rng) if walking else np.zeros((0, 3)),
+    )
+    traj = Trajectory(modes, bounds, heading, duration)
+    windows = [(round(a * scale, 6), round(b * scale, 6)) for a, b in steel]
+    return Plan(traj, segs, windows)
+
+
+def _single(mode: str) -> Callable[[float, np.random.Generator], Plan]:
+    def build(duration: float, rng: np.random.Generator) -> Plan:
+        return _plan(rng, duration, [(mode, duration)])
+
+    return build
+
+
+def _mixed(duration: float, rng: np.random.Generator) -> Plan:
+    f8 = min(25.0, 0.3 * duration)
+    walk = duration - f8
+    return _plan(
+        rng, duration, [("figure8", f8), ("texting", walk)], steel=[(f8 + 0.4 * walk, f8 + 0.7 * walk)]
+    )
+
+
+def _chain(duration: float, rng: np.random.Generator) -> Plan:
+    # calibrate 20, walk 90 (steel 30..60 of it), recalibrate 20, walk out 50 — scaled to the duration
+    return _plan(
+        rng,
+        duration,
+        [("figure8", 20.0), ("texting", 90.0), ("figure8", 20.0), ("texting", 50.0)],
+        steel=[(50.0, 80.0)],
+    )
+
+
+SCENARIOS: dict[str, Scenario] = {
+    s.name: s
+    for s in (
+        Scenario(
+            "figure8", "standing, calibration figure-8s covering all orientations", 60.0, _single("figure8")
+        ),
+        Scenario(
+            "walk", "walking, phone held for texting; steps ~1.8 Hz, turns, sway", 120.0, _single("texting")
+        ),
+        Scenario(
+            "swing",
+            "walking, phone swinging in the hand (±35° at the stride frequency)",
+            120.0,
+            _single("swing"),
+        ),
+        Scenario("pocket", "walking, phone in a front trouser pocket", 120.0, _single("pocket")),
+        Scenario("still", "phone lying still on a table, screen up", 60.0, _single("still")),
+        Scenario(
+            "mixed",
+            "figure8 calibration (25 s), then a texting walk through a steel area (40–70 % of the walk)",
+            90.0,
+            _mixed,
+            {"local_anomaly": 30.0},
+        ),
+        Scenario(
+            "chain",
+            "calibrate → walk → steel area → walk out → recalibrate → walk "
+            "(20/90/20/50 s scaled; steel 50–80 s)",
+            180.0,
+            _chain,
+            {"local_anomaly": 30.0},
+        ),
+    )
+}
+
+
+def layout_dipoles(plan: Plan, peak_uT: float, rng: np.random.Generator) -> DipoleField:
+    """Steel as point dipoles beside the path in the plan's steel windows, scaled so the largest |B| the
+    phone meets is ``peak_uT``.
+
+    Dipoles every 1.5–3 m of path, 0.9–2 m to the side (left or right), 0–2.8 m high, random moment
+    directions, log-normal magnitudes.  Without windows the middle third of the recording is used; where
+    the walker does not move, one dipole sits 0.6–0.9 m from the phone.
+    """
+    traj = plan.trajectory
+    windows = plan.anomaly_windows or [(traj.t_end / 3.0, 2.0 * traj.t_end / 3.0)]
+    positions = []
+    for a, b in windows:
+        ts = np.arange(a, b, 0.1)
+        walker = traj.walker_position(ts)
+        step = np.linalg.norm(np.diff(walker, axis=0), axis=1)
+        dist = np.concatenate([[0.0], np.cumsum(step)])
+        if dist[-1] < 1.0:
+            p = traj.position(ts).mean(axis=0)
+            ang = rng.uniform(0, 2 * np.pi)
+            r = rng.uniform(0.6, 0.9)
+            positions.append(p + [r * np.cos(ang), r * np.sin(ang), rng.uniform(-0.3, 0.0)])
+            continue
+        psi, _ = traj.heading(ts)
+        d = rng.uniform(0.0, 1.5)
+        while d < dist[-1]:
+            i = int(np.searchsorted(dist, d))
+            side = rng.choice([-1.0, 1.0])
+            lat = side * rng.uniform(0.9, 2.0)
+            right = np.array([np.cos(psi[i]), -np.sin(psi[i]), 0.0])
+            positions.append(walker[i] + lat * right + [0.0, 0.0, rng.uniform(0.0, 2.8)])
+            d += rng.uniform(1.5, 3.0)
+    pos = np.asarray(positions, dtype=float).reshape(-1, 3)
+    dirs = rng.standard_normal((len(pos), 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    mom = dirs * np.exp(rng.normal(0.0, 0.5, (len(pos), 1)))
+    unit = DipoleField(pos, mom)
+    t_all = np.arange(0.0, traj.t_end, 0.05)
+    bmax = float(np.linalg.norm(unit.field_w(traj.position(t_all)), axis=1).max())
+    return DipoleField(pos, mom * (peak_uT / bmax), peak_uT)
