@@ -191,3 +191,73 @@ def require(path: Path, what: str) -> Path:
     if not path.is_file():
         raise InputError(path, f"missing ({what})")
     return path
+
+
+class Bundle:
+    """Named files in a directory or a ``.zip`` archive (phone apps export either), read as text streams.
+
+    ``names()`` lists the files (relative POSIX paths), ``open(name)`` returns a text stream read line by line
+    (from a zip: decompressed as it is read, never whole), ``where(name)`` is the path to name in errors.
+    """
+
+    def __init__(self, path: Path):
+        import zipfile
+
+        self.path = Path(path)
+        self.zip = None
+        if self.path.is_file():
+            try:
+                self.zip = zipfile.ZipFile(self.path)
+            except (zipfile.BadZipFile, OSError) as exc:
+                raise InputError(self.path, f"not a readable zip archive ({exc})") from None
+
+    @staticmethod
+    def is_zip(path: Path) -> bool:
+        if not path.is_file():
+            return False
+        with path.open("rb") as fh:
+            return fh.read(4) == b"PK\x03\x04"
+
+    def names(self) -> list[str]:
+        if self.zip is not None:
+            return [n for n in self.zip.namelist() if not n.endswith("/")]
+        return sorted(str(p.relative_to(self.path).as_posix()) for p in self.path.rglob("*") if p.is_file())
+
+    def find(self, basename: str) -> str | None:
+        """The member whose file name (any folder) is ``basename`` (case-insensitive), shallowest first."""
+        hits = [n for n in self.names() if n.rsplit("/", 1)[-1].lower() == basename.lower()]
+        return min(hits, key=lambda n: (n.count("/"), n)) if hits else None
+
+    def where(self, name: str) -> str:
+        return f"{self.path}!{name}" if self.zip is not None else str(self.path / name)
+
+    def open(self, name: str):
+        import io
+
+        if self.zip is None:
+            return open_text(self.path / name)
+        try:
+            raw = self.zip.open(name)
+        except (KeyError, OSError) as exc:
+            raise InputError(self.where(name), f"cannot open ({exc})") from None
+        return io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace", newline="")
+
+    def close(self) -> None:
+        if self.zip is not None:
+            self.zip.close()
+
+
+def iter_csv(fh, where: str, delimiter: str = ","):
+    """Yield ``(lineno, cells)`` of a CSV text stream; a damaged/truncated compressed member → InputError."""
+    import csv
+    import zlib
+    from zipfile import BadZipFile
+
+    reader = csv.reader(fh, delimiter=delimiter)
+    try:
+        for cells in reader:
+            yield reader.line_num, cells
+    except (BadZipFile, EOFError, zlib.error) as exc:
+        raise InputError(where, f"truncated or damaged archive member ({exc})", reader.line_num + 1) from None
+    except csv.Error as exc:
+        raise InputError(where, f"bad CSV ({exc})", reader.line_num) from None

@@ -1,0 +1,165 @@
+"""phyphox CSV export (RWTH Aachen's phone-physics app): a folder or its ``.zip``.
+
+Each sensor of the experiment is one CSV file (``Accelerometer.csv``, ``Gyroscope.csv``,
+``Magnetometer.csv``, or ``Raw Data.csv`` for a one-sensor experiment) with a quoted header row, the
+first column ``"Time (s)"`` (seconds since the experiment started: one clock for all files) and then, e.g.::
+
+    "Time (s)","Magnetic field x (µT)","Magnetic field y (µT)","Magnetic field z (µT)","Absolute field (µT)"
+    "Time (s)","Gyroscope x (rad/s)","Gyroscope y (rad/s)","Gyroscope z (rad/s)","Absolute (rad/s)"
+    "Time (s)","Acceleration x (m/s^2)","Acceleration y (m/s^2)","Acceleration z (m/s^2)","Absolute …"
+
+Files are recognised by their column names, not their file names (``Magnetic Field`` or ``Magnetic field``,
+``µT`` or ``uT``); ``Linear Acceleration`` (gravity removed) is not used as the accelerometer. phyphox
+exports comma-separated with decimal points by default; the tab-separated and the semicolon/decimal-comma
+variants are read too. phyphox reports the same axes and units on Android and iOS (its iOS app converts
+Core Motion to m/s² with Android's sign), i.e. the contract's: nothing is converted. ``meta/device.csv``
+(``property,value``) gives the device name when present.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from pathlib import Path
+
+from replay.errors import InputError
+from replay.formats._common import Bundle, StreamBuilder, finish, floats, iter_csv
+from replay.recording import Recording
+
+NAME = "phyphox"
+
+_PATTERNS = {
+    "mag": re.compile(r"^magnetic field ([xyz]) \((?:µt|μt|ut)\)$"),
+    "gyro": re.compile(r"^gyroscope ([xyz]) \(rad/s\)$"),
+    "accel": re.compile(r"^acceleration ([xyz]) \(m/s(?:\^2|²)\)$"),
+}
+_UNITS = {"mag": "µT", "gyro": "rad/s", "accel": "m/s²"}
+
+
+def _first_line(b: Bundle, name: str) -> str:
+    with b.open(name) as fh:
+        return fh.readline().lstrip("\ufeff").strip()
+
+
+def _dialect(header: str) -> tuple[str, bool]:
+    """(delimiter, decimal comma?) of a phyphox CSV from its header line."""
+    if "\t" in header:
+        return "\t", False
+    if ";" in header and "," not in header.replace("(µT)", ""):
+        return ";", True
+    return ",", False
+
+
+def _classify(cells: list[str]) -> tuple[str, list[int]] | None:
+    """Stream key and column indices (t, x, y, z) of a header row, or None."""
+    names = [c.strip().lower() for c in cells]
+    if not names or names[0] != "time (s)":
+        return None
+    for key, pat in _PATTERNS.items():
+        idx = {}
+        for i, n in enumerate(names):
+            m = pat.match(n)
+            if m:
+                idx[m.group(1)] = i
+        if len(idx) == 3:
+            return key, [0, idx["x"], idx["y"], idx["z"]]
+    return None
+
+
+def _csv_members(b: Bundle) -> list[str]:
+    return sorted(n for n in b.names() if n.lower().endswith(".csv") and not n.lower().startswith("meta/"))
+
+
+def detect(path: Path) -> bool:
+    if not (path.is_dir() or Bundle.is_zip(path)):
+        return False
+    try:
+        b = Bundle(path)
+    except InputError:
+        return False
+    try:
+        for name in _csv_members(b)[:20]:
+            header = _first_line(b, name)
+            delim, _ = _dialect(header)
+            cells = [c.strip().strip('"') for c in header.split(delim)]
+            hit = _classify(cells)
+            if hit is not None and hit[0] == "mag":
+                return True
+        return False
+    finally:
+        b.close()
+
+
+def _read_member(b: Bundle, name: str, dropped: Counter) -> tuple[str, StreamBuilder] | None:
+    where = b.where(name)
+    delim, decimal_comma = _dialect(_first_line(b, name))
+    with b.open(name) as fh:
+        rows = iter_csv(fh, where, delimiter=delim)
+        try:
+            _, header = next(rows)
+        except StopIteration:
+            return None
+        hit = _classify([c.lstrip("\ufeff") for c in header])
+        if hit is None:
+            return None
+        key, idx = hit
+        builder = StreamBuilder(where, key, dropped)
+        need = max(idx) + 1
+        for lineno, cells in rows:
+            if not cells or all(not c.strip() for c in cells):
+                continue
+            if len(cells) < need:
+                raise InputError(
+                    where, f"expected {len(header)} columns, got {len(cells)} (truncated?)", lineno
+                )
+            vals = [cells[i] for i in idx]
+            if decimal_comma:
+                vals = [v.replace(",", ".") for v in vals]
+            vals = floats(where, lineno, vals)
+            builder.add(lineno, vals[0], vals[1:])
+    return key, builder
+
+
+def _device(b: Bundle) -> str | None:
+    name = b.find("device.csv")
+    if name is None:
+        return None
+    props = {}
+    with b.open(name) as fh:
+        for _, cells in iter_csv(fh, b.where(name)):
+            if len(cells) >= 2:
+                props[cells[0].strip()] = cells[1].strip()
+    model = props.get("deviceModel") or props.get("model")
+    brand = props.get("deviceBrand") or props.get("deviceManufacturer") or ""
+    return f"{brand} {model}".strip() if model else None
+
+
+def read(path) -> Recording:
+    """Read a phyphox CSV export (folder or zip) into a :class:`Recording`."""
+    p = Path(path)
+    b = Bundle(p)
+    try:
+        dropped: Counter = Counter()
+        builders: dict[str, StreamBuilder] = {}
+        for name in _csv_members(b):
+            got = _read_member(b, name, dropped)
+            if got is not None and got[0] not in builders:
+                builders[got[0]] = got[1]
+        if "mag" not in builders:
+            raise InputError(p, "no magnetometer file (columns 'Magnetic field x (µT)' …): a stream missing")
+        streams = {k: finish(v, unit_hint=_UNITS[k]) for k, v in builders.items()}
+        meta: dict = {}
+        device = _device(b)
+        if device:
+            meta["device"] = device
+    finally:
+        b.close()
+    return Recording(
+        mag=streams["mag"],
+        accel=streams.get("accel"),
+        gyro=streams.get("gyro"),
+        meta=meta,
+        source=str(p),
+        format=NAME,
+        dropped=dropped,
+    )
