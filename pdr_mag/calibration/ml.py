@@ -42,7 +42,6 @@ import numpy as np
 from pdr_mag.calibration.geometry import (
     Projection,
     build_calibration,
-    param_names,
     spd_part,
     sym_basis,
     sym_coords,
@@ -164,9 +163,6 @@ def fit_ml(mag: np.ndarray, model: str = "full", init: tuple | None = None,
     extra = {"noise_std_uT": res["sigma"], "iterations": res["iterations"], "converged": res["converged"],
              "rss_uT2": res["rss"], "n_params": _N_PARAMS[model], "objective": "geometric",
              "bias_correction": bool(bias_correction)}
-    if res["cov"] is None:
-        extra["covariance_params"] = param_names(model)
-        return build_calibration(m, res["b"], res["L"], "ml", model, extra, cov=np.full((1, 1), np.nan))
     return build_calibration(m, res["b"], res["L"], "ml", model, extra, cov=res["cov"])
 
 

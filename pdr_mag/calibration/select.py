@@ -1,0 +1,119 @@
+"""``calibrate()``: one entry point for every estimator, the ``auto`` model choice, alignment and acceptance.
+
+``auto`` fits the geometric ML (:mod:`pdr_mag.calibration.ml`) with three nested models — offset only
+(``sphere``, k = 4 parameters), axis scale factors (``diagonal``, k = 6) and full soft iron (``full``,
+k = 9) — and keeps the one with the smallest Bayesian information criterion
+
+    BIC = N ln(RSS / N) + k ln N,   RSS = Σ d_i²  (orthogonal distances, Gaussian noise),
+
+so a sphere is not over-fitted (a spurious extra pair of parameters must lower ``N ln RSS`` by ``ln N``
+each, false-alarm probability ≈ P(χ²₂ > 2 ln N), 1e-3 at N = 1000) and a real ellipsoid is not
+under-fitted (its RSS drop grows with N).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pdr_mag.calibration.alignment import fit_alignment
+from pdr_mag.calibration.coverage import AcceptanceSettings, assess
+from pdr_mag.calibration.ellipsoid import fit_als, fit_ellipsoid
+from pdr_mag.calibration.ml import fit_lm9, fit_ml, fit_radial_newton
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.sphere import _check_mag, fit_sphere, sphere_lls
+from pdr_mag.calibration.twostep import fit_twostep, initial_ellipsoid
+
+METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
+_K = {"sphere": 4, "diagonal": 6, "full": 9}
+
+
+def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full")) -> MagCalibration:
+    """Geometric ML fits of the nested models; the one with the smallest BIC (module docstring).
+
+    ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k"}}`` and ``extra["model"]`` the choice.
+    """
+    m = _check_mag(mag, 10)
+    n = len(m)
+    fits: dict[str, MagCalibration] = {}
+    table: dict[str, dict] = {}
+    b0, r0, _ = sphere_lls(m)
+    init = {"sphere": (b0, r0 * np.eye(3))}
+    for model in models:
+        if model == "full":
+            bi, Li, _ = initial_ellipsoid(m)
+        elif model == "diagonal" and "sphere" in fits:
+            c = fits["sphere"]
+            bi, Li = c.offset_array, c.field_uT * np.eye(3)
+        else:
+            bi, Li = init.get(model, (b0, r0 * np.eye(3)))
+        cal = fit_ml(m, model=model, init=(bi, Li))
+        rss = float(cal.extra["rss_uT2"])
+        k = _K[model]
+        table[model] = {"rss_uT2": rss, "k": k, "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n)}
+        fits[model] = cal
+    best = min(table, key=lambda key: table[key]["bic"])
+    cal = fits[best]
+    extra = dict(cal.extra)
+    extra.update({"model_selection": table, "model": best, "criterion": "bic"})
+    from dataclasses import replace
+
+    return replace(cal, extra=extra)
+
+
+def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = None, field=None,
+              settings: AcceptanceSettings | None = None) -> MagCalibration:
+    """Batch magnetometer calibration ``m_cal = soft_iron @ (m_raw − offset)`` with its verdict.
+
+    Parameters
+    ----------
+    mag : ndarray (N, 3)
+        Raw magnetometer samples, µT.
+    method : str
+        ``auto`` (geometric ML, model chosen by BIC), ``sphere`` (LLS, seed 003), ``ellipsoid``
+        (ellipsoid-specific LS, seed 004), ``als`` (noise-compensated, seed 004), ``ml`` (geometric ML, full
+        soft iron), ``radial`` (seed 000 Newton), ``lm9`` (seed 001 LM), ``twostep`` (the initial value).
+    accel : ndarray (N, 3), optional
+        Specific force (m/s², IMU axes) at the magnetometer instants, low-passed, NaN where the device
+        moves (:func:`alignment.quasi_static_accel` makes it from a raw stream); when given, the
+        magnetometer → IMU rotation is estimated (:mod:`alignment`) and stored in ``mag_to_imu`` only if
+        significant (identity — ``None`` — otherwise); ``extra["alignment"]`` reports it either way.
+    field : float or EarthField, optional
+        Reference field strength (µT), e.g. the WMM field for the recording's position and date; used by
+        the radius rule of the acceptance check.  An ``EarthField`` also gives the expected dip angle,
+        which the alignment must reproduce to be accepted as significant.
+    settings : AcceptanceSettings, optional
+        Thresholds of the acceptance rules (the documented defaults when omitted).
+
+    Returns
+    -------
+    MagCalibration
+        With ``coverage``, ``accepted`` and ``reasons`` set (:func:`coverage.assess`).
+    """
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    m = _check_mag(mag, 4)
+    ref = None
+    if field is not None:
+        ref = float(getattr(field, "strength", field))
+        if not (np.isfinite(ref) and ref > 0):
+            raise ValueError(f"field: expected a positive strength in µT, got {field!r}")
+    if len(m) < 10:
+        cal = fit_sphere(m)
+    elif method == "auto":
+        cal = select_model(m)
+    else:
+        fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
+              "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
+        cal = fn(m)
+    if accel is not None:
+        from dataclasses import replace
+
+        inc = getattr(field, "inclination_deg", None)
+        sin_dip = None if inc is None else -float(np.sin(np.radians(inc)))
+        al = fit_alignment(cal.apply(m), accel, sin_dip=sin_dip)
+        extra = dict(cal.extra)
+        extra["alignment"] = None if al is None else al.to_dict()
+        cal = replace(cal, extra=extra)
+        if al is not None and al.significant:
+            cal = replace(cal, mag_to_imu=tuple(tuple(float(v) for v in row) for row in al.rotation))
+    return assess(m, cal, ref, settings)

@@ -1,0 +1,100 @@
+"""``pdr-mag calibrate REC [--method auto|sphere|ellipsoid|als|ml] [--json FILE]``: batch calibration.
+
+Reads the recording (any format a reader recognises), fits :func:`pdr_mag.calibration.calibrate` on the
+raw magnetometer, uses the accelerometer's quasi-static instants (if any) for the magnetometer → IMU
+alignment and the WMM field of ``meta.json`` (position + date) for the radius check, prints a short
+summary and writes the ``calibrate --json`` object of INTERFACE.md (also the ``replay --calibration`` file).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import click
+import numpy as np
+
+from replay.errors import InputError
+
+_METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
+
+
+@click.command()
+@click.argument("rec", type=click.Path(path_type=Path))
+@click.option("--method", type=click.Choice(_METHODS), default="auto", show_default=True,
+              help="Estimator: auto (geometric ML, model by BIC), sphere, ellipsoid, als, ml; "
+                   "also radial (seed 000), lm9 (seed 001), twostep.")
+@click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False),
+              help="Write the calibration (INTERFACE.md calibrate --json) to FILE.")
+def command(rec: Path, method: str, json_path: Path | None) -> int:
+    """Calibrate the magnetometer of recording REC (hard and soft iron, quality, acceptance)."""
+    from pdr_mag.calibration import calibrate
+    from pdr_mag.calibration.alignment import quasi_static_accel
+    from pdr_mag.field import earth_field_from_meta
+    from replay.formats import read_recording
+
+    recording = read_recording(rec)
+    mag_file = rec / "mag.csv" if rec.is_dir() else rec
+    mag = np.asarray(recording.mag.xyz, dtype=float)
+    if mag.ndim != 2 or mag.shape[1] != 3 or len(mag) < 4:
+        raise InputError(mag_file, f"need at least 4 magnetometer samples, got {len(mag)}")
+    try:
+        field = earth_field_from_meta(recording.meta or {})
+    except (ValueError, TypeError) as exc:
+        raise InputError(rec / "meta.json" if rec.is_dir() else rec, f"bad position/date: {exc}") from None
+    accel = None
+    acc = recording.accel
+    if acc is not None and len(acc) >= 3:
+        accel = quasi_static_accel(acc.t, acc.xyz, recording.mag.t)
+        if not np.any(np.isfinite(accel[:, 0])):
+            accel = np.full_like(mag, np.nan)  # no quasi-static instants: alignment reported as not estimated
+    try:
+        cal = calibrate(mag, method=method, accel=accel, field=field)
+    except ValueError as exc:
+        raise InputError(mag_file, f"calibration failed: {exc}") from None
+    extra = dict(cal.extra)
+    extra["source"] = str(rec)
+    if field is not None:
+        extra["wmm"] = {"strength_uT": field.strength, "inclination_deg": field.inclination_deg,
+                        "declination_deg": field.declination_deg, "model": field.model}
+    if recording.dropped:
+        extra["dropped_samples"] = dict(recording.dropped)
+    cal = replace(cal, extra=extra)
+    if json_path is not None:
+        try:
+            cal.to_json(json_path)
+        except OSError as exc:
+            raise InputError(json_path, f"cannot write ({exc.strerror})") from None
+    click.echo(summary(cal, rec, field))
+    return 0
+
+
+def summary(cal, rec, field) -> str:
+    """A few human-readable lines about a calibration."""
+    ex = cal.extra
+    model = ex.get("model")
+    head = f"calibrate {rec}: method {cal.method}" + (f" (model {model})" if model else "")
+    head += f", {cal.n_samples} samples, coverage {cal.coverage:.0%}"
+    off = ", ".join(f"{v:.2f}" for v in cal.offset)
+    std = ", ".join(f"{v:.2f}" for v in cal.offset_std_uT)
+    lines = [head, f"  offset     [{off}] µT  (1-σ [{std}])"]
+    fl = f"  field      {cal.field_uT:.2f} µT"
+    if field is not None:
+        fl += f"  (WMM {field.strength:.2f} µT, {cal.field_uT / field.strength - 1:+.1%})"
+    fl += f"   residual RMS {cal.residual_rms_uT:.2f} µT"
+    lines.append(fl)
+    ev = np.linalg.eigvalsh(cal.soft_iron_array)
+    lines.append("  soft iron  eigenvalues " + " ".join(f"{v:.3f}" for v in ev))
+    if "alignment" in ex:
+        al = ex["alignment"]
+        if al is None:
+            lines.append("  alignment  not estimated (too few quasi-static accelerometer samples)")
+        else:
+            verdict = "applied (mag_to_imu)" if al["significant"] else "not significant, identity kept"
+            lines.append(f"  alignment  {al['angle_deg']:.2f}° ± {al['angle_std_deg']:.2f}° from "
+                         f"{al['n_used']} static samples: {verdict}")
+    if cal.accepted:
+        lines.append("  ACCEPTED")
+    else:
+        lines.append("  REJECTED: " + "; ".join(cal.reasons))
+    return "\n".join(lines)
