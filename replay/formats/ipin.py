@@ -1,0 +1,119 @@
+"""IPIN indoor-positioning competition logfiles (the GetSensorData app's format, LOPSI / CAR-CSIC).
+
+A text file: ``%`` lines are comments (the header documents the layout and names the phone), data lines are
+``;``-separated records whose first field is the type; the fields after it:
+
+* ``ACCE``: AppTimestamp (s), SensorTimestamp (s), Acc_X, Acc_Y, Acc_Z (m/s²), Accuracy;
+* ``GYRO``: AppTimestamp, SensorTimestamp, Gyr_X, Gyr_Y, Gyr_Z (rad/s), Accuracy;
+* ``MAGN``: AppTimestamp, SensorTimestamp, Mag_X, Mag_Y, Mag_Z (µT), Accuracy;
+* ``POSI``: Timestamp (s), Counter, Latitude (deg), Longitude (deg), FloorID, BuildingID — ground truth.
+
+Other records (``AHRS``, ``PRES``, ``WIFI``, ``GNSS``, ``BLE4``, …) are skipped. Android sensors in Android's
+frame and units: nothing is converted.
+
+Time. ``AppTimestamp`` is the app's clock (seconds since logging started), common to all records but
+stamped on delivery, so jittered; ``SensorTimestamp`` is the sensor's own, precise timestamp on its own
+origin. The sensor timestamps are moved onto the app clock by the smallest ``AppTimestamp -
+SensorTimestamp`` (the delivery latency's floor), so the streams share the app clock (and the ``POSI`` fixes)
+while keeping the sensors' precise spacing and their relative timing: one shift for all streams when their
+sensor clocks agree (within 0.5 s, the usual case on Android), else one shift per stream.
+``POSI`` fixes go to ``meta["positions"]`` as ``[t, latitude_deg, longitude_deg, floor, building]``; the
+first one also sets ``latitude_deg``/``longitude_deg``. The ``% Model:`` and ``% Manufacturer:`` header
+lines give ``meta["device"]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from pathlib import Path
+
+from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.recording import Recording
+
+NAME = "ipin"
+_TYPES = {"ACCE": "accel", "GYRO": "gyro", "MAGN": "mag"}
+_UNITS = {"accel": "m/s²", "gyro": "rad/s", "mag": "µT"}
+_SAME_CLOCK_S = 0.5  # per-stream shifts closer than this: the sensors share one clock
+
+
+def detect(path: Path) -> bool:
+    if not path.is_file():
+        return False
+    with path.open("rb") as fh:
+        head = fh.read(16384)
+    if b"\x00" in head:
+        return False
+    lines = head.splitlines()
+    data = [ln for ln in lines if ln and not ln.startswith(b"%")]
+    if any(ln.startswith((b"ACCE;", b"MAGN;", b"GYRO;")) for ln in data[:200]):
+        return True
+    return any(b"'MAGN;AppTimestamp" in ln for ln in lines if ln.startswith(b"%"))
+
+
+def read(path) -> Recording:
+    """Read an IPIN/GetSensorData logfile (line by line) into a :class:`Recording`."""
+    p = Path(path)
+    dropped: Counter = Counter()
+    builders = {k: StreamBuilder(p, k, dropped) for k in _TYPES.values()}
+    offsets = dict.fromkeys(_TYPES.values(), math.inf)
+    positions: list[list[float]] = []
+    meta: dict = {}
+    model = maker = ""
+    with open_text(p) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            if line.startswith("%"):
+                body = line.lstrip("% ").strip()
+                if body.startswith("Model:"):
+                    model = body.split(":", 1)[1].strip()
+                elif body.startswith("Manufacturer:"):
+                    maker = body.split(":", 1)[1].strip()
+                continue
+            s = line.strip()
+            if not s:
+                continue
+            parts = s.split(";")
+            kind = parts[0]
+            key = _TYPES.get(kind)
+            if key is not None:
+                if len(parts) < 6:
+                    raise InputError(
+                        p,
+                        f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)",
+                        lineno,
+                    )
+                app, sensor, x, y, z = floats(p, lineno, parts[1:6])
+                if builders[key].add(lineno, sensor, (x, y, z)):
+                    offsets[key] = min(offsets[key], app - sensor)
+            elif kind == "POSI":
+                if len(parts) < 5:
+                    raise InputError(
+                        p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
+                    )
+                t, _, lat, lon = floats(p, lineno, parts[1:5])
+                rest = floats(p, lineno, parts[5:7]) if len(parts) >= 7 else []
+                positions.append([t, lat, lon, *rest])
+    if not len(builders["mag"]):
+        raise InputError(p, "no MAGN records (a stream missing)")
+    finite = [o for k, o in offsets.items() if len(builders[k])]
+    if max(finite) - min(finite) < _SAME_CLOCK_S:  # one sensor clock (the usual case): one shift for all
+        offsets = dict.fromkeys(offsets, min(finite))
+    streams = {}
+    for key, b in builders.items():
+        if len(b):
+            streams[key] = finish(b, t_offset=offsets[key], unit_hint=_UNITS[key])
+    if model:
+        meta["device"] = f"{maker} {model}".strip()
+    if positions:
+        meta["positions"] = positions
+        meta["latitude_deg"], meta["longitude_deg"] = positions[0][1], positions[0][2]
+    return Recording(
+        mag=streams["mag"],
+        accel=streams.get("accel"),
+        gyro=streams.get("gyro"),
+        meta=meta,
+        source=str(p),
+        format=NAME,
+        dropped=dropped,
+    )
