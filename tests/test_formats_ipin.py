@@ -76,5 +76,5 @@ def test_field_in_nanotesla_is_wrong_unit(tmp_path):
     ]
     f = tmp_path / "log.txt"
     f.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match="median |mag| is .* outside the plausible"):
+    with pytest.raises(InputError, match=r"median \|mag\| is .* outside the plausible"):
         read_recording(f)
