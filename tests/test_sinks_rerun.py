@@ -1,0 +1,206 @@
+"""RerunSink: write synthetic inputs and estimates to .rrd, read them back with rerun's own RrdReader."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from pdr_mag.calibration.model import MagCalibration  # noqa: E402
+from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
+from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event  # noqa: E402
+from pdr_mag.sinks.rerun import RerunSink  # noqa: E402
+
+
+def _unit_quats(rng, n):
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1)[:, None]
+
+
+def _read(path):
+    """Entity → {column name → concatenated values}, time as int ns; from the recording store."""
+    out: dict[str, dict[str, list]] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        rb = chunk.to_record_batch()
+        d = out.setdefault(chunk.entity_path, {})
+        for name in rb.schema.names:
+            if "RowId" in name:
+                continue
+            col = rb.column(name)
+            if name == "time":
+                values = col.cast("int64").to_pylist()
+            else:
+                values = col.to_pylist()
+            d.setdefault(name, []).extend(values)
+    return out
+
+
+def _series(data, entity, component="Scalars:scalars"):
+    """(t_ns, values) of a temporal entity, sorted by time."""
+    d = data[entity]
+    t = np.array(d["time"], dtype=np.int64)
+    v = [x[0] if isinstance(x, list) and len(x) == 1 else x for x in d[component]]
+    order = np.argsort(t, kind="stable")
+    return t[order], [v[i] for i in order]
+
+
+@pytest.fixture
+def written(tmp_path):
+    rng = np.random.default_rng(11)
+    path = tmp_path / "out.rrd"
+    sink = RerunSink(path, chunk_rows=700, cloud_rate_hz=10.0)  # small chunks: several sends per entity
+    sink.open({"source": "/data/rec_walk", "device": "synthetic", "north": "magnetic"})
+    n_per, k = 1000, 4
+    t_all = -3.25 + np.arange(n_per * k) / 200.0  # starts negative: rerun's duration timeline allows it
+    q = _unit_quats(rng, len(t_all))
+    cal_state = np.where(t_all < 5.0, "none", "offset")
+    interference = (t_all > 2.0) & (t_all < 4.0)
+    diag = {key: rng.normal(45.0, 3.0, len(t_all)) for key in DIAG_KEYS}
+    diag["field_strength_uT"][::9] = np.nan
+    batch = EstimateBatch(
+        t=t_all,
+        q_wd=q,
+        heading_deg=rng.uniform(0, 360, len(t_all)),
+        heading_std_deg=rng.uniform(1, 3, len(t_all)),
+        mag_used=~interference,
+        interference=interference,
+        cal_state=cal_state,
+        diag=diag,
+    )
+    mag_raw = rng.normal(0, 40, (len(t_all) // 2, 3))
+    for c in range(k):
+        sl = slice(c * n_per, (c + 1) * n_per)
+        ts = t_all[sl]
+        sink.inputs("accel", ts, rng.normal(size=(n_per, 3)))
+        sink.inputs("gyro", ts, rng.normal(size=(n_per, 3)))
+        msl = slice(c * n_per // 2, (c + 1) * n_per // 2)
+        sink.inputs("mag", ts[::2], mag_raw[msl])
+        sink.mag_calibrated(ts[::2], mag_raw[msl] - 5.0)
+        sink.estimates(
+            EstimateBatch(
+                t=ts,
+                q_wd=q[sl],
+                heading_deg=batch.heading_deg[sl],
+                heading_std_deg=batch.heading_std_deg[sl],
+                mag_used=batch.mag_used[sl],
+                interference=batch.interference[sl],
+                cal_state=batch.cal_state[sl],
+                diag={key: v[sl] for key, v in diag.items()},
+            )
+        )
+    q_truth = _unit_quats(rng, len(t_all))
+    sink.reference("truth", t_all, q_truth)
+    sink.reference("os", t_all[::4], q_truth[::4])
+    sink.event(Event(2.0, "interference_start", {"score": 1.4}))
+    sink.event(Event(4.0, "interference_end"))
+    soft = np.array([[1.2, 0.1, 0.0], [0.1, 0.9, 0.0], [0.0, 0.0, 1.0]])
+    cal = MagCalibration.from_arrays([10.0, -4.0, 2.0], soft, field_uT=47.0, method="ellipsoid", coverage=0.8)
+    sink.calibration(5.0, cal)
+    sink.close()
+    return {"path": path, "batch": batch, "q_truth": q_truth, "cal": cal, "mag_raw": mag_raw, "sink": sink}
+
+
+def test_series_read_back_equal(written):
+    data = _read(written["path"])
+    b = written["batch"]
+    t_ns = np.round(b.t * 1e9).astype(np.int64)
+    t_back, heading = _series(data, "/heading/ours")
+    np.testing.assert_array_equal(t_back, t_ns)
+    np.testing.assert_array_equal(heading, b.heading_deg)  # float64 columns: exact
+    t_back, gyro = _series(data, "/heading/gyro_only")
+    np.testing.assert_array_equal(gyro, b.diag["gyro_heading_deg"])
+    _, truth = _series(data, "/heading/truth")
+    np.testing.assert_allclose(truth, heading_deg_from_quat(written["q_truth"]), rtol=1e-12)
+    assert len(_series(data, "/heading/os")[0]) == len(b.t[::4])
+
+    # NaN rows are left out of the plots; the rest is there
+    ok = np.isfinite(b.diag["field_strength_uT"])
+    t_back, strength = _series(data, "/field/strength")
+    np.testing.assert_array_equal(t_back, t_ns[ok])
+    np.testing.assert_array_equal(strength, b.diag["field_strength_uT"][ok])
+    _, upper = _series(data, "/field/upper")
+    np.testing.assert_allclose(upper, b.diag["field_ref_uT"] + b.diag["strength_tol_uT"])
+    _, lower = _series(data, "/dip/lower")
+    np.testing.assert_allclose(lower, b.diag["dip_ref_deg"] - b.diag["dip_tol_deg"])
+    for entity in (
+        "/dip/measured",
+        "/dip/reference",
+        "/coverage/online",
+        "/detector/score",
+        "/heading_std/ours",
+    ):
+        assert len(_series(data, entity)[0]) == len(b.t), entity
+    for kind in ("accel", "gyro"):
+        for axis in "xyz":
+            assert len(data[f"/inputs/{kind}/{axis}"]["time"]) == len(b.t)
+    assert written["sink"].rows_sent["heading/ours"] == len(b.t)
+
+
+def test_state_lanes_only_on_change(written):
+    data = _read(written["path"])
+    t_cal, cal_states = _series(data, "/state/calibration", "StateChange:state")
+    assert cal_states == ["none", "offset"]
+    assert t_cal[1] == 5_000_000_000
+    _, interf = _series(data, "/state/interference", "StateChange:state")
+    assert interf == ["clean", "interference", "clean"]
+
+
+def test_cloud_fit_and_events(written):
+    data = _read(written["path"])
+    t_raw, pts = _series(data, "/mag/raw", "Points3D:positions")
+    # decimated to 10 Hz over 20 s of 100 Hz magnetometer samples
+    assert 195 <= len(pts) <= 201
+    raw = written["mag_raw"]
+    # every cloud point is one of the raw samples (float32 positions)
+    first = np.array(pts[0], dtype=float)
+    assert np.any(np.all(np.abs(raw - first) < 1e-4 * (1 + np.abs(first)), axis=1))
+    assert len(_series(data, "/mag/calibrated", "Points3D:positions")[1]) == len(pts)
+
+    cal = written["cal"]
+    _, centers = _series(data, "/mag/fit/ellipsoid", "Ellipsoids3D:centers")
+    np.testing.assert_allclose(centers[0], cal.offset, rtol=1e-6)
+    _, half = _series(data, "/mag/fit/ellipsoid", "Ellipsoids3D:half_sizes")
+    lam = np.linalg.eigvalsh(np.asarray(cal.soft_iron))
+    np.testing.assert_allclose(sorted(half[0]), sorted(cal.field_uT / lam), rtol=1e-5)
+    _, sphere = _series(data, "/mag/fit/sphere", "Ellipsoids3D:half_sizes")
+    np.testing.assert_allclose(sphere[0], [47.0] * 3, rtol=1e-6)
+
+    t_ev, texts = _series(data, "/events", "TextLog:text")
+    _, levels = _series(data, "/events", "TextLog:level")
+    assert texts[0].startswith("interference_start") and levels[0] == "WARN"
+    assert texts[1] == "interference_end" and levels[1] == "INFO"
+    assert texts[2].startswith("calibration ellipsoid accepted")
+    assert list(t_ev) == [2_000_000_000, 4_000_000_000, 5_000_000_000]
+
+
+def test_blueprint_present(written):
+    reader = RrdReader(written["path"])
+    assert len(reader.recordings()) == 1
+    stores = reader.blueprints()
+    assert len(stores) == 1
+    views = {}
+    for chunk in reader.stream(store=stores[0]).to_chunks():
+        rb = chunk.to_record_batch()
+        if "ViewBlueprint:space_origin" in rb.schema.names:
+            origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
+            kind = rb.column("ViewBlueprint:class_identifier").to_pylist()[0][0]
+            views[origin] = kind
+    assert views["/heading"] == "TimeSeries"
+    assert views["/field"] == "TimeSeries"
+    assert views["/dip"] == "TimeSeries"
+    assert views["/state"] == "StateTimeline"
+    assert views["/mag"] == "3D"
+    assert views["/coverage"] == "TimeSeries"
+    assert views["/events"] == "TextLog"
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="path"):
+        RerunSink()
+    with pytest.raises(ValueError, match="chunk_rows"):
+        RerunSink(tmp_path / "a.rrd", chunk_rows=0)
+    sink = RerunSink(tmp_path / "b.rrd")
+    with pytest.raises(RuntimeError, match="open"):
+        sink.inputs("gyro", np.zeros(1), np.zeros((1, 3)))
