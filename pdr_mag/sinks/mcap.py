@@ -30,10 +30,15 @@ The three input topics carry exactly what the pipeline read (the reader's cleane
 reading them back gives bit-identical arrays, and replaying the MCAP reproduces the outputs exactly.
 A reader needs only ``t``, ``x``, ``y``, ``z`` of those three topics (and may ignore ``log_time``).
 
-Metadata records: ``recording`` (the ``meta`` given to :meth:`McapSink.open`, values JSON-encoded unless
-already strings), one ``calibration`` per :meth:`McapSink.calibration` (``t`` and ``json`` = the
-``calibrate --json`` object), and ``pdr_mag`` at close (``format_version``, ``time_offset_ns``,
-``clamped_log_times``, message counts per topic).
+Metadata records:
+
+* ``recording`` — the ``meta`` given to :meth:`McapSink.open`, every value JSON-encoded (strings too), so
+  ``{k: json.loads(v)}`` gives back the original ``meta`` (the replay adds ``source``, ``format``,
+  ``north``, ``t0``, ``field`` to the recording's own keys);
+* ``calibration`` — one per :meth:`McapSink.calibration`: ``t`` and ``json`` (the ``calibrate --json``
+  object);
+* ``pdr_mag`` — at close: ``format_version``, ``time_offset_ns``, ``clamped_log_times``,
+  ``message_counts`` (JSON, per topic).
 
 Negative times
 --------------
@@ -458,7 +463,8 @@ def _jsonable(obj):
 
 
 def _str_dict(d: dict) -> dict[str, str]:
-    return {str(k): v if isinstance(v, str) else json.dumps(_jsonable(v)) for k, v in d.items()}
+    """MCAP metadata values are strings: every value JSON-encoded (strings too, so types survive)."""
+    return {str(k): json.dumps(_jsonable(v)) for k, v in d.items()}
 
 
 # ---------------------------------------------------------------------- the chunk writer
