@@ -91,6 +91,9 @@ class OnlineSettings:
     strength_tol_frac : float
         After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
         and count as deviating in the stale test.
+    add_tol_frac, add_dip_tol_deg : float
+        Once calibrated, a sample enters the buffer only when its strength is within ``add_tol_frac · F`` and
+        its dip within ``add_dip_tol_deg`` of the reference (no disturbed samples in the fits).
     ellipsoid_coverage : float
         Coverage from which the core's full (ellipsoid) fit is attempted.
     sphere_coverage : float
@@ -119,6 +122,8 @@ class OnlineSettings:
     max_rms_frac: float = 0.08
     max_offset_uT: float = 2000.0
     strength_tol_frac: float = 0.15
+    add_tol_frac: float = 0.06
+    add_dip_tol_deg: float = 4.0
     ellipsoid_coverage: float = 0.6
     sphere_coverage: float = 0.4
     stale_window_s: float = 30.0
@@ -454,7 +459,7 @@ class OnlineCalibrator:
                 continue
             ri = float(rate[i]) if np.isfinite(rate[i]) else 0.0
             self._track_episode(ti, ri, events)
-            ok = self._consistent(mi)
+            ok = self._consistent(mi, ui)
             if ti - self._last_rec_t >= 1.0 / s.stale_rate_hz:
                 self._rec[self._rec_i % len(self._rec)] = (ti, *mi, *ui)
                 self._rec_i += 1
@@ -474,12 +479,20 @@ class OnlineCalibrator:
                 self._stale_check(ti, events)
         return events
 
-    def _consistent(self, m: np.ndarray) -> bool:
+    def _consistent(self, m: np.ndarray, u: np.ndarray) -> bool:
         f = self.field_ref
         if self.calibration is None or f is None:
             return True
+        s = self.settings
         mc = self.calibration.apply(m)
-        return abs(float(np.sqrt(mc @ mc)) - f) < self.settings.strength_tol_frac * f
+        nm = float(np.sqrt(mc @ mc))
+        if abs(nm - f) > s.add_tol_frac * f:
+            return False
+        sd = self.sin_dip_ref
+        if sd is None:
+            return True
+        dip = np.degrees(np.arcsin(np.clip(-float(mc @ u) / max(nm * float(np.sqrt(u @ u)), 1e-9), -1, 1)))
+        return abs(dip - np.degrees(np.arcsin(sd))) < s.add_dip_tol_deg
 
     def _track_episode(self, t: float, rate: float, events: list) -> None:
         s = self.settings
@@ -602,6 +615,9 @@ class OnlineCalibrator:
             std_new = float(np.max(cal.offset_std_uT))
             std_old = float(np.max(old.offset_std_uT)) if np.all(np.isfinite(old.offset_std_uT)) else np.inf
             upgrade = _state_of(cal) == "ellipsoid" and _state_of(old) != "ellipsoid"
+            rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
+            if not upgrade and cal.residual_rms_uT > 1.5 * rms_old + 0.3:
+                return  # the buffer got worse (disturbed samples): keep the calibration
             if not upgrade and shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old:
                 return
         self.calibration = cal

@@ -1,0 +1,213 @@
+"""Online calibration: gravity-aided hard-iron fit, diversity buffer, stale-offset test (synthetic)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings, gravity_aided_offset
+
+F = 47.0
+INC = np.radians(61.0)
+FIELD_W = F * np.array([0.0, np.cos(INC), -np.sin(INC)])
+B_TRUE = np.array([58.0, -74.0, 412.0])
+G = 9.80665
+
+
+def synth_walk(
+    duration=60.0,
+    rate=100.0,
+    mag_rate=50.0,
+    seed=0,
+    offset=B_TRUE,
+    noise_uT=0.4,
+    gyro_bias=(0.0, 0.0, 0.02),
+    figure8=None,
+    offset_change=None,
+    anomaly=None,
+):
+    """A texting-pose walk: yaw turns (random, 30–180°), tilt ~20° with sway, walking bounce.
+
+    ``figure8=(t0, t1)`` adds a rotation-rich episode (all axes); ``offset_change=(t, δ)`` adds a device-fixed
+    δ from time t (a magnetised case); ``anomaly=(t0, t1, d_w)`` adds a world-frame field d_w between t0
+    and t1 (a passing disturbance).  Returns a dict of streams and the truth.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration, 1.0 / rate)
+    n = len(t)
+    yaw = np.zeros(n)
+    k, cur = 0, 0.0
+    while k < n:
+        hold = int(rate * rng.uniform(2.0, 5.0))
+        turn = np.radians(rng.choice([-1, 1]) * rng.uniform(30, 180))
+        tn = int(rate * abs(turn) / 1.2)
+        seg = np.r_[np.full(hold, cur), cur + turn * np.linspace(0, 1, tn)]
+        yaw[k : k + len(seg)] = seg[: n - k]
+        k += len(seg)
+        cur += turn
+    pitch = np.radians(20.0 + 3.0 * np.sin(2 * np.pi * 0.3 * t))
+    roll = np.radians(3.0 * np.sin(2 * np.pi * 0.9 * t))
+    rot = Rotation.from_euler("ZXY", np.column_stack([yaw, pitch, roll]))  # device → ENU
+    if figure8 is not None:
+        a, b = figure8
+        w = (t >= a) & (t < b)
+        tt = t[w] - a
+        extra = Rotation.from_euler(
+            "XYZ", np.column_stack([2.2 * np.sin(1.3 * tt), 1.4 * np.sin(0.9 * tt), 2.0 * np.sin(0.7 * tt)])
+        )
+        q = rot.as_quat()
+        q[w] = (rot[w] * extra).as_quat()
+        rot = Rotation.from_quat(q)
+    r_inv = rot.inv()
+    dt = 1.0 / rate
+    rel = rot[:-1].inv() * rot[1:]
+    omega = np.vstack([rel.as_rotvec() / dt, np.zeros((1, 3))]) + np.asarray(gyro_bias)
+    omega += rng.normal(0, 0.003, omega.shape)
+    lin_w = np.column_stack(
+        [np.zeros(n), 0.4 * np.sin(2 * np.pi * 1.8 * t), 1.5 * np.sin(2 * np.pi * 1.8 * t)]
+    )
+    acc = r_inv.apply(np.array([0.0, 0.0, G]) + lin_w) + rng.normal(0, 0.05, (n, 3))
+    tm = np.arange(0.003, duration, 1.0 / mag_rate)
+    rm = Rotation.from_quat(np.array([np.interp(tm, t, rot.as_quat()[:, i]) for i in range(4)]).T)
+    f_w = np.tile(FIELD_W, (len(tm), 1))
+    if anomaly is not None:
+        a, b, d_w = anomaly
+        w = (tm >= a) & (tm < b)
+        f_w[w] += np.sin(np.pi * (tm[w] - a) / (b - a))[:, None] * np.asarray(d_w)
+    b_t = np.tile(np.asarray(offset, dtype=float), (len(tm), 1))
+    if offset_change is not None:
+        tc, delta = offset_change
+        b_t[tm >= tc] += np.asarray(delta)
+    mag = rm.inv().apply(f_w) + b_t + rng.normal(0, noise_uT, (len(tm), 3))
+    q_true = rot.as_quat()[:, [3, 0, 1, 2]]
+    return {
+        "accel": (t.copy(), acc),
+        "gyro": (t.copy(), omega),
+        "mag": (tm, mag),
+        "truth": (t, q_true),
+        "offset_t": b_t,
+    }
+
+
+def _ring(n=60, tilt_deg=20.0, seed=1, noise=0.5, tilt_jitter=2.0):
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(0, 2 * np.pi, n)
+    rot = Rotation.from_euler(
+        "ZX", np.column_stack([yaw, np.radians(tilt_deg + rng.normal(0, tilt_jitter, n))])
+    )
+    m = rot.inv().apply(FIELD_W) + B_TRUE + rng.normal(0, noise, (n, 3))
+    u = rot.inv().apply([0.0, 0.0, 1.0])
+    return m, u
+
+
+def test_gravity_aided_offset_from_yaw_only_within_its_sigma():
+    m, u = _ring()
+    cal = gravity_aided_offset(m, u, F, np.sin(INC), sigma_strength_uT=0.5, sigma_tilt_deg=1.0)
+    err = cal.offset_array - B_TRUE
+    std = np.asarray(cal.offset_std_uT)
+    assert np.all(std < 1.5)
+    assert np.all(np.abs(err) < 4 * std + 0.1), (err, std)
+    assert cal.method == "gravity" and cal.field_uT == pytest.approx(F)
+
+
+def test_sphere_fit_cannot_do_what_the_gravity_fit_does_on_a_ring():
+    """A yaw-only ring does not determine a sphere (1-parameter family), the dip equation does."""
+    from pdr_mag.calibration.sphere import fit_sphere
+
+    m, u = _ring(tilt_jitter=0.0, noise=0.3)
+    g = gravity_aided_offset(m, u, F, np.sin(INC))
+    assert np.linalg.norm(g.offset_array - B_TRUE) < 2.0
+    try:
+        s = fit_sphere(m)
+        assert np.linalg.norm(s.offset_array - B_TRUE) > 5 * np.linalg.norm(g.offset_array - B_TRUE)
+    except ValueError:
+        pass
+
+
+def test_gravity_aided_free_strength_with_tilt_diversity():
+    rng = np.random.default_rng(3)
+    rot = Rotation.from_euler(
+        "ZXY", np.column_stack([rng.uniform(0, 6.3, 200), rng.uniform(-1, 1, (200, 2))])
+    )
+    m = rot.inv().apply(FIELD_W) + B_TRUE + rng.normal(0, 0.4, (200, 3))
+    u = rot.inv().apply([0.0, 0.0, 1.0])
+    cal = gravity_aided_offset(m, u)
+    assert cal.field_uT == pytest.approx(F, abs=1.0)
+    assert cal.extra["sin_dip"] == pytest.approx(np.sin(INC), abs=0.02)
+    assert np.linalg.norm(cal.offset_array - B_TRUE) < 1.5
+
+
+def test_gravity_aided_degenerate_raises():
+    m = np.tile(B_TRUE + FIELD_W, (20, 1))
+    u = np.tile([0.0, 0.0, 1.0], (20, 1))
+    with pytest.raises(ValueError, match="mag"):
+        gravity_aided_offset(m, u, F, np.sin(INC))
+    with pytest.raises(ValueError, match="shape|expected"):
+        gravity_aided_offset(m[:, :2], u, F, np.sin(INC))
+
+
+def _feed(cal: OnlineCalibrator, d, chunk=0.25):
+    """Feed the calibrator magnetometer samples with the true up vector and gyro rate."""
+    t, q = d["truth"]
+    tm, mag = d["mag"]
+    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
+    up = rot.inv().apply([0.0, 0.0, 1.0])
+    tg, g = d["gyro"]
+    rate = np.interp(tm, tg, np.linalg.norm(g, axis=1))
+    events = []
+    edges = np.arange(0, tm[-1] + chunk, chunk)
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        w = (tm >= a) & (tm < b)
+        events += cal.update(tm[w], mag[w], up[w], rate[w])
+    return events
+
+
+def test_online_converges_on_a_walk_and_buffer_stays_bounded():
+    d = synth_walk(duration=90.0, seed=4)
+    s = OnlineSettings(buffer_size=60)
+    oc = OnlineCalibrator(s, strength=F, sin_dip=np.sin(INC))
+    events = _feed(oc, d)
+    assert oc.calibration is not None and oc.cal_state == "offset"
+    assert any(k == "calibration_accepted" for _, k, _ in events)
+    assert len(oc.buffer) <= 60
+    err = oc.calibration.offset_array - B_TRUE
+    std = np.asarray(oc.calibration.offset_std_uT)
+    # bound from the fit's own σ (noise 0.4 µT, tilt known), with a floor for the unmodelled walking sway
+    assert np.all(np.abs(err) < np.maximum(4 * std, 1.0)), (err, std)
+
+
+def test_stale_offset_requests_recalibration_and_figure8_recalibrates():
+    delta = np.array([15.0, -10.0, 8.0])
+    d = synth_walk(duration=150.0, seed=5, offset_change=(40.0, delta), figure8=(100.0, 125.0))
+    oc = OnlineCalibrator(OnlineSettings(recal_fallback_s=1e9), strength=F, sin_dip=np.sin(INC))
+    events = _feed(oc, d)
+    kinds = [(t, k) for t, k, _ in events]
+    req = [t for t, k in kinds if k == "recalibration_requested"]
+    rec = [t for t, k in kinds if k == "recalibrated"]
+    assert req and 40.0 < req[0] < 80.0, kinds
+    assert rec and rec[0] > 100.0, kinds
+    shift = next(dd for _, k, dd in events if k == "recalibration_requested")["offset_shift_uT"]
+    assert np.linalg.norm(np.asarray(shift) - delta) < 4.0
+    assert np.linalg.norm(oc.calibration.offset_array - (B_TRUE + delta)) < 2.0
+    assert oc.cal_state in ("offset", "ellipsoid")
+
+
+def test_passing_disturbance_does_not_request_recalibration():
+    d = synth_walk(duration=120.0, seed=6, anomaly=(50.0, 62.0, np.array([25.0, -15.0, 10.0])))
+    oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    events = _feed(oc, d)
+    assert not [k for _, k, _ in events if k == "recalibration_requested"]
+    assert np.linalg.norm(oc.calibration.offset_array - B_TRUE) < 3.0
+
+
+def test_calibrator_state_round_trips_through_json():
+    d = synth_walk(duration=30.0, seed=7)
+    a = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    _feed(a, d)
+    b = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    b.set_state(json.loads(json.dumps(a.get_state())))
+    assert b.get_state() == a.get_state()
+    assert b.calibration == a.calibration

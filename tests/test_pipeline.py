@@ -1,0 +1,176 @@
+"""HeadingPipeline: streaming == batch, state round-trip, recalibration end to end, boundary errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.estimates import EstimateBatch
+from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
+from tests.test_online import B_TRUE, FIELD_W, F, synth_walk
+
+# a place whose WMM field is close to the synthetic one (Grenoble, 2016: F ≈ 47 µT, I ≈ 61°)
+META = {"latitude_deg": 45.19, "longitude_deg": 5.73, "altitude_m": 200.0, "date": "2016-05-31"}
+
+
+def _merged(d):
+    """All samples as one time-ordered list of (kind, t, xyz) — how a phone would deliver them."""
+    rows = []
+    for name in ("accel", "gyro", "mag"):
+        t, x = d[name]
+        rows += [(float(ti), name, x[i]) for i, ti in enumerate(t)]
+    rows.sort(key=lambda r: (r[0], ("accel", "gyro", "mag").index(r[1])))
+    return rows
+
+
+def _same(a: EstimateBatch, b: EstimateBatch):
+    assert len(a) == len(b) and len(a) > 0
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.q_wd, b.q_wd)
+    np.testing.assert_array_equal(a.heading_std_deg, b.heading_std_deg)
+    np.testing.assert_array_equal(a.mag_used, b.mag_used)
+    np.testing.assert_array_equal(a.interference, b.interference)
+    np.testing.assert_array_equal(a.cal_state, b.cal_state)
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return synth_walk(duration=40.0, seed=11)
+
+
+def test_streaming_chunks_and_batch_are_identical(walk):
+    batch_pipe = HeadingPipeline(meta=META)
+    full = batch_pipe.run({k: walk[k] for k in ("accel", "gyro", "mag")})
+
+    # one sample at a time, polled after every push
+    one = HeadingPipeline(meta=META)
+    outs = []
+    for t, name, x in _merged(walk):
+        one.push(name, t, x)
+        outs.append(one.poll())
+    outs.append(one.flush())
+    _same(full, EstimateBatch.concat(outs))
+
+    # irregular chunks per stream, interleaved (each stream delivered in its own random pieces, within the
+    # look-ahead bound max_lag_s of the others)
+    chunk = HeadingPipeline(meta=META)
+    rng = np.random.default_rng(0)
+    idx = {k: 0 for k in ("accel", "gyro", "mag")}
+    outs = []
+    edge = 0.0
+    while any(idx[k] < len(walk[k][0]) for k in idx):
+        edge += rng.uniform(0.01, 0.9)
+        for k in rng.permutation(list(idx)):
+            t, x = walk[k]
+            j = int(np.searchsorted(t, edge))
+            while idx[k] < j:
+                n = min(int(rng.integers(1, 40)), j - idx[k])
+                chunk.push_arrays(k, t[idx[k] : idx[k] + n], x[idx[k] : idx[k] + n])
+                idx[k] += n
+        outs.append(chunk.poll())
+    outs.append(chunk.flush())
+    _same(full, EstimateBatch.concat(outs))
+    assert [e.kind for e in batch_pipe.pop_events()] == [e.kind for e in chunk.pop_events()]
+
+
+def test_state_round_trip_resumes_identically(walk):
+    ref = HeadingPipeline(meta=META).run({k: walk[k] for k in ("accel", "gyro", "mag")})
+    a = HeadingPipeline(meta=META)
+    half = {}
+    for k in ("accel", "gyro", "mag"):
+        t, x = walk[k]
+        m = t < 23.3
+        a.push_arrays(k, t[m], x[m])
+        half[k] = (t[~m], x[~m])
+    first = a.poll()
+    state = json.loads(json.dumps(a.get_state()))
+    b = HeadingPipeline(meta=META)
+    b.set_state(state)
+    rest = b.run(half)
+    _same(ref, EstimateBatch.concat([first, rest]))
+    assert b.calibration == HeadingPipeline(meta=META).calibration or b.calibration is not None
+
+
+def test_online_calibration_and_heading_on_synthetic_walk(walk):
+    pipe = HeadingPipeline(meta=META)
+    out = pipe.run({k: walk[k] for k in ("accel", "gyro", "mag")})
+    assert pipe.calibration is not None
+    assert np.linalg.norm(pipe.calibration.offset_array - B_TRUE) < 3.0
+    assert set(out.cal_state) <= {"none", "offset", "ellipsoid", "recalibrating"}
+    assert out.cal_state[0] == "none" and out.cal_state[-1] == "offset"
+    t, q = walk["truth"]
+    qi = np.array([np.interp(out.t, t, q[:, i]) for i in range(4)]).T
+    # the synthetic field is the WMM one up to ~1 µT and ~1°, so true-north heading is comparable after
+    # removing the declination the pipeline applies
+    decl = pipe.field.declination_deg
+    err = wrap_deg(out.heading_deg - decl - heading_deg_from_quat(qi))
+    late = out.t > 20.0
+    assert np.median(np.abs(err[late])) < 6.0
+
+
+def test_recalibration_end_to_end():
+    """Calibrated phone gets a magnetised case at 40 s → request → figure-8 at 100 s → new offset."""
+    delta = np.array([15.0, -10.0, 8.0])
+    d = synth_walk(duration=135.0, seed=5, offset_change=(40.0, delta), figure8=(100.0, 122.0))
+    given = MagCalibration.from_arrays(B_TRUE, None, field_uT=F, method="ml", offset_std_uT=[0.3] * 3)
+    s = PipelineSettings(online_settings=PipelineSettings().online_settings.__class__(recal_fallback_s=1e9))
+    pipe = HeadingPipeline(settings=s, calibration=given, meta=META)
+    out = pipe.run({k: d[k] for k in ("accel", "gyro", "mag")})
+    ev = pipe.pop_events()
+    kinds = [(e.t, e.kind) for e in ev]
+    req = [t for t, k in kinds if k == "recalibration_requested"]
+    rec = [t for t, k in kinds if k == "recalibrated"]
+    assert req and 40.0 < req[0] < 80.0, kinds
+    assert rec and rec[0] > 100.0, kinds
+    assert np.linalg.norm(pipe.calibration.offset_array - (B_TRUE + delta)) < 2.0
+    assert out.cal_state[0] == "offset"
+    assert "recalibrating" in set(out.cal_state)
+    assert out.cal_state[-1] in ("offset", "ellipsoid")
+
+
+def test_boundary_errors_and_odd_samples():
+    pipe = HeadingPipeline()
+    with pytest.raises(ValueError, match="kind"):
+        pipe.push("baro", 0.0, [1, 2, 3])
+    with pytest.raises(ValueError, match="xyz"):
+        pipe.push_arrays("mag", [0.0, 1.0], np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="calibration"):
+        HeadingPipeline(calibration={"offset": 1})
+    pipe.push_arrays("gyro", [0.0, 0.01, 0.01, 0.005], np.zeros((4, 3)))
+    pipe.push_arrays("gyro", [0.02], [[np.nan, 0, 0]])
+    assert pipe.dropped["gyro:non_monotonic"] == 2
+    assert pipe.dropped["gyro:nan"] == 1
+    with pytest.raises(ValueError, match="state"):
+        pipe.set_state({"version": 99})
+    assert pipe.north == "magnetic"
+
+
+def test_calibration_save_load(tmp_path):
+    cal = MagCalibration.from_arrays(B_TRUE, None, field_uT=F, method="ml")
+    pipe = HeadingPipeline(calibration=cal)
+    pipe.save_calibration(tmp_path / "c.json")
+    back = HeadingPipeline.load_calibration(tmp_path / "c.json")
+    np.testing.assert_allclose(back.offset_array, B_TRUE)
+    assert HeadingPipeline(calibration=back).cal_state == "offset"
+
+
+def test_memory_bounded_on_a_long_stream():
+    """Ten minutes at 100 Hz pushed in 1-s chunks: the pending and calibration buffers stay bounded."""
+    rng = np.random.default_rng(1)
+    pipe = HeadingPipeline(meta=META)
+    n_out = 0
+    for k in range(600):
+        t = k + np.arange(100) / 100.0
+        pipe.push_arrays("accel", t, np.array([0, 0, 9.81]) + rng.normal(0, 0.05, (100, 3)))
+        pipe.push_arrays("gyro", t, rng.normal(0, 0.01, (100, 3)))
+        tm = t[::2] + 0.001
+        pipe.push_arrays("mag", tm, FIELD_W + B_TRUE + rng.normal(0, 0.4, (50, 3)))
+        n_out += len(pipe.poll())
+        pending = sum(s.n for s in pipe._streams.values())
+        assert pending < 3 * 100 * (pipe.settings.max_lag_s + pipe.settings.block_s + 1.0)
+    assert len(pipe.online.buffer) <= pipe.settings.online_settings.buffer_size
+    assert n_out > 600 * 40
