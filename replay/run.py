@@ -156,6 +156,9 @@ def replay(
         raise InputError(rec.source or rec_path, f"no {missing} stream (heading needs accel, gyro and mag)")
     if calibration is not None and not isinstance(calibration, MagCalibration):
         calibration = load_calibration(calibration)
+    sinks = list(sinks)
+    if settings is None and any(not isinstance(s, CsvSink) for s in sinks):
+        settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
     try:
         pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=rec.meta)
     except ValueError as exc:
@@ -176,7 +179,6 @@ def replay(
             "inclination_deg": pipe.field.inclination_deg,
             "declination_deg": pipe.field.declination_deg,
         }
-    sinks = list(sinks)
     for s in sinks:
         s.open(meta)
     if sinks:
