@@ -519,6 +519,18 @@ class SensorModel:
         """True measurement time on the IMU clock of magnetometer stamps: ``τ = t − time_offset``."""
         return np.asarray(t_mag, dtype=float) - float(self.value("time_offset"))
 
+    def ideal_calibration(self, t_mag: float | None = None):
+        """The exact :class:`~pdr_mag.calibration.model.MagCalibration` of this phone at time ``t_mag``
+        (default ``t_ref``): ``offset = b(t)``, ``soft_iron``, ``mag_to_imu`` (None without misalignment),
+        ``field_uT`` NaN (it belongs to the place, not the phone), method ``"truth"``."""
+        from pdr_mag.calibration.model import MagCalibration
+
+        t = self.t_ref if t_mag is None else float(t_mag)
+        mis = self.mag_to_imu if "mag_imu_misalignment" in self.effects else None
+        return MagCalibration.from_arrays(
+            self.offset(t), self.value("soft_iron"), method="truth", mag_to_imu=mis
+        )
+
     def to_json(self) -> dict:
         """JSON-ready dict of the active effects (lists, floats; ``local_anomaly`` via its ``to_json``)."""
         out: dict[str, Any] = {}

@@ -50,13 +50,22 @@ class Scenario:
     default_effects: dict = field(default_factory=dict)
 
 
-def _turns(rng: np.random.Generator, windows: list[tuple[float, float]]) -> np.ndarray:
-    """Random turns (t_center, dpsi, duration) inside walking windows, every 8–20 s."""
+def _turns(rng: np.random.Generator, windows: list[tuple[float, float]], zigzag: bool = False) -> np.ndarray:
+    """Random turns (t_center, dpsi, duration) inside walking windows, every 8–20 s.
+
+    ``zigzag``: ±45/90° turns of alternating sign, so the walk keeps its general direction and never
+    comes back (a steel area is passed once); otherwise any of ±45, ±90, 180°.
+    """
     rows = []
+    sign = 1.0
     for a, b in windows:
         t = a + rng.uniform(6.0, 12.0)
         while t < b - 4.0:
-            d = rng.choice([90.0, -90.0, 45.0, -45.0, 180.0, 90.0, -90.0])
+            if zigzag:
+                d = sign * rng.choice([45.0, 90.0])
+                sign = -sign
+            else:
+                d = rng.choice([90.0, -90.0, 45.0, -45.0, 180.0, 90.0, -90.0])
             dur = 1.5 + abs(d) / 90.0 * rng.uniform(0.6, 1.0)
             rows.append((t, d * DEG, dur))
             t += rng.uniform(8.0, 20.0)
@@ -74,6 +83,7 @@ def _plan(
     duration: float,
     parts: list[tuple[str, float]],
     steel: list[tuple[float, float]] = (),
+    zigzag: bool = False,
 ) -> Plan:
     """Modes in sequence with given durations (scaled to ``duration``); turns on walking parts."""
     total = sum(p[1] for p in parts)
@@ -94,7 +104,7 @@ def _plan(
         t = t1
     heading = Heading(
         psi0=float(rng.uniform(0, 2 * np.pi)),
-        turns=_turns(rng, walking),
+        turns=_turns(rng, walking, zigzag),
         wander=_wander(rng) if walking else np.zeros((0, 3)),
     )
     traj = Trajectory(modes, bounds, heading, duration)
@@ -113,7 +123,11 @@ def _mixed(duration: float, rng: np.random.Generator) -> Plan:
     f8 = min(25.0, 0.3 * duration)
     walk = duration - f8
     return _plan(
-        rng, duration, [("figure8", f8), ("texting", walk)], steel=[(f8 + 0.4 * walk, f8 + 0.7 * walk)]
+        rng,
+        duration,
+        [("figure8", f8), ("texting", walk)],
+        steel=[(f8 + 0.4 * walk, f8 + 0.7 * walk)],
+        zigzag=True,
     )
 
 
@@ -124,6 +138,7 @@ def _chain(duration: float, rng: np.random.Generator) -> Plan:
         duration,
         [("figure8", 20.0), ("texting", 90.0), ("figure8", 20.0), ("texting", 50.0)],
         steel=[(50.0, 80.0)],
+        zigzag=True,
     )
 
 

@@ -84,6 +84,32 @@ def _json_safe(x):
     return x
 
 
+#: |local anomaly| above which a time counts as inside an anomaly window, µT.
+ANOMALY_THRESHOLD_UT = 1.0
+
+
+def _anomaly_windows(model: SensorModel, traj: Trajectory, duration: float) -> list[dict]:
+    """Time intervals (10 Hz grid) where the local anomaly at the phone exceeds ANOMALY_THRESHOLD_UT,
+    with the peak |B| in each."""
+    anomaly = model.value("local_anomaly")
+    if anomaly is None:
+        return []
+    t = np.arange(0.0, duration + 1e-9, 0.1)
+    b = np.linalg.norm(anomaly.field_w(traj.position(t)), axis=1)
+    inside = np.concatenate([[False], b > ANOMALY_THRESHOLD_UT, [False]])
+    edges = np.flatnonzero(np.diff(inside.astype(int)))
+    out = []
+    for i0, i1 in zip(edges[::2], edges[1::2], strict=True):
+        out.append(
+            {
+                "t0": round(float(t[i0]), 3),
+                "t1": round(float(t[i1 - 1]), 3),
+                "peak_uT": round(float(b[i0:i1].max()), 3),
+            }
+        )
+    return out
+
+
 def simulate(
     scenario: str,
     seed: int = 0,
@@ -183,7 +209,8 @@ def simulate(
         "inclination_deg": round(fld.inclination_deg, 6),
         "phone": {k: _json_safe(v) for k, v in asdict(phone).items()},
         "segments": [{"mode": m, "t0": a, "t1": b} for m, a, b in plan.segments],
-        "anomaly_windows": [{"t0": a, "t1": b} for a, b in plan.anomaly_windows] if anomaly_layout else [],
+        "steel_windows": [{"t0": a, "t1": b} for a, b in plan.anomaly_windows] if anomaly_layout else [],
+        "anomaly_windows": _anomaly_windows(model, traj, duration),
         "north": "true",
     }
     meta = {
