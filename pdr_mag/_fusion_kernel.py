@@ -50,9 +50,10 @@ from pdr_mag.interference import (
 )
 
 # ---------------------------------------------------------------- state layout
+NX = 7  # error states: δθ (3, world), δb (3, device), c (magnetometer heading error, Gauss-Markov)
 S_Q = 0  # 4: q w,x,y,z
 S_B = 4  # 3: gyro bias
-S_P = 7  # 36: covariance 6x6 row-major
+S_P = 96  # 49: covariance 7x7 row-major (δθ, δb, c)
 S_INIT = 43  # 0 nothing, 1 tilt initialised, 2 heading initialised from the magnetometer
 S_TG = 44  # time of last gyro sample
 S_WG = 45  # 3: last raw gyro
@@ -92,7 +93,8 @@ S_NREJ = 91  # consecutive innovation-gate rejections
 S_CONS = 92  # diag: consistency angle
 S_FLEARN = 93  # learnt local strength (NaN until first clean sample)
 S_NLEARN = 94  # number of samples learnt from
-N_STATE = 96
+S_C = 95  # magnetometer heading error estimate c, rad
+N_STATE = 96 + NX * NX
 
 # ---------------------------------------------------------------- settings layout
 P_GYRO_NOISE = 0
@@ -115,7 +117,11 @@ P_OUT_DT = 16
 P_TILT0 = 17
 P_GRAV = 18
 P_MAX_DT = 19
-N_PARAM = 20
+P_MAG_DIST_K = 20
+P_MAGERR_TAU = 21
+P_MAGERR_STD = 22
+P_MAG_CONS_K = 23
+N_PARAM = 24
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -227,20 +233,26 @@ def _wrap(a):
 @njit(cache=True)
 def _upd(st, dx, j, s, r, rv):
     """Scalar update with H = s·e_j; r is the residual before this update (dx applied inside)."""
-    P = st[S_P : S_P + 36]
-    r = r - s * dx[j]
-    S = P[j * 6 + j] + rv
+    _upd2(st, dx, j, s, j, 0.0, r, rv)
+
+
+@njit(cache=True)
+def _upd2(st, dx, j, s, j2, s2, r, rv):
+    """Scalar update with H = s·e_j + s2·e_j2 (j ≠ j2 or s2 = 0); r is the residual before this update."""
+    P = st[S_P : S_P + NX * NX]
+    col = np.empty(NX)
+    for i in range(NX):
+        col[i] = s * P[i * NX + j] + s2 * P[i * NX + j2]
+    r = r - s * dx[j] - s2 * dx[j2]
+    S = s * col[j] + s2 * col[j2] + rv
     if S <= 0.0:
         return
-    col = np.empty(6)
-    for i in range(6):
-        col[i] = P[i * 6 + j]
-    for i in range(6):
-        dx[i] += s * col[i] * r / S
-    for i in range(6):
+    for i in range(NX):
+        dx[i] += col[i] * r / S
+    for i in range(NX):
         ci = col[i] / S
-        for m in range(6):
-            P[i * 6 + m] -= ci * col[m]
+        for m in range(NX):
+            P[i * NX + m] -= ci * col[m]
 
 
 @njit(cache=True)
@@ -248,14 +260,15 @@ def _inject(st, dx):
     _qmul_left(st, S_Q, dx[0], dx[1], dx[2])
     for i in range(3):
         st[S_B + i] += dx[3 + i]
+    st[S_C] += dx[6]
+    for i in range(NX):
         dx[i] = 0.0
-        dx[3 + i] = 0.0
-    P = st[S_P : S_P + 36]
-    for i in range(6):  # keep P symmetric
-        for m in range(i + 1, 6):
-            v = 0.5 * (P[i * 6 + m] + P[m * 6 + i])
-            P[i * 6 + m] = v
-            P[m * 6 + i] = v
+    P = st[S_P : S_P + NX * NX]
+    for i in range(NX):  # keep P symmetric
+        for m in range(i + 1, NX):
+            v = 0.5 * (P[i * NX + m] + P[m * NX + i])
+            P[i * NX + m] = v
+            P[m * NX + i] = v
 
 
 @njit(cache=True)
@@ -263,16 +276,16 @@ def _predict(st, R, wx, wy, wz, dt, p):
     _qmul_right(st, S_Q, wx * dt, wy * dt, wz * dt)
     _qmul_right(st, S_QG, wx * dt, wy * dt, wz * dt)
     _rot(st, R)
-    P = st[S_P : S_P + 36]
+    P = st[S_P : S_P + NX * NX]
     # blocks A (att), B (att-bias), C (bias); G = -R dt
     A = np.empty((3, 3))
     B = np.empty((3, 3))
     C = np.empty((3, 3))
     for i in range(3):
         for m in range(3):
-            A[i, m] = P[i * 6 + m]
-            B[i, m] = P[i * 6 + 3 + m]
-            C[i, m] = P[(3 + i) * 6 + 3 + m]
+            A[i, m] = P[i * NX + m]
+            B[i, m] = P[i * NX + 3 + m]
+            C[i, m] = P[(3 + i) * NX + 3 + m]
     GC = np.empty((3, 3))  # G C
     GB = np.empty((3, 3))  # G Bᵀ
     for i in range(3):
@@ -286,6 +299,22 @@ def _predict(st, R, wx, wy, wz, dt, p):
             GB[i, m] = -dt * s2
     qa = p[P_GYRO_NOISE] ** 2 * dt
     qb = p[P_BIAS_RW] ** 2 * dt
+    # c: first-order Gauss-Markov, c' = φ c + w
+    phi = np.exp(-dt / p[P_MAGERR_TAU])
+    # cross terms with c (column 6), from the old P
+    pac = np.empty(3)
+    for i in range(3):
+        s1 = 0.0
+        for k in range(3):
+            s1 += R[i, k] * P[(3 + k) * NX + 6]
+        pac[i] = phi * (P[i * NX + 6] - dt * s1)
+    for i in range(3):
+        P[(3 + i) * NX + 6] = phi * P[(3 + i) * NX + 6]
+        P[6 * NX + 3 + i] = P[(3 + i) * NX + 6]
+        P[i * NX + 6] = pac[i]
+        P[6 * NX + i] = pac[i]
+    P[6 * NX + 6] = phi * phi * P[6 * NX + 6] + p[P_MAGERR_STD] ** 2 * (1.0 - phi * phi)
+    st[S_C] *= phi
     for i in range(3):
         for m in range(3):
             gcg = 0.0
@@ -294,12 +323,12 @@ def _predict(st, R, wx, wy, wz, dt, p):
             a = A[i, m] + GB[i, m] + GB[m, i] + gcg
             if i == m:
                 a += qa
-            P[i * 6 + m] = a
+            P[i * NX + m] = a
             bb = B[i, m] + GC[i, m]
-            P[i * 6 + 3 + m] = bb
-            P[(3 + m) * 6 + i] = bb
+            P[i * NX + 3 + m] = bb
+            P[(3 + m) * NX + i] = bb
             if i == m:
-                P[(3 + i) * 6 + 3 + m] = C[i, m] + qb
+                P[(3 + i) * NX + 3 + m] = C[i, m] + qb
 
 
 @njit(cache=True)
@@ -338,17 +367,18 @@ def _init_tilt(st, ax, ay, az, p):
     st[S_Q], st[S_Q + 1], st[S_Q + 2], st[S_Q + 3] = w / qn, x / qn, y / qn, z / qn
     for k in range(4):
         st[S_QG + k] = st[S_Q + k]
-    P = st[S_P : S_P + 36]
-    for i in range(36):
+    P = st[S_P : S_P + NX * NX]
+    for i in range(NX * NX):
         P[i] = 0.0
     t0 = p[P_TILT0] ** 2
     P[0] = t0
-    P[7] = t0
-    P[14] = np.pi**2
+    P[NX + 1] = t0
+    P[2 * NX + 2] = np.pi**2
     b0 = p[P_BIAS0] ** 2
-    P[21] = b0
-    P[28] = b0
-    P[35] = b0
+    for i in range(3, 6):
+        P[i * NX + i] = b0
+    P[6 * NX + 6] = p[P_MAGERR_STD] ** 2
+    st[S_C] = 0.0
     st[S_INIT] = 1.0
 
 
@@ -384,7 +414,7 @@ def _accel(st, R, ax, ay, az, t, p):
     _rot(st, R)
     uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
     uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
-    dx = np.zeros(6)
+    dx = np.zeros(NX)
     _upd(st, dx, 1, -1.0, uxw, rv)
     _upd(st, dx, 0, 1.0, uyw, rv)
     _inject(st, dx)
@@ -416,7 +446,7 @@ def _gyro(st, R, wx, wy, wz, t, p):
             if not np.isfinite(st[S_STILL_SINCE]):
                 st[S_STILL_SINCE] = t
             if t - st[S_STILL_SINCE] >= p[P_STILL_MIN]:
-                dx = np.zeros(6)
+                dx = np.zeros(NX)
                 rv = p[P_ZUPT_NOISE] ** 2
                 _upd(st, dx, 3, 1.0, wx - st[S_B], rv)
                 _upd(st, dx, 4, 1.0, wy - st[S_B + 1], rv)
@@ -468,8 +498,8 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     band_f = abs(f - fref) / (ip[I_STR_BAND] * fref) if np.isfinite(fref) else 0.0
     band_d = abs(dip - dipref) / ip[I_DIP_BAND] if np.isfinite(dipref) else 0.0
     score_v = var / ip[I_VAR_MAX]
-    P = st[S_P : S_P + 36]
-    sb = np.sqrt(max(P[21] + P[28] + P[35], 0.0))
+    P = st[S_P : S_P + NX * NX]
+    sb = np.sqrt(max(P[3 * NX + 3] + P[4 * NX + 4] + P[5 * NX + 5], 0.0))
     score_c = cons / (ip[I_CONS_TOL] + ip[I_CONS_K] * np.degrees(sb) * ip[I_CONS_WIN])
     if max(max(band_f, band_d), max(score_v, score_c)) < 1.0:
         # learn the local references (running mean of the first samples, then time constant learn_ref_s)
@@ -513,28 +543,38 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         return
     psi = np.arctan2(mwx, mwy)
     r = _wrap(psi - st[S_DECL])
-    rv = p[P_MAG_NOISE] ** 2 + (p[P_MAG_NOISE_UT] / bh) ** 2
+    # a disturbance d changes the strength by at most |d| and the dip by at most |d|/F: the smallest
+    # disturbance that explains the deviations from the local references, seen horizontally, bounds the
+    # heading error it may cause
+    dmin2 = 0.0
+    if np.isfinite(floc):
+        dmin2 += (f - floc) ** 2
+    if np.isfinite(diploc):
+        dmin2 += (f * np.radians(dip - diploc)) ** 2
+    dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons)) ** 2
+    rv = p[P_MAG_NOISE] ** 2 + (p[P_MAG_NOISE_UT] ** 2 + p[P_MAG_DIST_K] ** 2 * dmin2) / (bh * bh)
     if st[S_INIT] < 2:
         # first usable field (strength and dip right; variance and consistency need a history):
         # set the heading directly, keep the tilt and bias
         _qmul_left(st, S_Q, 0.0, 0.0, r)
         _qmul_left(st, S_QG, 0.0, 0.0, r)
-        for i in range(6):
-            P[2 * 6 + i] = 0.0
-            P[i * 6 + 2] = 0.0
-        P[14] = rv
+        for i in range(NX):
+            P[2 * NX + i] = 0.0
+            P[i * NX + 2] = 0.0
+        P[2 * NX + 2] = rv + P[6 * NX + 6]
         st[S_INIT] = 2.0
         st[S_TMU] = t
         st[S_MAGUSED] = 1.0
         st[S_MW], st[S_MW + 1], st[S_MW + 2] = np.nan, 0.0, 0.0
         return
-    S = P[14] + rv
+    r = _wrap(r - st[S_C])
+    S = P[2 * NX + 2] + 2.0 * P[2 * NX + 6] + P[6 * NX + 6] + rv
     if r * r > p[P_MAG_GATE] ** 2 * S:
         st[S_NREJ] += 1.0
         return
     st[S_NREJ] = 0.0
-    dx = np.zeros(6)
-    _upd(st, dx, 2, 1.0, r, rv)
+    dx = np.zeros(NX)
+    _upd2(st, dx, 2, 1.0, 6, 1.0, r, rv)
     _inject(st, dx)
     st[S_TMU] = t
     st[S_MAGUSED] = 1.0
@@ -572,7 +612,7 @@ def run(kind, t, xyz, allowed, st, p, ip, out_t, out_q, out_std, out_mag, out_in
             out_t[n_out] = ti
             for c in range(4):
                 out_q[n_out, c] = st[S_Q + c]
-            out_std[n_out] = np.degrees(np.sqrt(max(st[S_P + 14], 0.0)))
+            out_std[n_out] = np.degrees(np.sqrt(max(st[S_P + 2 * NX + 2], 0.0)))
             out_mag[n_out] = st[S_MAGUSED] > 0
             out_int[n_out] = st[S_FLAG] > 0 or st[S_INTERF] > 0
             st[S_MAGUSED] = 0.0

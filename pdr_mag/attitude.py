@@ -109,6 +109,18 @@ class FusionSettings:
         Heading noise of one magnetometer update, deg (calibration residual, time correlation).
     mag_noise_uT : float
         Field noise, µT; adds ``mag_noise_uT / B_h`` rad to the heading noise (B_h horizontal strength).
+    mag_dist_k : float
+        Heading noise added per µT of the smallest disturbance that explains the deviation of strength
+        and dip from their local references, divided by B_h (``k |d|_min / B_h`` rad).
+    mag_cons_k : float
+        Weight (0 = off, 1 = on) of the gyro-consistency angle in that smallest disturbance
+        (``F · angle``).
+    mag_error_std_deg : float
+        Standard deviation of the slowly varying magnetometer heading error c (residual calibration
+        error, local anomalies of the building), deg.  Modelled as a first-order Gauss–Markov state so
+        the filter does not take correlated errors for gyro bias.
+    mag_error_tau_s : float
+        Correlation time of c, s.
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
@@ -143,6 +155,10 @@ class FusionSettings:
     acc_gate: float = 0.5
     mag_noise_deg: float = 5.0
     mag_noise_uT: float = 1.0
+    mag_dist_k: float = 2.0
+    mag_cons_k: float = 1.0
+    mag_error_std_deg: float = 5.0
+    mag_error_tau_s: float = 10.0
     mag_interval_s: float = 0.1
     mag_gate: float = 4.0
     still_gyro: float = 0.03
@@ -197,6 +213,10 @@ class FusionSettings:
         p[K.P_TILT0] = self.tilt0_std
         p[K.P_GRAV] = self.gravity
         p[K.P_MAX_DT] = self.max_dt
+        p[K.P_MAG_DIST_K] = self.mag_dist_k
+        p[K.P_MAGERR_TAU] = self.mag_error_tau_s
+        p[K.P_MAG_CONS_K] = self.mag_cons_k
+        p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
 

@@ -81,18 +81,18 @@ class InterferenceSettings:
         bias uncertainty), so the check cannot fire on drift the filter knows it may have.
     """
 
-    strength_tol_uT: float = 3.0
-    strength_tol_rel: float = 0.06
+    strength_tol_uT: float = 10.0
+    strength_tol_rel: float = 0.3
     var_window_s: float = 1.0
-    var_max_uT2: float = 2.0
-    dip_tol_deg: float = 5.0
+    var_max_uT2: float = 100.0
+    dip_tol_deg: float = 15.0
     consistency_window_s: float = 2.0
-    consistency_tol_deg: float = 10.0
+    consistency_tol_deg: float = 30.0
     hold_on_s: float = 0.0
-    hold_off_s: float = 1.0
+    hold_off_s: float = 0.5
     learn_ref_s: float = 30.0
-    strength_band_rel: float = 0.25
-    dip_band_deg: float = 15.0
+    strength_band_rel: float = 0.4
+    dip_band_deg: float = 25.0
     consistency_bias_k: float = 3.0
 
     def __post_init__(self):
