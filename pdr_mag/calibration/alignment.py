@@ -195,18 +195,21 @@ def fit_alignment(mag_cal: np.ndarray, accel: np.ndarray, static_tol: float = 0.
     # effective sample size from the lag-1 autocorrelation of the residuals (AR(1) approximation)
     rho = float(np.clip(np.corrcoef(res[:-1], res[1:])[0, 1], 0.0, 0.999)) if n > 3 else 0.0
     inflate = (1.0 + rho) / (1.0 - rho)
-    try:
-        cov = np.linalg.inv(jac.T @ jac) * s2 * inflate
-    except np.linalg.LinAlgError:
-        cov = np.full((4, 4), np.inf)
+    jtj = jac.T @ jac
+    if np.linalg.cond(jtj) < 1e12:
+        cov = np.linalg.inv(jtj) * s2 * inflate
+    else:  # a single pose (or rotations about one axis only) cannot determine the rotation
+        cov = np.full((4, 4), np.nan)
     w = _rotvec(r)
     angle = float(np.linalg.norm(w))
     cw = cov[:3, :3]
     try:
-        stat = float(w @ np.linalg.solve(cw, w))
+        stat = float(w @ np.linalg.solve(cw, w)) if np.all(np.isfinite(cw)) else 0.0
     except np.linalg.LinAlgError:
         stat = 0.0
-    if angle > 0:
+    if not np.all(np.isfinite(cw)):
+        angle_std = float("nan")
+    elif angle > 0:
         angle_std = float(np.sqrt(max(w @ cw @ w, 0.0)) / angle)
     else:
         angle_std = float(np.sqrt(np.trace(cw) / 3))

@@ -126,6 +126,8 @@ class Projection:
     ----------
     d : (N,) signed orthogonal distance, µT.  x : (N, 3) foot points.  u : (N, 3) unit directions.
     n : (N, 3) outward unit normals.  mean_curv2 : (N,) sum of principal curvatures κ₁+κ₂ at x, 1/µT.
+    fallback : number of samples deep inside the ellipsoid (inside its evolute) for which the radial point
+    ``y / |y/a|`` replaced the orthogonal foot point (d is then the normal component of ``m − x``).
     """
 
     def __init__(self, mag: np.ndarray, b: np.ndarray, L: np.ndarray, iters: int = 30, tol: float = 1e-13):
@@ -152,12 +154,21 @@ class Projection:
             if np.max(np.abs(step) / (a2[0] + np.abs(t))) < tol:
                 break
         p = a2 * y / (a2 + t[:, None])
+        bad = ~np.isfinite(t) | (np.abs(np.sum((p / a) ** 2, axis=1) - 1.0) > 1e-8)
+        if np.any(bad):
+            # inside the evolute (deeper than the smallest radius of curvature — never the case for samples
+            # within noise of the surface) the secular root can be missing: fall back to the radial point
+            pr = y[bad] / s[bad, None]
+            p[bad] = pr
+            w = pr / a2
+            t[bad] = np.einsum("ij,ij->i", y[bad] - pr, w) / np.einsum("ij,ij->i", w, w)
         pn = p / a2
         pn_norm = np.sqrt(np.einsum("ij,ij->i", pn, pn))
         self.d = t * pn_norm
         self.n = (pn / pn_norm[:, None]) @ v.T
         self.x = b + p @ v.T
         self.u = (p / a) @ v.T
+        self.fallback = int(bad.sum())
         # κ1+κ2 = (|g|² tr Q − gᵀQg)/|g|³ with Q = L⁻², g = Q(x − b) (implicit-surface formula)
         g_norm2 = pn_norm**2
         gqg = (pn * pn) @ (1.0 / a2)

@@ -266,7 +266,8 @@ def fit_lm9(mag: np.ndarray, max_iter: int = 100, tol: float = 1e-12) -> MagCali
     -------
     MagCalibration
         ``method='lm9'``; ``extra["beta"]`` = (ε₁, ε₂, ε₃ [rad], k_x, k_y, b_x, b_y, b_z, F) in the seed's
-        order; ``field_uT`` is normalised as for every other fit (det soft_iron = 1).
+        order, ``extra["beta_std"]`` their 1-σ from ``σ̂²(JᵀJ)⁻¹``; ``field_uT`` is normalised as for
+        every other fit (det soft_iron = 1).
     """
     m = _check_mag(mag, 10)
     from pdr_mag.calibration.sphere import sphere_lls
@@ -319,5 +320,12 @@ def fit_lm9(mag: np.ndarray, max_iter: int = 100, tol: float = 1e-12) -> MagCali
             break
     gmat = np.linalg.inv(_lm9_matrix(beta))
     L = beta[8] * np.linalg.inv(spd_part(gmat))
-    extra = {"beta": beta, "iterations": it, "converged": converged, "objective": "radial-9"}
+    jm = jac(beta, r)
+    try:
+        beta_cov = np.linalg.inv(jm.T @ jm) * float(r @ r) / max(len(m) - 9, 1)
+        beta_std = np.sqrt(np.clip(np.diag(beta_cov), 0, None))
+    except np.linalg.LinAlgError:
+        beta_std = np.full(9, np.nan)
+    extra = {"beta": beta, "beta_std": beta_std, "iterations": it, "converged": converged,
+             "objective": "radial-9"}
     return build_calibration(m, beta[5:8], L, "lm9", "full", extra)

@@ -27,11 +27,27 @@ METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep
 _K = {"sphere": 4, "diagonal": 6, "full": 9}
 
 
-def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full")) -> MagCalibration:
+def _admissible(cal: MagCalibration, s: AcceptanceSettings) -> bool:
+    """A fit the data can support: finite offset σ within the rule, plausible soft-iron spread."""
+    std = np.asarray(cal.offset_std_uT, dtype=float)
+    ev = np.linalg.eigvalsh(cal.soft_iron_array)
+    return bool(np.all(np.isfinite(std)) and np.isfinite(cal.field_uT) and cal.field_uT > 0
+                and std.max() <= s.max_offset_std_frac * cal.field_uT
+                and ev[0] > 0 and ev[-1] / ev[0] <= s.max_axis_ratio)
+
+
+def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
+                 settings: AcceptanceSettings | None = None) -> MagCalibration:
     """Geometric ML fits of the nested models; the one with the smallest BIC (module docstring).
 
-    ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k"}}`` and ``extra["model"]`` the choice.
+    Only *admissible* fits compete (offset 1-σ and soft-iron eigenvalue spread within the acceptance
+    thresholds of ``settings``): with poor coverage a richer model can lower the RSS by bending into an
+    implausible ellipsoid, and ``auto`` then keeps the simpler model.  If none is admissible, the
+    simplest model is returned (and the acceptance rules will say why it is not accepted).
+    ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k", "admissible"}}`` and
+    ``extra["model"]`` the choice.
     """
+    s = settings if settings is not None else AcceptanceSettings()
     m = _check_mag(mag, 10)
     n = len(m)
     fits: dict[str, MagCalibration] = {}
@@ -49,9 +65,11 @@ def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full")) -> MagC
         cal = fit_ml(m, model=model, init=(bi, Li))
         rss = float(cal.extra["rss_uT2"])
         k = _K[model]
-        table[model] = {"rss_uT2": rss, "k": k, "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n)}
+        table[model] = {"rss_uT2": rss, "k": k, "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
+                        "admissible": _admissible(cal, s)}
         fits[model] = cal
-    best = min(table, key=lambda key: table[key]["bic"])
+    ok = [key for key in table if table[key]["admissible"]] or [models[0]]
+    best = min(ok, key=lambda key: table[key]["bic"])
     cal = fits[best]
     extra = dict(cal.extra)
     extra.update({"model_selection": table, "model": best, "criterion": "bic"})
@@ -100,7 +118,7 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
     if len(m) < 10:
         cal = fit_sphere(m)
     elif method == "auto":
-        cal = select_model(m)
+        cal = select_model(m, settings=settings)
     else:
         fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
               "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
