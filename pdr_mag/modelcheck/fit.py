@@ -1,0 +1,415 @@
+"""Fit the magnetometer model along an estimated orientation: baseline plus any set of candidate effects.
+
+The prediction is the one of :mod:`pdr_mag.sensor_model` (same symbols)::
+
+    m_i = S⁻¹ Mᵀ R_dw(t_i − Δt) Rz(ψ_i) (B_w + ΔB(t_i − Δt)) + b + d (t_i − t_ref)/60 + c (T_i − T_ref)
+
+with ``R_dw`` the gyro + accelerometer orientation (:mod:`.orientation`, heading reference arbitrary),
+``B_w`` the field in that frame (fitted, so the heading reference comes from the fit itself), ``b`` the
+hard-iron offset at ``t_ref``, and the candidate effects:
+
+=========================  ==========================================================  ===============
+effect                     parameters                                                  kind
+=========================  ==========================================================  ===============
+``soft_iron``              ``S⁻¹ = expm(E)``, E symmetric, trace-free (5; the scale    nonlinear
+                           trades with ``|B_w|``)
+``time_offset``            Δt, s (1)                                                   nonlinear
+``mag_imu_misalignment``   ``M = exp([μ]×)``, μ rotation vector (3)                    nonlinear
+``gyro_bias``              heading drift ``ψ_i = δ·∫up_d dt`` of a bias δ left in      nonlinear
+                           the gyro (3; first order, then replayed, see below)
+``bias_drift``             d, µT/min (3)                                               linear
+``local_anomaly``          ΔB(t): world-frame field, piecewise linear in time with     linear
+                           knots every ``anomaly_knot_s`` (3 per knot; time stands
+                           in for position, which a recording does not give)
+``temperature_offset``     c, µT/°C (3), when the recording has a temperature channel  linear
+=========================  ==========================================================  ===============
+
+The linear parameters are solved exactly for given nonlinear ones (variable projection: a sparse normal
+equation per evaluation) and the nonlinear ones by trust-region least squares on the projected residual.
+The noise is white Gaussian with σ estimated from the residual (profile likelihood).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import cho_factor, cho_solve
+from scipy.optimize import least_squares
+
+from pdr_mag.modelcheck.orientation import OrientationTrack
+from pdr_mag.sensor_model import quat_slerp, rotvec_to_matrix
+
+#: Effects every model has (seed 003's sphere: hard-iron offset and white noise).
+BASELINE = ("hard_iron", "noise")
+#: Candidate effects, in the order they are tried.
+CANDIDATES = (
+    "time_offset",
+    "mag_imu_misalignment",
+    "soft_iron",
+    "bias_drift",
+    "gyro_bias",
+    "local_anomaly",
+    "temperature_offset",
+)
+_NONLINEAR = {"time_offset": 1, "gyro_bias": 3, "mag_imu_misalignment": 3, "soft_iron": 5}
+_NL_ORDER = ("time_offset", "gyro_bias", "mag_imu_misalignment", "soft_iron")
+_NL_SCALE = {"time_offset": 0.01, "gyro_bias": 0.005, "mag_imu_misalignment": 0.01, "soft_iron": 0.01}
+#: Weak Gaussian priors (σ, internal units) on the nonlinear parameters: they keep directions the motion
+#: does not observe (e.g. gyro bias about a horizontal axis in a level walk) at zero, and cost < 1 µT².
+_NL_PRIOR = {"time_offset": 1.0, "gyro_bias": 0.02, "mag_imu_misalignment": 0.1, "soft_iron": 0.2}
+_NL_BOUND = {"time_offset": 0.5, "gyro_bias": 0.5, "mag_imu_misalignment": 0.5, "soft_iron": 0.6}
+
+
+@dataclass(frozen=True)
+class Problem:
+    """The data of one fit: magnetometer samples and the orientation track they are predicted along.
+
+    Attributes
+    ----------
+    t, mag : ndarray (N,), (N, 3)
+        Magnetometer stamps (s) and raw samples (µT).
+    track : OrientationTrack
+        Orientation (IMU clock) and ``∫up_d dt``.
+    t_ref : float
+        Reference time of the hard-iron offset and of ``bias_drift``, s.
+    temperature : ndarray (N,) or None
+        Sensor temperature at the magnetometer stamps, °C.
+    temp_ref : float
+        Reference temperature, °C.
+    knots : ndarray (K,)
+        Knot times of the ``local_anomaly`` field, s.
+    knot_free : ndarray (K,) of bool
+        Knots whose value is fitted; the others are held at zero, so the anomaly is confined to the
+        windows :func:`anomaly_support` found (it is *local*).
+    anomaly_prior_uT : float
+        Prior σ of a knot of the anomaly field (a weak ridge that fixes the split between ``B_w`` and the
+        anomaly), µT.
+    """
+
+    t: np.ndarray
+    mag: np.ndarray
+    track: OrientationTrack
+    t_ref: float
+    temperature: np.ndarray | None = None
+    temp_ref: float = 0.0
+    knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    knot_free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    anomaly_prior_uT: float = 100.0
+
+    @property
+    def n(self) -> int:
+        return 3 * len(self.t)
+
+
+def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot_s: float = 1.0) -> Problem:
+    """A :class:`Problem` on the samples inside the track's time span."""
+    t = np.asarray(t, dtype=float)
+    m = np.asarray(mag, dtype=float)
+    keep = (t >= track.t[0]) & (t <= track.t[-1])
+    t, m = t[keep], m[keep]
+    if len(t) < 20:
+        raise ValueError(f"mag: need at least 20 samples inside the gyro's time span, got {len(t)}")
+    temp = None
+    temp_ref = 0.0
+    if temperature is not None:
+        temp = np.asarray(temperature, dtype=float)[keep]
+        temp_ref = float(np.mean(temp))
+    span = t[-1] - t[0]
+    nk = max(2, int(np.ceil(span / anomaly_knot_s)) + 1)
+    knots = np.linspace(t[0], t[-1], nk)
+    return Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
+                   knots=knots, knot_free=np.ones(len(knots), dtype=bool))
+
+
+def soft_iron_distortion(e: np.ndarray) -> np.ndarray:
+    """``S⁻¹ = expm(E)`` from the 5 parameters (E_xx, E_yy, E_xy, E_xz, E_yz), E_zz = −E_xx − E_yy.
+
+    E symmetric and trace-free, so ``S⁻¹`` is symmetric positive definite with determinant 1 (the scale
+    of the distortion trades with ``|B_w|`` and is not fitted).
+    """
+    exx, eyy, exy, exz, eyz = e
+    m = np.array([[exx, exy, exz], [exy, eyy, eyz], [exz, eyz, -exx - eyy]])
+    w, v = np.linalg.eigh(m)
+    return (v * np.exp(w)) @ v.T
+
+
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def split_nonlinear(effects, p: np.ndarray) -> dict[str, np.ndarray]:
+    """Nonlinear parameter vector → per-effect arrays (in :data:`_NL_ORDER`)."""
+    out, i = {}, 0
+    for name in _NL_ORDER:
+        if name in effects:
+            out[name] = np.asarray(p[i : i + _NONLINEAR[name]], dtype=float)
+            i += _NONLINEAR[name]
+    return out
+
+
+def sample_matrices(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray:
+    """Per-sample maps ``M_i = S⁻¹ Mᵀ R_dw(t_i − Δt) Rz(ψ_i)`` (N, 3, 3) from world field to raw mag."""
+    tau = measurement_times(problem, nl)
+    q = quat_slerp(problem.track.t, problem.track.quat, tau)
+    r_dw = np.swapaxes(_quat_to_matrix(q), 1, 2)
+    if "gyro_bias" in nl:
+        psi = problem.track.up_integral(tau) @ nl["gyro_bias"]
+        c, s = np.cos(psi), np.sin(psi)
+        rz = np.zeros((len(psi), 3, 3))
+        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+        r_dw = r_dw @ rz
+    left = np.eye(3)
+    if "mag_imu_misalignment" in nl:
+        left = rotvec_to_matrix(nl["mag_imu_misalignment"]).T
+    if "soft_iron" in nl:
+        left = soft_iron_distortion(nl["soft_iron"]) @ left
+    if "mag_imu_misalignment" in nl or "soft_iron" in nl:
+        r_dw = left @ r_dw
+    return r_dw
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each linear block sits in the linear parameter vector."""
+
+    blocks: dict[str, slice]
+    size: int
+
+
+def linear_layout(problem: Problem, effects) -> Layout:
+    blocks, i = {}, 0
+    for name, size in (
+        ("field_w", 3),
+        ("hard_iron", 3),
+        ("bias_drift", 3),
+        ("temperature_offset", 3),
+        ("local_anomaly", 3 * int(np.count_nonzero(problem.knot_free))),
+    ):
+        if name in ("field_w", "hard_iron") or name in effects:
+            blocks[name] = slice(i, i + size)
+            i += size
+    return Layout(blocks, i)
+
+
+def design(problem: Problem, mats: np.ndarray, tau: np.ndarray, layout: Layout) -> sp.csr_matrix:
+    """Sparse design matrix (3N, L) of the linear parameters given the per-sample maps and the true
+    measurement times ``tau`` (where the anomaly field is evaluated)."""
+    n = len(problem.t)
+    rows3 = 3 * np.arange(n)[:, None] + np.arange(3)[None, :]  # (N, 3)
+    r_parts, c_parts, v_parts = [], [], []
+
+    def add(rows, cols, vals):
+        r_parts.append(np.broadcast_to(rows, vals.shape).ravel())
+        c_parts.append(np.broadcast_to(cols, vals.shape).ravel())
+        v_parts.append(vals.ravel())
+
+    s = layout.blocks["field_w"].start
+    add(rows3[:, :, None], s + np.arange(3)[None, None, :], mats)
+    s = layout.blocks["hard_iron"].start
+    add(rows3, s + np.arange(3)[None, :], np.ones((n, 3)))
+    if "bias_drift" in layout.blocks:
+        s = layout.blocks["bias_drift"].start
+        add(rows3, s + np.arange(3)[None, :], np.repeat(((problem.t - problem.t_ref) / 60.0)[:, None], 3, 1))
+    if "temperature_offset" in layout.blocks:
+        s = layout.blocks["temperature_offset"].start
+        add(rows3, s + np.arange(3)[None, :],
+            np.repeat((problem.temperature - problem.temp_ref)[:, None], 3, 1))
+    if "local_anomaly" in layout.blocks:
+        s = layout.blocks["local_anomaly"].start
+        kn = problem.knots
+        free = problem.knot_free
+        idx = np.cumsum(free) - 1  # column of each free knot
+        k = np.clip(np.searchsorted(kn, tau, side="right") - 1, 0, len(kn) - 2)
+        u = np.clip((tau - kn[k]) / (kn[k + 1] - kn[k]), 0.0, 1.0)
+        cols = np.arange(3)[None, None, :]
+        for kk, w in ((k, 1.0 - u), (k + 1, u)):
+            sel = free[kk]
+            add(rows3[sel][:, :, None], s + 3 * idx[kk[sel]][:, None, None] + cols,
+                mats[sel] * w[sel][:, None, None])
+    rows = np.concatenate(r_parts)
+    cols = np.concatenate(c_parts)
+    vals = np.concatenate(v_parts)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, layout.size))
+
+
+def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray:
+    """``τ = t − time_offset`` (IMU clock)."""
+    return problem.t - (float(nl["time_offset"][0]) if "time_offset" in nl else 0.0)
+
+
+def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout):
+    """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps."""
+    a = design(problem, mats, measurement_times(problem, nl), layout)
+    y = problem.mag.ravel()
+    ata = (a.T @ a).toarray()
+    aty = a.T @ y
+    diag = np.diag(ata).copy()
+    ridge = 1e-9 * (diag.mean() if diag.size else 1.0) * np.ones(layout.size)
+    if "local_anomaly" in layout.blocks:
+        # weak prior on the knots: σ_noise²/σ_prior² with σ_noise ~ 1 µT
+        ridge[layout.blocks["local_anomaly"]] += 1.0 / problem.anomaly_prior_uT**2
+    ata[np.diag_indices_from(ata)] += ridge
+    try:
+        x = cho_solve(cho_factor(ata), aty)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(ata, aty, rcond=None)[0]
+    return x, y - a @ x
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """One fitted model.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Baseline plus the candidate effects in it.
+    nonlinear : dict name → ndarray
+        Fitted nonlinear parameters (internal units: s, rad/s, rad, distortion terms).
+    linear : dict name → ndarray
+        Fitted linear blocks (``field_w``, ``hard_iron``, ``bias_drift``, …).
+    residual : ndarray (N, 3)
+        Measured minus predicted, µT.
+    rss : float
+        Residual sum of squares, µT².
+    k : int
+        Number of fitted parameters (σ not counted; it is in every model).
+    """
+
+    effects: tuple[str, ...]
+    nonlinear: dict
+    linear: dict
+    residual: np.ndarray
+    rss: float
+    k: int
+    nfev: int = 1
+
+    @property
+    def gap(self) -> float:
+        return float(np.sqrt(np.mean(self.residual**2)))
+
+
+def n_params(problem: Problem, effects) -> int:
+    k = linear_layout(problem, effects).size
+    return k + sum(_NONLINEAR[e] for e in _NL_ORDER if e in effects)
+
+
+def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
+    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters."""
+    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
+    layout = linear_layout(problem, effects)
+    nl_names = [e for e in _NL_ORDER if e in effects]
+    p0, scale, lo, hi = [], [], [], []
+    for name in nl_names:
+        size = _NONLINEAR[name]
+        v = np.zeros(size) if init is None or name not in init else np.asarray(init[name], float)
+        p0.extend(v)
+        scale.extend([_NL_SCALE[name]] * size)
+        lo.extend([-_NL_BOUND[name]] * size)
+        hi.extend([_NL_BOUND[name]] * size)
+    p0 = np.clip(np.asarray(p0, float), np.asarray(lo) * 0.999, np.asarray(hi) * 0.999)
+
+    prior = np.asarray([1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])])
+
+    def resid(p):
+        nl = split_nonlinear(effects, p)
+        return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
+
+    nfev = 1
+    if nl_names:
+        sol = least_squares(resid, p0, x_scale=np.asarray(scale), bounds=(lo, hi), method="trf",
+                            diff_step=1e-6, xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev)
+        p = sol.x
+        nfev = int(sol.nfev)
+    else:
+        p = p0
+    nl = split_nonlinear(effects, p)
+    mats = sample_matrices(problem, nl)
+    x, r = solve_linear(problem, nl, mats, layout)
+    linear = {name: x[sl].copy() for name, sl in layout.blocks.items()}
+    if "local_anomaly" in linear:
+        linear["local_anomaly"] = linear["local_anomaly"].reshape(-1, 3)
+    res = r.reshape(-1, 3)
+    return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
+                     k=layout.size + len(p), nfev=nfev)
+
+
+def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:
+    """Integrated autocorrelation time of residuals (N, 3), averaged over axes (Sokal's window c = 5).
+
+    1 for white noise; n / τ is the effective number of independent samples.
+    """
+    x = np.asarray(res, dtype=float)
+    x = x - x.mean(axis=0)
+    n = len(x)
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft, axis=0)
+    acf = np.fft.irfft(f * np.conj(f), nfft, axis=0)[:n].sum(axis=1)
+    if acf[0] <= 0:
+        return 1.0
+    rho = acf / acf[0]
+    max_lag = max_lag or n // 4
+    taus = 1.0 + 2.0 * np.cumsum(rho[1 : max_lag + 1])
+    m = np.arange(1, len(taus) + 1)
+    ok = m >= 5.0 * taus
+    tau = taus[np.argmax(ok)] if ok.any() else taus[-1]
+    return float(np.clip(tau, 1.0, n / 10.0))
+
+
+def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_uT: float = 2.0,
+                    n_sigma: float = 4.0, max_share: float = 0.5, smooth_s: float = 1.0) -> Problem:
+    """Confine ``local_anomaly`` to where the residual of ``fit``, seen in the world frame, stands out.
+
+    ``r_w = R_wd (m − m̂)`` is averaged over ``smooth_s``; samples where ``|r̄_w|`` exceeds
+    ``max(min_uT, n_sigma · σ_robust)`` (σ from the median absolute deviation) mark the support,
+    widened by one knot on each side.  At most ``max_share`` of the samples are kept (the strongest):
+    a field that is everywhere is not local.  Knots every ``knot_s`` inside the windows are free; the
+    knots at the window edges are held at zero.
+    """
+    q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
+    r_wd = _quat_to_matrix(q)
+    r_w = np.einsum("nij,nj->ni", r_wd, fit.residual)
+    c = np.vstack([np.zeros((1, 3)), np.cumsum(r_w, axis=0)])
+    lo = np.searchsorted(problem.t, problem.t - 0.5 * smooth_s, side="left")
+    hi = np.searchsorted(problem.t, problem.t + 0.5 * smooth_s, side="right")
+    mag = np.linalg.norm((c[hi] - c[lo]) / (hi - lo)[:, None], axis=1)
+    sigma = 1.4826 * np.median(np.abs(fit.residual - np.median(fit.residual, axis=0)))
+    thr = max(min_uT, n_sigma * sigma)
+    hot = mag > thr
+    if hot.mean() > max_share:
+        hot = mag >= np.quantile(mag, 1.0 - max_share)
+    t = problem.t
+    # widen by one knot spacing each side
+    th = t[hot]
+    if th.size:
+        near = np.searchsorted(th, t)
+        d_prev = np.abs(t - th[np.clip(near - 1, 0, th.size - 1)])
+        d_next = np.abs(th[np.clip(near, 0, th.size - 1)] - t)
+        hot = np.minimum(d_prev, d_next) <= knot_s
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], hot.astype(np.int8), [0]])))
+    for a, b in zip(edges[1:-1:2], edges[2::2], strict=True):  # fill gaps shorter than 3 knots
+        if t[b] - t[a - 1] < 3.0 * knot_s:
+            hot[a:b] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], hot.astype(np.int8), [0]])))
+    knots, free = [], []
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        t0, t1 = t[a], t[b - 1]
+        nk = max(2, int(np.ceil((t1 - t0) / knot_s)) + 1)
+        kt = np.linspace(t0 - knot_s, t1 + knot_s, nk + 2)
+        knots.extend(kt)
+        free.extend([False] + [True] * nk + [False])
+    if not knots:
+        knots, free = [t[0], t[-1]], [False, False]
+    knots = np.asarray(knots)
+    free = np.asarray(free)
+    return replace(problem, knots=knots, knot_free=free)

@@ -1,0 +1,219 @@
+"""Orientation from the gyroscope and accelerometer alone (no magnetometer), for the model check.
+
+The model check must not use the magnetometer to estimate the orientation it then predicts the
+magnetometer along, so the heading reference is left free: the yaw of the estimate's world frame is
+arbitrary and the fitted world field ``B_w`` absorbs it (see :mod:`pdr_mag.modelcheck.fit`).
+
+Model (batch, vectorised)
+-------------------------
+1. Gyro integration with a bias ``b_g``: body-frame increments ``ΔR_i = exp((ω̄_i − b_g) Δt_i)`` with ω̄_i
+   the mean of consecutive samples, chained ``R_g(t_{i+1}) = R_g(t_i) ΔR_i`` by a log-depth parallel prefix
+   product of quaternions (Hillis–Steele scan), starting from the accelerometer tilt at ``t_0``.
+2. Tilt from the accelerometer: the specific force rotated into the gyro frame, ``a_w = R_g a_d``, averaged
+   over a centred window of ``tilt_window_s`` (walking accelerations average out) must point up; the minimal
+   rotation ``C(t)`` (axis horizontal, no yaw) taking the average onto ``+z`` corrects the slow tilt drift:
+   ``R_wd(t) = C(t) R_g(t)``.  This is a zero-phase complementary filter: high frequencies from the gyro,
+   tilt at low frequencies from the accelerometer.
+3. ``b_g`` defaults to the median gyro over still stretches (gyro and specific-force norm steady for at
+   least ``still_min_s``), zero when there are none; a bias left over shows as a heading drift
+   ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from pdr_mag.conventions import GRAVITY
+
+
+@dataclass(frozen=True)
+class OrientationSettings:
+    """Settings of :func:`estimate_orientation`.
+
+    Attributes
+    ----------
+    tilt_window_s : float
+        Length of the centred averaging window of the world-frame specific force, s.
+    still_gyro : float
+        Gyro norm below which (after removing the median) the device may be still, rad/s.
+    still_accel : float
+        Largest deviation of the specific-force norm from g while still, m/s².
+    still_min_s : float
+        Shortest still stretch used for the bias, s.
+    """
+
+    tilt_window_s: float = 2.0
+    still_gyro: float = 0.05
+    still_accel: float = 0.3
+    still_min_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class OrientationTrack:
+    """Orientation ``rot_wd`` at the gyro times ``t`` (quaternions w-first), with the bias used.
+
+    ``at(t)`` interpolates (slerp); ``up_integral(t)`` gives ``∫ up_d dt`` from ``t[0]`` (for the
+    heading drift of a gyro bias).
+    """
+
+    t: np.ndarray
+    quat: np.ndarray
+    gyro_bias: np.ndarray
+    up_cumint: np.ndarray
+
+    def rotation(self) -> Rotation:
+        return Rotation.from_quat(self.quat[:, [1, 2, 3, 0]])
+
+    def at(self, t: np.ndarray) -> Rotation:
+        tt = np.clip(np.asarray(t, dtype=float), self.t[0], self.t[-1])
+        return Slerp(self.t, self.rotation())(tt)
+
+    def up_integral(self, t: np.ndarray) -> np.ndarray:
+        tt = np.asarray(t, dtype=float)
+        return np.column_stack([np.interp(tt, self.t, self.up_cumint[:, k]) for k in range(3)])
+
+
+def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of w-first quaternion arrays (…, 4)."""
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def _rotvec_to_quat(v: np.ndarray) -> np.ndarray:
+    ang = np.linalg.norm(v, axis=-1)
+    half = 0.5 * ang
+    s = np.where(ang > 1e-12, np.sin(half) / np.where(ang > 1e-12, ang, 1.0), 0.5 - ang**2 / 48.0)
+    return np.column_stack([np.cos(half), v * s[:, None]])
+
+
+def prefix_product(q: np.ndarray) -> np.ndarray:
+    """Cumulative product ``q_0 q_1 … q_i`` for every i, in ⌈log2 N⌉ vectorised steps."""
+    out = np.array(q, dtype=float, copy=True)
+    k = 1
+    n = len(out)
+    while k < n:
+        out[k:] = qmul(out[:-k], out[k:])
+        k *= 2
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _minimal_rotation_to_up(v: np.ndarray) -> np.ndarray:
+    """w-first quaternions of the smallest rotations taking unit vectors ``v`` (N, 3) onto +z."""
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    # q = (1 + u·z, u × z) normalised; u × z = (u_y, −u_x, 0)
+    q = np.column_stack([1.0 + u[:, 2], u[:, 1], -u[:, 0], np.zeros(len(u))])
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _window_mean(t: np.ndarray, x: np.ndarray, half_s: float) -> np.ndarray:
+    """Centred moving average over ±half_s of irregularly sampled x (N, d) — cumulative sums."""
+    c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    lo = np.searchsorted(t, t - half_s, side="left")
+    hi = np.searchsorted(t, t + half_s, side="right")
+    return (c[hi] - c[lo]) / (hi - lo)[:, None]
+
+
+def still_gyro_bias(t, gyro, accel_on_gyro_t, settings: OrientationSettings = OrientationSettings()):
+    """Median gyro over still stretches (rad/s), or zeros when the device never rests long enough.
+
+    Still: over a centred window of ``still_min_s`` the gyro's standard deviation (norm over axes) stays
+    below ``still_gyro`` / 5 and the specific force's below ``still_accel`` / 5, its mean norm within
+    ``still_accel`` of g.  A bias is steady, so a large one (a breadboard's 0.08 rad/s) is still found.
+    """
+    g = np.asarray(gyro, dtype=float)
+    a = np.asarray(accel_on_gyro_t, dtype=float)
+    half = 0.5 * settings.still_min_s
+
+    def wstd(x):
+        m = _window_mean(t, x, half)
+        m2 = _window_mean(t, x * x, half)
+        return np.sqrt(np.clip(m2 - m * m, 0.0, None).sum(axis=1)), m
+
+    sg, _ = wstd(g)
+    sa, ma = wstd(a)
+    still = (sg < settings.still_gyro / 5.0) & (sa < settings.still_accel / 5.0)
+    still &= np.abs(np.linalg.norm(ma, axis=1) - GRAVITY) < settings.still_accel
+    if np.count_nonzero(still) < 10:
+        return np.zeros(3)
+    return np.median(g[still], axis=0)
+
+
+def estimate_orientation(
+    t_gyro: np.ndarray,
+    gyro: np.ndarray,
+    t_accel: np.ndarray,
+    accel: np.ndarray,
+    gyro_bias: np.ndarray | None = None,
+    settings: OrientationSettings = OrientationSettings(),
+) -> OrientationTrack:
+    """Device→world orientation from gyro + accelerometer (heading reference arbitrary).
+
+    Parameters
+    ----------
+    t_gyro, gyro : ndarray (N,), (N, 3)
+        Gyro times (s) and rates (rad/s, device frame).
+    t_accel, accel : ndarray (M,), (M, 3)
+        Accelerometer times (s) and specific force (m/s², device frame).
+    gyro_bias : ndarray (3,), optional
+        Bias to subtract (rad/s); by default the median over still stretches (:func:`still_gyro_bias`).
+    settings : OrientationSettings
+
+    Returns
+    -------
+    OrientationTrack
+    """
+    t = np.asarray(t_gyro, dtype=float)
+    w = np.asarray(gyro, dtype=float)
+    ta = np.asarray(t_accel, dtype=float)
+    a = np.asarray(accel, dtype=float)
+    if w.ndim != 2 or w.shape[1] != 3 or len(t) != len(w) or len(t) < 2:
+        raise ValueError(f"gyro: expected (N≥2, 3) rad/s with N times, got {w.shape}")
+    if a.ndim != 2 or a.shape[1] != 3 or len(ta) != len(a) or len(ta) < 2:
+        raise ValueError(f"accel: expected (M≥2, 3) m/s² with M times, got {a.shape}")
+    a_g = np.column_stack([np.interp(t, ta, a[:, k]) for k in range(3)])
+    bias = still_gyro_bias(t, w, a_g, settings) if gyro_bias is None else np.asarray(gyro_bias, float)
+
+    wc = w - bias
+    dt = np.diff(t)
+    inc = _rotvec_to_quat(0.5 * (wc[1:] + wc[:-1]) * dt[:, None])
+    # initial tilt from the first half second of accelerometer
+    a0 = a_g[t <= t[0] + 0.5].mean(axis=0)
+    q0 = _minimal_rotation_to_up(a0[None, :])[0]
+    q = prefix_product(np.vstack([q0, inc]))
+
+    # tilt correction from the averaged world-frame specific force
+    rot_g = Rotation.from_quat(q[:, [1, 2, 3, 0]])
+    a_w = rot_g.apply(a_g)
+    a_w_mean = _window_mean(t, a_w, 0.5 * settings.tilt_window_s)
+    corr = _minimal_rotation_to_up(a_w_mean)
+    q = qmul(corr, q)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+
+    # ∫ up_d dt (trapezoid) with up_d = R_dw e_z = third row of R_wd
+    up_d = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()[:, 2, :]
+    cum = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (up_d[1:] + up_d[:-1]) * dt[:, None], axis=0)])
+    return OrientationTrack(t=t, quat=q, gyro_bias=np.asarray(bias, float), up_cumint=cum)
+
+
+def track_from_truth(t: np.ndarray, q_wxyz: np.ndarray) -> OrientationTrack:
+    """An :class:`OrientationTrack` from ``truth.csv`` (evaluation mode only)."""
+    t = np.asarray(t, dtype=float)
+    q = np.asarray(q_wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    up_d = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()[:, 2, :]
+    dt = np.diff(t)
+    cum = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (up_d[1:] + up_d[:-1]) * dt[:, None], axis=0)])
+    return OrientationTrack(t=t, quat=q, gyro_bias=np.zeros(3), up_cumint=cum)

@@ -1,0 +1,120 @@
+"""The human report of a diagnosis: Markdown plus PNG plots (matplotlib, the optional ``report`` extra).
+
+Plots (before = baseline, after = final model): the residual norm against time, heading, measured field
+strength and angular rate; the measured and simulated field strength against time.  matplotlib is
+imported only inside :func:`write_report`; without it :class:`ReportUnavailable` is raised.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pdr_mag.conventions import heading_deg_from_quat
+from pdr_mag.modelcheck.predict import simulate_mag
+from pdr_mag.modelcheck.select import Diagnosis
+from pdr_mag.sensor_model import quat_slerp
+
+
+class ReportUnavailable(RuntimeError):
+    """matplotlib is not installed."""
+
+
+def _series(summary):
+    p, f = summary.problem, summary.fit
+    pred = simulate_mag(p, f)
+    res = p.mag - pred
+    q = quat_slerp(p.track.t, p.track.quat, p.t)
+    dq = np.diff(p.track.quat, axis=0)
+    rate_track = 2.0 * np.linalg.norm(dq, axis=1) / np.diff(p.track.t)
+    rate = np.interp(p.t, 0.5 * (p.track.t[1:] + p.track.t[:-1]), rate_track)
+    return {
+        "t": p.t,
+        "res": np.linalg.norm(res, axis=1),
+        "heading": heading_deg_from_quat(q),
+        "strength": np.linalg.norm(p.mag - np.asarray(f.linear["hard_iron"]), axis=1),
+        "strength_sim": np.linalg.norm(pred - np.asarray(f.linear["hard_iron"]), axis=1),
+        "rate": rate,
+    }
+
+
+def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Path:
+    """Write ``report.md`` and its plots into ``out_dir``; returns the Markdown path."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        msg = "matplotlib is needed for the report (pip install 'pdr_mag[report]')"
+        raise ReportUnavailable(msg) from exc
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    before = _series(diagnosis.baseline)
+    after = _series(diagnosis.final)
+    kw_b = dict(s=2, alpha=0.5, color="tab:red", label=f"baseline ({diagnosis.baseline.gap:.2f} µT)")
+    kw_a = dict(s=2, alpha=0.5, color="tab:blue", label=f"final ({diagnosis.final.gap:.2f} µT)")
+
+    plots = []
+    for key, xlabel, fname in (
+        ("t", "time (s)", "residual_vs_time.png"),
+        ("heading", "heading of the orientation track (deg, arbitrary reference)", "residual_vs_heading.png"),
+        ("strength", "measured field strength |m − b| (µT)", "residual_vs_strength.png"),
+        ("rate", "angular rate (rad/s)", "residual_vs_rate.png"),
+    ):
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        ax.scatter(before[key], before["res"], **kw_b)
+        ax.scatter(after[key], after["res"], **kw_a)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("|measured − simulated| (µT)")
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.legend(loc="upper right", markerscale=4)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=90)
+        plt.close(fig)
+        plots.append((xlabel, fname))
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.plot(after["t"], after["strength"], lw=0.8, color="k", label="measured")
+    ax.plot(before["t"], before["strength_sim"], lw=0.8, color="tab:red", label="simulated, baseline")
+    ax.plot(after["t"], after["strength_sim"], lw=0.8, color="tab:blue", label="simulated, final")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("|m − b| (µT)")
+    ax.legend(loc="upper right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "field_strength.png", dpi=90)
+    plt.close(fig)
+    plots.append(("field strength", "field_strength.png"))
+
+    d = diagnosis.to_dict()
+    lines = [
+        f"# Model check: {title}",
+        "",
+        f"Orientation from **{d['orientation']}**, {d['n_samples']} magnetometer samples over "
+        f"{d['duration_s']:.1f} s. Gap = {d['gap_metric']}.",
+        "",
+        f"- baseline ({', '.join(d['baseline']['effects'])}): gap **{d['baseline']['gap']:.3f} µT**",
+        f"- missing effects, in the order added: **{', '.join(d['missing_effects']) or 'none'}**",
+        f"- final ({', '.join(d['final']['effects'])}): gap **{d['final']['gap']:.3f} µT**",
+        "",
+        "## Candidates by round",
+        "",
+        "| round | effect | gap (µT) | score (ΔBIC) | significant | estimate |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for rnd in d["rounds"]:
+        for c in rnd:
+            est = ", ".join(f"{k}={v}" for k, v in c["estimate"].items() if k != "windows_s")
+            lines.append(f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | "
+                         f"{'yes' if c['significant'] else 'no'} | {est} |")
+    lines += ["", "## Final estimates", ""]
+    for name, est in d["final"]["estimate"].items():
+        lines.append(f"- `{name}`: {est}")
+    lines += ["", "## Residuals before and after", ""]
+    for label, fname in plots:
+        lines += [f"![{label}]({fname})", ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path

@@ -1,0 +1,361 @@
+"""Which effect is missing: greedy forward selection by a penalised likelihood (BIC) with a threshold.
+
+Score of adding effect e to the current model c (positive: e earns its place)::
+
+    score_e = n_eff · ln(RSS_c / RSS_e) − (k_e − k_c) · ln(n_eff),   n_eff = 3N / τ_int(r_full)
+
+which is ``BIC_c − BIC_e`` for white Gaussian noise of unknown σ, with the sample count cut to the number of
+independent residuals: τ_int is the integrated autocorrelation time (1 for white noise) of the residual of
+the *full* model (every candidate at once) — the closest estimate of the noise process there is, which
+still holds the correlated part that no effect explains (orientation errors).  Taking τ_int from each
+candidate's own residual would instead punish every candidate for the effects still missing besides it.
+
+An effect is added when ``score > score_threshold`` (10: "very strong" evidence on
+the Kass–Raftery scale) *and* it shrinks the gap by at least ``min_gap_reduction`` (relative) — so data
+with nothing missing give ``missing_effect: null`` instead of the least bad candidate.  The best
+significant effect is added and the search repeated until none is left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from pdr_mag.modelcheck.fit import (
+    BASELINE,
+    CANDIDATES,
+    FitResult,
+    Problem,
+    anomaly_support,
+    fit_model,
+    integrated_autocorr_time,
+    make_problem,
+)
+from pdr_mag.modelcheck.orientation import (
+    OrientationSettings,
+    OrientationTrack,
+    estimate_orientation,
+    track_from_truth,
+)
+from pdr_mag.modelcheck.predict import anomaly_field, gap
+
+GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
+
+
+@dataclass(frozen=True)
+class DiagnoseSettings:
+    """Settings of :func:`diagnose` (documented defaults).
+
+    Attributes
+    ----------
+    candidates : tuple of str
+        Effects that may be added (``temperature_offset`` only applies with a temperature channel).
+    score_threshold : float
+        Least ΔBIC for an effect to count as missing.
+    min_gap_reduction : float
+        Least relative shrink of the gap for an effect to count as missing.
+    anomaly_knot_s : float
+        Knot spacing of the ``local_anomaly`` field, s.
+    anomaly_min_uT : float
+        Smallest world-frame residual (1-s mean) that can mark a local anomaly, µT.
+    anomaly_max_share : float
+        Largest share of the recording a *local* anomaly may cover.
+    max_rounds : int
+        Most effects added.
+    max_nfev : int
+        Evaluations per nonlinear fit.
+    orientation : OrientationSettings
+    """
+
+    candidates: tuple[str, ...] = CANDIDATES
+    score_threshold: float = 10.0
+    min_gap_reduction: float = 0.05
+    anomaly_knot_s: float = 1.0
+    anomaly_min_uT: float = 2.0
+    anomaly_max_share: float = 0.5
+    max_rounds: int = 6
+    max_nfev: int = 60
+    orientation: OrientationSettings = field(default_factory=OrientationSettings)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate tried in one round: gap (µT), score (ΔBIC) and its estimate (JSON units)."""
+
+    effect: str
+    gap: float
+    score: float
+    estimate: dict
+    round: int
+    significant: bool
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "gap": _r(self.gap), "score": _r(self.score, 2),
+                "estimate": self.estimate, "round": self.round, "significant": self.significant}
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    effects: tuple[str, ...]
+    gap: float
+    estimate: dict
+    fit: FitResult
+    problem: Problem
+
+    def to_dict(self) -> dict:
+        return {"effects": list(self.effects), "gap": _r(self.gap), "estimate": self.estimate}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What :func:`diagnose` found (``to_dict()`` is the ``diagnose --json`` object of INTERFACE.md)."""
+
+    baseline: ModelSummary
+    candidates: tuple[Candidate, ...]
+    rounds: tuple[tuple[Candidate, ...], ...]
+    missing_effects: tuple[str, ...]
+    final: ModelSummary
+    orientation_source: str
+    duration_s: float
+    n_samples: int
+    n_eff: float = float("nan")
+
+    @property
+    def missing_effect(self) -> str | None:
+        return self.missing_effects[0] if self.missing_effects else None
+
+    def to_dict(self) -> dict:
+        return {
+            "gap_metric": GAP_METRIC,
+            "baseline": self.baseline.to_dict(),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "missing_effect": self.missing_effect,
+            "missing_effects": list(self.missing_effects),
+            "final": self.final.to_dict(),
+            "rounds": [[c.to_dict() for c in r] for r in self.rounds],
+            "orientation": self.orientation_source,
+            "duration_s": _r(self.duration_s, 3),
+            "n_samples": self.n_samples,
+            "n_eff": _r(self.n_eff, 1),
+        }
+
+
+def _r(v: float, nd: int = 4):
+    v = float(v)
+    return round(v, nd) if np.isfinite(v) else None
+
+
+def _vec(v, nd: int = 4) -> list:
+    return [round(float(x), nd) for x in np.ravel(v)]
+
+
+# ---------------------------------------------------------------------------------------------- estimates
+
+
+def estimates(problem: Problem, fit: FitResult, effects) -> dict:
+    """Per-effect estimates in the units of INTERFACE.md, for the given effect names."""
+    out: dict = {}
+    nl, lin = fit.nonlinear, fit.linear
+    for e in effects:
+        if e == "hard_iron":
+            out[e] = {"uT": _vec(lin["hard_iron"], 3), "t_ref": _r(problem.t_ref, 3)}
+        elif e == "noise":
+            out[e] = {"uT": _vec(np.sqrt(np.mean(fit.residual**2, axis=0)), 4)}
+        elif e == "time_offset":
+            out[e] = {"seconds": _r(nl[e][0], 5)}
+        elif e == "mag_imu_misalignment":
+            deg = np.degrees(nl[e])
+            out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3)}
+        elif e == "soft_iron":
+            from pdr_mag.modelcheck.fit import soft_iron_distortion
+
+            s = np.linalg.inv(soft_iron_distortion(nl[e]))
+            s = 0.5 * (s + s.T)
+            s = s / np.cbrt(np.linalg.det(s))
+            ev = np.linalg.eigvalsh(s)
+            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": _r(ev[-1] / ev[0], 5)}
+        elif e == "bias_drift":
+            out[e] = {"uT_per_min": _vec(lin[e], 4)}
+        elif e == "temperature_offset":
+            out[e] = {"uT_per_degC": _vec(lin[e], 4), "t_ref_degC": _r(problem.temp_ref, 2)}
+        elif e == "gyro_bias":
+            total = problem.track.gyro_bias + nl[e]
+            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(nl[e], 5)}
+        elif e == "local_anomaly":
+            fld = anomaly_field(problem, fit)
+            mags = np.linalg.norm(fld.values_w, axis=1)
+            i = int(np.argmax(mags))
+            free = problem.knot_free
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
+            win = [[_r(problem.knots[a], 2), _r(problem.knots[b - 1], 2)] for a, b in
+                   zip(edges[::2], edges[1::2], strict=True)]
+            share = float(np.mean(np.interp(problem.t, problem.knots, free.astype(float)) > 0))
+            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(problem.knots[i], 2), "windows_s": win,
+                      "share": _r(share, 3)}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- fitting
+
+
+def _heading_drift_init(problem: Problem, fit: FitResult) -> np.ndarray:
+    """Initial residual gyro bias from the drift of the measured field's horizontal direction.
+
+    In the track's world frame the measured field ``R_wd (m − b)`` turns by ``−ψ(t)``, ``ψ = δ·∫up_d dt``,
+    so δ is the least-squares solution of ``−unwrap(φ − φ_0) = ∫up_d dt · δ``.
+    """
+    from pdr_mag.modelcheck.fit import _quat_to_matrix
+    from pdr_mag.sensor_model import quat_slerp
+
+    q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
+    h_w = np.einsum("nij,nj->ni", _quat_to_matrix(q), problem.mag - fit.linear["hard_iron"])
+    phi = np.unwrap(np.arctan2(h_w[:, 0], h_w[:, 1]))
+    a = np.column_stack([problem.track.up_integral(problem.t), np.ones(len(phi))])
+    sol = np.linalg.lstsq(a, -(phi - phi[0]), rcond=None)[0]
+    return np.clip(sol[:3], -0.4, 0.4)
+
+
+def _fit(problem: Problem, effects, current: FitResult, settings: DiagnoseSettings) -> FitResult:
+    init = dict(current.nonlinear)
+    best = fit_model(problem, effects, init, settings.max_nfev)
+    if "gyro_bias" in effects and "gyro_bias" not in current.nonlinear:
+        init2 = dict(init, gyro_bias=_heading_drift_init(problem, current))
+        alt = fit_model(problem, effects, init2, settings.max_nfev)
+        if alt.rss < best.rss:
+            best = alt
+    return best
+
+
+def _replay_gyro_bias(problem: Problem, fit: FitResult, gyro, accel, settings: DiagnoseSettings):
+    """Re-estimate the orientation with the fitted gyro bias and refit (the diagnosis replayed)."""
+    if gyro is None or "gyro_bias" not in fit.nonlinear:
+        return problem, fit
+    bias = problem.track.gyro_bias + fit.nonlinear["gyro_bias"]
+    track = estimate_orientation(gyro[0], gyro[1], accel[0], accel[1], bias, settings.orientation)
+    p2 = replace(problem, track=track)
+    init = dict(fit.nonlinear, gyro_bias=np.zeros(3))
+    f2 = fit_model(p2, fit.effects, init, settings.max_nfev)
+    return p2, f2
+
+
+def _score(current: FitResult, cand: FitResult, n_eff: float) -> float:
+    return float(n_eff * np.log(current.rss / max(cand.rss, 1e-300)) - (cand.k - current.k) * np.log(n_eff))
+
+
+def diagnose(
+    t_mag,
+    mag,
+    t_gyro,
+    gyro,
+    t_accel,
+    accel,
+    *,
+    truth: tuple[np.ndarray, np.ndarray] | None = None,
+    use_truth: bool = False,
+    temperature: tuple[np.ndarray, np.ndarray] | None = None,
+    settings: DiagnoseSettings | None = None,
+) -> Diagnosis:
+    """Simulation vs measured: fit the baseline, find the missing effects one by one, refit.
+
+    Parameters
+    ----------
+    t_mag, mag : ndarray (N,), (N, 3)
+        Raw magnetometer, s and µT.
+    t_gyro, gyro, t_accel, accel : ndarray
+        Gyroscope (rad/s) and accelerometer (m/s²) with their times; they give the orientation.
+    truth : (t, q_wxyz), optional
+        True orientation; used only when ``use_truth`` (evaluation mode).
+    use_truth : bool
+        Predict along the true orientation instead of the gyro + accelerometer estimate.
+    temperature : (t, T_degC), optional
+        Sensor temperature; enables the ``temperature_offset`` candidate.
+    settings : DiagnoseSettings
+
+    Returns
+    -------
+    Diagnosis
+    """
+    settings = settings or DiagnoseSettings()
+    gyro_pair = accel_pair = None
+    if use_truth:
+        if truth is None:
+            raise ValueError("truth: use_truth=True needs the true orientation (t, q_wxyz)")
+        track: OrientationTrack = track_from_truth(*truth)
+        source = "truth"
+    else:
+        if gyro is None or accel is None:
+            raise ValueError("gyro, accel: both are needed to estimate the orientation")
+        gyro_pair = (np.asarray(t_gyro, float), np.asarray(gyro, float))
+        accel_pair = (np.asarray(t_accel, float), np.asarray(accel, float))
+        track = estimate_orientation(*gyro_pair, *accel_pair, settings=settings.orientation)
+        source = "gyro+accel"
+    temp = None
+    if temperature is not None:
+        temp = np.interp(np.asarray(t_mag, float), np.asarray(temperature[0], float),
+                         np.asarray(temperature[1], float))
+    problem = make_problem(t_mag, mag, track, temp, settings.anomaly_knot_s)
+    n = problem.n
+
+    base = fit_model(problem, (), None, settings.max_nfev)
+    baseline = ModelSummary(BASELINE, gap(problem, base), estimates(problem, base, BASELINE), base, problem)
+
+    candidates = [c for c in settings.candidates if c != "temperature_offset" or temp is not None]
+    if use_truth:
+        candidates = [c for c in candidates if c != "gyro_bias"]
+    # effective sample size from the full model's residual
+    p_full = problem
+    full = [c for c in candidates if c != "local_anomaly"]
+    if "local_anomaly" in candidates:
+        p_full = anomaly_support(problem, base, settings.anomaly_knot_s, settings.anomaly_min_uT,
+                                 max_share=settings.anomaly_max_share)
+        if p_full.knot_free.any():
+            full.append("local_anomaly")
+    f_full = _fit(p_full, full, base, settings)
+    tau_int = integrated_autocorr_time(f_full.residual)
+    n_eff = n / tau_int
+
+    current, cur_problem, added = base, problem, []
+    rounds: list[tuple[Candidate, ...]] = []
+    for rnd in range(settings.max_rounds):
+        tried = []
+        cur_gap = gap(cur_problem, current)
+        for eff in candidates:
+            if eff in added:
+                continue
+            p = cur_problem
+            if eff == "local_anomaly":
+                p = anomaly_support(cur_problem, current, settings.anomaly_knot_s, settings.anomaly_min_uT,
+                                    max_share=settings.anomaly_max_share)
+                if not p.knot_free.any():
+                    continue
+            effects = (*added, eff)
+            f = _fit(p, effects, current, settings)
+            if eff == "gyro_bias":
+                p, f = _replay_gyro_bias(p, f, gyro_pair, accel_pair, settings)
+            g = gap(p, f)
+            s = _score(current, f, n_eff)
+            sig = bool(s > settings.score_threshold and g < (1.0 - settings.min_gap_reduction) * cur_gap)
+            tried.append((Candidate(eff, g, s, estimates(p, f, [eff]).get(eff, {}), rnd + 1, sig), f, p))
+        rounds.append(tuple(c for c, _, _ in tried))
+        sig = [x for x in tried if x[0].significant]
+        if not sig:
+            break
+        best = max(sig, key=lambda x: x[0].score)
+        added.append(best[0].effect)
+        current, cur_problem = best[1], best[2]
+
+    final_effects = (*BASELINE, *added)
+    final = ModelSummary(final_effects, gap(cur_problem, current),
+                         estimates(cur_problem, current, final_effects), current, cur_problem)
+    return Diagnosis(
+        baseline=baseline,
+        candidates=rounds[0] if rounds else (),
+        rounds=tuple(rounds),
+        missing_effects=tuple(added),
+        final=final,
+        orientation_source=source,
+        duration_s=float(problem.t[-1] - problem.t[0]),
+        n_samples=len(problem.t),
+        n_eff=float(n_eff),
+    )

@@ -1,0 +1,119 @@
+"""``pdr-mag diagnose REC [--json FILE] [--report DIR] [--use-truth]``: simulation vs measured.
+
+Estimates the orientation from the recording's gyroscope and accelerometer (``truth.csv`` only with
+``--use-truth``), fits the baseline sensor model (hard_iron + noise), simulates the magnetometer with
+:mod:`pdr_mag.sensor_model`, names the missing effects one by one and shows the gap shrink.  Writes the
+``diagnose --json`` object of INTERFACE.md (``--json -``: to stdout) and, with ``--report DIR``, a Markdown
+report with plots (needs matplotlib: the ``report`` extra).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+
+from replay.errors import InputError
+
+
+def _temperature(recording):
+    """A temperature channel ``(t, °C)`` if the reader provides one, else None."""
+    for cand in (getattr(recording, "temperature", None), (recording.meta or {}).get("temperature")):
+        if cand is None:
+            continue
+        t = getattr(cand, "t", None)
+        v = getattr(cand, "xyz", None)
+        if v is None:
+            v = getattr(cand, "values", None)
+        if t is None and isinstance(cand, (tuple, list)) and len(cand) == 2:
+            t, v = cand
+        if t is None or v is None:
+            continue
+        t = np.asarray(t, dtype=float)
+        v = np.asarray(v, dtype=float).reshape(len(t), -1)[:, 0]
+        if len(t) >= 2 and np.all(np.isfinite(v)):
+            return t, v
+    return None
+
+
+@click.command()
+@click.argument("rec", type=click.Path(path_type=Path))
+@click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False, allow_dash=True),
+              help="Write the diagnosis (INTERFACE.md diagnose --json) to FILE ('-': stdout).")
+@click.option("--report", "report_dir", type=click.Path(path_type=Path, file_okay=False),
+              help="Write report.md with plots into DIR (needs matplotlib).")
+@click.option("--use-truth", is_flag=True,
+              help="Evaluation mode: predict along truth.csv, not the gyro + accelerometer orientation.")
+def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_truth: bool) -> int:
+    """Compare the sensor model with recording REC, name the missing effects, refit."""
+    from pdr_mag.modelcheck import diagnose
+    from replay.formats import read_recording
+
+    if report_dir is not None:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise click.ClickException(
+                "--report needs matplotlib, which is not installed (pip install 'pdr_mag[report]')"
+            ) from None
+    recording = read_recording(rec)
+    if use_truth:
+        if recording.truth is None:
+            raise InputError(rec, "--use-truth: the recording has no truth (truth.csv)")
+    else:
+        for name in ("gyro", "accel"):
+            s = getattr(recording, name)
+            if s is None or len(s) < 10:
+                raise InputError(rec, f"no {name} stream: diagnose needs gyro and accel for the orientation")
+    if len(recording.mag) < 50:
+        raise InputError(rec, f"need at least 50 magnetometer samples, got {len(recording.mag)}")
+    g, a = recording.gyro, recording.accel
+    try:
+        diag = diagnose(
+            recording.mag.t, recording.mag.xyz,
+            None if g is None else g.t, None if g is None else g.xyz,
+            None if a is None else a.t, None if a is None else a.xyz,
+            truth=recording.truth, use_truth=use_truth, temperature=_temperature(recording),
+        )
+    except ValueError as exc:
+        raise InputError(rec, f"diagnose failed: {exc}") from None
+    out = diag.to_dict()
+    out["source"] = str(rec)
+    if json_path is not None:
+        text = json.dumps(out, indent=1, ensure_ascii=False)
+        if str(json_path) == "-":
+            click.echo(text)
+        else:
+            try:
+                json_path.write_text(text + "\n", encoding="utf-8")
+            except OSError as exc:
+                raise InputError(json_path, f"cannot write ({exc.strerror})") from None
+    if report_dir is not None:
+        from pdr_mag.modelcheck.report import write_report
+
+        try:
+            write_report(diag, report_dir, title=str(rec))
+        except OSError as exc:
+            raise InputError(report_dir, f"cannot write the report ({exc.strerror})") from None
+    if str(json_path) != "-":
+        click.echo(summary(out, rec))
+    return 0
+
+
+def summary(d: dict, rec) -> str:
+    """A few human-readable lines."""
+    lines = [f"diagnose {rec}: {d['n_samples']} mag samples, {d['duration_s']:.1f} s, orientation "
+             f"from {d['orientation']}",
+             f"  baseline {'+'.join(d['baseline']['effects'])}: gap {d['baseline']['gap']:.3f} µT"]
+    for rnd in d["rounds"]:
+        best = max(rnd, key=lambda c: c["score"] if c["score"] is not None else -np.inf, default=None)
+        if best is None:
+            continue
+        mark = "added" if best["significant"] else "not significant"
+        lines.append(f"  round {best['round']}: best {best['effect']} (score {best['score']}, gap "
+                     f"{best['gap']:.3f} µT) — {mark}")
+    lines.append(f"  missing effects: {', '.join(d['missing_effects']) or 'none'}")
+    lines.append(f"  final {'+'.join(d['final']['effects'])}: gap {d['final']['gap']:.3f} µT")
+    return "\n".join(lines)
