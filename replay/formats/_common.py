@@ -157,6 +157,32 @@ class StreamBuilder:
         return t, v
 
 
+#: Heuristic saturation (when the reader does not know the sensor's range): per axis, the largest |value| is
+#: a clipped range limit if at least SAT_MIN_COUNT samples sit exactly on it and it is above the floor — the
+#: smallest range phones use is ±2 g (19.6 m/s²) and ±250 deg/s (4.36 rad/s), so normal data never qualifies.
+SAT_FLOOR = {"accel": 15.0, "gyro": 4.0}
+SAT_MIN_COUNT = 3
+
+
+def flag_saturation(key: str, xyz: np.ndarray, dropped: Counter) -> int:
+    """Count (``<key>:saturated``) samples with an axis exactly at a clipped range limit; returns the count.
+
+    Only for ``accel`` and ``gyro``, in the contract's units (see :data:`SAT_FLOOR`). Samples are kept.
+    """
+    floor = SAT_FLOOR.get(key)
+    if floor is None or len(xyz) == 0:
+        return 0
+    a = np.abs(xyz)
+    peak = a.max(axis=0)
+    at = (a == peak) & (peak >= floor)
+    counts = at.sum(axis=0)
+    hit = np.any(at[:, counts >= SAT_MIN_COUNT], axis=1)
+    n = int(hit.sum())
+    if n:
+        dropped[f"{key}:saturated"] += n
+    return n
+
+
 def finish(
     b: StreamBuilder,
     scale: float = 1.0,
@@ -183,6 +209,8 @@ def finish(
         t += t_offset
     if check:
         check_units(b.path, b.key, v, unit_hint)
+    if b.limit is None:
+        flag_saturation(b.key, v, b.dropped)
     return Stream(t=t, xyz=v)
 
 

@@ -1,9 +1,10 @@
 """The contract's own layout: a directory with mag.csv (+ accel.csv, gyro.csv, meta.json, truth.csv).
 
 Odd rows inside a good file (a NaN value, a duplicate timestamp) are dropped and counted in
-``Recording.dropped``; a file that cannot be right (missing, bad header, text in a number column, time
-going backwards, an empty stream, values in the wrong unit) raises :class:`InputError` naming the file and
-line.
+``Recording.dropped``; accelerometer/gyroscope samples clipped at the sensor's range are kept and counted
+as ``<stream>:saturated`` (:func:`replay.formats._common.flag_saturation`); a file that cannot be right
+(missing, bad header, text in a number column, time going backwards, an empty stream, values in the wrong
+unit) raises :class:`InputError` naming the file and line.
 """
 
 from __future__ import annotations
@@ -98,6 +99,9 @@ def read_stream(path: Path, key: str, dropped: Counter) -> Stream:
     if len(arr) < 2:
         raise InputError(path, "fewer than 2 valid samples")
     _check_units(path, key, arr[:, 1:4])
+    from replay.formats._common import flag_saturation
+
+    flag_saturation(key, arr[:, 1:4], dropped)  # counted as "<key>:saturated", samples kept
     return Stream(t=arr[:, 0].copy(), xyz=arr[:, 1:4].copy())
 
 
