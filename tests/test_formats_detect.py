@@ -35,6 +35,7 @@ REAL = {
     ): "ms-indoor",
     ("broad", "data_mat", "36_disturbed_attached_magnet_5cm.mat"): "broad",
     ("sunsided-marg", "set-2", "rotate-ccw-around-z-pointing-up"): "sunsided-marg",
+    ("xio-fusion", "sensor_data.csv"): "xio-csv",
 }
 
 
@@ -54,6 +55,7 @@ def test_all_readers_present():
         "ms-indoor",
         "ipin",
         "broad",
+        "xio-csv",
         "pdr-mcap",
         "ros2-mcap",
     ]

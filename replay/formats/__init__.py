@@ -29,6 +29,7 @@ READERS = (
     "msindoor",
     "ipin",
     "broad",
+    "xio",
     "pdrmcap",
     "rosmcap",
 )

@@ -1,0 +1,97 @@
+"""x-io Technologies CSV (the x-io Fusion example ``sensor_data.csv``, x-IMU3 exports): units in the header.
+
+One CSV file, header row first, e.g.::
+
+    Time (s),Gyroscope X (deg/s),…,Accelerometer X (g),…,Magnetometer X (uT),Magnetometer Y (uT),…
+
+Columns are found by name (``Gyroscope``/``Accelerometer``/``Magnetometer`` + ``X``/``Y``/``Z``) and converted
+from the unit in brackets: deg/s or rad/s; g or m/s^2; uT/µT, nT or G/gauss. The accelerometer reads +1 g on
+z lying flat (specific force) and the IMU's own axes are taken as the device frame (it is not a phone).
+
+The magnetometer is sample-and-hold: it updates at ~20 Hz while rows come at 100 Hz, repeating the last
+value. A row whose magnetometer value equals the previous one exactly is not a new measurement: it is left
+out of the magnetometer stream and counted as ``mag:held_repeat``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.recording import Recording
+
+NAME = "xio-csv"
+_COL = re.compile(r"^(gyroscope|accelerometer|magnetometer) ([xyz]) \((.+)\)$")
+_KEY = {"gyroscope": "gyro", "accelerometer": "accel", "magnetometer": "mag"}
+_SCALE = {
+    "gyro": {"deg/s": np.pi / 180.0, "dps": np.pi / 180.0, "rad/s": 1.0},
+    "accel": {"g": 9.80665, "m/s^2": 1.0, "m/s²": 1.0},
+    "mag": {"ut": 1.0, "µt": 1.0, "nt": 1e-3, "g": 100.0, "gauss": 100.0, "a.u.": 1.0},
+}
+
+
+def detect(path: Path) -> bool:
+    if not (path.is_file() and path.suffix.lower() == ".csv"):
+        return False
+    with path.open("rb") as fh:
+        first = fh.readline(4096).decode("utf-8", "replace").strip().lower()
+    return first.startswith("time (s),") and "magnetometer x (" in first
+
+
+def read(path) -> Recording:
+    """Read an x-io CSV into a :class:`Recording` (line by line)."""
+    p = Path(path)
+    dropped: Counter = Counter()
+    with open_text(p) as fh:
+        header = [c.strip() for c in fh.readline().strip().split(",")]
+        if not header or header[0].lower() != "time (s)":
+            raise InputError(p, f"bad header {','.join(header)!r}, expected 'Time (s),…'", 1)
+        cols: dict[str, dict[str, int]] = {}
+        units: dict[str, str] = {}
+        for i, name in enumerate(header):
+            m = _COL.match(name.lower())
+            if m:
+                key = _KEY[m.group(1)]
+                cols.setdefault(key, {})[m.group(2)] = i
+                units[key] = m.group(3)
+        if "mag" not in cols or len(cols["mag"]) != 3:
+            raise InputError(p, "no Magnetometer X/Y/Z columns (a stream missing)", 1)
+        for key, unit in units.items():
+            if unit not in _SCALE[key]:
+                raise InputError(p, f"unknown unit {unit!r} for {key} (known: {', '.join(_SCALE[key])})", 1)
+        idx = {k: [c[a] for a in "xyz"] for k, c in cols.items() if len(c) == 3}
+        builders = {k: StreamBuilder(p, k, dropped) for k in idx}
+        ncol = len(header)
+        last_mag = None
+        for lineno, line in enumerate(fh, start=2):
+            s = line.strip()
+            if not s:
+                continue
+            parts = s.split(",")
+            if len(parts) < ncol:
+                raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
+            vals = floats(p, lineno, parts[:ncol])
+            t = vals[0]
+            for key, ix in idx.items():
+                v = [vals[i] for i in ix]
+                if key == "mag":
+                    if v == last_mag:
+                        dropped["mag:held_repeat"] += 1
+                        continue
+                    last_mag = v
+                builders[key].add(lineno, t, v)
+    streams = {k: finish(b, scale=_SCALE[k][units[k]], unit_hint=units[k]) for k, b in builders.items()}
+    return Recording(
+        mag=streams["mag"],
+        accel=streams.get("accel"),
+        gyro=streams.get("gyro"),
+        meta={"device": "x-io IMU", "units_in_file": units},
+        source=str(p),
+        format=NAME,
+        dropped=dropped,
+    )
