@@ -183,8 +183,10 @@ class Motion:
 class DipoleField:
     """External field of point dipoles (steel in a building), a ``local_anomaly`` value.
 
-    ``B(p) = Σ_k (3 r̂_k (m_k · r̂_k) − m_k) / |r_k|³`` with ``r_k = p − positions_w[k]``; the moments carry
-    the factor μ0/4π, so they are in µT·m³ and B is in µT.
+    ``B(p) = Σ_{k: |r_k| ≤ cutoff_m} (3 r̂_k (m_k · r̂_k) − m_k) / |r_k|³`` with ``r_k = p − positions_w[k]``
+    (|r_k| floored at 1 cm); the moments carry the factor μ0/4π, so they are in µT·m³ and B is in µT.
+    Dipoles beyond ``cutoff_m`` contribute nothing (a k-d tree finds the near ones, so long walks past many
+    dipoles stay fast); at 25 m a dipole that gives 30 µT at 1 m adds less than 0.002 µT.
 
     Attributes
     ----------
@@ -194,11 +196,14 @@ class DipoleField:
         Moments × μ0/4π, µT·m³, ENU.
     peak_uT : float
         The strength it was scaled to (largest |B| along the path it was laid out for), µT; informative.
+    cutoff_m : float
+        Range of each dipole, m (``inf``: all dipoles everywhere).
     """
 
     positions_w: np.ndarray
     moments_w: np.ndarray
     peak_uT: float = float("nan")
+    cutoff_m: float = float("inf")
 
     def __post_init__(self) -> None:
         p = np.atleast_2d(np.asarray(self.positions_w, dtype=float))
@@ -207,35 +212,59 @@ class DipoleField:
             raise ValueError(
                 f"positions_w, moments_w: expected equal shapes (K, 3), got {p.shape}, {m.shape}"
             )
+        if not float(self.cutoff_m) > 0:
+            raise ValueError(f"cutoff_m: expected a range > 0 in m, got {self.cutoff_m!r}")
         object.__setattr__(self, "positions_w", p)
         object.__setattr__(self, "moments_w", m)
+        object.__setattr__(self, "cutoff_m", float(self.cutoff_m))
 
     def field_w(self, position_w: np.ndarray) -> np.ndarray:
         """Anomaly field (N, 3), µT, ENU, at positions (N, 3), m."""
         pos = np.asarray(position_w, dtype=float)
         out = np.zeros_like(pos)
-        for pk, mk in zip(self.positions_w, self.moments_w, strict=True):
-            r = pos - pk
+        if len(pos) == 0 or len(self.positions_w) == 0:
+            return out
+        if np.isfinite(self.cutoff_m):
+            from scipy.spatial import cKDTree
+
+            near = cKDTree(pos).query_ball_point(self.positions_w, self.cutoff_m, return_sorted=True)
+        else:
+            near = [None] * len(self.positions_w)
+        for pk, mk, idx in zip(self.positions_w, self.moments_w, near, strict=True):
+            if idx is not None:
+                if not len(idx):
+                    continue
+                idx = np.asarray(idx, dtype=np.intp)
+            r = (pos if idx is None else pos[idx]) - pk
             r2 = np.maximum(np.einsum("ij,ij->i", r, r), 1e-4)[:, None]
             mr = (r @ mk)[:, None]
-            out += (3.0 * mr * r / r2 - mk) / (r2 * np.sqrt(r2))
+            b = (3.0 * mr * r / r2 - mk) / (r2 * np.sqrt(r2))
+            if idx is None:
+                out += b
+            else:
+                out[idx] += b
         return out
 
     def scaled(self, factor: float) -> DipoleField:
-        return DipoleField(self.positions_w, self.moments_w * factor, self.peak_uT * factor)
+        return DipoleField(self.positions_w, self.moments_w * factor, self.peak_uT * factor, self.cutoff_m)
 
     def to_json(self) -> dict:
         return {
             "kind": "dipoles",
             "peak_uT": round(float(self.peak_uT), 6),
-            "positions_m": np.round(self.positions_w, 6).tolist(),
-            "moments_uT_m3": np.round(self.moments_w, 6).tolist(),
+            "cutoff_m": self.cutoff_m if np.isfinite(self.cutoff_m) else None,
+            "positions_m": self.positions_w.tolist(),
+            "moments_uT_m3": self.moments_w.tolist(),
         }
 
     @classmethod
     def from_json(cls, obj: dict) -> DipoleField:
+        cutoff = obj.get("cutoff_m")
         return cls(
-            np.asarray(obj["positions_m"]), np.asarray(obj["moments_uT_m3"]), obj.get("peak_uT", np.nan)
+            np.asarray(obj["positions_m"], dtype=float),
+            np.asarray(obj["moments_uT_m3"], dtype=float),
+            obj.get("peak_uT", np.nan),
+            float("inf") if cutoff is None else float(cutoff),
         )
 
 

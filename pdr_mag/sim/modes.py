@@ -49,9 +49,26 @@ class Mode:
     step_hz: float = 0.0
 
     def angles(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Relative chain angles (N, 4) and rates (N, 4), radians, rad/s."""
-        out = [f(t) for f in self.angles_fn]
-        return np.stack([o[0] for o in out], axis=1), np.stack([o[1] for o in out], axis=1)
+        """Relative chain angles (N, 4) and rates (N, 4), radians, rad/s.
+
+        Terms sharing a frequency share one sin/cos pair (``sin(ωt + φ) = sin ωt cos φ + cos ωt sin φ``).
+        """
+        base: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        th = np.empty((len(t), 4))
+        dth = np.empty((len(t), 4))
+        for i, f in enumerate(self.angles_fn):
+            v = np.full(len(t), float(f.const))
+            dv = np.zeros(len(t))
+            for amp, om, ph in f.terms:
+                if om not in base:
+                    base[om] = (np.sin(om * t), np.cos(om * t))
+                sn, cs = base[om]
+                cp, sp = amp * np.cos(ph), amp * np.sin(ph)
+                v += sn * cp + cs * sp
+                dv += om * (cs * cp - sn * sp)
+            th[:, i] = v
+            dth[:, i] = dv
+        return th, dth
 
     def offset(self, t: np.ndarray) -> np.ndarray:
         """Phone offset (N, 3) in the walker frame (x right, y forward, z up), m."""

@@ -24,6 +24,9 @@ from pdr_mag.sim.trajectory import Heading, Trajectory
 
 DEG = np.pi / 180.0
 
+#: Range of each laid-out steel dipole, m (see :class:`~pdr_mag.sensor_model.DipoleField`).
+DIPOLE_CUTOFF_M = 25.0
+
 DEFAULT_EFFECTS: dict[str, object] = {
     "hard_iron": (22.0, -31.0, 48.0),
     "soft_iron": ((1.04, 0.02, -0.01), (0.02, 0.97, 0.015), (-0.01, 0.015, 1.0)),
@@ -213,7 +216,7 @@ def layout_dipoles(plan: Plan, peak_uT: float, rng: np.random.Generator) -> Dipo
     dirs = rng.standard_normal((len(pos), 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     mom = dirs * np.exp(rng.normal(0.0, 0.5, (len(pos), 1)))
-    unit = DipoleField(pos, mom)
+    unit = DipoleField(pos, mom, cutoff_m=DIPOLE_CUTOFF_M)
     t_all = np.arange(0.0, traj.t_end, 0.05)
     bmax = float(np.linalg.norm(unit.field_w(traj.position(t_all)), axis=1).max())
-    return DipoleField(pos, mom * (peak_uT / bmax), peak_uT)
+    return DipoleField(pos, mom * (peak_uT / bmax), peak_uT, DIPOLE_CUTOFF_M)

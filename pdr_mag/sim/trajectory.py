@@ -28,6 +28,14 @@ _GRID_S = 0.01
 _FD_H = 1e-3
 
 
+def _where(mask: np.ndarray):
+    """Index for the True entries: a full slice when all are, None when none are."""
+    if mask.all():
+        return slice(None)
+    idx = np.flatnonzero(mask)
+    return idx if len(idx) else None
+
+
 @dataclass(frozen=True, eq=False)
 class Heading:
     """Walker heading ψ(t), rad, clockwise from north: ``ψ0 + Σ Δψ_j S((t − t_j)/d_j + ½) + wander``.
@@ -145,8 +153,8 @@ class Trajectory:
             w, _ = self.weights(t)
         out = np.zeros((len(t), 3))
         for i, m in enumerate(self.modes):
-            idx = np.nonzero(w[i] > 0)[0]
-            if len(idx):
+            idx = _where(w[i] > 0)
+            if idx is not None:
                 out[idx] += w[i, idx, None] * m.offset(t[idx])
         return out
 
@@ -166,8 +174,8 @@ class Trajectory:
         th = np.zeros((len(t), 4))
         dth = np.zeros((len(t), 4))
         for i, m in enumerate(self.modes):
-            idx = np.nonzero((w[i] > 0) | (dw[i] != 0))[0]
-            if len(idx):
+            idx = _where((w[i] > 0) | (dw[i] != 0))
+            if idx is not None:
                 a, da = m.angles(t[idx])
                 th[idx] += w[i, idx, None] * a
                 dth[idx] += w[i, idx, None] * da + dw[i, idx, None] * a
