@@ -290,3 +290,26 @@ def test_replaying_the_mcap_reproduces_the_outputs(tmp_path):
     first, second = csv1.read_bytes(), csv2.read_bytes()
     assert first.count(b"\n") > 1000
     assert first == second
+
+
+@pytest.mark.parametrize("use_orjson", [True, False])
+def test_number_tokens_read_back_exactly(monkeypatch, use_orjson):
+    import pdr_mag.sinks.mcap as m
+
+    if use_orjson and m._orjson is None:
+        pytest.skip("orjson not installed")
+    if not use_orjson:
+        monkeypatch.setattr(m, "_orjson", None)
+    rng = np.random.default_rng(3)
+    x = np.concatenate(
+        [
+            rng.normal(0, 1, 500) * 10.0 ** rng.integers(-300, 300, 500),
+            [0.1 + 0.2, -0.0, 5e-324, 1.7976931348623157e308, np.nan, np.inf, -np.inf],
+        ]
+    )
+    back = [json.loads(tok) for tok in m._tokens(x)]
+    finite = np.isfinite(x)
+    assert all(b is None for b, f in zip(back, finite, strict=True) if not f)
+    np.testing.assert_array_equal(np.array([b for b in back if b is not None]), x[finite])
+    ints = np.array([0, 7, 2**62, -5], dtype=np.int64)
+    assert [json.loads(tok) for tok in m._tokens(ints)] == ints.tolist()
