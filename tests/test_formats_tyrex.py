@@ -106,3 +106,20 @@ def test_ios_bad_boot_time(tmp_path):
     (d / "magnetometer.txt").write_text("1 30 0 -30\n2 30 0 -30\n")
     with pytest.raises(InputError, match="BootTime is not a number"):
         read_recording(d)
+
+
+@pytest.mark.parametrize(
+    "platform,trial",
+    [("ios", "Thibaud_iPhone5_NoDist_Texting"), ("android", "Thibaud_Nexus5_NoDist_Swinging")],
+)
+def test_magnetometer_axes_against_mocap(platform, trial):
+    """Hard-iron-corrected field rotated into ENU by the mocap points north (WMM: E 0.6, N 22.8 µT)."""
+    rec = read_recording(dataset("tyrex-attitude", platform, trial))
+    m = rec.mag.xyz
+    a = np.column_stack([2 * m, np.ones(len(m))])
+    centre = np.linalg.lstsq(a, (m**2).sum(axis=1), rcond=None)[0][:3]
+    tq, q = rec.truth
+    i = np.clip(np.searchsorted(tq, rec.mag.t), 0, len(tq) - 1)
+    near = np.abs(tq[i] - rec.mag.t) < 0.02
+    field_w = np.median(np.einsum("nij,nj->ni", quat_to_rot(q[i[near]]), (m - centre)[near]), axis=0)
+    assert abs(field_w[0]) < 4.0 and 17.0 < field_w[1] < 28.0

@@ -9,6 +9,28 @@ Every reader module has ``NAME`` (str), ``detect(path) -> bool`` and ``read(path
 whole file — and it never raises. :data:`READERS` lists the modules in the order they are asked; the first
 that recognises the path reads it. A path that no reader recognises is an :class:`InputError`.
 A reader may also be chosen by name with ``read_recording(path, fmt=NAME)``.
+
+Formats (module → ``NAME``): ``pdrcsv`` → ``pdr-csv`` (the contract's layout); ``tyrex`` → ``tyrex``
+(smartphone attitude benchmark, Android Senslogs and iOS layouts, Qualisys truth); ``sunsided`` →
+``sunsided-marg`` (breadboard MPU6050 + HMC5883L); ``sensorlogger`` → ``sensor-logger`` and ``phyphox`` →
+``phyphox`` (phone-app CSV exports, folder or zip); ``msindoor`` → ``ms-indoor`` (Indoor Location
+Competition 2.0 logs); ``ipin`` → ``ipin`` (IPIN/GetSensorData logfiles); ``broad`` → ``broad`` (BROAD
+MATLAB files, OptiTrack truth); ``xio`` → ``xio-csv`` (x-io CSV); ``pdrmcap`` → ``pdr-mcap`` (our own
+MCAP, the layout of :mod:`pdr_mag.sinks.mcap`); ``rosmcap`` → ``ros2-mcap`` (ROS 2 ``sensor_msgs`` Imu +
+MagneticField).
+
+Errors and odd samples
+----------------------
+A file that cannot be right (missing stream, bad header, text in a number column, time going backwards,
+truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming the file and, for text,
+the line. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
+
+* ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
+* ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
+  the format states, else from :func:`replay.formats._common.flag_saturation`;
+* format-specific: ``truth:nan``/``truth:glitch`` (mocap occlusions), ``mag:held_repeat`` (a
+  sample-and-hold repeat), ``accel:no_gravity_sample`` (Sensor Logger's user acceleration without a
+  gravity sample at the same time).
 """
 
 from __future__ import annotations
