@@ -73,6 +73,55 @@ def test_round_trip_through_the_reader(tmp_path, capsys):
     np.testing.assert_allclose(pos[:, 1:], res.truth_position[1], atol=6e-4)
 
 
+def test_rates_site_and_plain_field_options(tmp_path, capsys):
+    out = tmp_path / "r"
+    argv = [
+        "simulate",
+        "--scenario",
+        "still",
+        "--duration",
+        "10",
+        "--imu-rate",
+        "200",
+        "--mag-rate",
+        "25",
+        "--field",
+        "0,20,-40",
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    rec = pdrcsv.read(out)
+    assert rec.accel.rate_hz == pytest.approx(200.0, rel=0.02)
+    assert rec.mag.rate_hz == pytest.approx(25.0, rel=0.02)
+    assert rec.meta["simulation"]["field_w_uT"] == [0.0, 20.0, -40.0]
+    assert "latitude_deg" not in rec.meta  # a site would imply another field
+    out2 = tmp_path / "s"
+    assert (
+        main(
+            [
+                "simulate",
+                "--scenario",
+                "still",
+                "--duration",
+                "5",
+                "--latitude",
+                "-33.9",
+                "--longitude",
+                "151.2",
+                "--date",
+                "2025-03-01",
+                "--out",
+                str(out2),
+            ]
+        )
+        == 0
+    )
+    meta = json.loads((out2 / "meta.json").read_text())
+    assert (meta["latitude_deg"], meta["longitude_deg"], meta["date"]) == (-33.9, 151.2, "2025-03-01")
+    assert meta["simulation"]["inclination_deg"] < 0  # southern hemisphere: field points up
+
+
 def test_same_seed_byte_identical_files(tmp_path, capsys):
     for d in ("a", "b", "c"):
         seed = "4" if d != "c" else "5"
@@ -108,6 +157,9 @@ def test_same_seed_byte_identical_files(tmp_path, capsys):
         ["--scenario", "walk", "--effect", "hard_iron"],
         ["--scenario", "walk", "--duration", "-3"],
         ["--scenario", "walk", "--seed", "x"],
+        ["--scenario", "walk", "--date", "2026-13-01"],
+        ["--scenario", "walk", "--field", "1,2"],
+        ["--scenario", "walk", "--imu-rate", "0"],
         [],
     ],
 )

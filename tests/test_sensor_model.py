@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from pdr_mag.conventions import GRAVITY, quat_to_rot, rotation_to_quat
 from pdr_mag.sensor_model import (
+    EFFECT_SIZES,
     EFFECTS,
     DipoleField,
     Motion,
@@ -15,15 +16,18 @@ from pdr_mag.sensor_model import (
     SensorModel,
     correct_mag,
     digitise,
+    integrate_gyro,
     mag_from_orientation,
     measure_mag,
     normalise_effect,
+    pack_effect,
     parse_effect_value,
     predict_accel,
     predict_gyro,
     predict_mag,
     quat_rotate,
     quat_slerp,
+    unpack_effect,
 )
 
 FIELD_W = np.array([1.36, 21.54, -43.30])
@@ -248,3 +252,32 @@ def test_motion_validates_input():
         Motion(np.array([0.0, 0.0]), np.tile([1.0, 0, 0, 0], (2, 1)))
     with pytest.raises(ValueError, match="q_wd"):
         Motion(np.array([0.0, 1.0]), np.ones((2, 3)))
+
+
+def test_pack_unpack_round_trip_for_fitting():
+    values = {
+        "hard_iron": [1, 2, 3],
+        "soft_iron": [1.1, 0.9, 1.0, 0.02, -0.01, 0.03],
+        "time_offset": 0.04,
+        "mag_imu_misalignment": [1, -2, 0.5],
+        "bias_drift": 0.3,
+        "gyro_bias": [0.01, 0, -0.01],
+        "noise": 0.4,
+    }
+    assert set(values) == set(EFFECT_SIZES)
+    for name, v in values.items():
+        p = pack_effect(name, v)
+        assert p.shape == (EFFECT_SIZES[name],)
+        np.testing.assert_allclose(unpack_effect(name, p), normalise_effect(name, v))
+    with pytest.raises(ValueError, match="local_anomaly"):
+        pack_effect("local_anomaly", DipoleField([[0, 0, 0]], [[1, 0, 0]]))
+    with pytest.raises(ValueError, match="hard_iron"):
+        unpack_effect("hard_iron", [1, 2])
+
+
+def test_integrate_gyro_constant_rate_is_exact():
+    t = np.cumsum(np.random.default_rng(5).uniform(0.004, 0.006, 2001)) - 0.005
+    w = np.array([0.3, -0.2, 0.5])
+    q = integrate_gyro(t, np.tile(w, (len(t), 1)), [1.0, 0, 0, 0])
+    expected = rotation_to_quat(Rotation.from_rotvec(np.outer(t - t[0], w)))
+    np.testing.assert_allclose(np.abs(np.sum(q * expected, axis=1)), 1.0, atol=1e-12)

@@ -142,7 +142,8 @@ def simulate(
     site : mapping, optional
         ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` of the WMM field (:data:`DEFAULT_SITE`).
     field_w : array-like (3,), optional
-        A plain ENU field vector, µT, overriding the WMM.
+        A plain ENU field vector, µT, overriding the WMM; ``meta`` then carries no site (position and date
+        would imply another field) and north is the world +y axis.
     truth_rate_hz : float
         Rate of the (uniform) truth samples.
     """
@@ -213,14 +214,15 @@ def simulate(
         "anomaly_windows": _anomaly_windows(model, traj, duration),
         "north": "true",
     }
-    meta = {
-        "device": "simulated phone (pdr-mag simulate)",
-        "latitude_deg": site["latitude_deg"],
-        "longitude_deg": site["longitude_deg"],
-        "altitude_m": site.get("altitude_m", 0.0),
-        "date": site["date"],
-        "simulation": sim_meta,
-    }
+    meta = {"device": "simulated phone (pdr-mag simulate)"}
+    if field_w is None:  # with a plain field vector the site would imply a different (WMM) field: left out
+        meta.update(
+            latitude_deg=site["latitude_deg"],
+            longitude_deg=site["longitude_deg"],
+            altitude_m=site.get("altitude_m", 0.0),
+            date=site["date"],
+        )
+    meta["simulation"] = sim_meta
     return SimResult(
         scenario=scenario,
         seed=int(seed),

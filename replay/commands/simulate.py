@@ -3,18 +3,23 @@
     pdr-mag simulate --scenario NAME --seed N --out DIR [--effect NAME=VALUE ...] [--duration S]
     pdr-mag simulate --list
 
+Options beyond the contract: ``--imu-rate``/``--mag-rate`` (Hz), the site (``--latitude``, ``--longitude``,
+``--altitude``, ``--date``) or a plain ``--field E,N,U`` (µT) instead of the WMM.
+
 Effect values: a number, comma-separated numbers, or ``off`` (see ``--list``).  The same arguments give
 byte-identical files.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import click
 import numpy as np
 
-from pdr_mag.sensor_model import EFFECTS, parse_effect_value
+from pdr_mag.field import EarthField, decimal_year
+from pdr_mag.sensor_model import EFFECTS, PhoneSpec, parse_effect_value
 from pdr_mag.sim import DEFAULT_EFFECTS, DEFAULT_SITE, SCENARIOS, simulate
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
@@ -71,8 +76,45 @@ def _parse_effects(items: tuple[str, ...]) -> dict:
     default=None,
     help="length in seconds (default: the scenario's)",
 )
+@click.option(
+    "--imu-rate",
+    type=click.FloatRange(min=1.0, max=2000.0),
+    default=None,
+    help="accelerometer and gyroscope rate, Hz (default 100)",
+)
+@click.option(
+    "--mag-rate",
+    type=click.FloatRange(min=1.0, max=1000.0),
+    default=None,
+    help="magnetometer rate, Hz (default 50)",
+)
+@click.option("--latitude", type=click.FloatRange(-90.0, 90.0), default=None, help="site latitude, deg")
+@click.option("--longitude", type=click.FloatRange(-180.0, 180.0), default=None, help="site longitude, deg")
+@click.option("--altitude", type=float, default=None, help="site altitude, m")
+@click.option("--date", default=None, help="date YYYY-MM-DD (sets the WMM field)")
+@click.option(
+    "--field",
+    "field_text",
+    default=None,
+    metavar="E,N,U",
+    help="plain ENU field vector in µT instead of the WMM",
+)
 @click.option("--list", "list_", is_flag=True, help="list scenarios and effects with their units")
-def command(scenario, seed, out, effects, duration, list_) -> int:
+def command(
+    scenario,
+    seed,
+    out,
+    effects,
+    duration,
+    imu_rate,
+    mag_rate,
+    latitude,
+    longitude,
+    altitude,
+    date,
+    field_text,
+    list_,
+) -> int:
     if list_:
         click.echo(_listing())
         return 0
@@ -85,7 +127,32 @@ def command(scenario, seed, out, effects, duration, list_) -> int:
     if out is None:
         raise click.UsageError("--out DIR is required")
     overrides = _parse_effects(effects)
-    res = simulate(scenario, seed=seed, duration_s=duration, effects=overrides)
+    site = dict(DEFAULT_SITE)
+    for key, val in (("latitude_deg", latitude), ("longitude_deg", longitude), ("altitude_m", altitude)):
+        if val is not None:
+            site[key] = val
+    if date is not None:
+        try:
+            decimal_year(date)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--date") from None
+        site["date"] = date
+    field_w = None
+    if field_text is not None:
+        try:
+            field_w = EarthField.from_vector([float(x) for x in field_text.split(",")]).field_w
+        except ValueError as exc:
+            raise click.BadParameter(
+                f"expected 3 comma-separated numbers in µT ({exc})", param_hint="--field"
+            ) from None
+    phone = PhoneSpec()
+    if imu_rate is not None:
+        phone = replace(phone, accel_rate_hz=imu_rate, gyro_rate_hz=imu_rate)
+    if mag_rate is not None:
+        phone = replace(phone, mag_rate_hz=mag_rate)
+    res = simulate(
+        scenario, seed=seed, duration_s=duration, effects=overrides, phone=phone, site=site, field_w=field_w
+    )
     rec = Recording(
         mag=Stream(*res.mag),
         accel=Stream(*res.accel),
