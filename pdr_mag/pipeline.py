@@ -8,9 +8,13 @@ Data flow per sample stream (accelerometer, gyroscope, magnetometer — independ
 
 Determinism (streaming == batch).  Samples are released from the per-stream buffers only when they are
 older than the newest sample of *every* expected stream (so no later push can precede them; ties go
-accel < gyro < mag), and are processed in blocks aligned on multiples of ``block_s`` in stream time.  The
-calibration changes only between blocks.  Hence the output depends on the data alone, not on how it was
-cut into pushes: sample by sample, in chunks or all at once give identical rows.  The one exception is
+accel < gyro < mag) and fused at once (the fusion core gives the same result however its input is cut).
+The calibration changes only at block boundaries (multiples of ``block_s`` in stream time): when the
+released samples pass the end of a block, the online calibrator is given that block's magnetometer samples
+(with the filter's up vector and the gyro rate of the latest row at or before each — causal, so
+independent of the cuts) before any sample of the next block is fused.  Hence the output depends on the
+data alone, not on how it was cut into pushes: sample by sample, in chunks or all at once give identical
+rows.  The one exception is
 :meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
 waited for (its late samples are dropped and counted), which only happens when a stream stalls.
 
@@ -54,7 +58,8 @@ class PipelineSettings:
     Attributes
     ----------
     block_s : float
-        Processing block length, s: the calibration may change every block; output latency ≈ one block.
+        Calibration block length, s: the online calibration may change at each block boundary (the
+        output latency does not depend on it: samples are fused as soon as every stream has passed them).
     max_lag_s : float
         :meth:`HeadingPipeline.poll` does not wait for a stream more than this behind the newest sample, s.
     max_pending : int
@@ -69,7 +74,7 @@ class PipelineSettings:
         Keep the calibrated magnetometer samples for :meth:`HeadingPipeline.pop_mag_calibrated` (sinks).
     """
 
-    block_s: float = 0.25
+    block_s: float = 0.5
     max_lag_s: float = 1.0
     max_pending: int = 20000
     online: bool = True
@@ -163,7 +168,11 @@ class HeadingPipeline:
         )
         self._streams = {k: _Stream() for k in KINDS}
         self._done_t = -np.inf  # everything before this time has been processed
-        self._block = None  # index of the block being filled by the last processed samples
+        self._cur_blk: float | None = None  # index of the block the last fused piece belonged to
+        self._pend: list[np.ndarray] = []  # magnetometer rows (t, raw, up, rate) of the open block
+        self._coverage = 0.0
+        self._up_acc = np.full(3, np.nan)
+        self._rate = np.zeros(1)
         self.dropped: Counter = Counter()
         self._out: list[EstimateBatch] = []
         self._events: list[Event] = []
@@ -297,15 +306,15 @@ class HeadingPipeline:
         return min(s.last_t for s in self._streams.values())
 
     def _process(self, horizon: float, final: bool = False) -> None:
+        """Fuse every pending sample before ``horizon`` (all of them when ``final``), piece by piece within
+        blocks; a block whose end the horizon has passed is closed (online calibration update)."""
         b = self.settings.block_s
         if final:
             t_end = np.inf
         else:
-            if not np.isfinite(horizon):
+            if not np.isfinite(horizon) or horizon <= self._done_t:
                 return
-            t_end = np.floor(horizon / b) * b  # a block boundary at or before the horizon
-            if t_end <= self._done_t:
-                return
+            t_end = horizon
         parts = []
         for name, s in self._streams.items():
             t, xyz = s.take_before(t_end)
@@ -313,21 +322,26 @@ class HeadingPipeline:
                 parts.append((np.full(len(t), KINDS[name], dtype=np.int8), t, xyz))
         if not final:
             self._done_t = t_end
-        if not parts:
-            return
-        kind = np.concatenate([p[0] for p in parts])
-        t = np.concatenate([p[1] for p in parts])
-        xyz = np.concatenate([p[2] for p in parts])
-        order = np.lexsort((kind, t))
-        kind, t, xyz = kind[order], t[order], xyz[order]
-        if final:
-            self._done_t = max(self._done_t, float(t[-1]))
-        blk = np.floor(t / b)
-        cuts = np.flatnonzero(np.diff(blk)) + 1
-        for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(t)], strict=True):
-            self._run_block(kind[lo:hi], t[lo:hi], xyz[lo:hi])
+        if parts:
+            kind = np.concatenate([p[0] for p in parts])
+            t = np.concatenate([p[1] for p in parts])
+            xyz = np.concatenate([p[2] for p in parts])
+            order = np.lexsort((kind, t))
+            kind, t, xyz = kind[order], t[order], xyz[order]
+            if final:
+                self._done_t = max(self._done_t, float(t[-1]))
+            blk = np.floor(t / b)
+            cuts = np.flatnonzero(np.diff(blk)) + 1
+            for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(t)], strict=True):
+                if self._cur_blk is not None and blk[lo] > self._cur_blk:
+                    self._close_block()
+                self._cur_blk = float(blk[lo])
+                self._fuse(kind[lo:hi], t[lo:hi], xyz[lo:hi])
+        if self._cur_blk is not None and (final or (self._cur_blk + 1) * b <= t_end):
+            self._close_block()
 
-    def _run_block(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> None:
+    def _fuse(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> None:
+        """Calibrate and fuse one piece (all inside one block, calibration fixed)."""
         if not np.isfinite(self._t_first):
             self._t_first = float(t[0])
         self._t_last = float(t[-1])
@@ -335,30 +349,52 @@ class HeadingPipeline:
         raw = xyz[is_mag]
         cal = self.online.calibration
         data = xyz.copy()
-        if cal is not None:
-            data[is_mag] = cal.apply(raw)
-        else:
-            data[is_mag] = np.nan
+        data[is_mag] = cal.apply(raw) if cal is not None else np.nan
         allowed = np.full(len(t), cal is not None)
-        state = self.online.cal_state
         batch = self.fusion.process(kind, t, data, allowed)
         n = len(batch)
         if n:
-            batch.cal_state = np.full(n, state, dtype="<U13")
-            batch.diag["coverage"] = np.full(n, self.online.coverage())
+            batch.cal_state = np.full(n, self.online.cal_state, dtype="<U13")
+            batch.diag["coverage"] = np.full(n, self._coverage)
             self._interference_events(batch)
             self._n_out += n
             self._out.append(batch)
         if self.settings.keep_mag_calibrated and np.any(is_mag) and cal is not None:
             self._magcal.append((t[is_mag].copy(), data[is_mag].copy()))
-        if self.settings.online and np.any(is_mag):
-            up = self._up_at(t[is_mag], batch, kind, t, xyz)
-            rate = self._rate_at(t[is_mag], kind, t, xyz)
+        if self.settings.online:
+            tm = t[is_mag]
+            up = self._causal(tm, batch.t, _up_of(batch.q_wd) if n else np.empty((0, 3)), "_up")
+            acc = xyz[kind == 0]
+            acc_up = acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-9)
+            up_acc = self._causal(tm, t[kind == 0], acc_up, "_up_acc")
+            up = np.where(np.isfinite(up), up, up_acc)  # before the first output row: the accelerometer
+            g = kind == 1
+            rate = self._causal(tm, t[g], np.linalg.norm(xyz[g], axis=1)[:, None], "_rate")[:, 0]
+            if len(tm):
+                self._pend.append(np.column_stack([tm, raw, up, rate]))
+
+    def _causal(self, tm: np.ndarray, ts: np.ndarray, vs: np.ndarray, attr: str) -> np.ndarray:
+        """Value of the latest row of (ts, vs) at or before each tm, else the one kept in ``attr`` from
+        earlier pieces; updates ``attr``.  Causal, so independent of how the stream was cut."""
+        prev = getattr(self, attr)
+        if len(ts):
+            j = np.searchsorted(ts, tm, side="right") - 1
+            out = np.where((j >= 0)[:, None], vs[np.clip(j, 0, None)], prev)
+            setattr(self, attr, np.asarray(vs[-1], dtype=float).copy())
+            return out
+        return np.tile(prev, (len(tm), 1))
+
+    def _close_block(self) -> None:
+        """End of a block: the online calibrator sees the block's magnetometer samples."""
+        if self._pend:
+            p = np.concatenate(self._pend)
+            self._pend = []
             before = self.online.calibration
-            for te, k, d in self.online.update(t[is_mag], raw, up, rate):
+            for te, k, d in self.online.update(p[:, 0], p[:, 1:4], p[:, 4:7], p[:, 7]):
                 self._events.append(Event(te, k, d))
+            self._coverage = self.online.coverage()
             if self.online.calibration is not before and self.online.calibration is not None:
-                self._calibrations.append((float(t[-1]), self.online.calibration))
+                self._calibrations.append((float(p[-1, 0]), self.online.calibration))
                 self._sync_fusion_reference()
 
     def _interference_events(self, batch: EstimateBatch) -> None:
@@ -373,33 +409,6 @@ class HeadingPipeline:
                     data[key] = round(float(v[i]), 3)
             self._events.append(Event(float(batch.t[i]), kind, data))
         self._interf = bool(flags[-1])
-
-    def _up_at(self, tm, batch, kind, t, xyz) -> np.ndarray:
-        """Device-frame up vector at each magnetometer time: the filter's tilt (third row of rot_wd) at the
-        nearest output row; before any output, the normalised accelerometer."""
-        if len(batch):
-            q = batch.q_wd
-            w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-            up_rows = np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-            j = np.clip(np.searchsorted(batch.t, tm), 0, len(batch) - 1)
-            up = up_rows[j]
-            self._up = up_rows[-1].copy()
-            return up
-        acc = xyz[kind == 0]
-        if len(acc):
-            a = acc.mean(axis=0)
-            self._up = a / max(np.linalg.norm(a), 1e-9)
-        return np.tile(self._up, (len(tm), 1))
-
-    @staticmethod
-    def _rate_at(tm, kind, t, xyz) -> np.ndarray:
-        g = kind == 1
-        if not np.any(g):
-            return np.zeros(len(tm))
-        tg = t[g]
-        rg = np.linalg.norm(xyz[g], axis=1)
-        j = np.clip(np.searchsorted(tg, tm), 0, len(tg) - 1)
-        return rg[j]
 
     def _sync_fusion_reference(self) -> None:
         cal = self.online.calibration
@@ -448,6 +457,11 @@ class HeadingPipeline:
             "dropped": dict(self.dropped),
             "interf": self._interf,
             "up": [_f(v) for v in self._up],
+            "up_acc": [_f(v) for v in self._up_acc],
+            "rate": _f(self._rate[0]),
+            "cur_blk": None if self._cur_blk is None else self._cur_blk,
+            "pend": [[_f(v) for v in row] for row in (np.concatenate(self._pend) if self._pend else [])],
+            "coverage": self._coverage,
             "n_out": self._n_out,
             "t_first": _f(self._t_first),
             "t_last": _f(self._t_last),
@@ -473,6 +487,12 @@ class HeadingPipeline:
             self.dropped = Counter(state["dropped"])
             self._interf = bool(state["interf"])
             self._up = np.asarray([float(v) for v in state["up"]])
+            self._up_acc = np.asarray([float(v) for v in state["up_acc"]])
+            self._rate = np.array([float(state["rate"])])
+            self._cur_blk = None if state["cur_blk"] is None else float(state["cur_blk"])
+            pend = np.asarray([[float(v) for v in row] for row in state["pend"]], dtype=float)
+            self._pend = [pend.reshape(-1, 8)] if len(pend) else []
+            self._coverage = float(state["coverage"])
             self._n_out = int(state["n_out"])
             self._t_first = float(state["t_first"])
             self._t_last = float(state["t_last"])
@@ -482,6 +502,12 @@ class HeadingPipeline:
         except (KeyError, TypeError) as exc:
             raise ValueError(f"state: malformed ({exc!r})") from exc
         self._out, self._events, self._magcal = [], [], []
+
+
+def _up_of(q: np.ndarray) -> np.ndarray:
+    """Device-frame up vectors (third row of rot_wd) of w-first quaternions (N, 4)."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
 
 
 def _kind_name(kind) -> str:

@@ -447,25 +447,35 @@ class OnlineCalibrator:
     def update(self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray) -> list:
         """Take raw magnetometer samples (time-ordered) with up vectors and gyro rates; return events.
 
-        Never raises on odd data: samples with NaN are skipped.
+        Never raises on odd data: samples with NaN are skipped.  The per-sample checks (consistency with the
+        calibration, redundancy against the buffer) are computed for the whole chunk against the state at
+        its start; only the few samples that may enter the buffer go through the sequential path.
         """
         events: list = []
         s = self.settings
-        for i in range(len(t)):
-            ti = float(t[i])
-            mi = mag[i]
-            ui = up[i]
-            if not (np.all(np.isfinite(mi)) and np.all(np.isfinite(ui))):
-                continue
-            ri = float(rate[i]) if np.isfinite(rate[i]) else 0.0
-            self._track_episode(ti, ri, events)
-            ok = self._consistent(mi, ui)
-            if ti - self._last_rec_t >= 1.0 / s.stale_rate_hz:
-                self._rec[self._rec_i % len(self._rec)] = (ti, *mi, *ui)
+        t = np.asarray(t, dtype=float)
+        mag = np.asarray(mag, dtype=float)
+        up = np.asarray(up, dtype=float)
+        rate = np.asarray(rate, dtype=float)
+        good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
+        if not np.all(good):
+            t, mag, up, rate = t[good], mag[good], up[good], rate[good]
+        if not len(t):
+            return events
+        rate = np.where(np.isfinite(rate), rate, 0.0)
+        ok = self._consistent(mag, up) | (self.cal_state in ("none", "recalibrating"))
+        cand = ok & ~self._redundant(t, mag, up)
+        t_list = t.tolist()
+        rate_list = rate.tolist()
+        rec_dt = 1.0 / s.stale_rate_hz
+        for i, ti in enumerate(t_list):
+            self._track_episode(ti, rate_list[i], events)
+            if ti - self._last_rec_t >= rec_dt:
+                self._rec[self._rec_i % len(self._rec)] = (ti, *mag[i], *up[i])
                 self._rec_i += 1
                 self._last_rec_t = ti
-            if ok or self.cal_state in ("none", "recalibrating"):
-                self._add(ti, mi, ui)
+            if cand[i]:
+                self._add(ti, mag[i], up[i])
             if ti >= self._next_refit_t:
                 period = s.refit_period_s if self.calibration is not None else 0.5 * s.refit_period_s
                 self._next_refit_t = ti + period
@@ -479,20 +489,36 @@ class OnlineCalibrator:
                 self._stale_check(ti, events)
         return events
 
-    def _consistent(self, m: np.ndarray, u: np.ndarray) -> bool:
+    def _consistent(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Per sample: strength and dip of the calibrated field within the buffer-admission bands."""
         f = self.field_ref
         if self.calibration is None or f is None:
-            return True
+            return np.ones(len(m), dtype=bool)
         s = self.settings
         mc = self.calibration.apply(m)
-        nm = float(np.sqrt(mc @ mc))
-        if abs(nm - f) > s.add_tol_frac * f:
-            return False
+        nm = np.linalg.norm(mc, axis=1)
+        ok = np.abs(nm - f) <= s.add_tol_frac * f
         sd = self.sin_dip_ref
-        if sd is None:
-            return True
-        dip = np.degrees(np.arcsin(np.clip(-float(mc @ u) / max(nm * float(np.sqrt(u @ u)), 1e-9), -1, 1)))
-        return abs(dip - np.degrees(np.arcsin(sd))) < s.add_dip_tol_deg
+        if sd is not None:
+            un = np.linalg.norm(u, axis=1)
+            sin_dip = -np.einsum("ij,ij->i", mc, u) / np.maximum(nm * un, 1e-9)
+            dip = np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0)))
+            ok &= np.abs(dip - np.degrees(np.arcsin(sd))) < s.add_dip_tol_deg
+        return ok
+
+    def _redundant(self, t: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Per sample: close to a kept sample (buffer at the chunk start) that is too young to refresh."""
+        n = self._nbuf
+        if not n:
+            return np.zeros(len(t), dtype=bool)
+        s = self.settings
+        kept = self._buf[:n]
+        f = self.field_ref or 50.0
+        dm = np.sum((m[:, None, :] - kept[None, :, 1:4]) ** 2, axis=2)
+        du = u @ kept[:, 4:7].T
+        close = (dm < (s.min_sep_frac * f) ** 2) & (du > np.cos(np.radians(s.min_sep_up_deg)))
+        oldest = np.min(np.where(close, kept[None, :, 0], np.inf), axis=1)
+        return np.any(close, axis=1) & (t - oldest <= s.refresh_s)
 
     def _track_episode(self, t: float, rate: float, events: list) -> None:
         s = self.settings
