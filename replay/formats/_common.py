@@ -145,8 +145,8 @@ class StreamBuilder:
             self.dropped[f"{self.key}:saturated"] += int(np.any(np.abs(vals) >= self.limit, axis=1).sum())
         if len(t):
             self.last_t = float(t[-1])
-            self.t.extend(t.tolist())
-            self.v.extend(vals.ravel().tolist())
+            self.t.frombytes(np.ascontiguousarray(t, dtype=float).tobytes())
+            self.v.frombytes(np.ascontiguousarray(vals, dtype=float).tobytes())
         for k in ("nan", "duplicate_t", "saturated"):  # no zero entries in the summary
             if self.dropped.get(f"{self.key}:{k}") == 0:
                 del self.dropped[f"{self.key}:{k}"]
@@ -289,3 +289,67 @@ def iter_csv(fh, where: str, delimiter: str = ","):
         raise InputError(where, f"truncated or damaged archive member ({exc})", reader.line_num + 1) from None
     except csv.Error as exc:
         raise InputError(where, f"bad CSV ({exc})", reader.line_num) from None
+
+
+def read_table(
+    fh,
+    path,
+    targets,
+    ncol: int,
+    first_line: int = 1,
+    delimiter: str | None = None,
+    tcol: int = 0,
+    t_scale: float = 1.0,
+    chunk: int = 65536,
+) -> None:
+    """Parse numeric rows ``t, v…`` of a text stream in chunks into builders, with exact errors.
+
+    Parameters
+    ----------
+    fh : text stream, positioned after any header.
+    path : file named in errors.
+    targets : list of (StreamBuilder, column indices of x, y, z).
+    ncol : the number of leading columns every row must have.
+    first_line : line number of the stream's next line.
+    delimiter : None for whitespace, else e.g. ``","``.
+    tcol, t_scale : the time column and its factor to seconds.
+
+    The fast path parses a chunk with :func:`numpy.loadtxt` and cleans it with
+    :meth:`StreamBuilder.add_block`; a chunk that does not parse (text in a number column, a short row, a
+    blank line) is re-read line by line so that the error names the exact line.
+    """
+    import itertools
+
+    lineno = first_line
+    cols = list(range(ncol))
+    while True:
+        lines = list(itertools.islice(fh, chunk))
+        if not lines:
+            return
+        arr = None
+        if all(ln.strip() for ln in lines):
+            try:
+                arr = np.loadtxt(
+                    lines, delimiter=delimiter, usecols=cols, ndmin=2, dtype=float, comments=None
+                )
+            except ValueError:
+                arr = None
+        if arr is not None and arr.shape == (len(lines), ncol):
+            t = arr[:, tcol] * t_scale if t_scale != 1.0 else arr[:, tcol]
+            for b, ix in targets:
+                b.add_block(t, arr[:, ix], first_line=lineno)
+        else:
+            for i, line in enumerate(lines):
+                parts = line.split(delimiter)
+                if not line.strip():
+                    continue
+                if len(parts) < ncol:
+                    raise InputError(
+                        path,
+                        f"expected at least {ncol} columns, got {len(parts)} (truncated file?)",
+                        lineno + i,
+                    )
+                vals = floats(path, lineno + i, parts[:ncol])
+                for b, ix in targets:
+                    b.add(lineno + i, vals[tcol] * t_scale, [vals[j] for j in ix])
+        lineno += len(lines)

@@ -2,8 +2,9 @@
 
 One CSV per sensor, header ``time,seconds_elapsed,z,y,x`` (columns are found by name, in any order);
 ``time`` is nanoseconds since the Unix epoch, ``seconds_elapsed`` seconds since the recording started (the
-common clock used here). ``Metadata.csv`` holds ``device name``, ``platform`` (``android``/``ios``) and
-``standardisation`` (the app's "Standardise Units & Frames" switch). Documented units (the app's UNITS.md and
+common clock used here). ``Metadata.csv`` holds ``device name``, ``platform`` (``android``/``ios``),
+``recording time`` (the date in ``meta``) and ``standardisation`` (the app's "Standardise Units & Frames"
+switch). Documented units (the app's UNITS.md and
 CROSSPLATFORM.md):
 
 =============================  =========================================================================
@@ -24,14 +25,14 @@ Without ``Metadata.csv`` Android conventions are assumed (the unit check still c
 
 from __future__ import annotations
 
-import datetime as dt
+import re
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import Bundle, StreamBuilder, finish, floats, iter_csv
+from replay.formats._common import Bundle, StreamBuilder, finish, iter_csv, read_table
 from replay.recording import Recording
 
 NAME = "sensor-logger"
@@ -80,41 +81,32 @@ def _metadata(b: Bundle) -> dict:
     return {k.strip(): v.strip() for k, v in zip(rows[0], rows[1], strict=False)}
 
 
-def _read_vectors(b: Bundle, name: str, key: str, dropped: Counter) -> tuple[StreamBuilder, int | None]:
-    """A ``time,seconds_elapsed,z,y,x`` file into a builder; also the first ``time`` (ns) seen."""
+def _read_vectors(b: Bundle, name: str, key: str, dropped: Counter) -> StreamBuilder:
+    """A ``time,seconds_elapsed,z,y,x`` file (columns by name) into a builder, in chunks."""
+    import zlib
+    from zipfile import BadZipFile
+
     where = b.where(name)
     builder = StreamBuilder(where, key, dropped)
-    first_ns = None
     with b.open(name) as fh:
-        rows = iter_csv(fh, where)
         try:
-            _, header = next(rows)
-        except StopIteration:
-            raise InputError(where, "empty file (no header)", 1) from None
-        cols = {c.strip().lstrip("\ufeff").lower(): i for i, c in enumerate(header)}
-        tcol = cols.get("seconds_elapsed", cols.get("time"))
-        if tcol is None or not {"x", "y", "z"} <= set(cols):
-            raise InputError(
-                where, f"bad header {','.join(header)!r}, expected time,seconds_elapsed,z,y,x", 1
-            )
-        scale_t = 1e-9 if "seconds_elapsed" not in cols else 1.0
-        idx = [tcol, cols["x"], cols["y"], cols["z"]]
-        need = max(idx) + 1
-        for lineno, cells in rows:
-            if not cells or all(not c.strip() for c in cells):
-                continue
-            if len(cells) < need:
+            first = fh.readline()
+            header = [c.strip().lstrip("\ufeff") for c in first.strip().split(",")]
+            cols = {c.lower(): i for i, c in enumerate(header)}
+            tcol = cols.get("seconds_elapsed", cols.get("time"))
+            if tcol is None or not {"x", "y", "z"} <= set(cols):
                 raise InputError(
-                    where, f"expected {len(header)} columns, got {len(cells)} (truncated?)", lineno
+                    where, f"bad header {first.strip()!r}, expected time,seconds_elapsed,z,y,x", 1
                 )
-            vals = floats(where, lineno, [cells[i] for i in idx])
-            if first_ns is None and "time" in cols:
-                try:
-                    first_ns = int(cells[cols["time"]])
-                except ValueError:
-                    first_ns = None
-            builder.add(lineno, vals[0] * scale_t, vals[1:])
-    return builder, first_ns
+            t_scale = 1.0 if "seconds_elapsed" in cols else 1e-9
+            idx = [cols["x"], cols["y"], cols["z"]]
+            ncol = max([tcol, *idx]) + 1
+            read_table(
+                fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol, t_scale=t_scale
+            )
+        except (BadZipFile, EOFError, zlib.error) as exc:
+            raise InputError(where, f"truncated or damaged archive member ({exc})") from None
+    return builder
 
 
 def _location(b: Bundle, meta: dict) -> None:
@@ -179,30 +171,30 @@ def _read(b: Bundle, p: Path) -> Recording:
     if mag_name is None:
         raise InputError(p, "no Magnetometer.csv or MagnetometerUncalibrated.csv (a stream missing)")
     meta["mag_os_calibrated"] = not mag_name.endswith("MagnetometerUncalibrated.csv")
-    mag_b, first_ns = _read_vectors(b, mag_name, "mag", dropped)
-    mag = finish(mag_b, unit_hint="µT")
-    if first_ns is not None and first_ns > 1e17:
-        meta["date"] = dt.datetime.fromtimestamp(first_ns * 1e-9, dt.UTC).date().isoformat()
+    mag = finish(_read_vectors(b, mag_name, "mag", dropped), unit_hint="µT")
+    day = md.get("recording time", "")[:10]
+    if re.fullmatch(r"\d{4}-\d{2}-\d{2}", day):
+        meta["date"] = day
 
     gyro = None
     gyr_name = b.find("GyroscopeUncalibrated.csv") or b.find("Gyroscope.csv")
     if gyr_name is not None:
-        gyro = finish(_read_vectors(b, gyr_name, "gyro", dropped)[0], unit_hint="rad/s")
+        gyro = finish(_read_vectors(b, gyr_name, "gyro", dropped), unit_hint="rad/s")
 
     accel = None
     sign = -1.0 if ios_frame else 1.0
     total, uncal = b.find("TotalAcceleration.csv"), b.find("AccelerometerUncalibrated.csv")
     user, grav = b.find("Accelerometer.csv"), b.find("Gravity.csv")
     if total is not None:
-        accel = finish(_read_vectors(b, total, "accel", dropped)[0], scale=sign, unit_hint="m/s²")
+        accel = finish(_read_vectors(b, total, "accel", dropped), scale=sign, unit_hint="m/s²")
         meta["accel_source"] = "TotalAcceleration"
     elif uncal is not None:
         scale = -GRAVITY if ios_frame else 1.0
-        accel = finish(_read_vectors(b, uncal, "accel", dropped)[0], scale=scale, unit_hint="iOS g / m/s²")
+        accel = finish(_read_vectors(b, uncal, "accel", dropped), scale=scale, unit_hint="iOS g / m/s²")
         meta["accel_source"] = "AccelerometerUncalibrated"
     elif user is not None and grav is not None:
-        ub = _read_vectors(b, user, "accel", dropped)[0]
-        gb = _read_vectors(b, grav, "gravity", Counter())[0]
+        ub = _read_vectors(b, user, "accel", dropped)
+        gb = _read_vectors(b, grav, "gravity", Counter())
         accel = finish(_sum_at_common_times(ub, gb, dropped), scale=sign, unit_hint="m/s²")
         meta["accel_source"] = "Accelerometer+Gravity"
     _location(b, meta)

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.formats._common import StreamBuilder, finish, open_text, read_table
 from replay.recording import Recording
 
 NAME = "sunsided-marg"
@@ -68,23 +68,13 @@ def detect(path: Path) -> bool:
     return (path / "original_mat" / "hmc5883l_compass.mat").is_file()
 
 
-def _read_csv(path: Path, header: list[str], builders: list[tuple[StreamBuilder, slice]]) -> None:
+def _read_csv(path: Path, header: list[str], targets: list[tuple[StreamBuilder, list[int]]]) -> None:
     with open_text(path) as fh:
         first = fh.readline()
         got = [c.strip() for c in first.strip().split(",")]
         if got[: len(header)] != header:
             raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}…", 1)
-        ncol = len(header)
-        for lineno, line in enumerate(fh, start=2):
-            s = line.strip()
-            if not s:
-                continue
-            parts = s.split(",")
-            if len(parts) < ncol:
-                raise InputError(path, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-            vals = floats(path, lineno, parts[:ncol])
-            for b, cols in builders:
-                b.add(lineno, vals[0], vals[cols])
+        read_table(fh, path, targets, len(header), first_line=2, delimiter=",")
 
 
 def read(path) -> Recording:
@@ -98,13 +88,13 @@ def read(path) -> Recording:
         )
     dropped: Counter = Counter()
     mag_b = StreamBuilder(hmc, "mag", dropped)
-    _read_csv(hmc, HMC_HEADER, [(mag_b, slice(1, 4))])
+    _read_csv(hmc, HMC_HEADER, [(mag_b, [1, 2, 3])])
     mag = finish(mag_b, scale=UT_PER_GAUSS, axes=A_TO_DEVICE, unit_hint="gauss × 100")
     accel = gyro = None
     if mpu.is_file():
         acc_b = StreamBuilder(mpu, "accel", dropped, limit=ACCEL_LIMIT_G)
         gyr_b = StreamBuilder(mpu, "gyro", dropped, limit=GYRO_LIMIT_DPS)
-        _read_csv(mpu, MPU_HEADER, [(acc_b, slice(1, 4)), (gyr_b, slice(4, 7))])
+        _read_csv(mpu, MPU_HEADER, [(acc_b, [1, 2, 3]), (gyr_b, [4, 5, 6])])
         accel = finish(acc_b, scale=-GRAVITY, axes=A_TO_DEVICE, unit_hint="g, gravity sign")
         gyro = finish(gyr_b, scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s")
     meta = {

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, floats, open_text, require
+from replay.formats._common import StreamBuilder, finish, open_text, read_table, require
 from replay.recording import Recording
 
 NAME = "tyrex"
@@ -86,16 +86,7 @@ def read_columns(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Strea
     """Stream a header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` into a builder."""
     b = StreamBuilder(path, key, dropped)
     with open_text(path) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            parts = line.split()
-            if not parts:
-                continue
-            if len(parts) < ncol + 1:
-                raise InputError(
-                    path, f"expected at least {ncol + 1} columns, got {len(parts)} (truncated?)", lineno
-                )
-            vals = floats(path, lineno, parts[: ncol + 1])
-            b.add(lineno, vals[0], vals[1:])
+        read_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
     return b
 
 
