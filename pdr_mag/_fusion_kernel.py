@@ -94,6 +94,9 @@ S_CONS = 92  # diag: consistency angle
 S_FLEARN = 93  # learnt local strength (NaN until first clean sample)
 S_NLEARN = 94  # number of samples learnt from
 S_C = 95  # magnetometer heading error estimate c, rad
+S_AW = 7  # 3: EW mean of the world-frame specific force (almost-inertial frame), m/s²
+S_TAU = 10  # time of the last averaged accelerometer update
+S_TA_PREV = 11  # time of the accelerometer sample before the last
 N_STATE = 96 + NX * NX
 
 # ---------------------------------------------------------------- settings layout
@@ -121,7 +124,10 @@ P_MAG_DIST_K = 20
 P_MAGERR_TAU = 21
 P_MAGERR_STD = 22
 P_MAG_CONS_K = 23
-N_PARAM = 24
+P_ACC_TAU = 24
+P_ACC_INTERVAL = 25
+P_ACC_AVG_NOISE = 26
+N_PARAM = 27
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -256,8 +262,19 @@ def _upd2(st, dx, j, s, j2, s2, r, rv):
 
 
 @njit(cache=True)
+def _rotvec_left(st, k, ex, ey, ez):
+    """st[k:k+3] ← Exp(e) st[k:k+3] (second order in e)."""
+    vx, vy, vz = st[k], st[k + 1], st[k + 2]
+    cx, cy, cz = ey * vz - ez * vy, ez * vx - ex * vz, ex * vy - ey * vx
+    dx, dy, dz = ey * cz - ez * cy, ez * cx - ex * cz, ex * cy - ey * cx
+    st[k], st[k + 1], st[k + 2] = vx + cx + 0.5 * dx, vy + cy + 0.5 * dy, vz + cz + 0.5 * dz
+
+
+@njit(cache=True)
 def _inject(st, dx):
     _qmul_left(st, S_Q, dx[0], dx[1], dx[2])
+    if np.isfinite(st[S_AW]):  # the averaged specific force lives in the corrected frame too
+        _rotvec_left(st, S_AW, dx[0], dx[1], dx[2])
     for i in range(3):
         st[S_B + i] += dx[3 + i]
     st[S_C] += dx[6]
@@ -396,6 +413,7 @@ def _accel(st, R, ax, ay, az, t, p):
     else:
         st[S_AMEAN], st[S_AMEAN + 1], st[S_AMEAN + 2] = ax, ay, az
         st[S_AVAR] = 1.0
+    st[S_TA_PREV] = st[S_TA]
     st[S_TA] = t
     st[S_HAVEA] = 1.0
     n = np.sqrt(ax * ax + ay * ay + az * az)
@@ -408,12 +426,35 @@ def _accel(st, R, ax, ay, az, t, p):
     da = abs(n - g) / g
     if da > p[P_ACC_GATE]:
         return
-    wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
-    wn = np.sqrt(wx * wx + wy * wy + wz * wz)
-    rv = p[P_ACC_NOISE] ** 2 + (p[P_ACC_DYN] * da) ** 2 + (p[P_ACC_W] * wn) ** 2
     _rot(st, R)
-    uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
-    uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
+    if p[P_ACC_TAU] > 0.0:
+        # average the specific force in the (almost inertial) world frame: the mean linear acceleration
+        # of a walking / swinging hand over the window is Δv / τ ≈ 0, so the average points up
+        awx = R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az
+        awy = R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az
+        awz = R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az
+        if not np.isfinite(st[S_AW]) or not np.isfinite(st[S_TAU]) or t - st[S_TAU] > 10.0 * p[P_ACC_TAU]:
+            st[S_AW], st[S_AW + 1], st[S_AW + 2] = awx, awy, awz
+            st[S_TAU] = t
+            return
+        a = ew_alpha(t - st[S_TA_PREV], p[P_ACC_TAU])
+        st[S_AW] += a * (awx - st[S_AW])
+        st[S_AW + 1] += a * (awy - st[S_AW + 1])
+        st[S_AW + 2] += a * (awz - st[S_AW + 2])
+        if t - st[S_TAU] < p[P_ACC_INTERVAL]:
+            return
+        st[S_TAU] = t
+        na = np.sqrt(st[S_AW] ** 2 + st[S_AW + 1] ** 2 + st[S_AW + 2] ** 2)
+        dev = abs(na - g) / g
+        rv = p[P_ACC_AVG_NOISE] ** 2 + (p[P_ACC_DYN] * dev) ** 2
+        uxw = st[S_AW] / na
+        uyw = st[S_AW + 1] / na
+    else:
+        wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
+        wn = np.sqrt(wx * wx + wy * wy + wz * wz)
+        rv = p[P_ACC_NOISE] ** 2 + (p[P_ACC_DYN] * da) ** 2 + (p[P_ACC_W] * wn) ** 2
+        uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
+        uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
     dx = np.zeros(NX)
     _upd(st, dx, 1, -1.0, uxw, rv)
     _upd(st, dx, 0, 1.0, uyw, rv)

@@ -97,6 +97,15 @@ class FusionSettings:
         Initial bias standard deviation, rad/s (0.17 = 10 °/s: raw phone offsets are 4–6 °/s).
     tilt0_std : float
         Initial tilt standard deviation, rad.
+    acc_tau_s : float
+        Time constant of the average of the specific force in the (almost inertial) world frame, s.  The
+        tilt is corrected from that average (the mean linear acceleration of a walking or swinging hand
+        over the window is Δv/τ ≈ 0, whereas single samples of a swinging arm point along the arm).
+        0 = correct from single samples (``acc_noise``, ``acc_gyro``).
+    acc_interval_s : float
+        At most one averaged-accelerometer update per this interval, s.
+    acc_avg_noise : float
+        Noise of the averaged direction, per update (≈ rad); plus ``acc_dyn · ||ā| − g| / g``.
     acc_noise : float
         Base noise of the normalised accelerometer direction, per sample (dimensionless ≈ rad).
     acc_dyn : float
@@ -149,6 +158,9 @@ class FusionSettings:
     bias_rw: float = 2e-4
     bias0_std: float = 0.17
     tilt0_std: float = 0.2
+    acc_tau_s: float = 0.0
+    acc_interval_s: float = 0.05
+    acc_avg_noise: float = 0.2
     acc_noise: float = 1.0
     acc_dyn: float = 2.0
     acc_gyro: float = 0.5
@@ -216,6 +228,9 @@ class FusionSettings:
         p[K.P_MAG_DIST_K] = self.mag_dist_k
         p[K.P_MAGERR_TAU] = self.mag_error_tau_s
         p[K.P_MAG_CONS_K] = self.mag_cons_k
+        p[K.P_ACC_TAU] = self.acc_tau_s
+        p[K.P_ACC_INTERVAL] = self.acc_interval_s
+        p[K.P_ACC_AVG_NOISE] = self.acc_avg_noise
         p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
