@@ -47,12 +47,22 @@ class Mode:
     offset_fn: Callable[[np.ndarray], np.ndarray]
     speed: float = 0.0
     step_hz: float = 0.0
+    warp: tuple[float, float] = (0.0, 0.0)
+
+    def _time(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Warped time ``τ = t − (A/ω) sin ωt`` and ``τ' = 1 − A cos ωt`` (None without a warp): with A
+        near 1 the motion slows to a near stop once per period 2π/ω, as a hand does between strokes."""
+        a, om = self.warp
+        if a == 0.0:
+            return t, None
+        return t - (a / om) * np.sin(om * t), 1.0 - a * np.cos(om * t)
 
     def angles(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Relative chain angles (N, 4) and rates (N, 4), radians, rad/s.
 
         Terms sharing a frequency share one sin/cos pair (``sin(ωt + φ) = sin ωt cos φ + cos ωt sin φ``).
         """
+        t, dtau = self._time(t)
         base: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         th = np.empty((len(t), 4))
         dth = np.empty((len(t), 4))
@@ -68,11 +78,24 @@ class Mode:
                 dv += om * (cs * cp - sn * sp)
             th[:, i] = v
             dth[:, i] = dv
+        if dtau is not None:
+            dth *= dtau[:, None]
         return th, dth
 
     def offset(self, t: np.ndarray) -> np.ndarray:
         """Phone offset (N, 3) in the walker frame (x right, y forward, z up), m."""
-        return self.offset_fn(t)
+        return self.offset_fn(self._time(t)[0])
+
+
+def standing(mode: Mode, t_freeze: float = 0.0) -> Mode:
+    """The mode frozen at one instant: same pose and place, no motion, speed 0 (standing before a walk)."""
+    th, _ = mode.angles(np.array([float(t_freeze)]))
+    off = mode.offset(np.array([float(t_freeze)]))[0]
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(off, (len(t), 3)).copy()
+
+    return Mode(f"stand:{mode.name}", tuple(Sines(float(v)) for v in th[0]), offset)
 
 
 def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -172,8 +195,9 @@ def pocket(rng: np.random.Generator) -> Mode:
 
 def figure8(rng: np.random.Generator) -> Mode:
     """Standing, the phone waved in figure-8s and rolled over: the calibration motion covering all
-    orientations (pitch ±75°, roll ±160°, yaw ±70°; peak rates ≈ 2 rad/s)."""
-    fp, fr, fy = _u(rng, 0.15, 0.2), _u(rng, 0.1, 0.13), _u(rng, 0.06, 0.08)
+    orientations (pitch ±75°, roll ±160°, yaw ±70°; rates up to ≈ 4 rad/s), in strokes: time is warped so
+    the phone nearly stops every 3.5–5 s (quasi-static moments, as a hand between strokes)."""
+    fp, fr, fy = _u(rng, 0.11, 0.14), _u(rng, 0.07, 0.09), _u(rng, 0.045, 0.056)
     wp, wr, wy = 2 * np.pi * fp, 2 * np.pi * fr, 2 * np.pi * fy
     angles = (
         Sines(0.0, ((70.0 * DEG, wy, _ph(rng)),)),
@@ -193,7 +217,7 @@ def figure8(rng: np.random.Generator) -> Mode:
             axis=1,
         )
 
-    return Mode("figure8", angles, offset)
+    return Mode("figure8", angles, offset, warp=(0.95, 2 * np.pi / _u(rng, 3.5, 5.0)))
 
 
 def still(rng: np.random.Generator) -> Mode:

@@ -95,8 +95,11 @@ def _plan(
     t = 0.0
     cache: dict[str, M.Mode] = {}
     for i, (name, d) in enumerate(parts):
-        if name not in cache:  # the same person: one gait per mode kind
-            cache[name] = M.MODES[name](rng)
+        kind = name.removeprefix("stand:")
+        if kind not in cache:  # the same person: one gait per mode kind
+            cache[kind] = M.MODES[kind](rng)
+        if name not in cache:
+            cache[name] = M.standing(cache[kind])
         modes.append(cache[name])
         t1 = duration if i == len(parts) - 1 else t + d * scale
         segs.append((name, round(t, 6), round(t1, 6)))
@@ -118,6 +121,16 @@ def _plan(
 def _single(mode: str) -> Callable[[float, np.random.Generator], Plan]:
     def build(duration: float, rng: np.random.Generator) -> Plan:
         return _plan(rng, duration, [(mode, duration)])
+
+    return build
+
+
+def _walking(mode: str) -> Callable[[float, np.random.Generator], Plan]:
+    """Standing still in the mode's pose for min(3 s, 10 %), then walking."""
+
+    def build(duration: float, rng: np.random.Generator) -> Plan:
+        stand = min(3.0, 0.1 * duration)
+        return _plan(rng, duration, [(f"stand:{mode}", stand), (mode, duration - stand)])
 
     return build
 
@@ -149,18 +162,29 @@ SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
         Scenario(
-            "figure8", "standing, calibration figure-8s covering all orientations", 60.0, _single("figure8")
+            "figure8",
+            "standing, calibration figure-8 strokes covering all orientations, brief pauses",
+            60.0,
+            _single("figure8"),
         ),
         Scenario(
-            "walk", "walking, phone held for texting; steps ~1.8 Hz, turns, sway", 120.0, _single("texting")
+            "walk",
+            "3 s standing, then walking with the phone held for texting; steps 1.6–2 Hz, turns, sway",
+            120.0,
+            _walking("texting"),
         ),
         Scenario(
             "swing",
-            "walking, phone swinging in the hand (±35° at the stride frequency)",
+            "3 s standing, then walking, phone swinging in the hand (±28–40° at the stride frequency)",
             120.0,
-            _single("swing"),
+            _walking("swing"),
         ),
-        Scenario("pocket", "walking, phone in a front trouser pocket", 120.0, _single("pocket")),
+        Scenario(
+            "pocket",
+            "3 s standing, then walking with the phone in a front trouser pocket",
+            120.0,
+            _walking("pocket"),
+        ),
         Scenario("still", "phone lying still on a table, screen up", 60.0, _single("still")),
         Scenario(
             "mixed",
