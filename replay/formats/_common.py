@@ -249,7 +249,13 @@ class Bundle:
     def names(self) -> list[str]:
         if self.zip is not None:
             return [n for n in self.zip.namelist() if not n.endswith("/")]
-        return sorted(str(p.relative_to(self.path).as_posix()) for p in self.path.rglob("*") if p.is_file())
+        out = []  # the export's files and one level of sub-folders (phyphox's meta/), never a deep walk
+        for p in self.path.iterdir():
+            if p.is_file():
+                out.append(p.name)
+            elif p.is_dir():
+                out.extend(f"{p.name}/{q.name}" for q in p.iterdir() if q.is_file())
+        return sorted(out)
 
     def find(self, basename: str) -> str | None:
         """The member whose file name (any folder) is ``basename`` (case-insensitive), shallowest first."""
