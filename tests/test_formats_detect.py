@@ -129,3 +129,43 @@ def test_cli_calibrates_a_raw_tyrex_recording(tmp_path, capsys):
     cal = json.loads((tmp_path / "c.json").read_text())
     # SOURCE.md: d1 sphere centre ≈ (58.3, −73.6, 412.3) µT, radius 46.7–47.6 µT
     np.testing.assert_allclose(cal["offset_uT"], [58.3, -73.6, 412.3], atol=2.0)
+
+
+def _bad_tyrex(tmp_path):
+    from tests.test_formats_tyrex import _android
+
+    return _android(tmp_path, "0.0 30 0 -30\n0.02 30 x -30\n"), "magnetometer.txt:2"
+
+
+def _bad_sunsided(tmp_path):
+    from tests.test_formats_sunsided import _fixture
+
+    return _fixture(tmp_path, hmc_rows=["0.0,0.2,-0.1,-0.3", "0.1,0.2"]), "hmc5883l.csv:3"
+
+
+def _bad_broad(tmp_path):
+    from tests.test_formats_broad import _mat
+
+    f = _mat(tmp_path)
+    f.write_bytes(f.read_bytes()[:300])
+    return f, "trial.mat"
+
+
+def _bad_xio(tmp_path):
+    from tests.test_formats_xio import HEADER, _write
+
+    return _write(tmp_path, ["0,0,0,0,0,0,1,20,0,-40", "0.01,0,0,0"], HEADER), "imu.csv:3"
+
+
+def _bad_ros2(tmp_path):
+    from tests.test_formats_ros2 import write_bag
+
+    f = write_bag(tmp_path / "bag.mcap", n=400)
+    f.write_bytes(f.read_bytes()[:20000])
+    return f, "bag.mcap"
+
+
+@pytest.mark.parametrize("make", [_bad_tyrex, _bad_sunsided, _bad_broad, _bad_xio, _bad_ros2])
+def test_cli_exit_2_other_readers(tmp_path, capsys, make):
+    path, where = make(tmp_path)
+    _one_line_exit_2(capsys, ["calibrate", str(path)], where)
