@@ -548,8 +548,11 @@ class SensorModel:
         object.__setattr__(self, "effects", MappingProxyType(norm))
         object.__setattr__(self, "t_ref", float(self.t_ref))
 
-    def __hash__(self) -> int:  # arrays inside: identity hash
-        return id(self)
+    def __hash__(self) -> int:  # consistent with __eq__: array contents, field objects by identity
+        items = tuple(
+            (k, v.tobytes() if isinstance(v, np.ndarray) else id(v)) for k, v in self.effects.items()
+        )
+        return hash((self.t_ref, items))
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, SensorModel) or set(self.effects) != set(other.effects):
@@ -622,7 +625,7 @@ class SensorModel:
         out: dict[str, Any] = {}
         for k, v in self.effects.items():
             if isinstance(v, np.ndarray):
-                out[k] = np.round(v, 9).tolist()
+                out[k] = v.tolist()
             elif hasattr(v, "to_json"):
                 out[k] = v.to_json()
             else:

@@ -138,6 +138,9 @@ def test_model_switching_and_json_round_trip():
     assert m.with_effects(noise=None) == m.without("noise")
     np.testing.assert_array_equal(m.without("soft_iron").value("soft_iron"), np.eye(3))
     assert SensorModel.from_json(m.to_json(), t_ref=m.t_ref) == m
+    assert hash(SensorModel.from_json(m.to_json(), t_ref=m.t_ref)) == hash(m)
+    odd = SensorModel({"hard_iron": [0.1 + 0.2, 1 / 3, np.pi]})
+    assert SensorModel.from_json(odd.to_json()) == odd  # exact: JSON floats round-trip
     dip = DipoleField([[0, 0, 0]], [[0, 0, 5.0]], 5.0)
     m2 = SensorModel({"local_anomaly": dip})
     back = SensorModel.from_json(m2.to_json())
