@@ -127,7 +127,7 @@ class StreamBuilder:
         t = np.asarray(t, dtype=float)
         vals = np.asarray(vals, dtype=float).reshape(len(t), self.width)
         good = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
-        self.dropped[f"{self.key}:nan"] += int((~good).sum())
+        self._count("nan", int((~good).sum()))
         t, vals = t[good], vals[good]
         rows = np.flatnonzero(good)
         if len(t) == 0:
@@ -139,17 +139,18 @@ class StreamBuilder:
             line = None if first_line is None else first_line + int(rows[i])
             raise InputError(self.path, f"{self.key}: time goes backwards ({t[i]!r} after {prev[i]!r})", line)
         keep = t != prev
-        self.dropped[f"{self.key}:duplicate_t"] += int((~keep).sum())
+        self._count("duplicate_t", int((~keep).sum()))
         t, vals = t[keep], vals[keep]
         if self.limit is not None:
-            self.dropped[f"{self.key}:saturated"] += int(np.any(np.abs(vals) >= self.limit, axis=1).sum())
+            self._count("saturated", int(np.any(np.abs(vals) >= self.limit, axis=1).sum()))
         if len(t):
             self.last_t = float(t[-1])
             self.t.frombytes(np.ascontiguousarray(t, dtype=float).tobytes())
             self.v.frombytes(np.ascontiguousarray(vals, dtype=float).tobytes())
-        for k in ("nan", "duplicate_t", "saturated"):  # no zero entries in the summary
-            if self.dropped.get(f"{self.key}:{k}") == 0:
-                del self.dropped[f"{self.key}:{k}"]
+
+    def _count(self, reason: str, n: int) -> None:
+        if n:
+            self.dropped[f"{self.key}:{reason}"] += n
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         t = np.frombuffer(self.t, dtype=float).copy()

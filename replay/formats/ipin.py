@@ -30,6 +30,7 @@ from pathlib import Path
 
 from replay.errors import InputError
 from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.formats._common import is_float as _is_number
 from replay.recording import Recording
 
 NAME = "ipin"
@@ -92,7 +93,7 @@ def read(path) -> Recording:
                         p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
                     )
                 t, _, lat, lon = floats(p, lineno, parts[1:5])
-                rest = floats(p, lineno, parts[5:7]) if len(parts) >= 7 else []
+                rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
                 positions.append([t, lat, lon, *rest])
     if not len(builders["mag"]):
         raise InputError(p, "no MAGN records (a stream missing)")
