@@ -37,11 +37,20 @@ absent is off (its neutral value: zero, identity or no field).
 
 Using it
 --------
->>> model = SensorModel({"hard_iron": [30, -12, 80], "noise": 0.4})
->>> motion = Motion(t, q_wd)                       # any orientation samples, slerped in between
->>> m = predict_mag(model, t_mag, motion, field_w)  # noise-free prediction at the stamps t_mag
->>> m_noisy = measure_mag(model, t_mag, motion, field_w, rng)
->>> model.with_effects(time_offset=0.04).without("noise")
+::
+
+    model = SensorModel({"hard_iron": [30, -12, 80], "noise": 0.4})   # values normalised, immutable
+    motion = Motion(t, q_wd)                          # orientation samples (slerped), optional positions
+    m = predict_mag(model, t_mag, motion, field_w)    # noise-free raw magnetometer at the stamps t_mag
+    m_noisy = measure_mag(model, t_mag, motion, field_w, rng)          # + noise, saturation, rounding
+    h_d = correct_mag(model, t_mag, m_raw)            # the inverse: field in device axes
+    model.with_effects(time_offset=0.04).without("noise").only("hard_iron", "time_offset")
+    pack_effect("soft_iron", s), unpack_effect("soft_iron", p)          # flat parameters for fitting
+    q = integrate_gyro(t_gyro, gyro - gyro_bias, q0)  # gyro-predicted orientation (for Motion)
+    model.ideal_calibration(t)                        # the MagCalibration that undoes this phone exactly
+
+Any object with ``orientation(t)`` and ``position(t)`` (:class:`MotionLike`) can replace :class:`Motion`;
+the simulator's trajectories are evaluated analytically that way.
 """
 
 from __future__ import annotations
