@@ -235,7 +235,11 @@ class McapSink:
 
     # ------------------------------------------------------------------ Sink protocol
     def open(self, meta: dict) -> None:
+        if self._writer is not None:
+            raise RuntimeError("McapSink: open() called twice without close()")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._schemas, self._channels, self.counts = {}, {}, {}
+        self._t0_hint, self._offset_ns, self._clamped = None, None, 0
         self._writer = _ChunkWriter(self.path, self.chunk_size, self.compression)
         meta = dict(meta or {})
         t0 = meta.get("t0")
@@ -502,13 +506,22 @@ class _ChunkWriter:
     about 4 µs a message (a one-hour 200 Hz replay writes several million).  The file has the same
     structure as mcap's ``Writer`` output (chunked, message indexes, chunk indexes, statistics, summary
     offsets, CRCs of chunks and summary) and is validated by mcap's reader in the tests.
+
+    Compression, CRCs and file writes run on one background thread (zstd/lz4/zlib release the GIL), fed
+    through a queue of at most ``_QUEUE`` finished chunks, so memory stays bounded to a few chunks.  All
+    file access happens on that thread, in submission order; an error there is raised by the next call.
     """
 
+    _QUEUE = 3
+
     def __init__(self, path: Path, chunk_size: int, compression: str):
+        import queue
+        import threading
+
         from mcap.data_stream import RecordBuilder
         from mcap.records import Header
 
-        self._rb = RecordBuilder()
+        self._rb = RecordBuilder()  # used on the I/O thread only
         self._stream = open(path, "wb")  # noqa: SIM115 - closed in finish()
         self._chunk_size = chunk_size
         self._compression = compression
@@ -525,20 +538,50 @@ class _ChunkWriter:
         self._pending: list[tuple[int, np.ndarray, list, np.ndarray]] = []
         self._pending_bytes = 0
         self._zstd = None
-        self._stream.write(_MAGIC)
-        Header(profile="", library="pdr_mag (mcap-python records)").write(self._rb)
-        self._flush()
+        self._error: BaseException | None = None
+        self._jobs: queue.Queue = queue.Queue(maxsize=self._QUEUE)
+        self._thread = threading.Thread(target=self._work, name="pdr_mag-mcap-writer", daemon=True)
+        self._thread.start()
+
+        def start():
+            self._stream.write(_MAGIC)
+            Header(profile="", library="pdr_mag (mcap-python records)").write(self._rb)
+            self._flush()
+
+        self._submit(start)
+
+    # ------------------------------------------------------------------ the I/O thread
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            if self._error is None:
+                try:
+                    job()
+                except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                    self._error = exc
+
+    def _submit(self, job) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"MCAP writer failed: {self._error}") from self._error
+        self._jobs.put(job)
 
     def _flush(self) -> None:
         self._stream.write(self._rb.end())
 
+    # ------------------------------------------------------------------ records
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         from mcap.records import Schema
 
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
-        schema.write(self._rb)
-        self._flush()
+
+        def job():
+            schema.write(self._rb)
+            self._flush()
+
+        self._submit(job)
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata: dict) -> int:
@@ -553,18 +596,27 @@ class _ChunkWriter:
         )
         self._channels.append(channel)
         self._counts[channel.id] = 0
-        channel.write(self._rb)
-        self._flush()
+
+        def job():
+            channel.write(self._rb)
+            self._flush()
+
+        self._submit(job)
         return channel.id
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         from mcap.records import Metadata, MetadataIndex
 
-        offset = self._stream.tell()
-        Metadata(name=name, metadata=data).write(self._rb)
-        self._metadata_indexes.append(MetadataIndex(offset=offset, length=self._rb.count, name=name))
+        record = Metadata(name=name, metadata=dict(data))
         self._metadata_count += 1
-        self._flush()
+
+        def job():
+            offset = self._stream.tell()
+            record.write(self._rb)
+            self._metadata_indexes.append(MetadataIndex(offset=offset, length=self._rb.count, name=name))
+            self._flush()
+
+        self._submit(job)
 
     def add_messages(self, channel_id: int, ns: np.ndarray, msgs: list[bytes]) -> None:
         """Queue messages (log_time = publish_time = ``ns``) and write every chunk that fills up."""
@@ -587,15 +639,13 @@ class _ChunkWriter:
                 self._finalize_chunk()
 
     def _finalize_chunk(self) -> None:
-        import zlib
-
-        from mcap.records import Chunk, ChunkIndex
-
+        """Assemble the pending messages into one chunk's records (here) and hand it to the I/O thread."""
         if not self._pending:
             return
         pieces, indexes = [], {}
         offset = 0
         t_lo, t_hi = None, 0
+        w = _MSG_HEADER.itemsize
         for cid, ns, msgs, sizes in self._pending:
             n = len(msgs)
             hdr = np.empty(n, dtype=_MSG_HEADER)
@@ -606,20 +656,31 @@ class _ChunkWriter:
             hdr["log"] = ns
             hdr["pub"] = ns
             starts = offset + np.concatenate([[0], np.cumsum(sizes[:-1])])
-            total = int(sizes.sum())
-            buf = np.empty(total, dtype=np.uint8)
-            is_hdr = np.zeros(total, dtype=bool)
-            hpos = (starts - offset)[:, None] + np.arange(_MSG_HEADER.itemsize)
-            is_hdr[hpos.ravel()] = True
-            buf[is_hdr] = hdr.view(np.uint8)
-            buf[~is_hdr] = np.frombuffer(b"".join(msgs), dtype=np.uint8)
-            pieces.append(buf.tobytes())
+            hb = hdr.tobytes()
+            headers = [hb[k : k + w] for k in range(0, n * w, w)]
+            pieces.append(b"".join([x for pair in zip(headers, msgs, strict=True) for x in pair]))
             indexes.setdefault(cid, []).append(np.column_stack([ns, starts]).astype("<u8"))
-            offset += total
+            offset += int(sizes.sum())
             lo, hi = int(ns.min()), int(ns.max())
             t_lo = lo if t_lo is None else min(t_lo, lo)
             t_hi = max(t_hi, hi)
         data = b"".join(pieces)
+        index_bodies = {}
+        for cid in sorted(indexes):
+            entries = np.concatenate(indexes[cid])
+            index_bodies[cid] = entries[np.lexsort((entries[:, 1], entries[:, 0]))].tobytes()
+        self._n_messages += sum(len(p[2]) for p in self._pending)
+        self._t_start = t_lo if self._t_start is None else min(self._t_start, t_lo)
+        self._t_end = max(self._t_end, t_hi)
+        self._pending, self._pending_bytes = [], 0
+        self._submit(lambda: self._write_chunk(data, index_bodies, t_lo, t_hi))
+
+    def _write_chunk(self, data: bytes, index_bodies: dict[int, bytes], t_lo: int, t_hi: int) -> None:
+        """On the I/O thread: compress, write the chunk record and its message-index records."""
+        import zlib
+
+        from mcap.records import Chunk, ChunkIndex
+
         if self._compression == "zstd":
             if self._zstd is None:
                 import zstandard
@@ -646,10 +707,7 @@ class _ChunkWriter:
         self._flush()
         index_start = self._stream.tell()
         offsets, parts, pos = {}, [], 0
-        for cid in sorted(indexes):
-            entries = np.concatenate(indexes[cid])
-            entries = entries[np.lexsort((entries[:, 1], entries[:, 0]))]
-            body = entries.tobytes()
+        for cid, body in index_bodies.items():
             rec = (
                 bytes([_OP_MESSAGE_INDEX])
                 + (6 + len(body)).to_bytes(8, "little")
@@ -674,12 +732,18 @@ class _ChunkWriter:
                 uncompressed_size=len(data),
             )
         )
-        self._n_messages += sum(len(p[2]) for p in self._pending)
-        self._t_start = t_lo if self._t_start is None else min(self._t_start, t_lo)
-        self._t_end = max(self._t_end, t_hi)
-        self._pending, self._pending_bytes = [], 0
 
     def finish(self) -> None:
+        """Write the last chunk, the summary and the footer; stop the I/O thread; close the file."""
+        self._finalize_chunk()
+        self._submit(self._write_summary)
+        self._jobs.put(None)
+        self._thread.join()
+        self._stream.close()
+        if self._error is not None:
+            raise RuntimeError(f"MCAP writer failed: {self._error}") from self._error
+
+    def _write_summary(self) -> None:
         import struct
         import zlib
 
@@ -687,7 +751,6 @@ class _ChunkWriter:
         from mcap.opcode import Opcode
         from mcap.records import DataEnd, Footer, Statistics, SummaryOffset
 
-        self._finalize_chunk()
         DataEnd(data_section_crc=0).write(self._rb)
         self._flush()
         summary_start = self._stream.tell()
@@ -729,4 +792,3 @@ class _ChunkWriter:
         )
         self._flush()
         self._stream.write(_MAGIC)
-        self._stream.close()
