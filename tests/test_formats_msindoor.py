@@ -20,6 +20,8 @@ def test_real_trace():
     rec = read_recording(f)
     assert rec.meta["device"] == "OPPO PBCM10" and rec.meta["date"] == "2019-11-24"
     assert len(rec.meta["waypoints"]) == 17 and rec.meta["mag_os_calibrated"] is False
+    # the mall (SOURCE.md: bounding box about 30.292–30.294 N, 120.073–120.077 E) from the floor's geojson
+    assert 30.29 < rec.meta["latitude_deg"] < 30.30 and 120.07 < rec.meta["longitude_deg"] < 120.08
     for s in (rec.mag, rec.accel, rec.gyro):
         assert len(s) == 5755 and abs(s.rate_hz - 50.0) < 1.0
     assert abs(rec.mag.duration - 114.3) < 0.5
@@ -39,6 +41,7 @@ def test_fixture():
     assert rec.dropped == {"mag:nan": 1, "accel:duplicate_t": 1, "accel:saturated": 1}
     assert rec.meta["waypoints"] == [[0.0, 10.0, 20.0], [0.07, 11.0, 20.5]]
     assert rec.meta["mag_os_bias_uT"] == [50.0, -90.0, -300.0]
+    assert "latitude_deg" not in rec.meta  # no floor map beside the fixture
 
 
 def _write(tmp_path, replace_from, replace_to):

@@ -21,6 +21,9 @@ the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope fro
 (``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
 header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped.
+When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
+WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
+and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
 """
 
 from __future__ import annotations
@@ -72,6 +75,37 @@ def _header(line: str, meta: dict, ranges: dict) -> None:
             ranges[int(fields["type"])] = float(fields["maximumRange"])
         except ValueError:
             pass
+
+
+def _site_location(path: Path, meta: dict) -> None:
+    """Position from the floor's ``geojson_map.json`` (``<floor>/geojson_map.json`` beside
+    ``path_data_files/``): the centre of its WGS84 bounding box, whose south-west corner is the map origin."""
+    geo = path.parent.parent / "geojson_map.json"
+    if not geo.is_file():
+        return
+    import json
+
+    try:
+        features = json.loads(geo.read_text(encoding="utf-8"))["features"]
+    except (ValueError, KeyError, TypeError, OSError):
+        return  # the map is optional context, not part of the recording
+    lons: list[float] = []
+    lats: list[float] = []
+
+    def walk(c):
+        if isinstance(c, list) and len(c) >= 2 and all(isinstance(v, (int, float)) for v in c[:2]):
+            lons.append(float(c[0]))
+            lats.append(float(c[1]))
+        elif isinstance(c, list):
+            for x in c:
+                walk(x)
+
+    for f in features if isinstance(features, list) else []:
+        walk((f.get("geometry") or {}).get("coordinates"))
+    if lats and -90 <= min(lats) <= max(lats) <= 90 and -180 <= min(lons) <= max(lons) <= 180:
+        meta["latitude_deg"] = (min(lats) + max(lats)) / 2
+        meta["longitude_deg"] = (min(lons) + max(lons)) / 2
+        meta["map_bbox_deg"] = [min(lats), min(lons), max(lats), max(lons)]
 
 
 def read(path) -> Recording:
@@ -136,6 +170,7 @@ def read(path) -> Recording:
             pass
     if "start_time_unix" in meta:
         meta["date"] = dt.datetime.fromtimestamp(meta["start_time_unix"], dt.UTC).date().isoformat()
+    _site_location(p, meta)
     if waypoints:
         waypoints.sort()
         meta["waypoints"] = waypoints
