@@ -10,7 +10,11 @@ Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilde
 * stores values in compact ``array('d')`` buffers (8 bytes a number, not a Python float object each).
 
 :func:`finish` converts to a :class:`~replay.recording.Stream` in the contract's units and checks that the
-median vector norm is plausible for the stream (µT, m/s², rad/s), which catches a file in the wrong unit.
+median vector norm is plausible for the stream (µT, m/s², rad/s), which catches a file in the wrong unit;
+where the reader does not know the sensor's range, :func:`flag_saturation` counts clipped samples.
+
+:func:`read_table` parses numeric text in chunks (numpy fast path, exact-line errors), :class:`Bundle`
+reads the files of a folder or a zip export as streams, :func:`iter_csv` reads quoted CSV.
 """
 
 from __future__ import annotations
