@@ -29,11 +29,13 @@ _FD_H = 1e-3
 
 
 def _where(mask: np.ndarray):
-    """Index for the True entries: a full slice when all are, None when none are."""
-    if mask.all():
-        return slice(None)
+    """Index for the True entries: a slice when they are contiguous (sorted times), None when none are."""
     idx = np.flatnonzero(mask)
-    return idx if len(idx) else None
+    if not len(idx):
+        return None
+    if idx[-1] - idx[0] + 1 == len(idx):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
 
 
 @dataclass(frozen=True, eq=False)
