@@ -11,9 +11,9 @@ first column ``"Time (s)"`` (seconds since the experiment started: one clock for
 Files are recognised by their column names, not their file names (``Magnetic Field`` or ``Magnetic field``,
 ``µT`` or ``uT``); ``Linear Acceleration`` (gravity removed) is not used as the accelerometer. phyphox
 exports comma-separated with decimal points by default; the tab-separated and the semicolon/decimal-comma
-variants are read too. phyphox reports the same axes and units on Android and iOS (its iOS app converts
-Core Motion to m/s² with Android's sign), i.e. the contract's: nothing is converted. ``meta/device.csv``
-(``property,value``) gives the device name when present.
+variants are read too. phyphox reports the same axes and units on Android and iOS (its iOS app multiplies
+Core Motion's accelerations in g by −9.81, which gives Android's sign), i.e. the contract's: nothing is
+converted. ``meta/device.csv`` (``property,value``) gives the device name when present.
 """
 
 from __future__ import annotations
