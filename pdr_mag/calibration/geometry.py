@@ -134,44 +134,46 @@ class Projection:
         a, v = np.linalg.eigh(L)
         if a[0] <= 0:
             raise ValueError("ellipsoid matrix L is not positive definite")
+        # component-major (3, N) layout: every operation below is on contiguous length-N vectors
         a2 = a * a
-        y = (mag - b) @ v
-        ya = y / a
-        s = np.sqrt(np.einsum("ij,ij->i", ya, ya))
-        r = np.sqrt(np.einsum("ij,ij->i", y, y))
-        s = np.where(s > 0, s, 1.0)
-        aeff2 = (r / s) ** 2
-        t = aeff2 * (s - 1.0)
+        y = v.T @ (mag - b).T
+        yy = y * y
+        r = np.sqrt(yy[0] + yy[1] + yy[2])
+        s = np.sqrt(yy[0] / a2[0] + yy[1] / a2[1] + yy[2] / a2[2])
+        s[s == 0] = 1.0
+        t = (r / s) ** 2 * (s - 1.0)  # radial approximation a_eff²(s − 1), exact for a sphere
         lo = -a2[0] * (1.0 - 1e-12)
-        ay2 = a2 * y * y
+        ay2 = a2[:, None] * yy
         for _ in range(iters):
-            den = a2 + t[:, None]
-            q = ay2 / den**2
-            f = q.sum(axis=1) - 1.0
-            fp = -2.0 * (q / den).sum(axis=1)
+            d0, d1, d2 = a2[0] + t, a2[1] + t, a2[2] + t
+            q0, q1, q2 = ay2[0] / (d0 * d0), ay2[1] / (d1 * d1), ay2[2] / (d2 * d2)
+            f = q0 + q1 + q2 - 1.0
+            fp = -2.0 * (q0 / d0 + q1 / d1 + q2 / d2)
             step = f / fp
             t = np.maximum(t - step, 0.5 * (t + lo))
-            if np.max(np.abs(step) / (a2[0] + np.abs(t))) < tol:
+            if np.max(np.abs(step)) < tol * (a2[0] + np.max(np.abs(t))):
                 break
-        p = a2 * y / (a2 + t[:, None])
-        bad = ~np.isfinite(t) | (np.abs(np.sum((p / a) ** 2, axis=1) - 1.0) > 1e-8)
+        p = a2[:, None] * y / (a2[:, None] + t)
+        pa = p / a[:, None]
+        bad = ~np.isfinite(t) | (np.abs(pa[0] ** 2 + pa[1] ** 2 + pa[2] ** 2 - 1.0) > 1e-8)
         if np.any(bad):
             # inside the evolute (deeper than the smallest radius of curvature — never the case for samples
             # within noise of the surface) the secular root can be missing: fall back to the radial point
-            pr = y[bad] / s[bad, None]
-            p[bad] = pr
-            w = pr / a2
-            t[bad] = np.einsum("ij,ij->i", y[bad] - pr, w) / np.einsum("ij,ij->i", w, w)
-        pn = p / a2
-        pn_norm = np.sqrt(np.einsum("ij,ij->i", pn, pn))
+            pr = y[:, bad] / s[bad]
+            p[:, bad] = pr
+            w = pr / a2[:, None]
+            t[bad] = np.sum((y[:, bad] - pr) * w, axis=0) / np.sum(w * w, axis=0)
+            pa = p / a[:, None]
+        pn = p / a2[:, None]
+        pn_norm = np.sqrt(pn[0] ** 2 + pn[1] ** 2 + pn[2] ** 2)
         self.d = t * pn_norm
-        self.n = (pn / pn_norm[:, None]) @ v.T
-        self.x = b + p @ v.T
-        self.u = (p / a) @ v.T
+        self.n = (v @ (pn / pn_norm)).T
+        self.x = b + (v @ p).T
+        self.u = (v @ pa).T
         self.fallback = int(bad.sum())
         # κ1+κ2 = (|g|² tr Q − gᵀQg)/|g|³ with Q = L⁻², g = Q(x − b) (implicit-surface formula)
         g_norm2 = pn_norm**2
-        gqg = (pn * pn) @ (1.0 / a2)
+        gqg = pn[0] ** 2 / a2[0] + pn[1] ** 2 / a2[1] + pn[2] ** 2 / a2[2]
         self.mean_curv2 = (g_norm2 * np.sum(1.0 / a2) - gqg) / pn_norm**3
 
 

@@ -51,6 +51,8 @@ from pdr_mag.calibration.sphere import _check_mag
 from pdr_mag.calibration.twostep import initial_ellipsoid
 
 _N_PARAMS = {"sphere": 4, "diagonal": 6, "full": 9}
+_I = [0, 0, 1]  # off-diagonal pairs (xy, xz, yz) of geometry.SYM_PAIRS
+_J = [1, 2, 2]
 
 
 def _theta_from(b: np.ndarray, L: np.ndarray, model: str) -> np.ndarray:
@@ -77,8 +79,18 @@ def geometric_solve(mag: np.ndarray, b0: np.ndarray, L0: np.ndarray, model: str 
     def evaluate(theta, s2):
         L = np.tensordot(theta[3:], basis, axes=1)
         proj = Projection(mag, theta[:3], L)
-        outer = (proj.n[:, :, None] * proj.u[:, None, :]).reshape(n, 9)
-        jac = np.hstack([-proj.n, -(outer @ bflat)])
+        nv, uv = proj.n, proj.u
+        jac = np.empty((n, p))
+        jac[:, :3] = -nv
+        if model == "full":  # columns −n_iᵀB_k u_i written out for speed (B_k of sym_basis)
+            jac[:, 3:6] = -nv * uv
+            jac[:, 6:9] = -(nv[:, _I] * uv[:, _J] + nv[:, _J] * uv[:, _I])
+        elif model == "diagonal":
+            jac[:, 3:6] = -nv * uv
+        elif model == "sphere":
+            jac[:, 3] = -np.einsum("ij,ij->i", nv, uv)
+        else:
+            jac[:, 3:] = -((nv[:, :, None] * uv[:, None, :]).reshape(n, 9) @ bflat)
         r = proj.d - 0.5 * s2 * proj.mean_curv2 if bias_correction else proj.d
         return r, jac, proj
 
