@@ -127,7 +127,9 @@ P_MAG_CONS_K = 23
 P_ACC_TAU = 24
 P_ACC_INTERVAL = 25
 P_ACC_AVG_NOISE = 26
-N_PARAM = 27
+P_ACC_CORR = 27
+P_MAG_TILT_K = 28
+N_PARAM = 29
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -452,7 +454,15 @@ def _accel(st, R, ax, ay, az, t, p):
     else:
         wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
         wn = np.sqrt(wx * wx + wy * wy + wz * wz)
-        rv = p[P_ACC_NOISE] ** 2 + (p[P_ACC_DYN] * da) ** 2 + (p[P_ACC_W] * wn) ** 2
+        # linear acceleration: its recent variance, correlated over acc_corr_s, spread over the samples
+        dta = t - st[S_TA_PREV] if np.isfinite(st[S_TA_PREV]) else 0.01
+        dta = min(max(dta, 1e-4), 0.1)
+        rv = (
+            p[P_ACC_NOISE] ** 2
+            + (p[P_ACC_DYN] * da) ** 2
+            + (p[P_ACC_W] * wn) ** 2
+            + st[S_AVAR] / (g * g) * p[P_ACC_CORR] / dta
+        )
         uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
         uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
     dx = np.zeros(NX)
@@ -594,6 +604,13 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         dmin2 += (f * np.radians(dip - diploc)) ** 2
     dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons)) ** 2
     rv = p[P_MAG_NOISE] ** 2 + (p[P_MAG_NOISE_UT] ** 2 + p[P_MAG_DIST_K] ** 2 * dmin2) / (bh * bh)
+    # the tilt is not corrected by the magnetometer, but its uncertainty enters the horizontal
+    # projection: dψ = δθ_z − (m_x m_z δθ_x + m_y m_z δθ_y) / B_h²  →  R += h_t P_tilt h_tᵀ
+    if p[P_MAG_TILT_K] > 0.0:
+        bh2 = mwx * mwx + mwy * mwy
+        hx = -mwx * mwz / bh2
+        hy = -mwy * mwz / bh2
+        rv += p[P_MAG_TILT_K] * (hx * hx * P[0] + 2.0 * hx * hy * P[1] + hy * hy * P[NX + 1])
     if st[S_INIT] < 2:
         # first usable field (strength and dip right; variance and consistency need a history):
         # set the heading directly, keep the tilt and bias

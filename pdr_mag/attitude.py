@@ -108,6 +108,11 @@ class FusionSettings:
         Noise of the averaged direction, per update (≈ rad); plus ``acc_dyn · ||ā| − g| / g``.
     acc_noise : float
         Base noise of the normalised accelerometer direction, per sample (dimensionless ≈ rad).
+    acc_corr_s : float
+        Correlation time of the linear acceleration, s: the per-sample noise grows by
+        ``var(a) / g² · acc_corr_s / Δt`` with ``var(a)`` the running variance of the accelerometer
+        (time constant ``still_tau_s``) and Δt the accelerometer period — the same information per second
+        whatever the sample rate.
     acc_dyn : float
         Noise added per unit of ``||a| − g| / g``.
     acc_gyro : float
@@ -124,6 +129,9 @@ class FusionSettings:
     mag_cons_k : float
         Weight (0 = off, 1 = on) of the gyro-consistency angle in that smallest disturbance
         (``F · angle``).
+    mag_tilt_k : float
+        Weight (0 = off, 1 = on) of the tilt uncertainty in the heading noise: the projection of the
+        field on the horizontal plane turns by ``−(m_x m_z δθ_x + m_y m_z δθ_y) / B_h²`` per tilt error.
     mag_error_std_deg : float
         Standard deviation of the slowly varying magnetometer heading error c (residual calibration
         error, local anomalies of the building), deg.  Modelled as a first-order Gauss–Markov state so
@@ -161,7 +169,8 @@ class FusionSettings:
     acc_tau_s: float = 0.0
     acc_interval_s: float = 0.05
     acc_avg_noise: float = 0.2
-    acc_noise: float = 1.0
+    acc_noise: float = 0.05
+    acc_corr_s: float = 0.1
     acc_dyn: float = 2.0
     acc_gyro: float = 0.5
     acc_gate: float = 0.5
@@ -169,6 +178,7 @@ class FusionSettings:
     mag_noise_uT: float = 1.0
     mag_dist_k: float = 2.0
     mag_cons_k: float = 1.0
+    mag_tilt_k: float = 1.0
     mag_error_std_deg: float = 5.0
     mag_error_tau_s: float = 10.0
     mag_interval_s: float = 0.1
@@ -231,6 +241,8 @@ class FusionSettings:
         p[K.P_ACC_TAU] = self.acc_tau_s
         p[K.P_ACC_INTERVAL] = self.acc_interval_s
         p[K.P_ACC_AVG_NOISE] = self.acc_avg_noise
+        p[K.P_ACC_CORR] = self.acc_corr_s
+        p[K.P_MAG_TILT_K] = self.mag_tilt_k
         p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
