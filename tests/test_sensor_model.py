@@ -284,3 +284,39 @@ def test_integrate_gyro_constant_rate_is_exact():
     q = integrate_gyro(t, np.tile(w, (len(t), 1)), [1.0, 0, 0, 0])
     expected = rotation_to_quat(Rotation.from_rotvec(np.outer(t - t[0], w)))
     np.testing.assert_allclose(np.abs(np.sum(q * expected, axis=1)), 1.0, atol=1e-12)
+
+
+def test_known_answer_seed_000_lumped_model_is_representable():
+    """Seed 000 (eqs. 2–4): H_m = S·H_i + b with S = C_k C_n C_s, b = C_k C_n b_h + b_o, and its simulation
+    settings.  Any such S (det > 0) is soft_iron⁻¹ · mag_to_imuᵀ (left polar decomposition S = P·U), so the
+    model reproduces the seed's sensor exactly."""
+    from scipy.linalg import polar
+
+    al, be, ga = np.radians([1.2, 87.6, 87.0])
+    c_n = np.array(
+        [
+            [np.sqrt(1 - np.cos(be) ** 2 - np.cos(ga) ** 2), np.cos(be), np.cos(ga)],
+            [0.0, np.cos(al), np.sin(al)],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    c_k = np.diag([1.0, 0.9, 1.2])
+    c_s = np.array([[1.23, 0.23, 0.32], [0.23, 1.45, 0.45], [0.32, 0.45, 1.56]])
+    b_h, b_o = np.array([7.0, 7.5, 8.0]), np.array([9.0, 8.5, 7.5])  # the seed's 700…900 (×0.01 → µT)
+    s = c_k @ c_n @ c_s
+    b = c_k @ c_n @ b_h + b_o
+    u, p = polar(s, side="left")  # s = p @ u
+    model = SensorModel(
+        {
+            "hard_iron": b,
+            "soft_iron": np.linalg.inv(p),
+            "mag_imu_misalignment": np.degrees(Rotation.from_matrix(u.T).as_rotvec()),
+        }
+    )
+    f = 48.152
+    dec, inc = np.radians([-4.57, 44.57])
+    field_w = f * np.array([np.cos(inc) * np.sin(dec), np.cos(inc) * np.cos(dec), -np.sin(inc)])
+    rng = np.random.default_rng(9)
+    mot = _random_motion(rng)
+    h_i = quat_rotate(mot.q_wd, field_w, inverse=True)
+    np.testing.assert_allclose(predict_mag(model, mot.t, mot, field_w), h_i @ s.T + b, atol=1e-9)

@@ -284,3 +284,17 @@ def test_sim_model_is_a_sensor_model_with_known_effects():
         "texting",
     ]
     assert res.meta["simulation"]["north"] == "true"
+
+
+@pytest.mark.parametrize(("scenario", "peak"), [("walk", 20.0), ("still", 12.0), ("figure8", 15.0)])
+def test_local_anomaly_in_any_scenario_reaches_its_peak(scenario, peak):
+    res = simulate(
+        scenario, seed=18, duration_s=45.0, effects={"local_anomaly": peak}, phone=PhoneSpec.ideal()
+    )
+    dip = res.model.value("local_anomaly")
+    t = np.arange(0.0, 45.0, 0.05)
+    b = np.linalg.norm(dip.field_w(res.trajectory.position(t)), axis=1)
+    assert b.max() == pytest.approx(peak, rel=1e-9)
+    assert res.meta["simulation"]["anomaly_windows"]
+    if scenario == "walk":  # laid out along the middle third of the walk
+        assert b[t < 8.0].max() < 1.0
