@@ -123,13 +123,6 @@ def _bounce(rng: np.random.Generator, w: float) -> tuple[Sines, Sines, Sines]:
     )
 
 
-def _stack(*fns) -> Callable[[np.ndarray], np.ndarray]:
-    def f(t: np.ndarray) -> np.ndarray:
-        return np.stack([fn(t)[0] for fn in fns], axis=1)
-
-    return f
-
-
 def texting(rng: np.random.Generator) -> Mode:
     """Walking with the phone held in front for texting: tilted ~35° up, swaying with the steps."""
     f, w, v = _gait(rng)
@@ -141,9 +134,10 @@ def texting(rng: np.random.Generator) -> Mode:
         Sines(0.0, ((1.0 * DEG, 0.5 * w, _ph(rng)),)),
     )
     x0, y0, z0 = _u(rng, -0.05, 0.1), _u(rng, 0.25, 0.35), _u(rng, 1.15, 1.3)
-    offset = _stack(
-        lambda t: (x0 + lat(t)[0], None), lambda t: (y0 + fwd(t)[0], None), lambda t: (z0 + up(t)[0], None)
-    )
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        return np.stack([x0 + lat(t)[0], y0 + fwd(t)[0], z0 + up(t)[0]], axis=1)
+
     return Mode("texting", angles, offset, speed=v, step_hz=f)
 
 
