@@ -43,6 +43,13 @@ def _listing() -> str:
         d = DEFAULT_EFFECTS.get(e.name)
         dflt = f"  [default {_fmt_default(d)}]" if d is not None else ""
         lines.append(f"  {e.name:<21} {e.unit:<7} {e.description}; values: {e.cli}{dflt}")
+    ph = PhoneSpec()
+    lines.append(
+        f"phone: accel/gyro {ph.accel_rate_hz:g} Hz, mag {ph.mag_rate_hz:g} Hz (own jittered clocks, "
+        f"{ph.drop_prob:.1%} dropped, gaps), noise accel {ph.accel_noise:g} m/s² gyro {ph.gyro_noise:g} rad/s, "
+        f"resolution {ph.accel_step:g} m/s² {ph.gyro_step:g} rad/s {ph.mag_step:g} µT, "
+        f"range ±{ph.accel_range:g} m/s² ±{ph.gyro_range:g} rad/s ±{ph.mag_range:g} µT"
+    )
     lines.append(
         f"site: lat {DEFAULT_SITE['latitude_deg']}, lon {DEFAULT_SITE['longitude_deg']}, "
         f"{DEFAULT_SITE['date']} (WMM field; truth is device→ENU, true north)"
