@@ -46,7 +46,8 @@ def _listing() -> str:
     ph = PhoneSpec()
     lines.append(
         f"phone: accel/gyro {ph.accel_rate_hz:g} Hz, mag {ph.mag_rate_hz:g} Hz (own jittered clocks, "
-        f"{ph.drop_prob:.1%} dropped, gaps), noise accel {ph.accel_noise:g} m/s² gyro {ph.gyro_noise:g} rad/s, "
+        f"{ph.drop_prob:.1%} dropped, gaps), noise accel {ph.accel_noise:g} m/s² "
+        f"gyro {ph.gyro_noise:g} rad/s, "
         f"resolution {ph.accel_step:g} m/s² {ph.gyro_step:g} rad/s {ph.mag_step:g} µT, "
         f"range ±{ph.accel_range:g} m/s² ±{ph.gyro_range:g} rad/s ±{ph.mag_range:g} µT"
     )
