@@ -82,8 +82,14 @@ class OnlineSettings:
         1-σ of the strength equation (noise + unmodelled soft iron), µT.
     sigma_tilt_deg : float
         1-σ of the gravity direction, deg (the dip equation's σ is ``F · sin(sigma_tilt)``).
+    prior_strength_std_uT, prior_dip_std_deg : float
+        1-σ of the WMM strength and inclination as priors of the gravity-aided fit (the local field
+        indoors differs by a few µT / degrees); 0 fixes them.
     max_offset_std_uT : float
         A gravity/sphere refit is accepted only when every offset σ is below this.
+    first_offset_std_uT : float
+        The same bound for the very first calibration (none yet): a coarse offset early lets the filter
+        align the heading and learn the gyro bias before the first disturbance; refits refine it.
     max_rms_frac : float
         Accepted only when the robust residual RMS is below ``max_rms_frac · F``.
     max_offset_uT : float
@@ -115,10 +121,13 @@ class OnlineSettings:
     min_sep_up_deg: float = 6.0
     refresh_s: float = 120.0
     refit_period_s: float = 2.0
-    min_samples: int = 12
+    min_samples: int = 8
     sigma_strength_uT: float = 1.0
     sigma_tilt_deg: float = 3.0
+    prior_strength_std_uT: float = 3.0
+    prior_dip_std_deg: float = 3.0
     max_offset_std_uT: float = 2.0
+    first_offset_std_uT: float = 4.0
     max_rms_frac: float = 0.08
     max_offset_uT: float = 2000.0
     strength_tol_frac: float = 0.15
@@ -146,6 +155,8 @@ def gravity_aided_offset(
     sigma_strength_uT: float = 1.0,
     sigma_tilt_deg: float = 3.0,
     iterations: int = 8,
+    prior_strength_std_uT: float = 0.0,
+    prior_dip_std_deg: float = 0.0,
 ) -> MagCalibration:
     """Hard-iron offset from strength and dip constraints (see the module docstring for the model).
 
@@ -159,6 +170,10 @@ def gravity_aided_offset(
         F (µT) and sin I of the Earth field; both estimated when omitted.
     sigma_strength_uT, sigma_tilt_deg : float
         1-σ of the two residuals (µT, and deg of tilt).
+    prior_strength_std_uT, prior_dip_std_deg : float
+        With F and sin I given and these > 0, F and F sin I are estimated too, with the given values as a
+        Gaussian prior of these 1-σ (the local field indoors differs from the WMM by a few µT and degrees;
+        a hard constraint would push that error into the offset).  0: F and sin I fixed.
 
     Returns
     -------
@@ -206,8 +221,14 @@ def gravity_aided_offset(
         f = float(np.sqrt(max(sol[3] + b @ b, 1e-6)))
     else:
         f, s = float(strength), s_ref
-    # ---- Gauss–Newton with Huber weights
+    # ---- Gauss–Newton with Huber weights (optionally F, s free with a prior around the given values)
     huber = 2.5
+    prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
+    if prior:
+        f0, s0 = f, s
+        sig_f = float(prior_strength_std_uT)
+        sig_s = float(f0 * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+        free = True
     npar = 5 if free else 3
     for _ in range(iterations):
         d = mc - b
@@ -224,6 +245,10 @@ def gravity_aided_offset(
             j1[:, 3] = -1.0 / sigma_strength_uT
             j2[:, 4] = 1.0 / sig2
         jac = np.vstack([j1, j2])
+        if prior:
+            r = np.concatenate([r, [(f - f0) / sig_f, (s - s0) / sig_s]])
+            w = np.concatenate([w, [1.0, 1.0]])
+            jac = np.vstack([jac, [[0, 0, 0, 1 / sig_f, 0], [0, 0, 0, 0, 1 / sig_s]]])
         jw = jac * w[:, None]
         h = jac.T @ jw
         g = jw.T @ r
@@ -309,7 +334,9 @@ def _coverage(mag_cal: np.ndarray) -> float:
         return direction_coverage(mag_cal)
 
 
-def judge(cal: MagCalibration, settings: OnlineSettings, field_ref: float | None) -> MagCalibration:
+def judge(
+    cal: MagCalibration, settings: OnlineSettings, field_ref: float | None, first: bool = False
+) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
     The calibration core's rules (``coverage.accept``/``acceptance``) are applied when present; the online
@@ -334,8 +361,13 @@ def judge(cal: MagCalibration, settings: OnlineSettings, field_ref: float | None
             pass
     std = np.asarray(cal.offset_std_uT, dtype=float)
     f = cal.field_uT
-    if not np.all(np.isfinite(std)) or np.max(std) > settings.max_offset_std_uT:
-        reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {settings.max_offset_std_uT:g} µT")
+    bound = (
+        settings.max_offset_std_uT
+        if not first
+        else max(settings.first_offset_std_uT, settings.max_offset_std_uT)
+    )
+    if not np.all(np.isfinite(std)) or np.max(std) > bound:
+        reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
     if not np.isfinite(f) or f <= 0:
         reasons.append("no finite field radius")
     elif cal.residual_rms_uT > settings.max_rms_frac * f:
@@ -425,6 +457,10 @@ class OnlineCalibrator:
             if v is not None and np.isfinite(v):
                 return float(v)
         return None
+
+    def _prior(self) -> dict:
+        s = self.settings
+        return {"prior_strength_std_uT": s.prior_strength_std_uT, "prior_dip_std_deg": s.prior_dip_std_deg}
 
     @property
     def episode(self) -> bool:
@@ -580,6 +616,7 @@ class OnlineCalibrator:
                 self.sin_dip_ref if f_ref is not None else None,
                 s.sigma_strength_uT,
                 s.sigma_tilt_deg,
+                **self._prior(),
             )
             cands.append(g)
             centre = g.offset_array
@@ -601,7 +638,10 @@ class OnlineCalibrator:
                 cands.append(full)
             except ValueError:
                 pass
-        judged = [judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref) for c in cands]
+        first = self.calibration is None
+        judged = [
+            judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref, first) for c in cands
+        ]
         good = [c for c in judged if c.accepted]
         if not good:
             if judged and self.calibration is None and t - self._last_reject_t > 30.0:
@@ -674,9 +714,15 @@ class OnlineCalibrator:
             return
         half = len(r) // 2
         try:
-            whole = gravity_aided_offset(mc, r[:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
-            a = gravity_aided_offset(mc[:half], r[:half, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
-            b = gravity_aided_offset(mc[half:], r[half:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg)
+            whole = gravity_aided_offset(
+                mc, r[:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
+            )
+            a = gravity_aided_offset(
+                mc[:half], r[:half, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
+            )
+            b = gravity_aided_offset(
+                mc[half:], r[half:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
+            )
         except ValueError:
             return
         delta = whole.offset_array
