@@ -58,7 +58,7 @@ _NL_ORDER = ("time_offset", "gyro_bias", "mag_imu_misalignment", "soft_iron")
 _NL_SCALE = {"time_offset": 0.01, "gyro_bias": 0.005, "mag_imu_misalignment": 0.01, "soft_iron": 0.01}
 #: Weak Gaussian priors (σ, internal units) on the nonlinear parameters: they keep directions the motion
 #: does not observe (e.g. gyro bias about a horizontal axis in a level walk) at zero, and cost < 1 µT².
-_NL_PRIOR = {"time_offset": 1.0, "gyro_bias": 0.02, "mag_imu_misalignment": 0.1, "soft_iron": 0.2}
+_NL_PRIOR = {"time_offset": 1.0, "gyro_bias": 0.05, "mag_imu_misalignment": 0.1, "soft_iron": 0.2}
 _NL_BOUND = {"time_offset": 0.5, "gyro_bias": 0.5, "mag_imu_misalignment": 0.5, "soft_iron": 0.6}
 
 
@@ -83,6 +83,9 @@ class Problem:
     knot_free : ndarray (K,) of bool
         Knots whose value is fitted; the others are held at zero, so the anomaly is confined to the
         windows :func:`anomaly_support` found (it is *local*).
+    prior_weight : float
+        Weight of the priors on the nonlinear parameters, µT: the residual's σ × √τ_int, so that a prior
+        counts as much against correlated residuals as it should against independent ones.
     anomaly_prior_uT : float
         Prior σ of a knot of the anomaly field (a weak ridge that fixes the split between ``B_w`` and the
         anomaly), µT.
@@ -97,6 +100,8 @@ class Problem:
     knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
     knot_free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     anomaly_prior_uT: float = 100.0
+    prior_weight: float = 1.0
+    r_dw0: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -119,8 +124,15 @@ def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot
     span = t[-1] - t[0]
     nk = max(2, int(np.ceil(span / anomaly_knot_s)) + 1)
     knots = np.linspace(t[0], t[-1], nk)
-    return Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
+    prob = Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
                    knots=knots, knot_free=np.ones(len(knots), dtype=bool))
+    return with_track(prob, track)
+
+
+def with_track(problem: Problem, track: OrientationTrack) -> Problem:
+    """The problem along another orientation track (caches ``R_dw`` at the stamps)."""
+    q = quat_slerp(track.t, track.quat, problem.t)
+    return replace(problem, track=track, r_dw0=np.swapaxes(_quat_to_matrix(q), 1, 2))
 
 
 def soft_iron_distortion(e: np.ndarray) -> np.ndarray:
@@ -160,8 +172,11 @@ def split_nonlinear(effects, p: np.ndarray) -> dict[str, np.ndarray]:
 def sample_matrices(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray:
     """Per-sample maps ``M_i = S⁻¹ Mᵀ R_dw(t_i − Δt) Rz(ψ_i)`` (N, 3, 3) from world field to raw mag."""
     tau = measurement_times(problem, nl)
-    q = quat_slerp(problem.track.t, problem.track.quat, tau)
-    r_dw = np.swapaxes(_quat_to_matrix(q), 1, 2)
+    if "time_offset" not in nl and problem.r_dw0 is not None:
+        r_dw = problem.r_dw0
+    else:
+        q = quat_slerp(problem.track.t, problem.track.quat, tau)
+        r_dw = np.swapaxes(_quat_to_matrix(q), 1, 2)
     if "gyro_bias" in nl:
         psi = problem.track.up_integral(tau) @ nl["gyro_bias"]
         c, s = np.cos(psi), np.sin(psi)
@@ -247,8 +262,9 @@ def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray
     return problem.t - (float(nl["time_offset"][0]) if "time_offset" in nl else 0.0)
 
 
-def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout):
-    """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps."""
+def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False):
+    """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps
+    (and the regularised normal matrix ``AᵀA`` with ``with_normal``)."""
     a = design(problem, mats, measurement_times(problem, nl), layout)
     y = problem.mag.ravel()
     ata = (a.T @ a).toarray()
@@ -263,6 +279,8 @@ def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout):
         x = cho_solve(cho_factor(ata), aty)
     except np.linalg.LinAlgError:
         x = np.linalg.lstsq(ata, aty, rcond=None)[0]
+    if with_normal:
+        return x, y - a @ x, ata
     return x, y - a @ x
 
 
@@ -293,6 +311,7 @@ class FitResult:
     rss: float
     k: int
     nfev: int = 1
+    std: dict = field(default_factory=dict)
 
     @property
     def gap(self) -> float:
@@ -317,9 +336,11 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         scale.extend([_NL_SCALE[name]] * size)
         lo.extend([-_NL_BOUND[name]] * size)
         hi.extend([_NL_BOUND[name]] * size)
-    p0 = np.clip(np.asarray(p0, float), np.asarray(lo) * 0.999, np.asarray(hi) * 0.999)
+    p0 = np.clip(np.asarray(p0, float), np.asarray(lo), np.asarray(hi))
 
-    prior = np.asarray([1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])])
+    prior = problem.prior_weight * np.asarray(
+        [1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])]
+    )
 
     def resid(p):
         nl = split_nonlinear(effects, p)
@@ -327,21 +348,36 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
 
     nfev = 1
     if nl_names:
-        sol = least_squares(resid, p0, x_scale=np.asarray(scale), bounds=(lo, hi), method="trf",
-                            diff_step=1e-6, xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev)
+        # Levenberg–Marquardt (MINPACK, QR): the priors keep the parameters sane, no bounds needed;
+        # max_nfev counts Jacobian evaluations too, so it is per iteration × (n + 1)
+        sol = least_squares(resid, p0, x_scale=np.asarray(scale), method="lm", diff_step=1e-6,
+                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
         p = sol.x
         nfev = int(sol.nfev)
+        jac = sol.jac
     else:
         p = p0
+        jac = None
     nl = split_nonlinear(effects, p)
     mats = sample_matrices(problem, nl)
-    x, r = solve_linear(problem, nl, mats, layout)
+    x, r, ata = solve_linear(problem, nl, mats, layout, with_normal=True)
     linear = {name: x[sl].copy() for name, sl in layout.blocks.items()}
     if "local_anomaly" in linear:
         linear["local_anomaly"] = linear["local_anomaly"].reshape(-1, 3)
     res = r.reshape(-1, 3)
+    k = layout.size + len(p)
+    # 1-σ uncertainties: Gauss–Newton covariance × σ² × τ_int (correlated residuals count less)
+    s2 = float(r @ r) / max(len(r) - k, 1) * integrated_autocorr_time(res)
+    std = {}
+    cov_lin = np.linalg.pinv(ata)
+    for name, sl in layout.blocks.items():
+        std[name] = np.sqrt(np.clip(np.diag(cov_lin)[sl] * s2, 0, None))
+    if jac is not None:
+        cov_nl = np.linalg.pinv(jac.T @ jac)
+        std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))
+        std["_cov_nonlinear"] = cov_nl * s2
     return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
-                     k=layout.size + len(p), nfev=nfev)
+                     k=k, nfev=nfev, std=std)
 
 
 def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:

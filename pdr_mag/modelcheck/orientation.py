@@ -14,9 +14,8 @@ Model (batch, vectorised)
    rotation ``C(t)`` (axis horizontal, no yaw) taking the average onto ``+z`` corrects the slow tilt drift:
    ``R_wd(t) = C(t) R_g(t)``.  This is a zero-phase complementary filter: high frequencies from the gyro,
    tilt at low frequencies from the accelerometer.
-3. ``b_g`` defaults to the median gyro over still stretches (gyro and specific-force norm steady for at
-   least ``still_min_s``), zero when there are none; a bias left over shows as a heading drift
-   ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
+3. ``b_g`` is zero unless given (or, with ``bias_from_still``, the median gyro over still stretches); a
+   bias left over shows as a heading drift ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
 """
 
 from __future__ import annotations
@@ -43,12 +42,17 @@ class OrientationSettings:
         Largest deviation of the specific-force norm from g while still, m/s².
     still_min_s : float
         Shortest still stretch used for the bias, s.
+    bias_from_still : bool
+        Estimate the gyro bias from still stretches when none is given.  Off by default: a phone held
+        still in the hand still turns slowly, which such an estimate takes for bias; the baseline then
+        integrates the raw gyro and a bias is left to the ``gyro_bias`` candidate to earn its place.
     """
 
-    tilt_window_s: float = 2.0
+    tilt_window_s: float = 4.0
     still_gyro: float = 0.05
     still_accel: float = 0.3
     still_min_s: float = 1.0
+    bias_from_still: bool = False
 
 
 @dataclass(frozen=True)
@@ -183,7 +187,12 @@ def estimate_orientation(
     if a.ndim != 2 or a.shape[1] != 3 or len(ta) != len(a) or len(ta) < 2:
         raise ValueError(f"accel: expected (M≥2, 3) m/s² with M times, got {a.shape}")
     a_g = np.column_stack([np.interp(t, ta, a[:, k]) for k in range(3)])
-    bias = still_gyro_bias(t, w, a_g, settings) if gyro_bias is None else np.asarray(gyro_bias, float)
+    if gyro_bias is not None:
+        bias = np.asarray(gyro_bias, dtype=float)
+    elif settings.bias_from_still:
+        bias = still_gyro_bias(t, w, a_g, settings)
+    else:
+        bias = np.zeros(3)
 
     wc = w - bias
     dt = np.diff(t)

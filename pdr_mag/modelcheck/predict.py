@@ -38,8 +38,8 @@ class TimeKnotField:
 
     def field_w(self, position_w: np.ndarray) -> np.ndarray:
         tau = np.asarray(position_w, dtype=float)[:, 0]
-        return np.stack([np.interp(tau, self.knots, self.values_w[:, k], left=0.0, right=0.0)
-                         for k in range(3)], axis=-1)
+        # held constant beyond the end knots (which are zero when the anomaly is confined to windows)
+        return np.stack([np.interp(tau, self.knots, self.values_w[:, k]) for k in range(3)], axis=-1)
 
     def to_json(self) -> dict:
         return {"kind": "time_knots", "knots_s": self.knots.tolist(), "values_uT": self.values_w.tolist()}

@@ -31,6 +31,7 @@ from pdr_mag.modelcheck.fit import (
     fit_model,
     integrated_autocorr_time,
     make_problem,
+    with_track,
 )
 from pdr_mag.modelcheck.orientation import (
     OrientationSettings,
@@ -70,9 +71,9 @@ class DiagnoseSettings:
 
     candidates: tuple[str, ...] = CANDIDATES
     score_threshold: float = 10.0
-    min_gap_reduction: float = 0.05
+    min_gap_reduction: float = 0.1
     anomaly_knot_s: float = 1.0
-    anomaly_min_uT: float = 2.0
+    anomaly_min_uT: float = 3.0
     anomaly_max_share: float = 0.5
     max_rounds: int = 6
     max_nfev: int = 60
@@ -156,17 +157,19 @@ def _vec(v, nd: int = 4) -> list:
 def estimates(problem: Problem, fit: FitResult, effects) -> dict:
     """Per-effect estimates in the units of INTERFACE.md, for the given effect names."""
     out: dict = {}
-    nl, lin = fit.nonlinear, fit.linear
+    nl, lin, sd = fit.nonlinear, fit.linear, fit.std
     for e in effects:
         if e == "hard_iron":
-            out[e] = {"uT": _vec(lin["hard_iron"], 3), "t_ref": _r(problem.t_ref, 3)}
+            out[e] = {"uT": _vec(lin["hard_iron"], 3), "std": _vec(sd["hard_iron"], 3),
+                      "t_ref": _r(problem.t_ref, 3)}
         elif e == "noise":
             out[e] = {"uT": _vec(np.sqrt(np.mean(fit.residual**2, axis=0)), 4)}
         elif e == "time_offset":
-            out[e] = {"seconds": _r(nl[e][0], 5)}
+            out[e] = {"seconds": _r(nl[e][0], 5), "std": _r(sd[e][0], 5)}
         elif e == "mag_imu_misalignment":
             deg = np.degrees(nl[e])
-            out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3)}
+            out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3),
+                      "std_deg": _vec(np.degrees(sd[e]), 3)}
         elif e == "soft_iron":
             from pdr_mag.modelcheck.fit import soft_iron_distortion
 
@@ -174,14 +177,24 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             s = 0.5 * (s + s.T)
             s = s / np.cbrt(np.linalg.det(s))
             ev = np.linalg.eigvalsh(s)
-            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": _r(ev[-1] / ev[0], 5)}
+            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": _r(ev[-1] / ev[0], 5),
+                      "std": _r(float(np.max(sd[e])), 5)}
         elif e == "bias_drift":
-            out[e] = {"uT_per_min": _vec(lin[e], 4)}
+            out[e] = {"uT_per_min": _vec(lin[e], 4), "std": _vec(sd[e], 4)}
         elif e == "temperature_offset":
-            out[e] = {"uT_per_degC": _vec(lin[e], 4), "t_ref_degC": _r(problem.temp_ref, 2)}
+            out[e] = {"uT_per_degC": _vec(lin[e], 4), "std": _vec(sd[e], 4),
+                      "t_ref_degC": _r(problem.temp_ref, 2)}
         elif e == "gyro_bias":
             total = problem.track.gyro_bias + nl[e]
-            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(nl[e], 5)}
+            up = np.mean(problem.r_dw0[:, :, 2], axis=0)  # mean up direction in device axes
+            up /= np.linalg.norm(up)
+            cov = fit.std.get("_cov_nonlinear")
+            i0 = 1 if "time_offset" in nl else 0
+            up_std = float(np.sqrt(up @ cov[i0:i0 + 3, i0:i0 + 3] @ up)) if cov is not None else float("nan")
+            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(nl[e], 5),
+                      "std": _vec(sd[e], 5), "mean_up_d": _vec(up, 4),
+                      "along_up_rad_per_s": _r(up @ total, 5),
+                      "along_up_std": _r(up_std, 5)}
         elif e == "local_anomaly":
             fld = anomaly_field(problem, fit)
             mags = np.linalg.norm(fld.values_w, axis=1)
@@ -233,7 +246,7 @@ def _replay_gyro_bias(problem: Problem, fit: FitResult, gyro, accel, settings: D
         return problem, fit
     bias = problem.track.gyro_bias + fit.nonlinear["gyro_bias"]
     track = estimate_orientation(gyro[0], gyro[1], accel[0], accel[1], bias, settings.orientation)
-    p2 = replace(problem, track=track)
+    p2 = with_track(problem, track)
     init = dict(fit.nonlinear, gyro_bias=np.zeros(3))
     f2 = fit_model(p2, fit.effects, init, settings.max_nfev)
     return p2, f2
@@ -298,6 +311,8 @@ def diagnose(
     n = problem.n
 
     base = fit_model(problem, (), None, settings.max_nfev)
+    w = float(np.sqrt(np.mean(base.residual**2)) * np.sqrt(integrated_autocorr_time(base.residual)))
+    problem = replace(problem, prior_weight=max(w, 1e-3))
     baseline = ModelSummary(BASELINE, gap(problem, base), estimates(problem, base, BASELINE), base, problem)
 
     candidates = [c for c in settings.candidates if c != "temperature_offset" or temp is not None]
