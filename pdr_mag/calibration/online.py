@@ -109,6 +109,9 @@ class OnlineSettings:
         window needed to run the test, and the least offset shift (also ≥ 4 σ) that counts.
     stale_rate_hz : float
         Decimation of the recent window.
+    stale_confirm_s : float
+        The same offset shift must be found again this much later (the deviation persisting in between)
+        before a recalibration is requested.
     episode_rate : float
         Smoothed gyro rate (rad/s) above which a rotation-rich episode (figure-8) is on; off below half.
     recal_fallback_s : float
@@ -139,6 +142,7 @@ class OnlineSettings:
     stale_check_s: float = 2.0
     stale_min_frac: float = 0.5
     stale_min_shift_uT: float = 6.0
+    stale_confirm_s: float = 10.0
     stale_rate_hz: float = 10.0
     episode_rate: float = 1.5
     recal_fallback_s: float = 20.0
@@ -435,6 +439,7 @@ class OnlineCalibrator:
         self._episode = False
         self._episode_seen = False
         self._recal_t = np.nan
+        self._stale_cand: list | None = None
         self._n_refits = 0
         self._last_reject_t = -np.inf
 
@@ -711,6 +716,7 @@ class OnlineCalibrator:
         dev = np.abs(np.linalg.norm(mc, axis=1) - f) > s.strength_tol_frac * f * 0.5
         last = r[:, 0] > t - s.stale_window_s / 3
         if np.mean(dev[last]) < s.stale_min_frac or np.mean(dev) < 0.5 * s.stale_min_frac:
+            self._stale_cand = None
             return
         half = len(r) // 2
         try:
@@ -734,7 +740,17 @@ class OnlineCalibrator:
         significant = shift > s.stale_min_shift_uT and shift > 4 * float(np.linalg.norm(sig))
         well_posed = float(np.max(sig)) < 2 * s.max_offset_std_uT
         if not (consistent and explained and significant and well_posed):
+            self._stale_cand = None
             return
+        # persistence: a magnetised case stays, a disturbed area is walked out of — the same δ must be
+        # found again at least stale_confirm_s later (with the strength still deviating in between)
+        cand = self._stale_cand
+        if cand is None or not np.all(np.abs(np.asarray(cand[1:4]) - delta) < np.maximum(3 * sig, 3.0)):
+            self._stale_cand = [t, *map(float, delta)]
+            return
+        if t - cand[0] < s.stale_confirm_s:
+            return
+        self._stale_cand = None
         a_inv = np.linalg.inv(cal.soft_iron_array)
         if cal.mag_to_imu is not None:
             a_inv = a_inv @ np.asarray(cal.mag_to_imu, dtype=float).T
@@ -785,6 +801,7 @@ class OnlineCalibrator:
             "episode": self._episode,
             "episode_seen": self._episode_seen,
             "recal_t": _f(self._recal_t),
+            "stale_cand": self._stale_cand,
             "n_refits": self._n_refits,
             "last_reject_t": _f(self._last_reject_t),
         }
@@ -806,6 +823,7 @@ class OnlineCalibrator:
         self._episode = bool(st["episode"])
         self._episode_seen = bool(st["episode_seen"])
         self._recal_t = _uf(st["recal_t"])
+        self._stale_cand = None if st.get("stale_cand") is None else [float(v) for v in st["stale_cand"]]
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = _uf(st["last_reject_t"])
 
