@@ -129,7 +129,9 @@ P_ACC_INTERVAL = 25
 P_ACC_AVG_NOISE = 26
 P_ACC_CORR = 27
 P_MAG_TILT_K = 28
-N_PARAM = 29
+P_TURN_SPEED = 29
+P_TURN_CORR = 30
+N_PARAM = 31
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -348,6 +350,12 @@ def _predict(st, R, wx, wy, wz, dt, p):
             P[(3 + m) * NX + i] = bb
             if i == m:
                 P[(3 + i) * NX + 3 + m] = C[i, m] + qb
+    # an unknown heading is uniform: keep its variance at most π² (scaling row and column keeps P ⪰ 0)
+    if P[2 * NX + 2] > np.pi**2:
+        fs = np.pi / np.sqrt(P[2 * NX + 2])
+        for i in range(NX):
+            P[2 * NX + i] *= fs
+            P[i * NX + 2] *= fs
 
 
 @njit(cache=True)
@@ -463,6 +471,9 @@ def _accel(st, R, ax, ay, az, t, p):
             + (p[P_ACC_W] * wn) ** 2
             + st[S_AVAR] / (g * g) * p[P_ACC_CORR] / dta
         )
+        # walking around a bend: a sustained centripetal acceleration v·ω_up (ω_up the turn rate)
+        wup = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz
+        rv += (p[P_TURN_SPEED] * wup / g) ** 2 * p[P_TURN_CORR] / dta
         uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
         uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
     dx = np.zeros(NX)

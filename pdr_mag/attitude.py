@@ -113,6 +113,12 @@ class FusionSettings:
         ``var(a) / g² · acc_corr_s / Δt`` with ``var(a)`` the running variance of the accelerometer
         (time constant ``still_tau_s``) and Δt the accelerometer period — the same information per second
         whatever the sample rate.
+    turn_speed : float
+        Walking speed assumed for the centripetal acceleration ``v · ω_up`` of a turn, m/s (0 = off: on
+        the real walks it costs more than it gains, as turns are frequent and tilt then drifts): adds
+        ``(v ω_up / g)² · turn_corr_s / Δt`` to the accelerometer noise (ω_up the turn rate about up).
+    turn_corr_s : float
+        Correlation time of that acceleration (the length of a turn), s.
     acc_dyn : float
         Noise added per unit of ``||a| − g| / g``.
     acc_gyro : float
@@ -172,6 +178,8 @@ class FusionSettings:
     acc_noise: float = 0.05
     acc_corr_s: float = 0.1
     acc_dyn: float = 2.0
+    turn_speed: float = 0.0
+    turn_corr_s: float = 1.0
     acc_gyro: float = 0.5
     acc_gate: float = 0.5
     mag_noise_deg: float = 5.0
@@ -243,6 +251,8 @@ class FusionSettings:
         p[K.P_ACC_AVG_NOISE] = self.acc_avg_noise
         p[K.P_ACC_CORR] = self.acc_corr_s
         p[K.P_MAG_TILT_K] = self.mag_tilt_k
+        p[K.P_TURN_SPEED] = self.turn_speed
+        p[K.P_TURN_CORR] = self.turn_corr_s
         p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
