@@ -214,3 +214,23 @@ def test_calibrator_state_round_trips_through_json():
     b.set_state(json.loads(json.dumps(a.get_state())))
     assert b.get_state() == a.get_state()
     assert b.calibration == a.calibration
+
+
+def test_offset_refit_keeps_the_soft_iron_shape():
+    """A recalibration moves the hard iron only: the ellipsoid shape of the device calibration stays."""
+    from pdr_mag.calibration.model import MagCalibration
+
+    a = np.array([[1.05, 0.02, 0.0], [0.02, 0.96, 0.01], [0.0, 0.01, 1.0]])
+    delta = np.array([-12.0, 9.0, 6.0])
+    d = synth_walk(duration=110.0, seed=8, offset_change=(20.0, delta))
+    tm, mag = d["mag"]
+    b_t = d["offset_t"]
+    d["mag"] = (tm, (mag - b_t) @ np.linalg.inv(a).T + b_t)  # m_raw = A⁻¹ field + b
+    given = MagCalibration.from_arrays(B_TRUE, a, field_uT=F, method="ml", offset_std_uT=[0.2] * 3)
+    oc = OnlineCalibrator(OnlineSettings(), calibration=given, strength=F, sin_dip=np.sin(INC))
+    events = _feed(oc, d)
+    kinds = [k for _, k, _ in events]
+    assert "recalibration_requested" in kinds and "recalibrated" in kinds, kinds
+    np.testing.assert_allclose(oc.calibration.soft_iron_array, a, atol=1e-9)
+    assert oc.cal_state == "ellipsoid"
+    assert np.linalg.norm(oc.calibration.offset_array - (B_TRUE + delta)) < 2.5

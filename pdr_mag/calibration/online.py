@@ -614,15 +614,7 @@ class OnlineCalibrator:
         cands: list[MagCalibration] = []
         centre = self.calibration.offset_array if self.calibration is not None else None
         try:
-            g = gravity_aided_offset(
-                m,
-                u,
-                f_ref,
-                self.sin_dip_ref if f_ref is not None else None,
-                s.sigma_strength_uT,
-                s.sigma_tilt_deg,
-                **self._prior(),
-            )
+            g = self._gravity_fit(m, u, f_ref)
             cands.append(g)
             centre = g.offset_array
         except ValueError:
@@ -661,6 +653,50 @@ class OnlineCalibrator:
         best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
         self._accept(t, best, events)
 
+    def _gravity_fit(self, m: np.ndarray, u: np.ndarray, f_ref: float | None) -> MagCalibration:
+        """Gravity-aided offset fit that keeps the shape (soft iron, ``mag_to_imu``) of the current
+        calibration: the hard iron moves (a magnet, a case), the sensor's scale and axes do not.
+
+        With ``M = R·A`` (R = mag_to_imu or I, A = soft iron), ``y = M m`` is the field in the device frame
+        up to a constant ``c = M b``; the fit on ``(y, u)`` gives ``c``, hence ``b = M⁻¹ c``.
+        """
+        s = self.settings
+        cur = self.calibration
+        a = cur.soft_iron_array if cur is not None else np.eye(3)
+        r = (
+            np.asarray(cur.mag_to_imu, dtype=float)
+            if cur is not None and cur.mag_to_imu is not None
+            else None
+        )
+        mm = a if r is None else r @ a
+        shaped = not np.allclose(mm, np.eye(3), atol=1e-12)
+        y = m @ mm.T if shaped else m
+        g = gravity_aided_offset(
+            y,
+            u,
+            f_ref,
+            self.sin_dip_ref if f_ref is not None else None,
+            s.sigma_strength_uT,
+            s.sigma_tilt_deg,
+            **self._prior(),
+        )
+        if not shaped:
+            return g
+        mi = np.linalg.inv(mm)
+        cov_b = mi @ np.asarray(g.covariance, dtype=float) @ mi.T
+        return MagCalibration.from_arrays(
+            mi @ g.offset_array,
+            a,
+            field_uT=g.field_uT,
+            method="gravity",
+            residual_rms_uT=g.residual_rms_uT,
+            offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+            n_samples=g.n_samples,
+            covariance=cov_b,
+            mag_to_imu=cur.mag_to_imu,
+            extra={**g.extra, "shape_from": cur.method},
+        )
+
     def _accept(self, t: float, cal: MagCalibration, events: list) -> None:
         s = self.settings
         old = self.calibration
@@ -678,8 +714,8 @@ class OnlineCalibrator:
             return
         if old is not None:
             # do not replace a richer calibration by a poorer one, nor churn on noise
-            if _state_of(old) == "ellipsoid" and cal.method == "gravity":
-                return
+            if _state_of(old) == "ellipsoid" and _state_of(cal) == "offset":
+                return  # never trade a soft-iron shape for an offset-only fit
             if self.provided and cal.method in ("gravity", "sphere"):
                 return
             shift = np.linalg.norm(cal.offset_array - old.offset_array)
