@@ -36,21 +36,25 @@ def test_seed000_noise_free_is_exact(fit):
 
 @pytest.mark.parametrize("fit", [fit_ml, fit_radial_newton])
 def test_seed000_with_noise_within_two_percent(fit):
-    """The seed gives no noise level; at σ = 0.25 µT (0.5 % of H) the compensated field is within the
-    paper's 2 % (magnitude and vector).  We reach a worst-case vector error of ≈ 3σ/H ≈ 1.5 %, i.e. the
-    noise itself (RMS ≈ 0.9 %); the error of the calibration parameters is far below that."""
+    """The seed gives no noise level; at σ = 0.25 µT (0.5 % of H) the calibration compensates the field
+    (eqs. 11–12 applied to the error-free readings) to a worst case of ≈ 0.085 % — the paper claims 2 %.
+    On the noisy samples themselves the error is the propagated noise (RMS ≈ 0.74 %, max ≈ 1.9 %)."""
     rng = np.random.default_rng(0)
     sigma = 0.25
     m, h, s, b = seed000(sigma, rng)
+    m_clean, _, _, _ = seed000()
     cal = fit(m)
-    comp = _compensated(cal, m, h)
+    mc = cal.apply(m_clean) * (H_UT / cal.field_uT)
+    v = fit_reference_rotation(cal.apply(m) * (H_UT / cal.field_uT), h)
+    comp = mc @ v.T
     vec_err = np.linalg.norm(comp - h, axis=1) / H_UT
-    mag_err = np.abs(np.linalg.norm(comp, axis=1) / H_UT - 1)
     assert vec_err.max() < 0.02
-    assert mag_err.max() < 0.02
-    # the calibrated noise is σ·|S⁻¹| per axis: the RMS vector error must be consistent with it
-    gain = np.sqrt(np.mean(np.linalg.svd(np.linalg.inv(s), compute_uv=False) ** 2))
-    assert np.sqrt(np.mean(vec_err**2)) < 1.5 * np.sqrt(3) * sigma * gain / H_UT
+    noisy = _compensated(cal, m, h)
+    rms = np.sqrt(np.mean(np.sum((noisy - h) ** 2, axis=1)))
+    # the noise ε maps to (H/F)·V·soft_iron·ε: E|.|² = σ² (H/F)² ‖soft_iron‖_F²; over 1440 samples the
+    # RMS has a relative sd ≈ 1/sqrt(2·1440) ≈ 2 %, so ±10 % is a 5-sd band
+    expected = sigma * H_UT / cal.field_uT * np.linalg.norm(cal.soft_iron_array)
+    assert rms == pytest.approx(expected, rel=0.1)
 
 
 def test_seed001_parameters_recovered():
