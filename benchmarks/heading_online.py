@@ -83,7 +83,7 @@ def main(argv=None) -> int:
                 "ours_p95": ours["heading_err_p95"],
                 "ours_tilt": ours["tilt_err_mean"],
                 "os": os_["heading_err_mean"],
-                "first_cal_s": None if first is None else first - summary.get("t0", 0.0),
+                "first_cal_s": None if first is None else first - (summary.get("t_start") or 0.0),
                 "recal_requests": sum(e["kind"] == "recalibration_requested" for e in summary["events"]),
                 "final_cal_state": summary["cal_state"],
                 "final_offset_uT": summary["calibrations"][-1]["offset_uT"]

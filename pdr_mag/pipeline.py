@@ -424,6 +424,7 @@ class HeadingPipeline:
         return {
             "n_outputs": int(self._n_out),
             "duration_s": float(dur),
+            "t_start": float(self._t_first) if np.isfinite(self._t_first) else None,
             "north": self.north,
             "cal_state": self.cal_state,
             "calibrations": [
