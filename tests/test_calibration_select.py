@@ -147,3 +147,15 @@ def test_bad_arguments_raise_value_error():
         calibrate(np.zeros((10, 2)))
     with pytest.raises(ValueError, match="method"):
         calibrate(np.random.default_rng(0).normal(size=(50, 3)), method="nope")
+
+
+@pytest.mark.parametrize("kind", ["identical", "collinear", "flat_circle"])
+def test_degenerate_geometry_is_refused_not_raised(kind):
+    rng = np.random.default_rng(8)
+    t = np.linspace(0, 6, 100)
+    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * 40 + rng.normal(0, 1e-9, 3)
+    m = {"identical": np.full((100, 3), 5.0), "collinear": np.outer(t, [1.0, 2.0, 3.0]),
+         "flat_circle": circle}[kind]
+    for method in METHODS:
+        cal = calibrate(m, method=method)
+        assert not cal.accepted and cal.reasons

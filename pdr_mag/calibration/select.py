@@ -105,7 +105,14 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
     Returns
     -------
     MagCalibration
-        With ``coverage``, ``accepted`` and ``reasons`` set (:func:`coverage.assess`).
+        With ``coverage``, ``accepted`` and ``reasons`` set (:func:`coverage.assess`).  When the samples
+        are well-formed but support no fit at all (all equal, collinear, exactly planar) the result is a
+        refusal: ``accepted=False``, ``reasons=["no calibration possible: …"]``, ``extra["failed"]``.
+
+    Raises
+    ------
+    ValueError
+        For malformed arguments (shape, NaN, unknown method, non-positive field).
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
@@ -115,14 +122,21 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
         ref = float(getattr(field, "strength", field))
         if not (np.isfinite(ref) and ref > 0):
             raise ValueError(f"field: expected a positive strength in µT, got {field!r}")
-    if len(m) < 10:
-        cal = fit_sphere(m)
-    elif method == "auto":
-        cal = select_model(m, settings=settings)
-    else:
-        fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
-              "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
-        cal = fn(m)
+    try:
+        if len(m) < 10:
+            cal = fit_sphere(m)
+        elif method == "auto":
+            cal = select_model(m, settings=settings)
+        else:
+            fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
+                  "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
+            cal = fn(m)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        # well-formed samples whose geometry supports no fit (all equal, on a line or a plane): an honest
+        # refusal, not an error — the placeholder (mean as offset, identity, no radius) is never accepted
+        return MagCalibration.from_arrays(
+            m.mean(axis=0), None, method=method, n_samples=len(m), coverage=0.0, accepted=False,
+            reasons=[f"no calibration possible: {exc}"], extra={"failed": True})
     if accel is not None:
         from dataclasses import replace
 
