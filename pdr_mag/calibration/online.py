@@ -390,7 +390,7 @@ def _full_fit(mag: np.ndarray, field_ref: float | None) -> MagCalibration:
     except ImportError:
         return fit_sphere(mag)
     try:
-        return calibrate(mag, method="auto")
+        return calibrate(mag, method="auto", field=field_ref)
     except TypeError:
         return calibrate(mag)
 
@@ -625,7 +625,7 @@ class OnlineCalibrator:
                 sp = fit_sphere(m)
                 sp = replace(sp, coverage=cov, extra={**sp.extra, "sin_dip": _mean_sin_dip(m, u, sp)})
                 cands.append(sp)
-            except ValueError:
+            except (ValueError, ArithmeticError):
                 pass
         if cov >= s.ellipsoid_coverage and (self._episode_seen or self.cal_state == "none"):
             try:
@@ -633,7 +633,7 @@ class OnlineCalibrator:
                 full = replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
                 full = replace(full, extra={**full.extra, "sin_dip": _mean_sin_dip(m, u, full)})
                 cands.append(full)
-            except ValueError:
+            except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
         first = self.calibration is None
         judged = [
