@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from _calibration_sim import F_UT, sample, soft_iron_ellipsoid
 
-from pdr_mag.calibration import crlb, effective_fisher, fit_lm9, fit_ml, offset_rmse_bound
+from pdr_mag.calibration import crlb, effective_fisher, fit_lm9, fit_ml, fit_radial_newton, offset_rmse_bound
 from pdr_mag.calibration.geometry import Projection, geometric_jacobian, sym_basis
 
 N_SAMPLES = 300
@@ -81,3 +81,7 @@ def test_radial_objective_biased_on_hemisphere_geometric_not():
     assert t_ml.max() < Z
     assert t_rad.max() > 3 * Z
     assert np.mean(np.sum(e_rad**2, 1)) > 4 * np.mean(np.sum(e_ml**2, 1))
+    # seed 000's Newton on the same radial objective does not even stay near the truth: the objective
+    # keeps decreasing towards a large flat ellipsoid along the missing side
+    e_newton = _mc(rng, fit_radial_newton, b, L, sigma, "hemi", 10)
+    assert np.median(np.linalg.norm(e_newton, axis=1)) > 10 * np.sqrt(np.mean(np.sum(e_ml**2, 1)))
