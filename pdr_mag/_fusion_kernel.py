@@ -614,14 +614,17 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     if np.isfinite(diploc):
         dmin2 += (f * np.radians(dip - diploc)) ** 2
     dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons)) ** 2
-    rv = p[P_MAG_NOISE] ** 2 + (p[P_MAG_NOISE_UT] ** 2 + p[P_MAG_DIST_K] ** 2 * dmin2) / (bh * bh)
+    rv_clean = p[P_MAG_NOISE] ** 2 + p[P_MAG_NOISE_UT] ** 2 / (bh * bh)
+    rv = rv_clean + p[P_MAG_DIST_K] ** 2 * dmin2 / (bh * bh)
     # the tilt is not corrected by the magnetometer, but its uncertainty enters the horizontal
     # projection: dψ = δθ_z − (m_x m_z δθ_x + m_y m_z δθ_y) / B_h²  →  R += h_t P_tilt h_tᵀ
     if p[P_MAG_TILT_K] > 0.0:
         bh2 = mwx * mwx + mwy * mwy
         hx = -mwx * mwz / bh2
         hy = -mwy * mwz / bh2
-        rv += p[P_MAG_TILT_K] * (hx * hx * P[0] + 2.0 * hx * hy * P[1] + hy * hy * P[NX + 1])
+        rt = p[P_MAG_TILT_K] * (hx * hx * P[0] + 2.0 * hx * hy * P[1] + hy * hy * P[NX + 1])
+        rv += rt
+        rv_clean += rt
     if st[S_INIT] < 2:
         # first usable field (strength and dip right; variance and consistency need a history):
         # set the heading directly, keep the tilt and bias
@@ -637,7 +640,9 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         st[S_MW], st[S_MW + 1], st[S_MW + 2] = np.nan, 0.0, 0.0
         return
     r = _wrap(r - st[S_C])
-    S = P[2 * NX + 2] + 2.0 * P[2 * NX + 6] + P[6 * NX + 6] + rv
+    # the χ² gate asks whether the innovation fits an undisturbed field (the inflation of rv for a suspect
+    # field lowers the gain, it must not widen the gate)
+    S = P[2 * NX + 2] + 2.0 * P[2 * NX + 6] + P[6 * NX + 6] + rv_clean
     if r * r > p[P_MAG_GATE] ** 2 * S:
         st[S_NREJ] += 1.0
         return

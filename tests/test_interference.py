@@ -1,0 +1,196 @@
+"""Interference detectors: each with its disturbance present and absent — the vectorised functions and the
+same checks inside the fusion kernel on a simulated walk with injected world-frame disturbances."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pdr_mag.attitude import FusionCore
+from pdr_mag.interference import (
+    InterferenceSettings,
+    consistency_angle_deg,
+    dip_deg,
+    hold_off,
+    strength_score,
+    windowed_variance,
+)
+from pdr_mag.sim import simulate
+from tests.test_attitude import error_at_truth, merge
+
+S = InterferenceSettings()
+
+
+# ------------------------------------------------------------------------------------------ vectorised
+def test_strength_score_present_and_absent():
+    ref = 48.0
+    tol = max(S.strength_tol_uT, S.strength_tol_rel * ref)
+    d = np.array([[0.0, 0.0, 1.0]])
+    f, s = strength_score(ref * d, ref)
+    assert f[0] == pytest.approx(ref) and s[0] == pytest.approx(0.0)
+    f, s = strength_score((ref + 1.5 * tol) * d, ref)
+    assert s[0] == pytest.approx(1.5)
+
+
+def test_dip_angle_of_known_geometry():
+    inc = np.radians(61.0)
+    m = 47.0 * np.array([[0.0, np.cos(inc), -np.sin(inc)]])  # device = world (flat, y north)
+    assert dip_deg(m, [[0.0, 0.0, 9.81]])[0] == pytest.approx(61.0)
+    tilted = Rotation.from_euler("x", 20.0, degrees=True)  # device pitched: both vectors turn together
+    assert dip_deg(tilted.inv().apply(m), tilted.inv().apply([[0.0, 0.0, 1.0]]))[0] == pytest.approx(61.0)
+    assert dip_deg(m, [[0.0, np.sin(0.3), np.cos(0.3)]])[0] != pytest.approx(61.0, abs=5.0)
+
+
+def test_windowed_variance_present_and_absent():
+    t = np.arange(0.0, 10.0, 0.02)
+    assert np.all(windowed_variance(t, np.full(len(t), 47.0), 1.0) < 1e-9)
+    amp = 5.0
+    v = windowed_variance(t, 47.0 + amp * np.sin(2 * np.pi * 3.0 * t), 1.0)
+    assert np.mean(v[t > 5]) == pytest.approx(amp**2 / 2, rel=0.2)
+
+
+def test_consistency_angle_present_and_absent():
+    t = np.arange(0.0, 10.0, 0.02)
+    f = np.tile([0.0, 22.8, -41.2], (len(t), 1))
+    assert np.all(consistency_angle_deg(t, f, 2.0) < 1e-6)
+    turned = f.copy()
+    turned[t >= 5.0] = Rotation.from_euler("z", 90.0, degrees=True).apply(f[t >= 5.0])
+    a = consistency_angle_deg(t, turned, 2.0)
+    assert a[np.searchsorted(t, 5.0)] > 30.0  # the field turned in the world frame
+    assert a[-1] < 5.0  # …and the mean direction follows a field that stays turned
+
+
+def test_hold_off_neither_flickers_nor_sticks():
+    t = np.arange(0.0, 10.0, 0.02)
+    score = np.zeros(len(t))
+    score[(t >= 2.0) & (t < 4.0)] = np.where(np.arange(np.sum((t >= 2.0) & (t < 4.0))) % 2, 0.0, 3.0)
+    flag = hold_off(t, score)
+    on = (t >= 2.0) & (t < 4.0)
+    assert flag[on].all()  # alternating good/bad samples: no flicker
+    assert not flag[t < 2.0].any()
+    assert not flag[t >= 4.0 + S.hold_off_s + 0.05].any()  # falls after hold_off_s of clean samples
+    assert flag[(t > 4.0) & (t < 4.0 + S.hold_off_s - 0.05)].all()
+
+
+def test_settings_validation():
+    with pytest.raises(ValueError, match="dip_tol_deg"):
+        InterferenceSettings(dip_tol_deg=0.0)
+    with pytest.raises(ValueError, match="hold_off_s"):
+        InterferenceSettings(hold_off_s=-1.0)
+
+
+# ------------------------------------------------------------------------------------------ in the kernel
+@pytest.fixture(scope="module")
+def walk():
+    return simulate(
+        "walk", seed=5, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.0, 0.0, 0.07)}
+    )
+
+
+T0, T1 = 60.0, 70.0  # the disturbance window
+
+
+def _disturbed(walk, field_w_fn):
+    """Magnetometer with the world-frame field replaced by field_w_fn(field_w) inside [T0, T1)."""
+    tm, m = walk.mag
+    f_w = np.asarray(walk.field.field_w)
+    inside = (tm >= T0) & (tm < T1)
+    rot = Rotation.from_quat(walk.trajectory.orientation(tm[inside])[:, [1, 2, 3, 0]])
+    m = m.copy()
+    m[inside] += rot.inv().apply(field_w_fn(f_w) - f_w)
+    return m
+
+
+def _run(walk, mag):
+    core = FusionCore(field=walk.field)
+    b = core.process(*merge(walk, mag))
+    return b
+
+
+def _fractions(b):
+    inside = (b.t >= T0 + 0.2) & (b.t < T1)
+    outside = ((b.t > 10.0) & (b.t < T0)) | (b.t > T1 + 2.0)
+    return b.interference[inside].mean(), b.interference[outside].mean(), inside
+
+
+def test_clean_walk_is_not_flagged(walk):
+    b = _run(walk, walk.mag[1])
+    assert b.interference[b.t > 5.0].mean() < 0.01
+    late = b.t > 30.0
+    # the learnt local references settle on the true field
+    assert np.median(b.diag["field_ref_uT"][late]) == pytest.approx(walk.field.strength, abs=1.0)
+    # (the measured dip carries the tilt error of a walking hand, ~1–2°)
+    assert np.median(b.diag["dip_ref_deg"][late]) == pytest.approx(walk.field.inclination_deg, abs=3.0)
+
+
+def test_strength_detector(walk):
+    # +30 µT along the field: strength off, dip and direction unchanged
+    mag = _disturbed(walk, lambda f: f * (1.0 + 30.0 / np.linalg.norm(f)))
+    b = _run(walk, mag)
+    fin, fout, inside = _fractions(b)
+    assert fin > 0.95 and fout < 0.01
+    assert not b.mag_used[inside].any()
+    assert np.all(b.diag["interference_score"][inside] >= 1.0)
+
+
+def test_dip_detector(walk):
+    # the field tilted 25° about east: same strength, same horizontal direction, dip 25° off
+    rot = Rotation.from_euler("x", 25.0, degrees=True)
+    mag = _disturbed(walk, lambda f: rot.apply(f))
+    b = _run(walk, mag)
+    fin, fout, inside = _fractions(b)
+    assert fin > 0.95 and fout < 0.01
+    assert np.all(np.abs(b.diag["dip_deg"][inside] - b.diag["dip_ref_deg"][inside]) > S.dip_tol_deg)
+
+
+def test_gyro_consistency_detector(walk):
+    # the field turned 120° about up: strength and dip unchanged — only the gyroscope can tell
+    rot = Rotation.from_euler("z", 120.0, degrees=True)
+    mag = _disturbed(walk, lambda f: rot.apply(f))
+    b = _run(walk, mag)
+    onset = (b.t >= T0 + 0.05) & (b.t < T0 + 1.0)
+    assert b.interference[onset].all()
+    assert b.diag["consistency_deg"][onset].max() > S.consistency_tol_deg
+    # strength and dip saw nothing
+    f_ok = np.abs(b.diag["field_strength_uT"][onset] - walk.field.strength) < 3.0
+    assert f_ok.all()
+    # the heading does not follow the turned field (flag, then the innovation gate)
+    tt, qt = walk.truth
+    w = (tt >= T0) & (tt < T1 + 5.0)
+    err = error_at_truth(b, tt[w], qt[w])
+    assert np.max(np.abs(err)) < 10.0
+    clean = _run(walk, walk.mag[1])
+    assert not clean.interference[(clean.t >= T0) & (clean.t < T1)].any()
+
+
+def test_variance_detector(walk):
+    # strength oscillating ±15 µT at 3 Hz along the field (a motor, a vibrating magnet)
+    def osc_mag():
+        tm, m = walk.mag
+        f_w = np.asarray(walk.field.field_w)
+        inside = (tm >= T0) & (tm < T1)
+        rot = Rotation.from_quat(walk.trajectory.orientation(tm[inside])[:, [1, 2, 3, 0]])
+        amp = 15.0 * np.sin(2 * np.pi * 3.0 * tm[inside])[:, None]
+        m = m.copy()
+        m[inside] += rot.inv().apply(amp * f_w / np.linalg.norm(f_w))
+        return m
+
+    b = _run(walk, osc_mag())
+    inside = (b.t >= T0 + 1.0) & (b.t < T1)
+    assert np.median(b.diag["strength_var_uT2"][inside]) > S.var_max_uT2
+    assert b.interference[inside].mean() > 0.95
+    clean = _run(walk, walk.mag[1])
+    assert np.max(clean.diag["strength_var_uT2"][clean.t > 5.0]) < 0.1 * S.var_max_uT2
+
+
+def test_heading_survives_a_strong_disturbance(walk):
+    # a magnet-like 80 µT field fixed in the world for 10 s: rejected; heading on the gyro meanwhile
+    mag = _disturbed(walk, lambda f: f + np.array([60.0, -40.0, 35.0]))
+    b = _run(walk, mag)
+    tt, qt = walk.truth
+    w = (tt >= T0) & (tt < T1 + 5.0)
+    err = error_at_truth(b, tt[w], qt[w])
+    assert np.max(np.abs(err)) < 5.0
+    inside = (b.t >= T0 + 0.2) & (b.t < T1)
+    assert np.all(np.diff(b.heading_std_deg[inside]) >= -1e-9)  # std grows while rejected
