@@ -197,6 +197,8 @@ WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_r
 _LOG_INFO, _LOG_WARNING = 2, 3
 
 _COMPRESSION = ("zstd", "lz4", "none")
+#: Longest run of rows formatted at once (longer calls are sliced: bounded transient memory).
+_MAX_ROWS = 8192
 
 try:  # orjson (Rust, shortest round-trip float repr) formats numbers ~5× faster than ``%`` — optional
     import orjson as _orjson
@@ -259,6 +261,10 @@ class McapSink:
         n = len(batch)
         if n == 0:
             return
+        if n > _MAX_ROWS:  # bounded transient memory whatever the caller hands over
+            for i in range(0, n, _MAX_ROWS):
+                self.estimates(_slice_batch(batch, slice(i, i + _MAX_ROWS)))
+            return
         t = np.asarray(batch.t, dtype=float)
         ns = self._log_times(t)
         q = np.asarray(batch.q_wd, dtype=float).reshape(n, 4)
@@ -299,6 +305,10 @@ class McapSink:
         if n == 0:
             return
         q = np.asarray(q_wd, dtype=float).reshape(n, 4)
+        if n > _MAX_ROWS:
+            for i in range(0, n, _MAX_ROWS):
+                self.reference(name, t[i : i + _MAX_ROWS], q[i : i + _MAX_ROWS])
+            return
         ns = self._log_times(t)
         self._pose(f"/reference/{name}/orientation", ns, q)
         fmt = b'{"t":%s,"heading_deg":%s}\n'
@@ -372,6 +382,10 @@ class McapSink:
         if n == 0:
             return
         xyz = np.asarray(xyz, dtype=float).reshape(n, 3)
+        if n > _MAX_ROWS:
+            for i in range(0, n, _MAX_ROWS):
+                self._vector3(topic, t[i : i + _MAX_ROWS], xyz[i : i + _MAX_ROWS], channel_meta)
+            return
         ns = self._log_times(t)
         tok = _tokens(np.column_stack([t, xyz]))
         msgs = ((b'{"t":%s,"x":%s,"y":%s,"z":%s}\n' * n) % tuple(tok.ravel().tolist())).split(b"\n")[:-1]
@@ -439,6 +453,13 @@ def _tokens(values: np.ndarray) -> np.ndarray:
     toks = text.split(b",")
     out[:] = toks[: len(flat)]
     return out.reshape(a.shape)
+
+
+def _slice_batch(batch, sl: slice):
+    from dataclasses import fields, replace
+
+    cols = {f.name: getattr(batch, f.name)[sl] for f in fields(batch) if f.name != "diag"}
+    return replace(batch, **cols, diag={k: v[sl] for k, v in batch.diag.items()})
 
 
 def _fmt_col(values) -> np.ndarray:

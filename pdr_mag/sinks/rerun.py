@@ -376,13 +376,18 @@ class RerunSink:
             self._flush(entity)
 
     def _flush(self, entity: str) -> None:
-        import rerun as rr
-
         kind, ts, vs, n = self._buf.pop(entity)
         if n == 0:
             return
         t = np.concatenate(ts)
         v = np.concatenate(vs)
+        for i in range(0, n, self.chunk_rows):  # one send per chunk_rows, however much arrived at once
+            self._send(entity, kind, t[i : i + self.chunk_rows], v[i : i + self.chunk_rows])
+        self.rows_sent[entity] = self.rows_sent.get(entity, 0) + n
+
+    def _send(self, entity: str, kind: str, t: np.ndarray, v: np.ndarray) -> None:
+        import rerun as rr
+
         index = [rr.TimeColumn("time", duration=_duration_ns(t))]
         if kind == "scalar":
             columns = rr.Scalars.columns(scalars=v)
@@ -393,4 +398,3 @@ class RerunSink:
         else:  # text
             columns = rr.TextLog.columns(text=[str(x) for x in v[:, 0]], level=[str(x) for x in v[:, 1]])
         self._rec.send_columns(entity, indexes=index, columns=columns)
-        self.rows_sent[entity] = self.rows_sent.get(entity, 0) + n
