@@ -49,6 +49,8 @@ class Alignment:
         Quasi-static samples used.
     spread_deg : float
         Spread of the static gravity directions (see ``min_spread_deg``).
+    reason : str
+        Why the rotation is not significant (empty when it is).
     """
 
     rotation: np.ndarray
@@ -59,11 +61,13 @@ class Alignment:
     dip_rms: float
     n_used: int
     spread_deg: float = float("nan")
+    reason: str = ""
 
     def to_dict(self) -> dict:
         return {"angle_deg": self.angle_deg, "angle_std_deg": self.angle_std_deg,
                 "significant": self.significant, "sin_dip": self.sin_dip, "dip_rms": self.dip_rms,
-                "n_used": self.n_used, "spread_deg": self.spread_deg, "rotation": self.rotation.tolist()}
+                "n_used": self.n_used, "spread_deg": self.spread_deg, "reason": self.reason,
+                "rotation": self.rotation.tolist()}
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -215,12 +219,22 @@ def fit_alignment(mag_cal: np.ndarray, accel: np.ndarray, static_tol: float = 0.
         angle_std = float(np.sqrt(np.trace(cw) / 3))
     spread = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(np.cov(g.T))[1], 0.0))))
     consistent = abs(c) < 0.995 and (sin_dip is None or abs(c - sin_dip) < max_dip_error)
-    significant = bool(np.degrees(angle) > min_angle_deg and stat > CHI2_3_999 and spread >= min_spread_deg
-                       and consistent)
+    if spread < min_spread_deg:
+        reason = f"static samples in too few poses (gravity spread {spread:.1f}° < {min_spread_deg:g}°)"
+    elif not consistent:
+        reason = f"fitted dip constant {c:+.3f} inconsistent" + (
+            f" with the WMM ({sin_dip:+.3f})" if sin_dip is not None else " (degenerate)")
+    elif np.degrees(angle) <= min_angle_deg:
+        reason = f"angle below {min_angle_deg:g}°"
+    elif not stat > CHI2_3_999:
+        reason = "not distinguishable from zero (χ² test)"
+    else:
+        reason = ""
+    significant = not reason
     return Alignment(rotation=r, angle_deg=float(np.degrees(angle)),
                      angle_std_deg=float(np.degrees(angle_std)), significant=significant,
                      sin_dip=float(c), dip_rms=float(np.sqrt(np.mean(res**2))),
-                     n_used=int(n), spread_deg=spread)
+                     n_used=int(n), spread_deg=spread, reason=reason)
 
 
 def fit_reference_rotation(mag_cal: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -90,9 +90,15 @@ def summary(cal, rec, field) -> str:
         if al is None:
             lines.append("  alignment  not estimated (too few quasi-static accelerometer samples)")
         else:
-            verdict = "applied (mag_to_imu)" if al["significant"] else "not significant, identity kept"
-            lines.append(f"  alignment  {al['angle_deg']:.2f}° ± {al['angle_std_deg']:.2f}° from "
-                         f"{al['n_used']} static samples: {verdict}")
+            if al["significant"]:
+                lines.append(f"  alignment  {al['angle_deg']:.2f}° ± {al['angle_std_deg']:.2f}° from "
+                             f"{al['n_used']} static samples: applied (mag_to_imu)")
+            elif "poses" in al.get("reason", "") or "dip" in al.get("reason", ""):
+                lines.append(f"  alignment  not estimable from {al['n_used']} static samples: "
+                             f"{al['reason']}; identity kept")
+            else:
+                lines.append(f"  alignment  {al['angle_deg']:.2f}° ± {al['angle_std_deg']:.2f}° from "
+                             f"{al['n_used']} static samples: {al.get('reason', '')}, identity kept")
     if cal.accepted:
         lines.append("  ACCEPTED")
     else:
