@@ -187,9 +187,9 @@ class FusionSettings:
     mag_dist_k: float = 2.0
     mag_cons_k: float = 1.0
     mag_tilt_k: float = 1.0
-    mag_error_std_deg: float = 5.0
-    mag_error_tau_s: float = 10.0
-    mag_interval_s: float = 0.1
+    mag_error_std_deg: float = 6.0
+    mag_error_tau_s: float = 5.0
+    mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
