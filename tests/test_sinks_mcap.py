@@ -269,7 +269,8 @@ def _recording_from_mcap(path):
     )
 
 
-def test_replaying_the_mcap_reproduces_the_outputs(tmp_path):
+@pytest.mark.parametrize("background", [False, True], ids=["in-process", "writer-process"])
+def test_replaying_the_mcap_reproduces_the_outputs(tmp_path, background):
     """``replay rec --mcap a.mcap --out-csv 1.csv`` then ``replay a.mcap --out-csv 2.csv``: identical CSV."""
     from pathlib import Path
 
@@ -281,7 +282,7 @@ def test_replaying_the_mcap_reproduces_the_outputs(tmp_path):
     if not (rec / "mag.csv").exists():
         pytest.skip("recordings/mixed not present")
     a, csv1, csv2 = tmp_path / "a.mcap", tmp_path / "1.csv", tmp_path / "2.csv"
-    run.replay(rec, sinks=[McapSink(a), run.CsvSink(csv1)], progress=False)
+    run.replay(rec, sinks=[McapSink(a, background=background), run.CsvSink(csv1)], progress=False)
     try:
         again = read_recording(a)  # the MCAP reader of replay/formats, once it exists
     except InputError:
@@ -313,3 +314,41 @@ def test_number_tokens_read_back_exactly(monkeypatch, use_orjson):
     np.testing.assert_array_equal(np.array([b for b in back if b is not None]), x[finite])
     ints = np.array([0, 7, 2**62, -5], dtype=np.int64)
     assert [json.loads(tok) for tok in m._tokens(ints)] == ints.tolist()
+
+
+def _all_messages(path):
+    with open(path, "rb") as f:
+        r = make_reader(f, validate_crcs=True)
+        msgs = sorted((c.topic, m.log_time, m.data) for _, c, m in r.iter_messages())
+    with open(path, "rb") as f:
+        meta = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+    return msgs, meta
+
+
+def test_writer_process_writes_the_same_file_content(tmp_path):
+    files = []
+    for background in (False, True):
+        p = tmp_path / f"bg{background}.mcap"
+        sink = McapSink(p, background=background, chunk_size=32 * 1024)
+        sink.open({"device": "x", "t0": -0.5})
+        t = -0.5 + np.arange(3000) / 100.0
+        sink.inputs("mag", t, np.sin(t)[:, None] * [1.0, 2.0, 3.0])
+        sink.estimates(_batch(np.random.default_rng(1), t[::2]))
+        sink.reference("os", t, _unit_quats(np.random.default_rng(2), len(t)))
+        sink.event(Event(1.0, "recalibrated", {"method": "ml"}))
+        sink.calibration(2.0, MagCalibration.from_arrays([1.0, 2.0, 3.0], field_uT=50.0))
+        sink.close()
+        assert sink.time_offset_ns == 1_000_000_000
+        files.append((p, dict(sink.counts)))
+    (p0, c0), (p1, c1) = files
+    assert c0 == c1 and c0["/mag/raw"] == 3000
+    assert _all_messages(p0) == _all_messages(p1)
+
+
+def test_writer_process_reports_errors_at_close(tmp_path):
+    sink = McapSink(tmp_path / "bad.mcap", background=True)
+    sink.open({})
+    sink.inputs("gyro", np.arange(4.0), np.zeros((4, 2)))  # wrong shape: fails in the writer process
+    sink.inputs("gyro", np.arange(4.0) + 4, np.zeros((4, 3)))  # later calls are drained, not deadlocked
+    with pytest.raises(RuntimeError, match="writer process"):
+        sink.close()

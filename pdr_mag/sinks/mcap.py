@@ -217,9 +217,17 @@ class McapSink:
         Chunk compression.
     chunk_size : int
         Uncompressed bytes per chunk (bounds the memory the writer holds).
+    background : bool
+        Format and write in a separate process (``multiprocessing`` "spawn"): the caller only pickles
+        the arrays into a pipe, so on a machine with a free core the replay hardly waits for the sink.
+        The pipe blocks when the writer falls behind, so memory stays bounded.  Errors in the writer are
+        raised by :meth:`close`.  As with any "spawn" process, a calling *script* needs the usual
+        ``if __name__ == "__main__":`` guard.
     """
 
-    def __init__(self, path, *, compression: str = "zstd", chunk_size: int = 1 << 20):
+    def __init__(
+        self, path, *, compression: str = "zstd", chunk_size: int = 1 << 20, background: bool = False
+    ):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression: expected one of {_COMPRESSION}, got {compression!r}")
         if int(chunk_size) <= 0:
@@ -227,6 +235,8 @@ class McapSink:
         self.path = Path(path)
         self.compression = compression
         self.chunk_size = int(chunk_size)
+        self.background = bool(background)
+        self._proc: _WriterProcess | None = None
         self._writer = None
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -237,9 +247,13 @@ class McapSink:
 
     # ------------------------------------------------------------------ Sink protocol
     def open(self, meta: dict) -> None:
-        if self._writer is not None:
+        if self._writer is not None or self._proc is not None:
             raise RuntimeError("McapSink: open() called twice without close()")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.background:
+            self._proc = _WriterProcess(self.path, self.compression, self.chunk_size)
+            self._proc.send("open", (dict(meta or {}),))
+            return
         self._schemas, self._channels, self.counts = {}, {}, {}
         self._t0_hint, self._offset_ns, self._clamped = None, None, 0
         self._writer = _ChunkWriter(self.path, self.chunk_size, self.compression)
@@ -252,14 +266,18 @@ class McapSink:
     def inputs(self, kind: str, t: np.ndarray, xyz: np.ndarray) -> None:
         if kind not in INPUT_TOPICS:
             raise ValueError(f"kind: expected one of {tuple(INPUT_TOPICS)}, got {kind!r}")
+        if self._forward("inputs", kind, np.asarray(t, dtype=float), np.asarray(xyz, dtype=float)):
+            return
         self._vector3(INPUT_TOPICS[kind], t, xyz, {"unit": INPUT_UNITS[kind], "role": "input"})
 
     def mag_calibrated(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        if self._forward("mag_calibrated", np.asarray(t, dtype=float), np.asarray(xyz, dtype=float)):
+            return
         self._vector3("/mag/calibrated", t, xyz, {"unit": "uT", "role": "output"})
 
     def estimates(self, batch) -> None:
         n = len(batch)
-        if n == 0:
+        if n == 0 or self._forward("estimates", batch):
             return
         if n > _MAX_ROWS:  # bounded transient memory whatever the caller hands over
             for i in range(0, n, _MAX_ROWS):
@@ -302,7 +320,7 @@ class McapSink:
 
         t = np.asarray(t, dtype=float)
         n = len(t)
-        if n == 0:
+        if n == 0 or self._forward("reference", name, t, np.asarray(q_wd, dtype=float)):
             return
         q = np.asarray(q_wd, dtype=float).reshape(n, 4)
         if n > _MAX_ROWS:
@@ -316,6 +334,8 @@ class McapSink:
         self._write(f"/reference/{name}/heading", "pdr_mag.HeadingReference", ns, _rows(fmt, cols, n))
 
     def event(self, ev) -> None:
+        if self._forward("event", ev):
+            return
         d = ev.to_dict()
         ns = int(self._log_times(np.array([float(ev.t)]))[0])
         details = {k: v for k, v in d.items() if k not in ("t", "kind")}
@@ -331,6 +351,8 @@ class McapSink:
         self._write("/pdr/events", "foxglove.Log", [ns], [json.dumps(msg).encode()])
 
     def calibration(self, t: float, cal) -> None:
+        if self._forward("calibration", float(t), cal):
+            return
         d_cal = _jsonable(cal.to_dict())
         d = {"t": float(t), **d_cal}
         ns = int(self._log_times(np.array([float(t)]))[0])
@@ -339,6 +361,15 @@ class McapSink:
         self._writer.add_metadata("calibration", {"t": repr(float(t)), "json": json.dumps(d_cal)})
 
     def close(self) -> None:
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            result = proc.finish()
+            self.counts = result.get("counts", {})
+            self._offset_ns = result.get("time_offset_ns")
+            self._clamped = result.get("clamped", 0)
+            if result.get("error"):
+                raise RuntimeError(f"McapSink writer process for {self.path}: {result['error']}")
+            return
         if self._writer is None:
             return
         self._writer.add_metadata(
@@ -360,6 +391,15 @@ class McapSink:
         self.close()
 
     # ------------------------------------------------------------------ helpers
+    def _forward(self, name: str, *args) -> bool:
+        """In background mode, send the call to the writer process (True); else check we are open."""
+        if self._proc is not None:
+            self._proc.send(name, args)
+            return True
+        if self._writer is None:
+            raise RuntimeError("McapSink: open() must be called before writing (and not after close())")
+        return False
+
     @property
     def time_offset_ns(self) -> int:
         return self._offset_ns or 0
@@ -426,6 +466,78 @@ class McapSink:
         cid = self._channel(topic, schema, channel_meta)
         self._writer.add_messages(cid, np.asarray(ns, dtype=np.int64), msgs)
         self.counts[topic] = self.counts.get(topic, 0) + len(msgs)
+
+
+# ---------------------------------------------------------------------- background writer process
+class _WriterProcess:
+    """A child process running an in-process :class:`McapSink`, fed ``(method, args)`` through a pipe."""
+
+    def __init__(self, path: Path, compression: str, chunk_size: int):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # not fork: the caller may have threads (rerun, the I/O thread)
+        recv_end, self._conn = ctx.Pipe(duplex=False)
+        self._result, result_end = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(
+            target=_writer_main,
+            args=(recv_end, result_end, str(path), compression, chunk_size),
+            name="pdr_mag-mcap-sink",
+            daemon=True,
+        )
+        self._proc.start()
+        recv_end.close()
+        result_end.close()
+
+    def send(self, name: str, args: tuple) -> None:
+        try:
+            self._conn.send((name, args))
+        except (BrokenPipeError, ConnectionResetError, EOFError) as exc:
+            raise RuntimeError(f"McapSink writer process ended early ({self._error_or(exc)})") from None
+
+    def _error_or(self, exc) -> str:
+        if self._result.poll(1.0):
+            return str(self._result.recv().get("error"))
+        return f"{type(exc).__name__}; exit code {self._proc.exitcode}"
+
+    def finish(self) -> dict:
+        try:
+            self._conn.send(("close", ()))
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        self._conn.close()
+        result = {"error": f"no answer from the writer process (exit code {self._proc.exitcode})"}
+        try:
+            result = self._result.recv()
+        except EOFError:
+            pass
+        self._proc.join(timeout=60)
+        return result
+
+
+def _writer_main(conn, result, path: str, compression: str, chunk_size: int) -> None:
+    """The writer process: apply the calls in order; after an error keep draining (no deadlock)."""
+    sink = McapSink(path, compression=compression, chunk_size=chunk_size)
+    error = None
+    while True:
+        try:
+            name, args = conn.recv()
+        except EOFError:  # the caller went away without close(): still finish the file
+            name, args = "close", ()
+        if error is None:
+            try:
+                getattr(sink, name)(*args)
+            except BaseException as exc:  # noqa: BLE001 - reported to the caller
+                error = f"{type(exc).__name__}: {exc}"
+        if name == "close":
+            break
+    if error is not None and sink._writer is not None:
+        try:
+            sink.close()
+        except BaseException:  # noqa: BLE001, S110 - the first error is the one to report
+            pass
+    result.send(
+        {"counts": sink.counts, "time_offset_ns": sink._offset_ns, "clamped": sink._clamped, "error": error}
+    )
 
 
 # ---------------------------------------------------------------------- formatting helpers
