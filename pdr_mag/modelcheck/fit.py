@@ -35,8 +35,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import least_squares
+from scipy.sparse.linalg import splu
 
 from pdr_mag.modelcheck.orientation import OrientationTrack
 from pdr_mag.sensor_model import quat_slerp, rotvec_to_matrix
@@ -267,20 +267,24 @@ def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, w
     (and the regularised normal matrix ``AᵀA`` with ``with_normal``)."""
     a = design(problem, mats, measurement_times(problem, nl), layout)
     y = problem.mag.ravel()
-    ata = (a.T @ a).toarray()
+    ata = (a.T @ a).tocsc()
     aty = a.T @ y
-    diag = np.diag(ata).copy()
+    diag = ata.diagonal()
     ridge = 1e-9 * (diag.mean() if diag.size else 1.0) * np.ones(layout.size)
     if "local_anomaly" in layout.blocks:
         # weak prior on the knots: σ_noise²/σ_prior² with σ_noise ~ 1 µT
         ridge[layout.blocks["local_anomaly"]] += 1.0 / problem.anomaly_prior_uT**2
-    ata[np.diag_indices_from(ata)] += ridge
+    ata = (ata + sp.diags(ridge)).tocsc()
+    # sparse LU (SuperLU): the normal matrix is banded (anomaly knots) with a small dense border, and
+    # unlike dense LAPACK it does not slow down when BLAS threads compete for the two cores
     try:
-        x = cho_solve(cho_factor(ata), aty)
-    except np.linalg.LinAlgError:
-        x = np.linalg.lstsq(ata, aty, rcond=None)[0]
+        lu = splu(ata)
+        x = lu.solve(aty)
+    except RuntimeError:  # exactly singular
+        lu = None
+        x = np.linalg.lstsq(ata.toarray(), aty, rcond=None)[0]
     if with_normal:
-        return x, y - a @ x, ata
+        return x, y - a @ x, (ata, lu)
     return x, y - a @ x
 
 
@@ -369,9 +373,17 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
     # 1-σ uncertainties: Gauss–Newton covariance × σ² × τ_int (correlated residuals count less)
     s2 = float(r @ r) / max(len(r) - k, 1) * integrated_autocorr_time(res)
     std = {}
-    cov_lin = np.linalg.pinv(ata)
+    ata_sp, lu = ata
+    anom = layout.blocks.get("local_anomaly")
+    n_glob = layout.size if anom is None else anom.start
+    if lu is not None:  # the global blocks' variances: columns of the inverse normal matrix
+        cov_glob = lu.solve(np.eye(layout.size)[:, :n_glob])[:n_glob]
+    else:
+        cov_glob = np.linalg.pinv(ata_sp.toarray())[:n_glob, :n_glob]
+    var = np.full(layout.size, np.nan)
+    var[:n_glob] = np.diag(cov_glob)
     for name, sl in layout.blocks.items():
-        std[name] = np.sqrt(np.clip(np.diag(cov_lin)[sl] * s2, 0, None))
+        std[name] = np.sqrt(np.clip(var[sl] * s2, 0, None))
     if jac is not None:
         cov_nl = np.linalg.pinv(jac.T @ jac)
         std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))

@@ -1,0 +1,136 @@
+"""Benchmark of ``pdr-mag diagnose`` (issue 6) on the real recordings in ../shared/datasets.
+
+For each recording: the baseline gap (hard_iron + noise along the gyro + accelerometer orientation), the
+missing effects in the order added with their key estimates, the final gap, how much it shrank, and the
+wall time.  The tyrex recordings are also run in evaluation mode (``use_truth``: along the mocap
+orientation), which separates what the sensor model misses from what the orientation estimate misses.
+The sunsided breadboard gets its MPU6050 temperature channel (read here from ``mpu6050.csv``, since the
+reader does not expose it yet), which enables the ``temperature_offset`` candidate.
+
+    python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth]
+
+Prints a Markdown table (the one in benchmarks/RESULTS.md, section "Diagnose (issue 6)").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+DATA = (ROOT / ".." / "shared" / "datasets").resolve()
+
+
+def recordings() -> list[tuple[str, Path]]:
+    out = []
+    ty = DATA / "tyrex-pdrcsv"
+    for name in sorted(p.name for p in ty.iterdir()) if ty.is_dir() else []:
+        if name.startswith("calib_gyr"):
+            continue  # static gyro calibrations: no rotation, nothing for the model check to see
+        out.append((f"tyrex/{name}", ty / name))
+    ss = DATA / "sunsided-marg" / "set-2"
+    for name in sorted(p.name for p in ss.iterdir()) if ss.is_dir() else []:
+        out.append((f"sunsided/{name}", ss / name))
+    br = DATA / "broad" / "data_mat"
+    for p in sorted(br.glob("*.mat")) if br.is_dir() else []:
+        out.append((f"broad/{p.stem}", p))
+    xio = DATA / "xio-fusion" / "sensor_data.csv"
+    if xio.exists():
+        out.append(("xio/sensor_data", xio))
+    ms = DATA / "ms-indoor-location-2020" / "site1"
+    for p in sorted(ms.glob("*/path_data_files/*.txt")) if ms.is_dir() else []:
+        out.append((f"msindoor/{p.parent.parent.name}/{p.stem[:8]}", p))
+    return out
+
+
+def sunsided_temperature(path: Path):
+    f = path / "mpu6050.csv"
+    if not f.exists():
+        return None
+    a = np.genfromtxt(f, delimiter=",", names=True)
+    names = a.dtype.names
+    return np.asarray(a[names[0]], float), np.asarray(a["temp_C"], float)
+
+
+def _key_estimate(name: str, est: dict) -> str:
+    if name == "time_offset":
+        return f"{est['seconds'] * 1000:.0f} ms"
+    if name == "gyro_bias":
+        return "|b| " + f"{np.linalg.norm(est['rad_per_s']):.3f} rad/s"
+    if name == "soft_iron":
+        return f"axis ratio {est['axis_ratio']:.3f}"
+    if name == "mag_imu_misalignment":
+        return f"{est['degrees']:.1f}°"
+    if name == "bias_drift":
+        return f"{np.linalg.norm(est['uT_per_min']):.1f} µT/min"
+    if name == "local_anomaly":
+        return f"peak {est['uT']:.0f} µT, {est['share'] * 100:.0f} % of time"
+    if name == "temperature_offset":
+        return f"{np.linalg.norm(est['uT_per_degC']):.2f} µT/°C"
+    return ""
+
+
+def run_one(label: str, path: Path, use_truth: bool) -> dict:
+    from pdr_mag.modelcheck import diagnose
+    from replay.formats import read_recording
+
+    rec = read_recording(path)
+    temp = sunsided_temperature(path) if label.startswith("sunsided/") else None
+    if temp is not None and len(rec.gyro) and abs(temp[0][0] - rec.gyro.t[0]) > 1.0:
+        temp = None  # the reader re-timed the stream: do not guess the alignment
+    t0 = time.perf_counter()
+    d = diagnose(rec.mag.t, rec.mag.xyz, rec.gyro.t, rec.gyro.xyz, rec.accel.t, rec.accel.xyz,
+                 truth=rec.truth, use_truth=use_truth, temperature=temp)
+    wall = time.perf_counter() - t0
+    out = d.to_dict()
+    out["wall_s"] = wall
+    out["label"] = label
+    out["temperature"] = temp is not None
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", type=Path, help="write all results to this JSON file")
+    ap.add_argument("--only", default="", help="only recordings whose label contains this")
+    ap.add_argument("--no-truth", action="store_true", help="skip the evaluation-mode runs")
+    args = ap.parse_args()
+    rows, results = [], []
+    print("| recording | s | orientation | baseline gap (µT) | missing effects (in order; key estimate) "
+          "| final gap (µT) | shrink | time (s) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for label, path in recordings():
+        if args.only not in label:
+            continue
+        modes = [False]
+        if label.startswith("tyrex/") and not args.no_truth and (path / "truth.csv").exists():
+            modes.append(True)
+        for use_truth in modes:
+            try:
+                r = run_one(label, path, use_truth)
+            except Exception as exc:  # report and go on: a benchmark, not a test
+                print(f"| {label} | | | failed: {type(exc).__name__}: {str(exc)[:80]} | | | | |")
+                continue
+            results.append(r)
+            fin = r["final"]["estimate"]
+            eff = "; ".join(f"{e} ({_key_estimate(e, fin.get(e, {}))})" for e in r["missing_effects"])
+            eff = eff or "none"
+            orient = r["orientation"] + (" +T" if r["temperature"] else "")
+            line = (f"| {label} | {r['duration_s']:.0f} | {orient} "
+                    f"| {r['baseline']['gap']:.2f} | {eff} | {r['final']['gap']:.2f} "
+                    f"| {r['baseline']['gap'] / r['final']['gap']:.1f}× | {r['wall_s']:.1f} |")
+            rows.append(line)
+            print(line, flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
