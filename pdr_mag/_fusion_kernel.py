@@ -7,22 +7,36 @@ through JSON as a plain list.  Settings arrive packed in ``p`` (``P_*`` indices,
 
 Filter (error-state / multiplicative EKF, world-frame attitude error)
 --------------------------------------------------------------------
-Nominal state: ``q`` (device → ENU true north, w-first), gyro bias ``b`` (device frame, rad/s).
-Error state ``δx = (δθ, δb)`` with ``R_true = Exp(δθ) R`` (δθ in the world frame, so ``δθ_z`` is the
-heading error and ``heading_std = sqrt(P[2, 2])``) and ``b_true = b + δb``.
+Nominal state: ``q`` (device → ENU true north, w-first), gyro bias ``b`` (device frame, rad/s), and ``c``
+the slowly varying error of the magnetometer heading (rad).  Error state ``δx = (δθ, δb, δc)`` (NX = 7)
+with ``R_true = Exp(δθ) R`` (δθ in the world frame, so ``δθ_z`` is the heading error and
+``heading_std = sqrt(P[2, 2])``), ``b_true = b + δb``, ``c_true = c + δc``.
 
 predict (per gyro sample, Δt)
     ``q ← q ⊗ Exp((ω̄ − b) Δt)`` with ω̄ the mean of the last two gyro samples;
-    ``Φ = [[I, −R Δt], [0, I]]``, ``Q = diag(σ_g² Δt I, σ_b² Δt I)``, ``P ← Φ P Φᵀ + Q``.
+    ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``,
+    ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``, ``P ← Φ P Φᵀ + Q``; ``c ← φ c`` (first-order
+    Gauss–Markov: the heading error of a calibrated magnetometer — residual calibration error, the
+    building's own field — is correlated over seconds, so the filter must not read its slow drift as
+    gyro bias, and the reported std stays honest).  ``P[2, 2]`` is capped at π² (unknown heading).
 accelerometer (per accel sample)
     ``u_w = R a/|a| ≈ e_z + (−δθ_y, δθ_x, 0)``: two scalar updates of the tilt errors only, noise
-    ``σ_a² = σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)²``; skipped when ``||a| − g| > gate · g``.
+    ``σ_a² = σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)² + var(a)/g² · τ_a/Δt_a`` — the last term spreads the
+    running variance of the linear acceleration (correlation time τ_a) over the samples, so the
+    information per second does not depend on the sample rate; skipped when ``||a| − g| > gate · g``.
+    (Optional, off by default: the same from the specific force averaged in the almost-inertial frame.)
 magnetometer (calibrated, per sample, at most every ``mag_interval_s``)
-    heading-only: ``ψ = atan2(m_w,x, m_w,y)`` with ``m_w = R m_d``; residual ``r = wrap(ψ − D)`` (D the
-    declination, 0 for magnetic north) observes ``δθ_z`` alone (``H = e_3``), so a disturbed field can
-    never tilt the attitude; noise ``σ_ψ² = σ_h² + (σ_m / B_h)²`` with ``B_h`` the measured horizontal
-    strength.  Skipped when the interference flag is up, when the caller disallows it, or when the
-    innovation fails a χ² gate.
+    heading-only: ``ψ = atan2(m_w,x, m_w,y)`` with ``m_w = R m_d``; residual ``r = wrap(ψ − D − c)`` (D the
+    declination, 0 for magnetic north) observes ``δθ_z + δc`` (``H = e_3 + e_7``), so a disturbed field
+    can never tilt the attitude.  Noise
+    ``σ_ψ² = σ_h² + (σ_m² + k² d_min²) / B_h² + h_t P_tilt h_tᵀ``: ``B_h`` the measured horizontal
+    strength, ``d_min² = (F − F_loc)² + (F (I − I_loc))² + (F ∠cons)²`` the smallest disturbance that
+    explains the deviations of strength, dip and world-frame direction from the detectors' references
+    (a disturbance d turns the horizontal field by at most |d|/B_h), and ``h_t = −(m_x m_z, m_y m_z)/B_h²``
+    the sensitivity of ψ to tilt errors.  Skipped while the interference flag (:mod:`pdr_mag.interference`)
+    is up, when the caller disallows it, or when the innovation fails a χ² gate computed with the
+    undisturbed noise (a suspect field gets less weight; it cannot widen the gate).  The first usable
+    sample sets the heading directly.
 zero-rate (per gyro sample while the device is still)
     ``ω_m = b + δb + n``: three scalar updates of the bias.
 """
