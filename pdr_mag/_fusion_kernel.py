@@ -111,6 +111,7 @@ S_C = 95  # magnetometer heading error estimate c, rad
 S_AW = 7  # 3: EW mean of the world-frame specific force (almost-inertial frame), m/s²
 S_TAU = 10  # time of the last averaged accelerometer update
 S_TA_PREV = 11  # time of the accelerometer sample before the last
+S_TREJ = 12  # time of the last gate rejection of a clean-looking field (NaN: last one accepted)
 N_STATE = 96 + NX * NX
 
 # ---------------------------------------------------------------- settings layout
@@ -145,7 +146,8 @@ P_ACC_CORR = 27
 P_MAG_TILT_K = 28
 P_TURN_SPEED = 29
 P_TURN_CORR = 30
-N_PARAM = 31
+P_REJ_INFLATE = 31
+N_PARAM = 32
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -658,8 +660,14 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     # field lowers the gain, it must not widen the gate)
     S = P[2 * NX + 2] + 2.0 * P[2 * NX + 6] + P[6 * NX + 6] + rv_clean
     if r * r > p[P_MAG_GATE] ** 2 * S:
+        # a clean-looking field that keeps disagreeing: our heading may be wrong rather than the field;
+        # let its variance grow (only the heading's, so the bias is not dragged when the gate opens)
         st[S_NREJ] += 1.0
+        if np.isfinite(st[S_TREJ]):
+            P[2 * NX + 2] += p[P_REJ_INFLATE] ** 2 * min(t - st[S_TREJ], 1.0)
+        st[S_TREJ] = t
         return
+    st[S_TREJ] = np.nan
     st[S_NREJ] = 0.0
     dx = np.zeros(NX)
     _upd2(st, dx, 2, 1.0, 6, 1.0, r, rv)

@@ -155,6 +155,9 @@ class FusionSettings:
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
         χ² gate of the heading innovation, in standard deviations.
+    reject_inflate_deg : float
+        While an undisturbed-looking field keeps failing the gate, the heading variance grows by this
+        squared per second (deg/√s), so a wrong heading (a disturbed start) is not kept forever.
     still_gyro : float
         Still when the RMS deviation of the gyro from its running mean is below this, rad/s…
     still_acc : float
@@ -198,6 +201,7 @@ class FusionSettings:
     mag_error_tau_s: float = 5.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
+    reject_inflate_deg: float = 10.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
     still_tau_s: float = 0.3
@@ -260,6 +264,7 @@ class FusionSettings:
         p[K.P_MAG_TILT_K] = self.mag_tilt_k
         p[K.P_TURN_SPEED] = self.turn_speed
         p[K.P_TURN_CORR] = self.turn_corr_s
+        p[K.P_REJ_INFLATE] = np.radians(self.reject_inflate_deg)
         p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
