@@ -201,7 +201,7 @@ class FusionSettings:
     mag_error_tau_s: float = 5.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
-    reject_inflate_deg: float = 10.0
+    reject_inflate_deg: float = 3.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
     still_tau_s: float = 0.3
