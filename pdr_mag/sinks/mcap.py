@@ -48,8 +48,11 @@ smallest whole number of seconds that makes the earliest time non-negative, the 
 after the offset (possible only without ``meta["t0"]``) is logged at 0 and counted in ``clamped_log_times``;
 its ``t`` field is unaffected.  The offset is also in every channel's metadata.
 
-Streaming: messages go through mcap's chunked writer (``chunk_size`` bytes per chunk, compressed with zstd or
-lz4), so memory stays bounded by one chunk plus the small per-chunk index, whatever the recording length.
+Streaming: messages go into chunks of ``chunk_size`` uncompressed bytes (zstd or lz4), built with numpy
+around mcap's own record classes and written by an I/O thread (:class:`_ChunkWriter`); at most 8192 rows
+are formatted at once and at most 4 chunks are held, so memory stays bounded whatever the recording length
+(``benchmarks/sinks.py``: the same peak for 10 and 60 minutes).
+
 Messages are formatted per batch: numbers become JSON tokens in one call (orjson's shortest round-trip
 representation when orjson is installed, else ``%.17g``; both read back bit-exactly, NaN/inf as ``null``)
 and are put into a byte template with one ``%`` call — no per-message ``json.dumps``.
