@@ -147,7 +147,8 @@ P_MAG_TILT_K = 28
 P_TURN_SPEED = 29
 P_TURN_CORR = 30
 P_REJ_INFLATE = 31
-N_PARAM = 32
+P_MAG_DT_UNC = 32
+N_PARAM = 33
 
 # ---------------------------------------------------------------- output diag columns
 D_GYRO_HEADING = 0
@@ -631,6 +632,11 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         dmin2 += (f * np.radians(dip - diploc)) ** 2
     dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons)) ** 2
     rv_clean = p[P_MAG_NOISE] ** 2 + p[P_MAG_NOISE_UT] ** 2 / (bh * bh)
+    # timestamp uncertainty of the magnetometer against the gyroscope: the device turns by |ω| τ meanwhile,
+    # which moves the field direction by up to that angle (× F / B_h on the horizontal projection)
+    if p[P_MAG_DT_UNC] > 0.0:
+        wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
+        rv_clean += (np.sqrt(wx * wx + wy * wy + wz * wz) * p[P_MAG_DT_UNC] * f / bh) ** 2
     rv = rv_clean + p[P_MAG_DIST_K] ** 2 * dmin2 / (bh * bh)
     # the tilt is not corrected by the magnetometer, but its uncertainty enters the horizontal
     # projection: dψ = δθ_z − (m_x m_z δθ_x + m_y m_z δθ_y) / B_h²  →  R += h_t P_tilt h_tᵀ

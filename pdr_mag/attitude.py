@@ -136,6 +136,9 @@ class FusionSettings:
         Heading noise of one magnetometer update, deg (calibration residual, time correlation).
     mag_noise_uT : float
         Field noise, µT; adds ``mag_noise_uT / B_h`` rad to the heading noise (B_h horizontal strength).
+    mag_time_unc_s : float
+        Timestamp uncertainty of the magnetometer against the gyroscope, s: adds ``(|ω| τ F / B_h)²`` to
+        the heading noise (a swinging phone turns at several rad/s).
     mag_dist_k : float
         Heading noise added per µT of the smallest disturbance that explains the deviation of strength
         and dip from their local references, divided by B_h (``k |d|_min / B_h`` rad).
@@ -195,6 +198,7 @@ class FusionSettings:
     mag_noise_deg: float = 5.0
     mag_noise_uT: float = 1.0
     mag_dist_k: float = 2.0
+    mag_time_unc_s: float = 0.01
     mag_cons_k: float = 1.0
     mag_tilt_k: float = 1.0
     mag_error_std_deg: float = 6.0
@@ -265,6 +269,7 @@ class FusionSettings:
         p[K.P_TURN_SPEED] = self.turn_speed
         p[K.P_TURN_CORR] = self.turn_corr_s
         p[K.P_REJ_INFLATE] = np.radians(self.reject_inflate_deg)
+        p[K.P_MAG_DT_UNC] = self.mag_time_unc_s
         p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
         return p
 
