@@ -526,7 +526,9 @@ def _gyro(st, R, wx, wy, wz, t, p):
                 st[S_STILL_SINCE] = t
             if t - st[S_STILL_SINCE] >= p[P_STILL_MIN]:
                 dx = np.zeros(NX)
-                rv = p[P_ZUPT_NOISE] ** 2
+                # per-sample noise of a density: the same information per second at any gyro rate
+                dtg = min(max(t - st[S_TG], 1e-4), 0.1) if np.isfinite(st[S_TG]) else 0.01
+                rv = p[P_ZUPT_NOISE] ** 2 / dtg
                 _upd(st, dx, 3, 1.0, wx - st[S_B], rv)
                 _upd(st, dx, 4, 1.0, wy - st[S_B + 1], rv)
                 _upd(st, dx, 5, 1.0, wz - st[S_B + 2], rv)
