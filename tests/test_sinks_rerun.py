@@ -70,6 +70,9 @@ def written(tmp_path):
         diag=diag,
     )
     mag_raw = rng.normal(0, 40, (len(t_all) // 2, 3))
+    q_truth = _unit_quats(rng, len(t_all))
+    sink.reference("truth", t_all[: 2 * n_per], q_truth[: 2 * n_per])  # before the estimates, in 2 calls
+    sink.reference("truth", t_all[2 * n_per :], q_truth[2 * n_per :])
     for c in range(k):
         sl = slice(c * n_per, (c + 1) * n_per)
         ts = t_all[sl]
@@ -90,8 +93,6 @@ def written(tmp_path):
                 diag={key: v[sl] for key, v in diag.items()},
             )
         )
-    q_truth = _unit_quats(rng, len(t_all))
-    sink.reference("truth", t_all, q_truth)
     sink.reference("os", t_all[::4], q_truth[::4])
     sink.event(Event(2.0, "interference_start", {"score": 1.4}))
     sink.event(Event(4.0, "interference_end"))
@@ -114,6 +115,18 @@ def test_series_read_back_equal(written):
     _, truth = _series(data, "/heading/truth")
     np.testing.assert_allclose(truth, heading_deg_from_quat(written["q_truth"]), rtol=1e-12)
     assert len(_series(data, "/heading/os")[0]) == len(b.t[::4])
+
+    # heading error against the truth (same epochs here, so the interpolation is exact)
+    h_truth = heading_deg_from_quat(written["q_truth"])
+    t_back, err = _series(data, "/heading_error/ours")
+    np.testing.assert_array_equal(t_back, t_ns)
+    expected = np.mod(b.heading_deg - h_truth + 180.0, 360.0) - 180.0
+    np.testing.assert_allclose(np.mod(np.array(err) - expected + 180.0, 360.0) - 180.0, 0.0, atol=1e-9)
+    assert np.all(np.abs(err) <= 180.0)
+    _, err_gyro = _series(data, "/heading_error/gyro_only")
+    assert len(err_gyro) == len(b.t)
+    _, err_os = _series(data, "/heading_error/os")
+    np.testing.assert_allclose(err_os, 0.0, atol=1e-9)  # the "os" series is the truth itself here
 
     # NaN rows are left out of the plots; the rest is there
     ok = np.isfinite(b.diag["field_strength_uT"])
@@ -189,6 +202,7 @@ def test_blueprint_present(written):
             views[origin] = kind
     assert views["/heading"] == "TimeSeries"
     assert views["/field"] == "TimeSeries"
+    assert views["/heading_error"] == "TimeSeries"
     assert views["/dip"] == "TimeSeries"
     assert views["/state"] == "StateTimeline"
     assert views["/mag"] == "3D"

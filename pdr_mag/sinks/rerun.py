@@ -7,6 +7,9 @@ Entities (timeline ``time``: the recording's clock as a duration, ``round(t·1e9
     ``reference("os")``), drawn as points so the 0/360 wrap draws no vertical lines.
 ``heading_std/ours``
     1-σ heading uncertainty, deg.
+``heading_error/ours``, ``heading_error/gyro_only``, ``heading_error/os``
+    heading minus the truth (interpolated), wrapped to [−180, 180) deg — where drift shows directly; only
+    when ``reference("truth")`` came before the series (as the replay sends it).
 ``field/strength``, ``field/reference``, ``field/lower``, ``field/upper``
     |calibrated field| with the detector's reference and the accepted band (reference ∓ tolerance), µT.
 ``dip/measured``, ``dip/reference``, ``dip/lower``, ``dip/upper``
@@ -42,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pdr_mag.conventions import heading_deg_from_quat
+from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 
 
 def _duration_ns(t: np.ndarray) -> np.ndarray:
@@ -58,6 +61,9 @@ _COLORS = {
     "heading/gyro_only": (255, 127, 14),
     "heading/os": (44, 160, 44),
     "heading_std/ours": (31, 119, 180),
+    "heading_error/ours": (31, 119, 180),
+    "heading_error/gyro_only": (255, 127, 14),
+    "heading_error/os": (44, 160, 44),
     "field/strength": (31, 119, 180),
     "field/reference": (40, 40, 40),
     "field/lower": (214, 39, 40),
@@ -77,6 +83,9 @@ _NAMES = {
     "heading/gyro_only": "gyro only",
     "heading/os": "phone (OS)",
     "heading_std/ours": "1σ",
+    "heading_error/ours": "ours − truth",
+    "heading_error/gyro_only": "gyro only − truth",
+    "heading_error/os": "phone − truth",
     "field/strength": "|m_cal|",
     "field/reference": "reference",
     "field/lower": "lower threshold",
@@ -103,10 +112,11 @@ def drift_blueprint():
     )
     left = rrb.Vertical(
         rrb.TimeSeriesView(origin="/heading", name="Heading, deg (ours, truth, gyro only, phone)"),
+        rrb.TimeSeriesView(origin="/heading_error", name="Heading error vs truth, deg (wrapped to ±180)"),
         rrb.TimeSeriesView(origin="/field", name="Field strength, µT (reference and thresholds)"),
         rrb.TimeSeriesView(origin="/dip", name="Dip angle, deg (reference band)"),
         rrb.StateTimelineView(origin="/state", name="Interference / magnetometer used / calibration state"),
-        row_shares=[3, 2, 2, 1],
+        row_shares=[3, 2, 2, 2, 1],
     )
     right = rrb.Vertical(
         rrb.Spatial3DView(
@@ -167,6 +177,8 @@ class RerunSink:
         self._buf: dict[str, list] = {}  # entity → [kind, [t arrays], [value arrays], rows]
         self._last_state: dict[str, str] = {}
         self._cloud_bin: dict[str, float] = {}
+        self._truth: tuple[list, list] | None = None  # (t chunks, heading chunks) for the error curves
+        self._truth_unwrapped: tuple[np.ndarray, np.ndarray] | None = None
         self.rows_sent: dict[str, int] = {}
 
     # ------------------------------------------------------------------ Sink protocol
@@ -228,6 +240,9 @@ class RerunSink:
         self._push_scalar("heading/ours", t, batch.heading_deg)
         self._push_scalar("heading_std/ours", t, batch.heading_std_deg)
         d = batch.diag
+        self._push_error("heading_error/ours", t, batch.heading_deg)
+        if "gyro_heading_deg" in d:
+            self._push_error("heading_error/gyro_only", t, d["gyro_heading_deg"])
         for key, entity in (
             ("gyro_heading_deg", "heading/gyro_only"),
             ("field_strength_uT", "field/strength"),
@@ -263,7 +278,33 @@ class RerunSink:
             import rerun as rr
 
             self._rec.log(entity, rr.SeriesPoints(names=[name], marker_sizes=[1.5]), static=True)
-        self._push_scalar(entity, t, heading_deg_from_quat(q))
+        heading = heading_deg_from_quat(q)
+        self._push_scalar(entity, t, heading)
+        if name == "truth":
+            if self._truth is None:
+                self._truth = ([], [])
+            self._truth[0].append(t)
+            self._truth[1].append(heading)
+        else:
+            self._push_error(f"heading_error/{name}", t, heading)
+
+    def _push_error(self, entity: str, t: np.ndarray, heading_deg) -> None:
+        """``heading − truth`` wrapped to [−180, 180) where the truth covers ``t`` (truth interpolated
+        linearly on its unwrapped heading).  Needs the truth before the series it is compared with — the
+        replay sends references first; a series that arrives before any truth gets no error curve."""
+        if self._truth is None or len(t) == 0:
+            return
+        if len(self._truth[0]) > 1:  # truth given in several calls: join once, keep the joined arrays
+            tt, hh = np.concatenate(self._truth[0]), np.concatenate(self._truth[1])
+            order = np.argsort(tt, kind="stable")
+            self._truth = ([tt[order]], [hh[order]])
+        tt = self._truth[0][0]
+        if self._truth_unwrapped is None or self._truth_unwrapped[0] is not tt:
+            self._truth_unwrapped = (tt, np.unwrap(self._truth[1][0], period=360.0))
+        hu = self._truth_unwrapped[1]
+        inside = (t >= tt[0]) & (t <= tt[-1])
+        err = wrap_deg(np.asarray(heading_deg, dtype=float) - np.interp(t, tt, hu))
+        self._push_scalar(entity, t[inside], err[inside])
 
     def event(self, ev) -> None:
         details = {k: v for k, v in ev.to_dict().items() if k not in ("t", "kind")}
