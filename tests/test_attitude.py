@@ -260,3 +260,24 @@ def test_real_walks_beat_the_best_peer(group):
         errs = [_mode_a(t, cache) for t in NODIST]
         assert np.mean(errs) < 2.6  # best peer 2.3 (asserted loosely: the mocap floor is 1–2°)
         assert max(errs) < 4.0
+
+
+@pytest.mark.parametrize("rates", [(100.0, 50.0), (200.0, 100.0), (400.0, 100.0)])
+def test_other_phones_sample_rates(rates):
+    """The noise model is per second, not per sample: the same walk at other IMU / magnetometer rates."""
+    from pdr_mag.sensor_model import PhoneSpec
+
+    imu, mag = rates
+    res = simulate(
+        "walk",
+        seed=11,
+        effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)},
+        phone=PhoneSpec(accel_rate_hz=imu, gyro_rate_hz=imu, mag_rate_hz=mag),
+    )
+    core = FusionCore(field=res.field)
+    t, err, std = twist_error_deg(core.process(*merge(res)), res.truth)
+    late = t > t[0] + 20.0
+    b_h = res.field.strength * np.cos(np.radians(res.field.inclination_deg))
+    assert np.mean(np.abs(err[late])) < 2.0 * np.degrees(res.model.effects["noise"][0] / b_h)
+    assert np.mean(np.abs(err[late]) < 2.0 * std[late]) > 0.95
+    assert np.all(np.abs(core.bias - np.array([0.02, -0.03, 0.07])) < 0.2 * DEG)
