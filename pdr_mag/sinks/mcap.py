@@ -291,9 +291,7 @@ class McapSink:
         q = np.asarray(batch.q_wd, dtype=float).reshape(n, 4)
         self._pose("/pdr/orientation", ns, q)
 
-        fmt = (
-            b'{"t":%s,"heading_deg":%s,"heading_std_deg":%s,"mag_used":%s,"interference":%s,"cal_state":%s}\n'
-        )
+        fmt = b'{"t":%s,"heading_deg":%s,"heading_std_deg":%s,"mag_used":%s,"interference":%s,"cal_state":%s}'
         cols = [
             _fmt_col(t),
             _fmt_col(batch.heading_deg),
@@ -302,7 +300,7 @@ class McapSink:
             _bool_col(batch.interference),
             _str_col(batch.cal_state),
         ]
-        self._write("/pdr/heading", "pdr_mag.Heading", ns, _rows(fmt, cols, n))
+        self._write("/pdr/heading", "pdr_mag.Heading", ns, fmt, cols)
 
         diag = {k: np.asarray(v, dtype=float) for k, v in batch.diag.items() if k in DIAG_KEYS}
         if diag:
@@ -314,9 +312,9 @@ class McapSink:
                 diag["dip_lower_deg"] = diag["dip_ref_deg"] - diag["dip_tol_deg"]
                 diag["dip_upper_deg"] = diag["dip_ref_deg"] + diag["dip_tol_deg"]
             keys = list(diag)
-            fmt = ("{" + ",".join(['"t":%s'] + [f'"{k}":%s' for k in keys]) + "}\n").encode()
+            fmt = ("{" + ",".join(['"t":%s'] + [f'"{k}":%s' for k in keys]) + "}").encode()
             cols = [_fmt_col(t)] + [_fmt_col(diag.get(k, nan)) for k in keys]
-            self._write("/pdr/diag", "pdr_mag.Diagnostics", ns, _rows(fmt, cols, n))
+            self._write("/pdr/diag", "pdr_mag.Diagnostics", ns, fmt, cols)
 
     def reference(self, name: str, t: np.ndarray, q_wd: np.ndarray) -> None:
         from pdr_mag.conventions import heading_deg_from_quat
@@ -332,9 +330,9 @@ class McapSink:
             return
         ns = self._log_times(t)
         self._pose(f"/reference/{name}/orientation", ns, q)
-        fmt = b'{"t":%s,"heading_deg":%s}\n'
+        fmt = b'{"t":%s,"heading_deg":%s}'
         cols = [_fmt_col(t), _fmt_col(heading_deg_from_quat(q))]
-        self._write(f"/reference/{name}/heading", "pdr_mag.HeadingReference", ns, _rows(fmt, cols, n))
+        self._write(f"/reference/{name}/heading", "pdr_mag.HeadingReference", ns, fmt, cols)
 
     def event(self, ev) -> None:
         if self._forward("event", ev):
@@ -351,7 +349,7 @@ class McapSink:
             "file": "",
             "line": 0,
         }
-        self._write("/pdr/events", "foxglove.Log", [ns], [json.dumps(msg).encode()])
+        self._write("/pdr/events", "foxglove.Log", [ns], b"%s", [_one(json.dumps(msg).encode())])
 
     def calibration(self, t: float, cal) -> None:
         if self._forward("calibration", float(t), cal):
@@ -360,7 +358,7 @@ class McapSink:
         d = {"t": float(t), **d_cal}
         ns = int(self._log_times(np.array([float(t)]))[0])
         text = json.dumps(d)
-        self._write("/pdr/calibration", "pdr_mag.MagCalibration", [ns], [text.encode()])
+        self._write("/pdr/calibration", "pdr_mag.MagCalibration", [ns], b"%s", [_one(text.encode())])
         self._writer.add_metadata("calibration", {"t": repr(float(t)), "json": json.dumps(d_cal)})
 
     def close(self) -> None:
@@ -431,14 +429,12 @@ class McapSink:
             return
         ns = self._log_times(t)
         tok = _tokens(np.column_stack([t, xyz]))
-        msgs = ((b'{"t":%s,"x":%s,"y":%s,"z":%s}\n' * n) % tuple(tok.ravel().tolist())).split(b"\n")[:-1]
-        self._write(topic, "pdr_mag.Vector3Stamped", ns, msgs, channel_meta)
+        self._write(topic, "pdr_mag.Vector3Stamped", ns, b'{"t":%s,"x":%s,"y":%s,"z":%s}', tok, channel_meta)
 
     def _pose(self, topic: str, ns: np.ndarray, q: np.ndarray) -> None:
-        n = len(ns)
         fmt = (
             b'{"timestamp":{"sec":%s,"nsec":%s},"frame_id":"enu","pose":{"position":{"x":0,"y":0,"z":0},'
-            b'"orientation":{"x":%s,"y":%s,"z":%s,"w":%s}}}\n'
+            b'"orientation":{"x":%s,"y":%s,"z":%s,"w":%s}}}'
         )
         cols = [
             _tokens(ns // 1_000_000_000),
@@ -448,7 +444,7 @@ class McapSink:
             _fmt_col(q[:, 3]),
             _fmt_col(q[:, 0]),
         ]
-        self._write(topic, "foxglove.PoseInFrame", ns, _rows(fmt, cols, n), {"frame_id": "enu"})
+        self._write(topic, "foxglove.PoseInFrame", ns, fmt, cols, {"frame_id": "enu"})
 
     def _channel(self, topic: str, schema: str, channel_meta: dict | None) -> int:
         cid = self._channels.get(topic)
@@ -463,12 +459,16 @@ class McapSink:
             self._channels[topic] = cid
         return cid
 
-    def _write(self, topic: str, schema: str, ns, msgs, channel_meta: dict | None = None) -> None:
+    def _write(self, topic: str, schema: str, ns, template: bytes, cols, channel_meta=None) -> None:
+        """Messages ``template % row`` for each row of the token columns ``cols`` (a list of n-long object
+        arrays of ``bytes``, or an (n, k) object array), logged at ``ns``."""
         if self._writer is None:
             raise RuntimeError("McapSink: open() must be called before writing (and not after close())")
         cid = self._channel(topic, schema, channel_meta)
-        self._writer.add_messages(cid, np.asarray(ns, dtype=np.int64), msgs)
-        self.counts[topic] = self.counts.get(topic, 0) + len(msgs)
+        ns = np.asarray(ns, dtype=np.int64)
+        blob, sizes = _records(cid, ns, template, cols)
+        self._writer.add_records(ns, blob, sizes)
+        self.counts[topic] = self.counts.get(topic, 0) + len(ns)
 
 
 # ---------------------------------------------------------------------- background writer process
@@ -592,12 +592,43 @@ def _str_col(values) -> np.ndarray:
     return enc[inv.ravel()]
 
 
-def _rows(fmt: bytes, cols: list[np.ndarray], n: int) -> list[bytes]:
-    """Interleave the token columns row by row into ``fmt`` (one format call for the whole batch)."""
-    mat = np.empty((n, len(cols)), dtype=object)
-    for j, c in enumerate(cols):
-        mat[:, j] = c
-    return ((fmt * n) % tuple(mat.ravel().tolist())).split(b"\n")[:-1]
+def _one(value: bytes) -> np.ndarray:
+    out = np.empty(1, dtype=object)
+    out[0] = value
+    return out
+
+
+def _records(cid: int, ns: np.ndarray, template: bytes, cols) -> tuple[bytes, np.ndarray]:
+    """MCAP message records (header + ``template % row``) of all rows, in one ``%`` call, and their sizes.
+
+    The body lengths are known before formatting (template length + token lengths), so each record's
+    31-byte header is formatted in with the body: no splitting and re-joining of message bytes.
+    """
+    n = len(ns)
+    if isinstance(cols, np.ndarray):
+        body = cols.reshape(n, -1)
+    else:
+        body = np.empty((n, len(cols)), dtype=object)
+        for j, c in enumerate(cols):
+            body[:, j] = c
+    k = body.shape[1]
+    flat = body.ravel().tolist()
+    fixed = len(template) - 2 * k  # every field is one "%s"
+    body_len = np.fromiter(map(len, flat), dtype=np.int64, count=n * k).reshape(n, k).sum(axis=1) + fixed
+    hdr = np.empty(n, dtype=_MSG_HEADER)
+    hdr["op"] = _OP_MESSAGE
+    hdr["len"] = body_len + (_MSG_HEADER.itemsize - 9)
+    hdr["ch"] = cid
+    hdr["seq"] = 0
+    hdr["log"] = ns
+    hdr["pub"] = ns
+    hb = hdr.tobytes()
+    w = _MSG_HEADER.itemsize
+    rows = np.empty((n, k + 1), dtype=object)
+    rows[:, 0] = [hb[i : i + w] for i in range(0, n * w, w)]
+    rows[:, 1:] = body
+    blob = ((b"%s" + template) * n) % tuple(rows.ravel().tolist())
+    return blob, body_len + w
 
 
 def _jsonable(obj):
@@ -627,6 +658,7 @@ def _str_dict(d: dict) -> dict[str, str]:
 _MAGIC = b"\x89MCAP0\r\n"
 _OP_MESSAGE = 0x05
 _OP_MESSAGE_INDEX = 0x07
+_OP_CHUNK = 0x06
 #: Message record header: opcode, record length, channel id, sequence, log time, publish time (31 bytes).
 _MSG_HEADER = np.dtype(
     [("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"), ("pub", "<u8")]
@@ -670,8 +702,8 @@ class _ChunkWriter:
         self._t_start: int | None = None
         self._t_end = 0
         self._metadata_count = 0
-        # the chunk being filled: list of (channel id, ns (n,), message bytes list, record lengths (n,))
-        self._pending: list[tuple[int, np.ndarray, list, np.ndarray]] = []
+        # the chunk being filled: list of (channel id, ns (n,), records bytes, record lengths (n,))
+        self._pending: list[tuple[int, np.ndarray, bytes, np.ndarray]] = []
         self._pending_bytes = 0
         self._zstd = None
         self._error: BaseException | None = None
@@ -754,49 +786,40 @@ class _ChunkWriter:
 
         self._submit(job)
 
-    def add_messages(self, channel_id: int, ns: np.ndarray, msgs: list[bytes]) -> None:
-        """Queue messages (log_time = publish_time = ``ns``) and write every chunk that fills up."""
-        n = len(msgs)
+    def add_records(self, ns: np.ndarray, blob: bytes, sizes: np.ndarray) -> None:
+        """Queue finished message records (``blob``: n records back to back, ``sizes`` their lengths,
+        ``ns`` their log times) and write every chunk that fills up."""
+        n = len(sizes)
         if n == 0:
             return
-        if len(ns) != n:
-            raise ValueError(f"ns: expected {n} log times, got {len(ns)}")
-        sizes = np.fromiter(map(len, msgs), dtype=np.int64, count=n) + _MSG_HEADER.itemsize
-        start = 0
+        if len(ns) != n or int(np.sum(sizes)) != len(blob):
+            raise ValueError(f"add_records: {n} sizes, {len(ns)} log times, {len(blob)} bytes do not match")
+        cid = int.from_bytes(blob[9:11], "little")
+        ends = np.cumsum(sizes)
+        start, base = 0, 0
         while start < n:
             room = self._chunk_size - self._pending_bytes
-            cum = np.cumsum(sizes[start:])
-            stop = start + max(1, int(np.searchsorted(cum, room, side="right")))
-            self._pending.append((channel_id, ns[start:stop], msgs[start:stop], sizes[start:stop]))
-            self._pending_bytes += int(cum[stop - start - 1])
-            self._counts[channel_id] += stop - start
-            start = stop
+            stop = start + max(1, int(np.searchsorted(ends[start:] - base, room, side="right")))
+            end = int(ends[stop - 1])
+            self._pending.append((cid, ns[start:stop], blob[base:end], sizes[start:stop]))
+            self._pending_bytes += end - base
+            self._counts[cid] += stop - start
+            start, base = stop, end
             if self._pending_bytes >= self._chunk_size:
                 self._finalize_chunk()
 
     def _finalize_chunk(self) -> None:
-        """Assemble the pending messages into one chunk's records (here) and hand it to the I/O thread."""
+        """Join the pending records into one chunk (here) and hand it to the I/O thread."""
         if not self._pending:
             return
         pieces, indexes = [], {}
         offset = 0
         t_lo, t_hi = None, 0
-        w = _MSG_HEADER.itemsize
-        for cid, ns, msgs, sizes in self._pending:
-            n = len(msgs)
-            hdr = np.empty(n, dtype=_MSG_HEADER)
-            hdr["op"] = _OP_MESSAGE
-            hdr["len"] = sizes - 9
-            hdr["ch"] = cid
-            hdr["seq"] = 0
-            hdr["log"] = ns
-            hdr["pub"] = ns
+        for cid, ns, piece, sizes in self._pending:
             starts = offset + np.concatenate([[0], np.cumsum(sizes[:-1])])
-            hb = hdr.tobytes()
-            headers = [hb[k : k + w] for k in range(0, n * w, w)]
-            pieces.append(b"".join([x for pair in zip(headers, msgs, strict=True) for x in pair]))
+            pieces.append(piece)
             indexes.setdefault(cid, []).append(np.column_stack([ns, starts]).astype("<u8"))
-            offset += int(sizes.sum())
+            offset += len(piece)
             lo, hi = int(ns.min()), int(ns.max())
             t_lo = lo if t_lo is None else min(t_lo, lo)
             t_hi = max(t_hi, hi)
@@ -805,7 +828,7 @@ class _ChunkWriter:
         for cid in sorted(indexes):
             entries = np.concatenate(indexes[cid])
             index_bodies[cid] = entries[np.lexsort((entries[:, 1], entries[:, 0]))].tobytes()
-        self._n_messages += sum(len(p[2]) for p in self._pending)
+        self._n_messages += sum(len(p[1]) for p in self._pending)
         self._t_start = t_lo if self._t_start is None else min(self._t_start, t_lo)
         self._t_end = max(self._t_end, t_hi)
         self._pending, self._pending_bytes = [], 0
@@ -813,9 +836,10 @@ class _ChunkWriter:
 
     def _write_chunk(self, data: bytes, index_bodies: dict[int, bytes], t_lo: int, t_hi: int) -> None:
         """On the I/O thread: compress, write the chunk record and its message-index records."""
+        import struct
         import zlib
 
-        from mcap.records import Chunk, ChunkIndex
+        from mcap.records import ChunkIndex
 
         if self._compression == "zstd":
             if self._zstd is None:
@@ -829,18 +853,15 @@ class _ChunkWriter:
             compressed, compression = lz4.frame.compress(data), "lz4"
         else:
             compressed, compression = data, ""
-        chunk = Chunk(
-            compression=compression,
-            data=compressed,
-            message_start_time=t_lo,
-            message_end_time=t_hi,
-            uncompressed_crc=zlib.crc32(data),
-            uncompressed_size=len(data),
+        # the Chunk record (mcap.records.Chunk's layout), written without copying the data into a builder
+        comp = compression.encode()
+        head = struct.pack(
+            f"<QQQI I{len(comp)}sQ", t_lo, t_hi, len(data), zlib.crc32(data), len(comp), comp, len(compressed)
         )
         chunk_start = self._stream.tell()
-        chunk.write(self._rb)
-        chunk_length = self._rb.count
-        self._flush()
+        self._stream.write(struct.pack("<BQ", _OP_CHUNK, len(head) + len(compressed)) + head)
+        self._stream.write(compressed)
+        chunk_length = 9 + len(head) + len(compressed)
         index_start = self._stream.tell()
         offsets, parts, pos = {}, [], 0
         for cid, body in index_bodies.items():
