@@ -5,6 +5,11 @@
 along it (:mod:`.fit`), simulates the magnetometer with :mod:`pdr_mag.sensor_model` (:mod:`.predict`) and
 adds candidate effects one at a time by a penalised likelihood (:mod:`.select`) until nothing significant
 is left.  :mod:`.report` writes the human report.
+
+Heading reference: the gyro + accelerometer orientation fixes tilt but not heading, so its world frame has
+an arbitrary yaw; the predicted field ``m_d(t) = S⁻¹ Mᵀ R_dw(t) B_w + b`` fits ``B_w`` (3 components, in
+that frame) together with ``b`` — the heading reference comes from the fit itself.  ``truth.csv`` is used
+only with ``use_truth=True`` (evaluation mode), and then the same ``B_w`` is still fitted.
 """
 
 from pdr_mag.modelcheck.fit import BASELINE, CANDIDATES

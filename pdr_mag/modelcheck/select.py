@@ -6,13 +6,17 @@ Score of adding effect e to the current model c (positive: e earns its place)::
 
 which is ``BIC_c − BIC_e`` for white Gaussian noise of unknown σ, with the sample count cut to the number of
 independent residuals: τ_int is the integrated autocorrelation time (1 for white noise) of the residual of
-the *full* model (every candidate at once) — the closest estimate of the noise process there is, which
-still holds the correlated part that no effect explains (orientation errors).  Taking τ_int from each
+the *full* model (every candidate at once, its anomaly field free over the whole recording) — the closest
+estimate of the noise process there is, which still holds the fast correlated part that no effect explains
+(orientation errors).  Taking τ_int from each
 candidate's own residual would instead punish every candidate for the effects still missing besides it.
 
-An effect is added when ``score > score_threshold`` (10: "very strong" evidence on
-the Kass–Raftery scale) *and* it shrinks the gap by at least ``min_gap_reduction`` (relative) — so data
-with nothing missing give ``missing_effect: null`` instead of the least bad candidate.  The best
+An effect is added when ``score > score_threshold`` (10: "very strong" evidence on the Kass–Raftery
+scale) *and* it shrinks the gap by at least ``min_gap_reduction`` (10 %, relative) — so data with nothing
+missing give ``missing_effect: null`` instead of the least bad candidate.  Both are needed: the gyro +
+accelerometer orientation leaves correlated errors (tilt ≈ 0.5–1°, i.e. ≈ 0.5 µT of field) that any
+flexible effect can partly fit, so on simulated controls the best ΔBIC reaches 80–430 while the gap
+shrinks by at most ≈ 8 %; every hidden effect in the tests shrinks it by 20 % or more.  The best
 significant effect is added and the search repeated until none is left.
 """
 
