@@ -47,20 +47,14 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.interference import (
-    I_CONS_K,
-    I_CONS_TOL,
-    I_CONS_WIN,
-    I_DIP_BAND,
+    DET_FLAG,
+    DET_MW,
     I_DIP_TOL,
-    I_LEARN,
-    I_STR_BAND,
-    I_VAR_MAX,
-    I_VAR_WIN,
-    angle_deg,
+    N_DET,
+    detect_step,
     dip_of,
     ew_alpha,
-    hold_step,
-    strength_tol,
+    new_detector_state,
 )
 
 # ---------------------------------------------------------------- state layout
@@ -82,13 +76,6 @@ S_AVAR = 61
 S_STILL_SINCE = 62
 S_NEXT_OUT = 63
 S_MAGUSED = 64  # magnetometer used since last output row
-S_FLAG = 65
-S_FLAG_SINCE = 66
-S_FM = 67  # EW mean of strength
-S_FM2 = 68  # EW mean of strength²
-S_TM = 69  # time of last magnetometer sample
-S_MW = 70  # 3: EW mean world field direction
-S_DIPLEARN = 73  # learnt dip reference (deg), NaN until first clean sample
 S_QG = 74  # 4: gyro-only quaternion
 S_D_F = 78  # diag: strength
 S_D_FREF = 79
@@ -105,13 +92,12 @@ S_DECL = 89  # declination, rad
 S_INTERF = 90  # interference seen since last output row
 S_NREJ = 91  # consecutive innovation-gate rejections
 S_CONS = 92  # diag: consistency angle
-S_FLEARN = 93  # learnt local strength (NaN until first clean sample)
-S_NLEARN = 94  # number of samples learnt from
 S_C = 95  # magnetometer heading error estimate c, rad
 S_AW = 7  # 3: EW mean of the world-frame specific force (almost-inertial frame), m/s²
 S_TAU = 10  # time of the last averaged accelerometer update
 S_TA_PREV = 11  # time of the accelerometer sample before the last
 S_TREJ = 12  # time of the last gate rejection of a clean-looking field (NaN: last one accepted)
+S_DET = 13  # N_DET: the interference detectors' state (pdr_mag.interference, DET_* layout)
 N_STATE = 96 + NX * NX
 
 # ---------------------------------------------------------------- settings layout
@@ -172,13 +158,13 @@ def new_state() -> np.ndarray:
     st[S_Q] = 1.0
     st[S_QG] = 1.0
     for k in (
+        S_AW,
+        S_AW + 1,
+        S_AW + 2,
+        S_TAU,
+        S_TA_PREV,
+        S_TREJ,
         S_NEXT_OUT,
-        S_FLAG_SINCE,
-        S_FM,
-        S_TM,
-        S_MW,
-        S_DIPLEARN,
-        S_FLEARN,
         S_TMU,
         S_FREF,
         S_DIPREF,
@@ -190,6 +176,7 @@ def new_state() -> np.ndarray:
     for k in range(S_D_F, S_D_SCORE + 1):
         st[k] = np.nan
     st[S_CONS] = np.nan
+    st[S_DET : S_DET + N_DET] = new_detector_state()
     return st
 
 
@@ -548,59 +535,18 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     f = np.sqrt(mx * mx + my * my + mz * mz)
     if f <= 0.0:
         return
-    # --- detectors
-    dtm = t - st[S_TM] if np.isfinite(st[S_TM]) else np.inf
-    if dtm > 5.0 * ip[I_VAR_WIN] or not np.isfinite(st[S_FM]):
-        st[S_FM] = f
-        st[S_FM2] = f * f
-    else:
-        a = ew_alpha(dtm, ip[I_VAR_WIN])
-        st[S_FM] += a * (f - st[S_FM])
-        st[S_FM2] += a * (f * f - st[S_FM2])
-    var = max(st[S_FM2] - st[S_FM] ** 2, 0.0)
+    # --- detectors (pdr_mag.interference)
     ux, uy, uz = R[2, 0], R[2, 1], R[2, 2]  # world up in device coordinates
     dip = dip_of(mx, my, mz, ux, uy, uz)
     mwx = (R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz) / f
     mwy = (R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz) / f
     mwz = (R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz) / f
-    if dtm > 5.0 * ip[I_CONS_WIN] or not np.isfinite(st[S_MW]):  # (re)start the mean direction
-        st[S_MW], st[S_MW + 1], st[S_MW + 2] = mwx, mwy, mwz
-        cons = 0.0
-    else:
-        cons = angle_deg(mwx, mwy, mwz, st[S_MW], st[S_MW + 1], st[S_MW + 2])
-        a = ew_alpha(dtm, ip[I_CONS_WIN])
-        st[S_MW] += a * (mwx - st[S_MW])
-        st[S_MW + 1] += a * (mwy - st[S_MW + 1])
-        st[S_MW + 2] += a * (mwz - st[S_MW + 2])
-    st[S_TM] = t
-    # strength and dip: against the learnt local values and, loosely, against the references
-    fref = st[S_FREF]
-    dipref = st[S_DIPREF]
-    band_f = abs(f - fref) / (ip[I_STR_BAND] * fref) if np.isfinite(fref) else 0.0
-    band_d = abs(dip - dipref) / ip[I_DIP_BAND] if np.isfinite(dipref) else 0.0
-    score_v = var / ip[I_VAR_MAX]
     P = st[S_P : S_P + NX * NX]
     sb = np.sqrt(max(P[3 * NX + 3] + P[4 * NX + 4] + P[5 * NX + 5], 0.0))
-    score_c = cons / (ip[I_CONS_TOL] + ip[I_CONS_K] * np.degrees(sb) * ip[I_CONS_WIN])
-    if max(max(band_f, band_d), max(score_v, score_c)) < 1.0:
-        # learn the local references (running mean of the first samples, then time constant learn_ref_s)
-        st[S_NLEARN] += 1.0
-        a = max(ew_alpha(min(dtm, 1.0), ip[I_LEARN]), 1.0 / st[S_NLEARN])
-        if not np.isfinite(st[S_FLEARN]):
-            st[S_FLEARN] = f
-            st[S_DIPLEARN] = dip
-        else:
-            st[S_DIPLEARN] += a * (dip - st[S_DIPLEARN])
-            st[S_FLEARN] += a * (f - st[S_FLEARN])
-    floc = st[S_FLEARN]
-    diploc = st[S_DIPLEARN]
-    ftol = strength_tol(fref if np.isfinite(fref) else floc, ip)
-    score_f = max(band_f, abs(f - floc) / ftol) if np.isfinite(floc) else band_f
-    score_d = max(band_d, abs(dip - diploc) / ip[I_DIP_TOL]) if np.isfinite(diploc) else band_d
-    score = max(max(score_f, score_d), max(score_v, score_c))
-    flag, since = hold_step(st[S_FLAG] > 0, st[S_FLAG_SINCE], score, t, ip)
-    st[S_FLAG] = 1.0 if flag else 0.0
-    st[S_FLAG_SINCE] = since
+    det = st[S_DET : S_DET + N_DET]
+    flag, score, score_f, score_d, var, cons, floc, diploc, ftol = detect_step(
+        det, f, dip, mwx, mwy, mwz, t, st[S_FREF], st[S_DIPREF], np.degrees(sb), ip
+    )
     if flag:
         st[S_INTERF] = 1.0
     st[S_D_F] = f
@@ -661,7 +607,7 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         st[S_INIT] = 2.0
         st[S_TMU] = t
         st[S_MAGUSED] = 1.0
-        st[S_MW], st[S_MW + 1], st[S_MW + 2] = np.nan, 0.0, 0.0
+        det[DET_MW], det[DET_MW + 1], det[DET_MW + 2] = np.nan, 0.0, 0.0
         return
     r = _wrap(r - st[S_C])
     # the χ² gate asks whether the innovation fits an undisturbed field (the inflation of rv for a suspect
@@ -718,7 +664,7 @@ def run(kind, t, xyz, allowed, st, p, ip, out_t, out_q, out_std, out_mag, out_in
                 out_q[n_out, c] = st[S_Q + c]
             out_std[n_out] = np.degrees(np.sqrt(max(st[S_P + 2 * NX + 2], 0.0)))
             out_mag[n_out] = st[S_MAGUSED] > 0
-            out_int[n_out] = st[S_FLAG] > 0 or st[S_INTERF] > 0
+            out_int[n_out] = st[S_DET + DET_FLAG] > 0 or st[S_INTERF] > 0
             st[S_MAGUSED] = 0.0
             st[S_INTERF] = 0.0
             out_diag[n_out, D_GYRO_HEADING] = _heading(st, S_QG) if st[S_INIT] >= 2 else np.nan

@@ -68,9 +68,9 @@ import numpy as np
 from pdr_mag import _fusion_kernel as K
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import EarthField
-from pdr_mag.interference import InterferenceSettings
+from pdr_mag.interference import DET_FLAG, InterferenceSettings
 
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 #: diag columns of the kernel output, in order
 _DIAG_NAMES = (
@@ -385,7 +385,7 @@ class FusionCore:
 
     @property
     def interference_flag(self) -> bool:
-        return bool(self._st[K.S_FLAG] > 0)
+        return bool(self._st[K.S_DET + DET_FLAG] > 0)
 
     def get_state(self) -> dict:
         """JSON-serialisable state (NaN written as None)."""

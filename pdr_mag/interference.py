@@ -39,9 +39,10 @@ most of an indoor walk (the building's field wanders by several µT and degrees)
 to the gyroscope for too long; measured on the tyrex walks, the two levels together do better than
 either.
 
-Two forms: scalar ``@njit`` step functions used from inside the fusion kernel (:mod:`pdr_mag._fusion_kernel`)
-and vectorised numpy functions for arrays (:func:`strength_score`, :func:`dip_deg`,
-:func:`windowed_variance`, :func:`consistency_angle_deg`, :func:`hold_off`) that give the same numbers.
+Two forms: :func:`detect_step` (``@njit``, one sample, its state in a small float array), which the
+fusion kernel (:mod:`pdr_mag._fusion_kernel`) calls per magnetometer sample, and vectorised numpy
+functions for arrays (:func:`strength_score`, :func:`dip_deg`, :func:`windowed_variance`,
+:func:`consistency_angle_deg`, :func:`hold_off`) that give the same numbers.
 """
 
 from __future__ import annotations
@@ -215,6 +216,100 @@ def hold_step(flag, since, score, t, p):
     else:
         since = np.nan
     return flag, since
+
+
+# ------------------------------------------------------------------------------------------ detector state
+#: layout of the detector state (a slice of the fusion kernel's state vector, or an array of its own)
+DET_FM = 0  # EW mean of the strength
+DET_FM2 = 1  # EW mean of the strength²
+DET_T = 2  # time of the last sample
+DET_MW = 3  # 3: EW mean of the world-frame field direction
+DET_DIPLOC = 6  # learnt local dip, deg
+DET_FLOC = 7  # learnt local strength, µT
+DET_NLEARN = 8  # samples learnt from
+DET_FLAG = 9  # flag (0/1)
+DET_SINCE = 10  # hold timer: when the score changed side of 1 (NaN: no change pending)
+N_DET = 11
+
+
+def new_detector_state() -> np.ndarray:
+    """A fresh detector state (nothing learnt, flag down)."""
+    det = np.full(N_DET, np.nan)
+    det[DET_NLEARN] = 0.0
+    det[DET_FLAG] = 0.0
+    return det
+
+
+@njit(cache=True)
+def detect_step(det, f, dip, mwx, mwy, mwz, t, fref, dipref, sigma_b_deg, ip):
+    """All four checks and the hold timer for one calibrated sample (the formulas of the module docstring).
+
+    Parameters
+    ----------
+    det : float64 array (N_DET,)
+        Detector state, updated in place.
+    f, dip : float
+        Strength (µT) and dip (deg) of the sample.
+    mwx, mwy, mwz : float
+        Its direction in the world frame (unit), rotated with the gyro-propagated attitude.
+    t : float
+        Time, s.
+    fref, dipref : float
+        Reference strength and inclination (NaN when unknown).
+    sigma_b_deg : float
+        Gyro bias uncertainty of the filter, deg/s (widens the consistency tolerance).
+    ip : float64 array
+        :meth:`InterferenceSettings.as_array`.
+
+    Returns
+    -------
+    tuple
+        ``(flag, score, score_f, score_d, var, cons, f_loc, dip_loc, tol_f)``.
+    """
+    dtm = t - det[DET_T] if np.isfinite(det[DET_T]) else np.inf
+    if dtm > 5.0 * ip[I_VAR_WIN] or not np.isfinite(det[DET_FM]):
+        det[DET_FM] = f
+        det[DET_FM2] = f * f
+    else:
+        a = ew_alpha(dtm, ip[I_VAR_WIN])
+        det[DET_FM] += a * (f - det[DET_FM])
+        det[DET_FM2] += a * (f * f - det[DET_FM2])
+    var = max(det[DET_FM2] - det[DET_FM] ** 2, 0.0)
+    if dtm > 5.0 * ip[I_CONS_WIN] or not np.isfinite(det[DET_MW]):  # (re)start the mean direction
+        det[DET_MW], det[DET_MW + 1], det[DET_MW + 2] = mwx, mwy, mwz
+        cons = 0.0
+    else:
+        cons = angle_deg(mwx, mwy, mwz, det[DET_MW], det[DET_MW + 1], det[DET_MW + 2])
+        a = ew_alpha(dtm, ip[I_CONS_WIN])
+        det[DET_MW] += a * (mwx - det[DET_MW])
+        det[DET_MW + 1] += a * (mwy - det[DET_MW + 1])
+        det[DET_MW + 2] += a * (mwz - det[DET_MW + 2])
+    det[DET_T] = t
+    # strength and dip: against the learnt local values and, loosely, against the references
+    band_f = abs(f - fref) / (ip[I_STR_BAND] * fref) if np.isfinite(fref) else 0.0
+    band_d = abs(dip - dipref) / ip[I_DIP_BAND] if np.isfinite(dipref) else 0.0
+    score_v = var / ip[I_VAR_MAX]
+    score_c = cons / (ip[I_CONS_TOL] + ip[I_CONS_K] * sigma_b_deg * ip[I_CONS_WIN])
+    if max(max(band_f, band_d), max(score_v, score_c)) < 1.0:
+        # learn the local references (running mean of the first samples, then time constant learn_ref_s)
+        det[DET_NLEARN] += 1.0
+        a = max(ew_alpha(min(dtm, 1.0), ip[I_LEARN]), 1.0 / det[DET_NLEARN])
+        if not np.isfinite(det[DET_FLOC]):
+            det[DET_FLOC] = f
+            det[DET_DIPLOC] = dip
+        else:
+            det[DET_DIPLOC] += a * (dip - det[DET_DIPLOC])
+            det[DET_FLOC] += a * (f - det[DET_FLOC])
+    floc = det[DET_FLOC]
+    diploc = det[DET_DIPLOC]
+    ftol = strength_tol(fref if np.isfinite(fref) else floc, ip)
+    score_f = max(band_f, abs(f - floc) / ftol) if np.isfinite(floc) else band_f
+    score_d = max(band_d, abs(dip - diploc) / ip[I_DIP_TOL]) if np.isfinite(diploc) else band_d
+    score = max(max(score_f, score_d), max(score_v, score_c))
+    flag, since = hold_step(det[DET_FLAG] > 0, det[DET_SINCE], score, t, ip)
+    det[DET_FLAG] = 1.0 if flag else 0.0
+    det[DET_SINCE] = since
+    return flag, score, score_f, score_d, var, cons, floc, diploc, ftol
 
 
 # ----------------------------------------------------------------------------------------------- arrays

@@ -194,3 +194,22 @@ def test_heading_survives_a_strong_disturbance(walk):
     assert np.max(np.abs(err)) < 5.0
     inside = (b.t >= T0 + 0.2) & (b.t < T1)
     assert np.all(np.diff(b.heading_std_deg[inside]) >= -1e-9)  # std grows while rejected
+
+
+def test_kernel_step_matches_the_vectorised_functions():
+    """detect_step (what the fusion kernel runs per sample) gives the numbers of the array functions."""
+    from pdr_mag.interference import detect_step, new_detector_state
+
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.015, 0.025, 400))
+    f_w = np.array([0.6, 22.8, -41.2])
+    turn = Rotation.from_euler("z", np.cumsum(rng.normal(0.0, 1.0, len(t)))[:, None], degrees=True)
+    m_w = turn.apply(f_w) * (1.0 + 0.05 * np.sin(t))[:, None]
+    f = np.linalg.norm(m_w, axis=1)
+    u = m_w / f[:, None]
+    det = new_detector_state()
+    ip = S.as_array()
+    out = np.array([detect_step(det, f[i], 61.0, *u[i], t[i], 47.0, 61.0, 0.0, ip) for i in range(len(t))])
+    np.testing.assert_allclose(out[:, 4], windowed_variance(t, f, S.var_window_s), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(out[:, 5], consistency_angle_deg(t, m_w, S.consistency_window_s), atol=1e-6)
+    np.testing.assert_array_equal(out[:, 0].astype(bool), hold_off(t, out[:, 1]))
