@@ -220,3 +220,20 @@ def test_real_tyrex_recordings_run_and_gap_shrinks(name, seconds):
     assert np.isfinite(d.baseline.gap) and np.isfinite(d.final.gap)
     assert d.missing_effects, "a raw phone gyro has a bias the baseline lacks"
     assert d.final.gap < 0.8 * d.baseline.gap
+
+
+def test_temperature_offset_with_a_temperature_channel():
+    """An effect real breadboard data demand: the offset follows the sensor temperature (µT/°C)."""
+    r = _sim("figure8", {}, duration=40.0)
+    t_mag, mag = r.mag
+    t_temp = np.arange(0.0, 40.0, 0.1)
+    temp = 25.0 + 5.0 * np.sin(2 * np.pi * t_temp / 40.0)  # warms, then cools: not a linear drift
+    coef = np.array([0.5, -0.3, 0.2])
+    mag = mag + np.multiply.outer(np.interp(t_mag, t_temp, temp) - 25.0, coef)
+    d = diagnose(t_mag, mag, *r.gyro, *r.accel, temperature=(t_temp, temp))
+    _check_named(d, "temperature_offset", 1.5)
+    est = d.final.estimate["temperature_offset"]
+    assert np.all(np.abs(np.asarray(est["uT_per_degC"]) - coef) <= 6 * np.asarray(est["std"]) + 0.01)
+    # without the channel the candidate is not offered
+    d0 = diagnose(t_mag, mag, *r.gyro, *r.accel)
+    assert all(c.effect != "temperature_offset" for c in d0.candidates)
