@@ -249,7 +249,9 @@ def error_at_truth(batch, tt, qt):
 def test_real_walks_beat_the_best_peer(group):
     """PEERS.md: best mean heading error of any peer column — disturbed 10.6°, undisturbed 2.3°.
 
-    Asserted bounds sit below those (measured: see benchmarks/RESULTS.md).
+    Disturbed: asserted well below the best peer (measured 5.7°).  Undisturbed: measured 2.26°, at parity
+    with the best peer and near the motion-capture floor (1–2°), so the bound asserts parity with a
+    small allowance for changes of the calibration core rather than a margin we do not have.
     """
     cache: dict = {}
     if group == "dist":
@@ -258,7 +260,7 @@ def test_real_walks_beat_the_best_peer(group):
         assert max(errs) < 12.0
     else:
         errs = [_mode_a(t, cache) for t in NODIST]
-        assert np.mean(errs) < 2.6  # best peer 2.3 (asserted loosely: the mocap floor is 1–2°)
+        assert np.mean(errs) < 2.5  # parity with the best peer (2.3)
         assert max(errs) < 4.0
 
 
