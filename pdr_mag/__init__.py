@@ -27,19 +27,76 @@ The library knows no file format; reading recordings and writing files is the jo
 package (readers) and :mod:`pdr_mag.sinks` (MCAP, rerun).
 """
 
-from pdr_mag.calibration.model import MagCalibration
-from pdr_mag.calibration.sphere import fit_sphere
-from pdr_mag.conventions import heading_deg_from_quat, quat_to_rot, rot_to_quat
-from pdr_mag.field import EarthField, earth_field
+import importlib as _importlib
 
-__all__ = [
-    "EarthField",
-    "MagCalibration",
-    "earth_field",
-    "fit_sphere",
-    "heading_deg_from_quat",
-    "quat_to_rot",
-    "rot_to_quat",
-]
+#: public name → module that defines it (imported on first use, so ``import pdr_mag`` stays light:
+#: the compiled fusion kernel, the simulator and the model check load only when asked for)
+_EXPORTS = {
+    # conventions and the Earth field
+    "heading_deg_from_quat": "pdr_mag.conventions",
+    "heading_deg_from_rot": "pdr_mag.conventions",
+    "quat_to_rot": "pdr_mag.conventions",
+    "rot_to_quat": "pdr_mag.conventions",
+    "wrap_deg": "pdr_mag.conventions",
+    "EarthField": "pdr_mag.field",
+    "earth_field": "pdr_mag.field",
+    "earth_field_from_meta": "pdr_mag.field",
+    # calibration (seeds 000, 001, 003, 004)
+    "MagCalibration": "pdr_mag.calibration",
+    "calibrate": "pdr_mag.calibration",
+    "fit_sphere": "pdr_mag.calibration",
+    "fit_twostep": "pdr_mag.calibration",
+    "fit_ellipsoid": "pdr_mag.calibration",
+    "fit_als": "pdr_mag.calibration",
+    "fit_ml": "pdr_mag.calibration",
+    "fit_radial_newton": "pdr_mag.calibration",
+    "fit_lm9": "pdr_mag.calibration",
+    "fit_alignment": "pdr_mag.calibration",
+    "AcceptanceSettings": "pdr_mag.calibration",
+    "assess": "pdr_mag.calibration",
+    "coverage": "pdr_mag.calibration",
+    "crlb": "pdr_mag.calibration",
+    "OnlineCalibrator": "pdr_mag.calibration.online",
+    "OnlineSettings": "pdr_mag.calibration.online",
+    "gravity_aided_offset": "pdr_mag.calibration.online",
+    # detection, fusion, pipeline
+    "InterferenceSettings": "pdr_mag.interference",
+    "FusionSettings": "pdr_mag.attitude",
+    "FusionCore": "pdr_mag.attitude",
+    "PipelineSettings": "pdr_mag.pipeline",
+    "HeadingPipeline": "pdr_mag.pipeline",
+    "HeadingEstimate": "pdr_mag.estimates",
+    "EstimateBatch": "pdr_mag.estimates",
+    "Event": "pdr_mag.estimates",
+    # the sensor model and the simulator
+    "SensorModel": "pdr_mag.sensor_model",
+    "EFFECTS": "pdr_mag.sensor_model",
+    "Motion": "pdr_mag.sensor_model",
+    "DipoleField": "pdr_mag.sensor_model",
+    "PhoneSpec": "pdr_mag.sensor_model",
+    "predict_mag": "pdr_mag.sensor_model",
+    "measure_mag": "pdr_mag.sensor_model",
+    "correct_mag": "pdr_mag.sensor_model",
+    "integrate_gyro": "pdr_mag.sensor_model",
+    "simulate": "pdr_mag.sim",
+    # simulation vs measured
+    "diagnose": "pdr_mag.modelcheck",
+    "DiagnoseSettings": "pdr_mag.modelcheck",
+}
+
+__all__ = sorted(_EXPORTS)
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'pdr_mag' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
