@@ -29,6 +29,10 @@ def command(rec, calibration, out_csv, mcap, rrd, json_path, progress, quiet):
     from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
 
     cal = load_calibration(calibration) if calibration is not None else None
+    if cal is not None and not cal.accepted:
+        why = "; ".join(cal.reasons) or "no reason given"
+        msg = f"pdr-mag: warning: {calibration}: this calibration was not accepted ({why}); using it"
+        click.echo(msg, err=True)
     sinks = []
     if mcap is not None:
         sinks.append(make_sink("mcap", mcap))
