@@ -100,6 +100,11 @@ S_TREJ = 12  # time of the last gate rejection of a clean-looking field (NaN: la
 S_DET = 13  # N_DET: the interference detectors' state (pdr_mag.interference, DET_* layout)
 N_STATE = 96 + NX * NX
 
+#: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
+GAP_DT = 0.05
+#: largest tilt-error variance a gap may add up to, rad² (30°: the accelerometer linearisation holds)
+TILT_VAR_MAX = (np.pi / 6.0) ** 2
+
 # ---------------------------------------------------------------- settings layout
 P_GYRO_NOISE = 0
 P_BIAS_RW = 1
@@ -363,6 +368,16 @@ def _predict(st, R, wx, wy, wz, dt, p):
 
 
 @njit(cache=True)
+def _inflate_att(st, v):
+    """Add v (rad²) to the variance of each attitude error; tilt capped at TILT_VAR_MAX, heading at π²."""
+    P = st[S_P : S_P + NX * NX]
+    for j in range(3):
+        cap = np.pi**2 if j == 2 else TILT_VAR_MAX
+        vj = min(v, max(cap - P[j * NX + j], 0.0))
+        P[j * NX + j] += vj
+
+
+@njit(cache=True)
 def _init_tilt(st, ax, ay, az, p):
     """Attitude from one accelerometer sample, heading 0 (device +y horizontal projection to north)."""
     n = np.sqrt(ax * ax + ay * ay + az * az)
@@ -501,11 +516,21 @@ def _gyro(st, R, wx, wy, wz, t, p):
         st[S_GVAR] = 1.0
     if st[S_INIT] > 0 and st[S_HAVEG] > 0:
         dt = t - st[S_TG]
-        if 0.0 < dt <= p[P_MAX_DT]:
+        if dt > 0.0:
             ox = 0.5 * (wx + st[S_WG]) - st[S_B]
             oy = 0.5 * (wy + st[S_WG + 1]) - st[S_B + 1]
             oz = 0.5 * (wz + st[S_WG + 2]) - st[S_B + 2]
-            _predict(st, R, ox, oy, oz, dt, p)
+            if dt <= p[P_MAX_DT]:
+                _predict(st, R, ox, oy, oz, dt, p)
+                if dt > GAP_DT:
+                    # a gap: the rate between the two samples is not the mean of the ends; it deviates
+                    # by about the recent motion level (running std of the gyro) for the excess time
+                    _inflate_att(st, st[S_GVAR] * (dt - GAP_DT) ** 2)
+            else:
+                # too long to integrate: propagate the uncertainty only; the rotation meanwhile is
+                # unknown, of the order of (|ω̄|² + var ω) dt²
+                _predict(st, R, 0.0, 0.0, 0.0, dt, p)
+                _inflate_att(st, (ox * ox + oy * oy + oz * oz + st[S_GVAR]) * dt * dt)
         # zero-rate update while still
         still = (st[S_GVAR] < p[P_STILL_GYRO] ** 2) and (st[S_AVAR] < p[P_STILL_ACC] ** 2)
         if still:

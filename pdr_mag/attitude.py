@@ -177,7 +177,9 @@ class FusionSettings:
     gravity : float
         m/s².
     max_dt : float
-        Gyro gaps longer than this are not integrated, s.
+        Gyro gaps up to this long are integrated with the mean rate of their ends, and their attitude
+        variance grows by ``var(ω) (Δt − 0.05 s)²`` (the rate meanwhile is unknown to the recent motion
+        level); longer gaps are not integrated and add ``(|ω̄|² + var(ω)) Δt²``, s.
     interference : InterferenceSettings
         Detector thresholds.
     """
@@ -214,7 +216,7 @@ class FusionSettings:
     zupt_noise: float = 0.002
     output_rate_hz: float = 50.0
     gravity: float = 9.80665
-    max_dt: float = 0.2
+    max_dt: float = 0.5
     interference: InterferenceSettings = field(default_factory=InterferenceSettings)
 
     def __post_init__(self):
