@@ -218,3 +218,18 @@ def test_bad_arguments(tmp_path):
     sink = RerunSink(tmp_path / "b.rrd")
     with pytest.raises(RuntimeError, match="open"):
         sink.inputs("gyro", np.zeros(1), np.zeros((1, 3)))
+
+
+def test_live_viewer_gets_the_blueprint(monkeypatch):
+    """spawn=True starts the viewer with the drift blueprint (the viewer itself is faked: no display here)."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    seen = {}
+    monkeypatch.setattr(rr.RecordingStream, "spawn", lambda self, **kw: seen.update(kw))
+    sink = RerunSink(spawn=True)
+    sink.open({"source": "live"})
+    sink.inputs("gyro", np.arange(10.0) / 100.0, np.zeros((10, 3)))
+    sink.close()
+    assert isinstance(seen["default_blueprint"], rrb.Blueprint)
+    assert sink.rows_sent["inputs/gyro/x"] == 10

@@ -357,9 +357,16 @@ class RerunSink:
             return
         for entity in list(self._buf):
             self._flush(entity)
-        self._rec.flush()
-        self._rec.disconnect()
-        self._rec = None
+        rec, self._rec = self._rec, None
+        try:
+            rec.flush()
+        except RuntimeError as exc:  # a live viewer that is gone must not cost the replay its outputs
+            if not self.spawn:
+                raise
+            import warnings
+
+            warnings.warn(f"rerun viewer unreachable ({exc}); the data it missed is not shown", stacklevel=2)
+        rec.disconnect()
 
     def __enter__(self):
         return self
