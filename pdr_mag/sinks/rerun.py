@@ -27,13 +27,14 @@ Entities (timeline ``time``: the recording's clock as a duration, ``round(t·1e9
     ``|S (m − b)| = R`` ⇔ ``m = b + V diag(R/λ) u`` with ``S = V diag(λ) Vᵀ``, ``|u| = 1``) and the sphere of
     radius ``field_uT`` round the origin that the calibrated cloud should lie on.
 ``inputs/accel/{x,y,z}``, ``inputs/gyro/{x,y,z}``, ``inputs/mag/{x,y,z}``
-    the raw inputs (hidden in the default blueprint; there for inspection).
+    the raw inputs (a tab of their own, behind coverage).
 ``events``
     :class:`rerun.TextLog` — pipeline events and calibrations.
 
-The default blueprint (:func:`drift_blueprint`) puts heading, field strength, dip and the state lanes on
-the left, on a shared time axis; the 3-D cloud with the fitted surfaces, coverage/σ/score tabs and the
-event log on the right.
+The default blueprint (:func:`drift_blueprint`) puts heading, heading error vs truth, field strength, dip
+and the state lanes on the left, on a shared time axis; the 3-D cloud with the fitted surfaces (all samples
+up to the time cursor), tabs for coverage / heading σ / interference score / inputs, and the event log on
+the right.
 
 Every series goes out with columnar :meth:`rerun.RecordingStream.send_columns` calls, buffered per entity
 up to ``chunk_rows`` rows (bounded memory, few large sends); nothing is logged row by row.
