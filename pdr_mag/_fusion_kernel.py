@@ -13,18 +13,28 @@ with ``R_true = Exp(δθ) R`` (δθ in the world frame, so ``δθ_z`` is the hea
 ``heading_std = sqrt(P[2, 2])``), ``b_true = b + δb``, ``c_true = c + δc``.
 
 predict (per gyro sample, Δt)
-    ``q ← q ⊗ Exp((ω̄ − b) Δt)`` with ω̄ the mean of the last two gyro samples;
+    ``q ← q ⊗ Exp((ω̄ − b) Δt)`` with ω̄ the mean of the last two gyro samples (gaps up to ``max_dt``
+    too, adding ``var(ω) (Δt − GAP_DT)²`` to the attitude variance; longer gaps are not integrated and add
+    ``(|ω̄|² + var(ω)) Δt²`` — a 0.25-s gap of a phone turning at 2 rad/s is 30° that must not be
+    hidden from P);
     ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``,
     ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``, ``P ← Φ P Φᵀ + Q``; ``c ← φ c`` (first-order
     Gauss–Markov: the heading error of a calibrated magnetometer — residual calibration error, the
     building's own field — is correlated over seconds, so the filter must not read its slow drift as
     gyro bias, and the reported std stays honest).  ``P[2, 2]`` is capped at π² (unknown heading).
-accelerometer (per accel sample)
-    ``u_w = R a/|a| ≈ e_z + (−δθ_y, δθ_x, 0)``: two scalar updates of the tilt errors only, noise
-    ``σ_a² = σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)² + var(a)/g² · τ_a/Δt_a`` — the last term spreads the
-    running variance of the linear acceleration (correlation time τ_a) over the samples, so the
-    information per second does not depend on the sample rate; skipped when ``||a| − g| > gate · g``.
-    (Optional, off by default: the same from the specific force averaged in the almost-inertial frame.)
+accelerometer (default: the specific force averaged in the almost-inertial world frame, as VQF does)
+    ``ā_w ← ā_w + α (R a − ā_w)``, ``α = 1 − exp(−Δt/τ)`` (``acc_tau_s``) over **every** sample: the mean
+    linear acceleration of a walking, swinging or pocketed phone over τ is Δv/τ ≈ 0, so ā_w points up
+    (gating single samples before averaging biased it — a swinging arm's large samples point along the
+    arm — and was why this option once did worse).  At most every ``acc_interval_s``: ``u_w = ā_w/|ā_w|
+    ≈ e_z + (−δθ_y, δθ_x, 0)``, two scalar updates of the tilt errors only, noise
+    ``σ² = σ_avg² + (k_a (|ā| − g)/g)² + ⅔ tr(P_b) τ²`` — the last term because the average lags by ~τ,
+    over which an unknown bias error δb has moved the tilt by δb τ (raw phone offsets of 4–6 °/s would
+    otherwise be learnt from a delayed tilt, which the model does not represent); skipped when
+    ``||ā| − g| > gate · g``.  ``acc_tau_s = 0``: per-sample updates from ``u_w = (R a)_h / g`` (the
+    horizontal specific force over g, unbiased when horizontal and vertical accelerations are
+    correlated), noise ``σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)² + var(a)/g² · τ_a/Δt_a``, skipped when
+    ``||a| − g| > gate · g``.
 magnetometer (calibrated, per sample, at most every ``mag_interval_s``)
     heading-only: ``ψ = atan2(m_w,x, m_w,y)`` with ``m_w = R m_d``; residual ``r = wrap(ψ − D − c)`` (D the
     declination, 0 for magnetic north) observes ``δθ_z + δc`` (``H = e_3 + e_7``), so a disturbed field
@@ -453,8 +463,6 @@ def _accel(st, R, ax, ay, az, t, p):
         return
     g = p[P_GRAV]
     da = abs(n - g) / g
-    if da > p[P_ACC_GATE]:
-        return
     _rot(st, R)
     if p[P_ACC_TAU] > 0.0:
         # average the specific force in the (almost inertial) world frame: the mean linear acceleration
@@ -475,10 +483,19 @@ def _accel(st, R, ax, ay, az, t, p):
         st[S_TAU] = t
         na = np.sqrt(st[S_AW] ** 2 + st[S_AW + 1] ** 2 + st[S_AW + 2] ** 2)
         dev = abs(na - g) / g
+        # every sample enters the average (gating single samples would bias it: a swinging arm's large
+        # samples point along the arm); the gate applies to the average
+        if dev > p[P_ACC_GATE]:
+            return
         rv = p[P_ACC_AVG_NOISE] ** 2 + (p[P_ACC_DYN] * dev) ** 2
+        # the average lags by ~τ: the tilt error has moved by the (unknown) bias error × τ meanwhile
+        Pm = st[S_P : S_P + NX * NX]
+        rv += (2.0 / 3.0) * (Pm[3 * NX + 3] + Pm[4 * NX + 4] + Pm[5 * NX + 5]) * p[P_ACC_TAU] ** 2
         uxw = st[S_AW] / na
         uyw = st[S_AW + 1] / na
     else:
+        if da > p[P_ACC_GATE]:
+            return
         wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
         wn = np.sqrt(wx * wx + wy * wy + wz * wz)
         # linear acceleration: its recent variance, correlated over acc_corr_s, spread over the samples
@@ -493,8 +510,11 @@ def _accel(st, R, ax, ay, az, t, p):
         # walking around a bend: a sustained centripetal acceleration v·ω_up (ω_up the turn rate)
         wup = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz
         rv += (p[P_TURN_SPEED] * wup / g) ** 2 * p[P_TURN_CORR] / dta
-        uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / n
-        uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / n
+        # horizontal specific force over g (not over |a|): a tilt error δ shows as g·δ whatever the vertical
+        # acceleration, and a walking hand's horizontal and vertical accelerations are correlated over a
+        # step, so dividing by |a| would bias the mean direction by −E[a_h a_v] / g² (≈ 1° for ±2 m/s²)
+        uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
+        uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
     dx = np.zeros(NX)
     _upd(st, dx, 1, -1.0, uxw, rv)
     _upd(st, dx, 0, 1.0, uyw, rv)

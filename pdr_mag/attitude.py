@@ -8,9 +8,10 @@ In short:
 * gyroscope: propagates ``q`` (device → ENU) with the bias-corrected rate; ``P`` grows with the gyro noise
   and the bias uncertainty, so ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z]))`` grows while the
   magnetometer is rejected;
-* accelerometer: corrects tilt only, with a noise built from the running variance of the accelerometer
-  (walking gives ±3 m/s² at ~2 Hz; a swinging arm much more) spread over its correlation time, plus terms
-  in ``||a| − g|`` and ``|ω|``; gated beyond ``acc_gate``;
+* accelerometer: corrects tilt only, from the specific force averaged over ``acc_tau_s`` in the
+  almost-inertial world frame (the mean linear acceleration of a walking, swinging or pocketed phone over
+  the window is ≈ 0); its noise grows with ``||ā| − g|`` and with the bias uncertainty × the lag of the
+  average; the average is gated beyond ``acc_gate``;
 * magnetometer: corrects heading only (``H = e_z`` on ``δθ``), so a disturbed field can never corrupt the
   tilt.  Gross disturbances are rejected by :mod:`pdr_mag.interference` (flag with hold-off timers);
   moderate ones are down-weighted by the smallest disturbance that explains the deviations of strength,
@@ -107,8 +108,9 @@ class FusionSettings:
     acc_tau_s : float
         Time constant of the average of the specific force in the (almost inertial) world frame, s.  The
         tilt is corrected from that average (the mean linear acceleration of a walking or swinging hand
-        over the window is Δv/τ ≈ 0, whereas single samples of a swinging arm point along the arm).
-        0 = correct from single samples (``acc_noise``, ``acc_gyro``).
+        over the window is Δv/τ ≈ 0, whereas single samples of a swinging arm point along the arm).  All
+        samples are averaged; ``acc_gate`` applies to the average.  0 = correct from single samples
+        (``acc_noise``, ``acc_corr_s``, ``acc_gyro``).
     acc_interval_s : float
         At most one averaged-accelerometer update per this interval, s.
     acc_avg_noise : float
@@ -188,7 +190,7 @@ class FusionSettings:
     bias_rw: float = 2e-4
     bias0_std: float = 0.17
     tilt0_std: float = 0.2
-    acc_tau_s: float = 0.0
+    acc_tau_s: float = 0.5
     acc_interval_s: float = 0.05
     acc_avg_noise: float = 0.2
     acc_noise: float = 0.05

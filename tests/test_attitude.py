@@ -58,18 +58,80 @@ def walk_run(walk):
 
 
 # ------------------------------------------------------------------------------------------ accuracy
+def _big_offset_walk(seed, phone=None):
+    return simulate(
+        "walk",
+        seed=seed,
+        effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)},
+        phone=phone,
+    )
+
+
 def test_walk_heading_error_within_the_magnetometer_noise(walk, walk_run):
-    core, b = walk_run
-    t, err, std = twist_error_deg(b, walk.truth)
-    late = t > t[0] + 20.0  # after the bias has converged
-    # one magnetometer sample gives the heading to σ_m / B_h (≈ 1°); with the tilt error of a walking
-    # hand entering through the dip (× tan I ≈ 2) the filtered heading stays within twice that
+    """One magnetometer sample gives the heading to σ₁ = σ_m / B_h (≈ 1.1°).  The filtered heading also
+    carries the tilt error of a walking hand through the dip (× tan I ≈ 2): a tilt error of ~0.5–1° over tens
+    of seconds (the mean horizontal acceleration left in the averaged specific force) gives 1–2° of heading
+    on single walks.  Bound: mean over three walks < 2 σ₁, each < 3 σ₁."""
     b_h = walk.field.strength * np.cos(np.radians(walk.field.inclination_deg))
     sigma_one = np.degrees(walk.model.effects["noise"][0] / b_h)
-    assert np.mean(np.abs(err[late])) < 2.0 * sigma_one
-    # and its reported uncertainty covers the error (|e| < 2σ nearly always)
-    assert np.mean(np.abs(err[late]) < 2.0 * std[late]) > 0.95
-    assert np.all(np.abs(err[late]) < 4.0 * std[late])
+    means = []
+    for seed, res in ((11, walk), (12, None), (13, None)):
+        if res is None:
+            res = _big_offset_walk(seed)
+            b = FusionCore(field=res.field).process(*merge(res))
+        else:
+            b = walk_run[1]
+        t, err, std = twist_error_deg(b, res.truth)
+        late = t > t[0] + 20.0  # after the bias has converged
+        means.append(np.mean(np.abs(err[late])))
+        assert means[-1] < 3.0 * sigma_one
+        # and its reported uncertainty covers the error (|e| < 2σ nearly always)
+        assert np.mean(np.abs(err[late]) < 2.0 * std[late]) > 0.95
+        assert np.all(np.abs(err[late]) < 4.0 * std[late])
+    assert np.mean(means) < 2.0 * sigma_one
+
+
+@pytest.mark.parametrize("scenario", ["walk", "mixed"])
+def test_simulated_walk_with_ideal_calibration(scenario):
+    """The scenario's default phone (hard / soft iron, gyro offset (0.6, −0.8, 0.5) °/s, 0.4 µT noise, gaps
+    and drops; ``mixed``: a figure-8 then a walk through a 30-µT steel area), 60 s, magnetometer calibrated
+    with the phone's exact calibration — what is left is the fusion's own error.
+
+    Derivation of the bounds.  Tilt: the accelerometer is averaged over ``acc_tau_s`` in the world frame;
+    what is left of a walker's horizontal acceleration in that average (speed changes of ±0.1–0.2 m/s over a
+    step, turns) is ≈ 0.1–0.3 m/s², i.e. 0.5–1.5° on single windows, less after the filter's averaging:
+    mean tilt error < 1.5°.  Heading: a perfect-tilt compass has σ₁ = σ_m / B_h ≈ 1.1° per sample; the
+    heading-only magnetometer update adds the tilt error about north × tan I (≈ 2 at I = 63.5°), so the mean
+    |heading error| < σ₁ + tan I · (the measured mean tilt error) per walk, and < 2 σ₁ over the seeds.
+    (Before the gap fix and the averaged accelerometer, the demo recordings gave 3.7° / 10.1° of heading
+    and 2.9° / 4.2° of tilt.)"""
+    from pdr_mag.sensor_model import SensorModel
+
+    heads, tilts = [], []
+    for seed in (1, 2, 3):
+        res = simulate(scenario, seed=seed, duration_s=60.0)
+        eff = {k: v for k, v in res.model.effects.items() if k in ("hard_iron", "soft_iron")}
+        cal = SensorModel(effects=eff).ideal_calibration(0.0)
+        b = FusionCore(field=res.field).process(*merge(res, mag=cal.apply(res.mag[1])))
+        t, err, std = twist_error_deg(b, res.truth)
+        from scipy.spatial.transform import Rotation, Slerp
+
+        tt, qt = res.truth
+        rt = Slerp(tt, Rotation.from_quat(qt[:, [1, 2, 3, 0]]))(t)
+        ok = (b.t >= tt[0]) & (b.t <= tt[-1])
+        re = Rotation.from_quat(b.q_wd[ok][:, [1, 2, 3, 0]])
+        up_e, up_t = re.inv().apply([0, 0, 1.0]), rt.inv().apply([0, 0, 1.0])
+        tilt = np.degrees(np.arccos(np.clip(np.sum(up_e * up_t, axis=1), -1.0, 1.0)))
+        s = t > 5.0
+        b_h = res.field.strength * np.cos(np.radians(res.field.inclination_deg))
+        sigma_one = np.degrees(res.model.effects["noise"][0] / b_h)
+        tan_i = np.tan(np.radians(res.field.inclination_deg))
+        heads.append(np.mean(np.abs(err[s])))
+        tilts.append(np.mean(tilt[s]))
+        assert tilts[-1] < 1.5
+        assert heads[-1] < sigma_one + tan_i * tilts[-1]
+        assert np.mean(np.abs(err[s]) < 2.0 * std[s]) > 0.95  # the reported std covers the error
+    assert np.mean(heads) < 2.0 * sigma_one
 
 
 def test_raw_gyro_offset_is_estimated(walk, walk_run):
@@ -270,16 +332,12 @@ def test_other_phones_sample_rates(rates):
     from pdr_mag.sensor_model import PhoneSpec
 
     imu, mag = rates
-    res = simulate(
-        "walk",
-        seed=11,
-        effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)},
-        phone=PhoneSpec(accel_rate_hz=imu, gyro_rate_hz=imu, mag_rate_hz=mag),
-    )
+    res = _big_offset_walk(11, PhoneSpec(accel_rate_hz=imu, gyro_rate_hz=imu, mag_rate_hz=mag))
     core = FusionCore(field=res.field)
     t, err, std = twist_error_deg(core.process(*merge(res)), res.truth)
     late = t > t[0] + 20.0
     b_h = res.field.strength * np.cos(np.radians(res.field.inclination_deg))
-    assert np.mean(np.abs(err[late])) < 2.0 * np.degrees(res.model.effects["noise"][0] / b_h)
+    # single-walk bound of test_walk_heading_error_within_the_magnetometer_noise
+    assert np.mean(np.abs(err[late])) < 3.0 * np.degrees(res.model.effects["noise"][0] / b_h)
     assert np.mean(np.abs(err[late]) < 2.0 * std[late]) > 0.95
     assert np.all(np.abs(core.bias - np.array([0.02, -0.03, 0.07])) < 0.2 * DEG)
