@@ -140,9 +140,15 @@ def test_replay_demo_recording_mixed(tmp_path):
     truth = np.loadtxt(rec / "truth.csv", delimiter=",", skiprows=1)
     w = truth[:, 0] > 30.0  # after the figure-8 calibration
     err = _heading_err_deg(d[:, 0], d[:, 1:5], truth[w, 0], truth[w, 1:5])
-    # a gross-failure bound: the heading accuracy on the demo is the fusion core's (tests/test_attitude.py);
-    # here the point is the whole command on the README's recording
-    assert np.mean(err) < 25.0
+    # derived bound: the online fit after the figure-8 leaves an offset error of ~1 µT (0.4 µT noise,
+    # thousands of samples), which turns the horizontal field (B_h ≈ 21.6 µT here) by up to δo / B_h; the
+    # fusion's own error is ~σ_m / B_h (tests/test_attitude.py: the tilt share is below that on this walk).
+    # Mean over the walk (steel area included, where the field is rejected) < (δo + σ_m) / B_h ≈ 3.7°;
+    # measured 1.4° (it was 10° before the fusion's gap and tilt fixes, hence the old gross bound of 25°).
+    meta = json.loads((rec / "meta.json").read_text())["simulation"]
+    f_w = np.asarray(meta["field_w_uT"])
+    b_h = np.hypot(f_w[0], f_w[1])
+    assert np.mean(err) < np.degrees((1.0 + meta["effects"]["noise"][0]) / b_h)
     summary = json.loads(out_json.read_text())
     assert summary["cal_state"] in ("offset", "ellipsoid")
 
