@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pdr_mag.modelcheck import diagnose
-from pdr_mag.modelcheck.fit import fit_model, make_problem
+from pdr_mag.modelcheck.fit import anomaly_support, fit_model, make_problem
 from pdr_mag.modelcheck.orientation import estimate_orientation, prefix_product, qmul
 from pdr_mag.modelcheck.predict import simulate_mag
 from pdr_mag.sim import simulate
@@ -79,7 +79,9 @@ def test_prediction_is_the_sensor_model():
     r = _sim("figure8", {"time_offset": 0.02, "soft_iron": [1.05, 0.97, 1.0]}, duration=20.0)
     tr = estimate_orientation(*r.gyro, *r.accel)
     p = make_problem(*r.mag, tr, anomaly_knot_s=2.0)
-    effects = ("time_offset", "mag_imu_misalignment", "soft_iron", "bias_drift", "gyro_bias", "local_anomaly")
+    effects = ("time_offset", "mag_imu_misalignment", "soft_iron", "bias_drift", "gyro_bias", "local_anomaly",
+               "hard_iron_change")
+    p = anomaly_support(p, fit_model(p, ()), min_uT=0.0, max_share=0.3, frame="device")
     f = fit_model(p, effects, max_nfev=8)
     assert np.allclose(p.mag - simulate_mag(p, f), f.residual, atol=1e-7)
 
@@ -237,3 +239,16 @@ def test_temperature_offset_with_a_temperature_channel():
     # without the channel the candidate is not offered
     d0 = diagnose(t_mag, mag, *r.gyro, *r.accel)
     assert all(c.effect != "temperature_offset" for c in d0.candidates)
+
+
+def test_hard_iron_change_body_fixed_offset():
+    """An effect real data demand (BROAD: a magnet attached to the board for part of the trial)."""
+    r = _sim("figure8", {}, duration=40.0)
+    t_mag, mag = r.mag
+    bump = np.clip(1.0 - np.abs(t_mag - 22.0) / 6.0, 0.0, None)  # 0 → 1 → 0 over 16–28 s
+    db = np.array([6.0, -4.0, 5.0])
+    d = diagnose(t_mag, mag + np.multiply.outer(bump, db), *r.gyro, *r.accel)
+    _check_named(d, "hard_iron_change", 2.0)
+    est = d.final.estimate["hard_iron_change"]
+    assert est["uT"] == pytest.approx(np.linalg.norm(db), rel=0.15)
+    assert 19.0 <= est["t_peak"] <= 25.0

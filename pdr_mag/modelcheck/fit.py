@@ -22,6 +22,9 @@ effect                     parameters                                           
                            knots every ``anomaly_knot_s`` (3 per knot; time stands
                            in for position, which a recording does not give)
 ``temperature_offset``     c, µT/°C (3), when the recording has a temperature channel  linear
+``hard_iron_change``       Δb(t): a *body-fixed* offset change (a magnet on the phone,  linear
+                           a magnetised part), piecewise linear in time, confined to
+                           windows like ``local_anomaly`` (3 per knot)
 =========================  ==========================================================  ===============
 
 The linear parameters are solved exactly for given nonlinear ones (variable projection: a sparse normal
@@ -51,6 +54,7 @@ CANDIDATES = (
     "bias_drift",
     "gyro_bias",
     "local_anomaly",
+    "hard_iron_change",
     "temperature_offset",
 )
 _NONLINEAR = {"time_offset": 1, "gyro_bias": 3, "mag_imu_misalignment": 3, "soft_iron": 5}
@@ -83,6 +87,8 @@ class Problem:
     knot_free : ndarray (K,) of bool
         Knots whose value is fitted; the others are held at zero, so the anomaly is confined to the
         windows :func:`anomaly_support` found (it is *local*).
+    offset_knots, offset_knot_free : ndarray
+        The same for ``hard_iron_change`` (device frame).
     prior_weight : float
         Weight of the priors on the nonlinear parameters, µT: the residual's σ × √τ_int, so that a prior
         counts as much against correlated residuals as it should against independent ones.
@@ -99,6 +105,8 @@ class Problem:
     temp_ref: float = 0.0
     knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
     knot_free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    offset_knots: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    offset_knot_free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     anomaly_prior_uT: float = 100.0
     prior_weight: float = 1.0
     r_dw0: np.ndarray | None = None
@@ -208,6 +216,7 @@ def linear_layout(problem: Problem, effects) -> Layout:
         ("hard_iron", 3),
         ("bias_drift", 3),
         ("temperature_offset", 3),
+        ("hard_iron_change", 3 * int(np.count_nonzero(problem.offset_knot_free))),
         ("local_anomaly", 3 * int(np.count_nonzero(problem.knot_free))),
     ):
         if name in ("field_w", "hard_iron") or name in effects:
@@ -239,6 +248,11 @@ def design(problem: Problem, mats: np.ndarray, tau: np.ndarray, layout: Layout) 
         s = layout.blocks["temperature_offset"].start
         add(rows3, s + np.arange(3)[None, :],
             np.repeat((problem.temperature - problem.temp_ref)[:, None], 3, 1))
+    if "hard_iron_change" in layout.blocks:
+        s = layout.blocks["hard_iron_change"].start
+        for kk, w, sel, idx in _hat_weights(problem.offset_knots, problem.offset_knot_free, problem.t):
+            add(rows3[sel], s + 3 * idx[kk[sel]][:, None] + np.arange(3)[None, :],
+                np.repeat(w[sel][:, None], 3, axis=1))
     if "local_anomaly" in layout.blocks:
         s = layout.blocks["local_anomaly"].start
         kn = problem.knots
@@ -255,6 +269,14 @@ def design(problem: Problem, mats: np.ndarray, tau: np.ndarray, layout: Layout) 
     cols = np.concatenate(c_parts)
     vals = np.concatenate(v_parts)
     return sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, layout.size))
+
+
+def _hat_weights(kn: np.ndarray, free: np.ndarray, t: np.ndarray):
+    """Piecewise-linear interpolation weights of times t on knots: ((knot, weight, free?, column) × 2)."""
+    idx = np.cumsum(free) - 1
+    k = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, len(kn) - 2)
+    u = np.clip((t - kn[k]) / (kn[k + 1] - kn[k]), 0.0, 1.0)
+    return [(kk, w, free[kk], idx) for kk, w in ((k, 1.0 - u), (k + 1, u))]
 
 
 def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray:
@@ -274,6 +296,8 @@ def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, w
     if "local_anomaly" in layout.blocks:
         # weak prior on the knots: σ_noise²/σ_prior² with σ_noise ~ 1 µT
         ridge[layout.blocks["local_anomaly"]] += 1.0 / problem.anomaly_prior_uT**2
+    if "hard_iron_change" in layout.blocks:
+        ridge[layout.blocks["hard_iron_change"]] += 1.0 / problem.anomaly_prior_uT**2
     ata = (ata + sp.diags(ridge)).tocsc()
     # sparse LU (SuperLU): the normal matrix is banded (anomaly knots) with a small dense border, and
     # unlike dense LAPACK it does not slow down when BLAS threads compete for the two cores
@@ -366,8 +390,9 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
     mats = sample_matrices(problem, nl)
     x, r, ata = solve_linear(problem, nl, mats, layout, with_normal=True)
     linear = {name: x[sl].copy() for name, sl in layout.blocks.items()}
-    if "local_anomaly" in linear:
-        linear["local_anomaly"] = linear["local_anomaly"].reshape(-1, 3)
+    for name in ("local_anomaly", "hard_iron_change"):
+        if name in linear:
+            linear[name] = linear[name].reshape(-1, 3)
     res = r.reshape(-1, 3)
     k = layout.size + len(p)
     # 1-σ uncertainties: Gauss–Newton covariance × σ² × τ_int (correlated residuals count less)
@@ -415,7 +440,8 @@ def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> flo
 
 
 def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_uT: float = 2.0,
-                    n_sigma: float = 4.0, max_share: float = 0.5, smooth_s: float = 1.0) -> Problem:
+                    n_sigma: float = 4.0, max_share: float = 0.5, smooth_s: float = 1.0,
+                    frame: str = "world") -> Problem:
     """Confine ``local_anomaly`` to where the residual of ``fit``, seen in the world frame, stands out.
 
     ``r_w = R_wd (m − m̂)`` is averaged over ``smooth_s``; samples where ``|r̄_w|`` exceeds
@@ -423,10 +449,15 @@ def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_u
     widened by one knot on each side.  At most ``max_share`` of the samples are kept (the strongest):
     a field that is everywhere is not local.  Knots every ``knot_s`` inside the windows are free; the
     knots at the window edges are held at zero.
+
+    ``frame="device"``: the same on the residual in device axes, for ``hard_iron_change`` (a body-fixed
+    offset stands out in the device frame, an external field in the world frame).
     """
-    q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
-    r_wd = _quat_to_matrix(q)
-    r_w = np.einsum("nij,nj->ni", r_wd, fit.residual)
+    if frame == "device":
+        r_w = fit.residual
+    else:
+        q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
+        r_w = np.einsum("nij,nj->ni", _quat_to_matrix(q), fit.residual)
     c = np.vstack([np.zeros((1, 3)), np.cumsum(r_w, axis=0)])
     lo = np.searchsorted(problem.t, problem.t - 0.5 * smooth_s, side="left")
     hi = np.searchsorted(problem.t, problem.t + 0.5 * smooth_s, side="right")
@@ -460,4 +491,6 @@ def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_u
         knots, free = [t[0], t[-1]], [False, False]
     knots = np.asarray(knots)
     free = np.asarray(free)
+    if frame == "device":
+        return replace(problem, offset_knots=knots, offset_knot_free=free)
     return replace(problem, knots=knots, knot_free=free)

@@ -10,7 +10,9 @@ does not have, this adapter supplies, and nothing else:
 * ``local_anomaly`` is a :class:`TimeKnotField`: a recording has no positions, so the "position" handed to
   the field is the measurement time (``p = (τ, 0, 0)``) and the field is piecewise linear in it;
 * ``temperature_offset`` (µT/°C, an effect real breadboard data demand) is not in the sensor model: it is
-  added to the prediction here, ``+ c (T − T_ref)``.
+  added to the prediction here, ``+ c (T − T_ref)``;
+* so is ``hard_iron_change`` (a temporary body-fixed offset, e.g. a magnet on the phone, as in BROAD's
+  attached-magnet trials): ``+ Δb(t)``, piecewise linear in time.
 """
 
 from __future__ import annotations
@@ -102,9 +104,19 @@ def simulate_mag(problem: Problem, fit: FitResult) -> np.ndarray:
     model = to_sensor_model(problem, fit)
     motion = TrackMotion(problem, fit.nonlinear.get("gyro_bias"))
     m = predict_mag(model, problem.t, motion, fit.linear["field_w"])
+    if "hard_iron_change" in fit.linear:
+        m = m + offset_change(problem, fit)
     if "temperature_offset" in fit.linear:
         m = m + np.multiply.outer(problem.temperature - problem.temp_ref, fit.linear["temperature_offset"])
     return m
+
+
+def offset_change(problem: Problem, fit: FitResult) -> np.ndarray:
+    """The fitted body-fixed offset change Δb(t) (N, 3), µT (``hard_iron_change``; not in the sensor
+    model)."""
+    vals = np.zeros((len(problem.offset_knots), 3))
+    vals[problem.offset_knot_free] = fit.linear["hard_iron_change"]
+    return np.stack([np.interp(problem.t, problem.offset_knots, vals[:, k]) for k in range(3)], axis=-1)
 
 
 def gap(problem: Problem, fit: FitResult) -> float:

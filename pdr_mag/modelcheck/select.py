@@ -47,6 +47,11 @@ from pdr_mag.modelcheck.predict import anomaly_field, gap
 
 GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
 
+#: Two names for a disturbance confined in time: fixed in the world (an external field) or fixed to the
+#: phone (an offset change).  They explain the same windows, so a model gets at most one of them — the one
+#: that scores better (they differ only where the phone turns inside a window).
+_LOCAL = ("local_anomaly", "hard_iron_change")
+
 
 @dataclass(frozen=True)
 class DiagnoseSettings:
@@ -199,6 +204,18 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
                       "std": _vec(sd[e], 5), "mean_up_d": _vec(up, 4),
                       "along_up_rad_per_s": _r(up @ total, 5),
                       "along_up_std": _r(up_std, 5)}
+        elif e == "hard_iron_change":
+            from pdr_mag.modelcheck.predict import offset_change
+
+            db = offset_change(problem, fit)
+            mags = np.linalg.norm(db, axis=1)
+            i = int(np.argmax(mags))
+            kn, free = problem.offset_knots, problem.offset_knot_free
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
+            win = [[_r(kn[a], 2), _r(kn[b - 1], 2)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+            share = float(np.mean(np.interp(problem.t, kn, free.astype(float)) > 0))
+            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(problem.t[i], 2), "windows_s": win,
+                      "share": _r(share, 3)}
         elif e == "local_anomaly":
             fld = anomaly_field(problem, fit)
             mags = np.linalg.norm(fld.values_w, axis=1)
@@ -337,13 +354,14 @@ def diagnose(
         tried = []
         cur_gap = gap(cur_problem, current)
         for eff in candidates:
-            if eff in added:
+            if eff in added or (eff in _LOCAL and any(a in _LOCAL for a in added)):
                 continue
             p = cur_problem
-            if eff == "local_anomaly":
+            if eff in ("local_anomaly", "hard_iron_change"):
+                frame = "world" if eff == "local_anomaly" else "device"
                 p = anomaly_support(cur_problem, current, settings.anomaly_knot_s, settings.anomaly_min_uT,
-                                    max_share=settings.anomaly_max_share)
-                if not p.knot_free.any():
+                                    max_share=settings.anomaly_max_share, frame=frame)
+                if not (p.knot_free if frame == "world" else p.offset_knot_free).any():
                     continue
             effects = (*added, eff)
             f = _fit(p, effects, current, settings)
