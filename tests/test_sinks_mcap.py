@@ -1,4 +1,8 @@
-"""McapSink: write synthetic inputs and estimates, read them back with mcap's own reader."""
+"""McapSink: write synthetic inputs and estimates, read them back with mcap's own reader.
+
+CDR messages are decoded with mcap-ros2-support's decoder (what a ROS 2 tool would see) and, byte for byte,
+compared with its encoder; JSON messages with ``json``.
+"""
 
 from __future__ import annotations
 
@@ -8,12 +12,15 @@ import numpy as np
 import pytest
 
 pytest.importorskip("mcap")
+pytest.importorskip("mcap_ros2")
 
 from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
+from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 
 from pdr_mag.calibration.model import MagCalibration  # noqa: E402
 from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
 from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event  # noqa: E402
+from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS  # noqa: E402
 from pdr_mag.sinks.mcap import INPUT_TOPICS, SCHEMAS, McapSink  # noqa: E402
 
 
@@ -81,12 +88,27 @@ def written(tmp_path):
     }
 
 
+def _plain(obj):
+    """A decoded ROS 2 message (mcap_ros2's dynamic classes) as nested dicts."""
+    if hasattr(obj, "__slots__") and hasattr(obj, "_type"):
+        return {k: _plain(getattr(obj, k)) for k in obj.__slots__}
+    return obj
+
+
 def _messages(path, topic):
+    """``(log_time, publish_time, message as dict)``: CDR through mcap_ros2's decoder, JSON through json."""
+    out = []
     with open(path, "rb") as f:
-        r = make_reader(f, validate_crcs=True)
-        return [
-            (m.log_time, m.publish_time, json.loads(m.data)) for _, _, m in r.iter_messages(topics=[topic])
-        ]
+        r = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        summary = r.get_summary()
+        encodings = {c.topic: c.message_encoding for c in summary.channels.values()}
+        if encodings.get(topic) == "cdr":
+            for _, _, m, d in r.iter_decoded_messages(topics=[topic]):
+                out.append((m.log_time, m.publish_time, _plain(d)))
+            return out
+        for _, _, m in r.iter_messages(topics=[topic]):
+            out.append((m.log_time, m.publish_time, json.loads(m.data)))
+    return out
 
 
 def test_topics_schemas_and_counts(written):
@@ -95,25 +117,30 @@ def test_topics_schemas_and_counts(written):
         summary = r.get_summary()
     topics = {c.topic: c for c in summary.channels.values()}
     expected = {
-        "/imu/accel": "pdr_mag.Vector3Stamped",
-        "/imu/gyro": "pdr_mag.Vector3Stamped",
-        "/mag/raw": "pdr_mag.Vector3Stamped",
-        "/mag/calibrated": "pdr_mag.Vector3Stamped",
-        "/pdr/orientation": "foxglove.PoseInFrame",
-        "/pdr/heading": "pdr_mag.Heading",
-        "/pdr/diag": "pdr_mag.Diagnostics",
-        "/pdr/calibration": "pdr_mag.MagCalibration",
-        "/pdr/events": "foxglove.Log",
-        "/reference/truth/orientation": "foxglove.PoseInFrame",
-        "/reference/truth/heading": "pdr_mag.HeadingReference",
+        "/imu/accel": "vector3",
+        "/imu/gyro": "vector3",
+        "/mag/raw": "vector3",
+        "/mag/calibrated": "vector3",
+        "/pdr/orientation": "pose",
+        "/pdr/heading": "heading",
+        "/pdr/diag": "diag",
+        "/pdr/calibration": "calibration",
+        "/pdr/events": "log",
+        "/reference/truth/orientation": "pose",
+        "/reference/truth/heading": "heading_ref",
     }
     assert set(topics) == set(expected)
-    for topic, schema_name in expected.items():
+    for topic, key in expected.items():
         ch = topics[topic]
         schema = summary.schemas[ch.schema_id]
-        assert ch.message_encoding == "json"
-        assert schema.name == schema_name and schema.encoding == "jsonschema"
-        assert json.loads(schema.data) == SCHEMAS[schema_name]
+        spec = SCHEMAS[key]
+        assert (schema.name, schema.encoding, schema.data) == (spec.name, spec.encoding, spec.text.encode())
+        assert ch.message_encoding == spec.message_encoding
+        # what Foxglove decodes natively, without a ROS install
+        assert (schema.encoding, ch.message_encoding) in (("ros2msg", "cdr"), ("jsonschema", "json"))
+    high_rate = [t for t in expected if not t.startswith(("/pdr/events", "/pdr/calibration"))]
+    assert all(topics[t].message_encoding == "cdr" for t in high_rate)
+    assert summary.schemas[topics["/pdr/orientation"].schema_id].name == "foxglove_msgs/msg/PoseInFrame"
     counts = {
         topics_by_id.topic: n
         for topics_by_id, n in (
@@ -148,39 +175,89 @@ def test_inputs_read_back_bit_exact_with_ns_log_times(written):
 
 
 def test_outputs_values(written):
+    """Outputs decoded by mcap_ros2 equal what was written, bit for bit (CDR float64)."""
     b = written["batch"]
     heading = _messages(written["path"], "/pdr/heading")
     assert [m[2]["t"] for m in heading] == b.t.tolist()
-    np.testing.assert_allclose([m[2]["heading_deg"] for m in heading], b.heading_deg, rtol=1e-8)
-    np.testing.assert_allclose([m[2]["heading_std_deg"] for m in heading], b.heading_std_deg, rtol=1e-8)
+    np.testing.assert_array_equal([m[2]["heading_deg"] for m in heading], b.heading_deg)
+    np.testing.assert_array_equal([m[2]["heading_std_deg"] for m in heading], b.heading_std_deg)
     assert [m[2]["mag_used"] for m in heading] == b.mag_used.tolist()
     assert [m[2]["interference"] for m in heading] == b.interference.tolist()
-    assert [m[2]["cal_state"] for m in heading] == b.cal_state.tolist()
+    assert [m[2]["cal_state"] for m in heading] == b.cal_state.tolist()  # variable-length CDR strings
 
     pose = _messages(written["path"], "/pdr/orientation")
     q = np.array([[p["pose"]["orientation"][k] for k in "wxyz"] for _, _, p in pose])
-    np.testing.assert_allclose(q, b.q_wd, atol=1e-8)
-    for log_time, _, p in pose[:50]:
-        assert p["frame_id"] == "enu"
-        assert p["timestamp"]["sec"] * 1_000_000_000 + p["timestamp"]["nsec"] == log_time
+    np.testing.assert_array_equal(q, b.q_wd)
+    for log_time, _, p in pose:
+        assert p["frame_id"] == "enu" and p["pose"]["position"] == {"x": 0.0, "y": 0.0, "z": 0.0}
+        assert p["timestamp"]["sec"] * 1_000_000_000 + p["timestamp"]["nanosec"] == log_time
 
     diag = _messages(written["path"], "/pdr/diag")
-    dip = np.array([m[2]["dip_deg"] if m[2]["dip_deg"] is not None else np.nan for m in diag])
-    np.testing.assert_allclose(dip, b.diag["dip_deg"], rtol=1e-8)  # NaN written as null, read back as NaN
-    upper = np.array([m[2]["strength_upper_uT"] for m in diag])
-    np.testing.assert_allclose(upper, b.diag["field_ref_uT"] + b.diag["strength_tol_uT"], rtol=1e-8)
-    assert set(diag[0][2]) == {
-        "t",
-        *DIAG_KEYS,
-        "strength_lower_uT",
-        "strength_upper_uT",
-        "dip_lower_deg",
-        "dip_upper_deg",
-    }
+    assert set(diag[0][2]) == {"t", *DIAG_FIELDS.values()}
+    for key, field in DIAG_FIELDS.items():
+        if key in DIAG_KEYS:
+            np.testing.assert_array_equal([m[2][field] for m in diag], b.diag[key])  # NaN stays NaN
+    upper = np.array([m[2]["strength_upper_ut"] for m in diag])
+    np.testing.assert_array_equal(upper, b.diag["field_ref_uT"] + b.diag["strength_tol_uT"])
+    lower = np.array([m[2]["dip_lower_deg"] for m in diag])
+    np.testing.assert_array_equal(lower, b.diag["dip_ref_deg"] - b.diag["dip_tol_deg"])
 
     tr, q_truth = written["truth"]
     ref = _messages(written["path"], "/reference/truth/heading")
-    np.testing.assert_allclose([m[2]["heading_deg"] for m in ref], heading_deg_from_quat(q_truth), rtol=1e-8)
+    np.testing.assert_array_equal([m[2]["t"] for m in ref], tr)
+    np.testing.assert_array_equal([m[2]["heading_deg"] for m in ref], heading_deg_from_quat(q_truth))
+    pose = _messages(written["path"], "/reference/truth/orientation")
+    np.testing.assert_array_equal(
+        [[p["pose"]["orientation"][k] for k in "wxyz"] for _, _, p in pose], q_truth
+    )
+
+
+def test_cdr_bytes_equal_mcap_ros2_encoder(written):
+    """Every CDR message is byte-identical to mcap_ros2's own encoding of its decoded content.
+
+    Catches alignment/padding mistakes the decoder alone would forgive (e.g. trailing bytes).
+    """
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    with open(written["path"], "rb") as f:
+        r = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        n_checked = {}
+        encoders = {}
+        cdr = [c.topic for c in r.get_summary().channels.values() if c.message_encoding == "cdr"]
+        for schema, channel, message, decoded in r.iter_decoded_messages(topics=cdr, log_time_order=False):
+            if schema.name not in encoders:
+                encoders[schema.name] = serialize_dynamic(schema.name, schema.data.decode())[schema.name]
+            assert bytes(encoders[schema.name](_plain(decoded))) == message.data, channel.topic
+            n_checked[channel.topic] = n_checked.get(channel.topic, 0) + 1
+    assert n_checked["/imu/accel"] == len(written["inputs"]["accel"][0])
+    assert n_checked["/pdr/heading"] == len(written["batch"])
+    assert len(n_checked) == 9
+
+
+def test_cdr_vector3_layout(written):
+    """The documented 36-byte layout: CDR_LE header, then float64 t, x, y, z (readers rely on it)."""
+    t, xyz = written["inputs"]["gyro"]
+    with open(written["path"], "rb") as f:
+        data = [
+            m.data for _, _, m in make_reader(f).iter_messages(topics=["/imu/gyro"], log_time_order=False)
+        ]
+    assert {len(d) for d in data} == {36} and {d[:4] for d in data} == {b"\x00\x01\x00\x00"}
+    rows = np.frombuffer(b"".join(d[4:] for d in data), dtype="<f8").reshape(-1, 4)
+    np.testing.assert_array_equal(rows[:, 0], t)
+    np.testing.assert_array_equal(rows[:, 1:], xyz)
+
+
+def test_long_and_unusual_cal_state_strings(tmp_path):
+    rng = np.random.default_rng(8)
+    b = _batch(rng, np.arange(50) / 50.0)
+    b.cal_state = np.array(["", "x", "recalibrating_after_interference", "ellipsoid", "none"] * 10)
+    p = tmp_path / "s.mcap"
+    with McapSink(p) as sink:
+        sink.open({})
+        sink.estimates(b)
+    got = _messages(p, "/pdr/heading")
+    assert [m[2]["cal_state"] for m in got] == b.cal_state.tolist()
+    np.testing.assert_array_equal([m[2]["heading_deg"] for m in got], b.heading_deg)
 
 
 def test_events_calibration_and_metadata(written):
@@ -249,33 +326,12 @@ def test_bad_arguments(tmp_path):
 
 
 # ---------------------------------------------------------------------- replay round trip
-def _recording_from_mcap(path):
-    """Decode the three input topics and the ``recording`` metadata (the layout of the module docstring)."""
-    from replay.recording import Recording, Stream
-
-    streams = {}
-    for kind, topic in INPUT_TOPICS.items():
-        msgs = sorted((m[2] for m in _messages(path, topic)), key=lambda d: d["t"])
-        t = np.array([d["t"] for d in msgs])
-        xyz = np.array([[d["x"], d["y"], d["z"]] for d in msgs]).reshape(-1, 3)
-        streams[kind] = Stream(t, xyz)
-    with open(path, "rb") as f:
-        meta = [dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "recording"][0]
-    meta = {k: json.loads(v) for k, v in meta.items()}
-    for added in ("source", "format", "north", "t0", "field"):
-        meta.pop(added, None)
-    return Recording(
-        mag=streams["mag"], accel=streams["accel"], gyro=streams["gyro"], meta=meta, source=str(path)
-    )
-
-
 @pytest.mark.parametrize("background", [False, True], ids=["in-process", "writer-process"])
 def test_replaying_the_mcap_reproduces_the_outputs(tmp_path, background):
     """``replay rec --mcap a.mcap --out-csv 1.csv`` then ``replay a.mcap --out-csv 2.csv``: identical CSV."""
     from pathlib import Path
 
     run = pytest.importorskip("replay.run")
-    from replay.errors import InputError
     from replay.formats import read_recording
 
     rec = Path(__file__).resolve().parent.parent / "recordings" / "mixed"
@@ -283,37 +339,12 @@ def test_replaying_the_mcap_reproduces_the_outputs(tmp_path, background):
         pytest.skip("recordings/mixed not present")
     a, csv1, csv2 = tmp_path / "a.mcap", tmp_path / "1.csv", tmp_path / "2.csv"
     run.replay(rec, sinks=[McapSink(a, background=background), run.CsvSink(csv1)], progress=False)
-    try:
-        again = read_recording(a)  # the MCAP reader of replay/formats, once it exists
-    except InputError:
-        again = _recording_from_mcap(a)
+    again = read_recording(a)  # replay/formats/pdrmcap.py
+    assert again.format == "pdr-mcap"
     run.replay(again, sinks=[run.CsvSink(csv2)], progress=False)
     first, second = csv1.read_bytes(), csv2.read_bytes()
     assert first.count(b"\n") > 1000
     assert first == second
-
-
-@pytest.mark.parametrize("use_orjson", [True, False])
-def test_number_tokens_read_back_exactly(monkeypatch, use_orjson):
-    import pdr_mag.sinks.mcap as m
-
-    if use_orjson and m._orjson is None:
-        pytest.skip("orjson not installed")
-    if not use_orjson:
-        monkeypatch.setattr(m, "_orjson", None)
-    rng = np.random.default_rng(3)
-    x = np.concatenate(
-        [
-            rng.normal(0, 1, 500) * 10.0 ** rng.integers(-300, 300, 500),
-            [0.1 + 0.2, -0.0, 5e-324, 1.7976931348623157e308, np.nan, np.inf, -np.inf],
-        ]
-    )
-    back = [json.loads(tok) for tok in m._tokens(x)]
-    finite = np.isfinite(x)
-    assert all(b is None for b, f in zip(back, finite, strict=True) if not f)
-    np.testing.assert_array_equal(np.array([b for b in back if b is not None]), x[finite])
-    ints = np.array([0, 7, 2**62, -5], dtype=np.int64)
-    assert [json.loads(tok) for tok in m._tokens(ints)] == ints.tolist()
 
 
 def _all_messages(path):

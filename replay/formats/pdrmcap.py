@@ -2,27 +2,33 @@
 
 The layout is defined once, in the sink's module docstring; this reader needs only part of it:
 
-=================================  ============================  =============================================
-topic                              schema                        message (JSON, ``message_encoding="json"``)
-=================================  ============================  =============================================
-``/mag/raw``                       ``pdr_mag.Vector3Stamped``    ``{"t", "x", "y", "z"}``, raw µT, device
-``/imu/accel``                     ``pdr_mag.Vector3Stamped``    m/s², specific force, device frame
-``/imu/gyro``                      ``pdr_mag.Vector3Stamped``    rad/s, device frame
-``/reference/truth/orientation``   ``foxglove.PoseInFrame``      device → ENU (optional) → ``Recording.truth``
-``/reference/truth/heading``       ``pdr_mag.HeadingReference``  its exact ``t`` (same order as the poses)
-=================================  ============================  =============================================
+=================================  ===================================  =====================================
+topic                              schema (format version 2, current)   message
+=================================  ===================================  =====================================
+``/mag/raw``                       ``pdr_mag/msg/Vector3Stamped`` CDR   ``float64 t, x, y, z``, raw µT, device
+``/imu/accel``                     ``pdr_mag/msg/Vector3Stamped`` CDR   m/s², specific force, device frame
+``/imu/gyro``                      ``pdr_mag/msg/Vector3Stamped`` CDR   rad/s, device frame
+``/reference/truth/orientation``   ``foxglove_msgs/msg/PoseInFrame``    device → ENU (optional) → ``truth``
+``/reference/truth/heading``       ``pdr_mag/msg/HeadingReference``     its exact ``t`` (same order as poses)
+=================================  ===================================  =====================================
 
-``t`` (float seconds, the recording's clock, written with 17 significant digits) is the sample time, so the
-streams read back bit-identical to what was written; a message without ``t`` falls back to its
-``log_time`` minus the channel's ``time_offset_ns``. ``null`` values (NaN written by the sink) are dropped
-as ``<stream>:nan``. The metadata record ``recording`` becomes ``Recording.meta`` (values JSON-decoded
-where they are JSON, else kept as strings). ``/mag/raw`` is required; the other topics are optional.
-Messages are decoded one at a time as the file is read (mcap's reader decompresses one chunk at a time).
+Files written before the CDR layout (format version 1, still in users' hands) are read too: the same topics
+as JSON (``message_encoding="json"``): ``pdr_mag.Vector3Stamped`` ``{"t", "x", "y", "z"}`` (17 significant
+digits), ``foxglove.PoseInFrame`` and ``pdr_mag.HeadingReference`` ``{"t", "heading_deg"}``; there a message
+without ``t`` falls back to its ``log_time`` minus the channel's ``time_offset_ns``, and ``null`` is NaN.
+Each topic is decoded by its own channel's encoding, so either layout (or a mix) reads.
+
+``t`` is the sample time as float64, so the streams read back bit-identical to what was written.  NaN
+values are dropped as ``<stream>:nan``.  The metadata record ``recording`` becomes ``Recording.meta``
+(values JSON-decoded where they are JSON, else kept as strings).  ``/mag/raw`` is required; the other
+topics are optional.  The file is read once, front to back (mcap's reader decompresses one chunk at a
+time); CDR messages are decoded in blocks with numpy.
 """
 
 from __future__ import annotations
 
 import json
+import struct
 from collections import Counter
 from pathlib import Path
 
@@ -38,13 +44,22 @@ TOPICS = {"/mag/raw": "mag", "/imu/accel": "accel", "/imu/gyro": "gyro"}
 TRUTH_TOPIC = "/reference/truth/orientation"
 TRUTH_T_TOPIC = "/reference/truth/heading"  # same messages' exact "t", in the same order
 _UNITS = {"mag": "µT", "accel": "m/s²", "gyro": "rad/s"}
+VECTOR3_CDR = "pdr_mag/msg/Vector3Stamped"
+#: CDR message sizes: encapsulation header (4 bytes) + float64 fields
+_V3_SIZE, _REF_SIZE = 4 + 32, 4 + 16
+_CDR_LE, _CDR_BE = b"\x00\x01\x00\x00", b"\x00\x00\x00\x00"
+_BLOCK = 8192  # CDR messages decoded at once
 
 
 def detect(path: Path) -> bool:
     if not _mcap.is_mcap(path):
         return False
     channels, _ = _mcap.scan(path)
-    return any(c.topic == "/mag/raw" and c.message_encoding == "json" for c in channels)
+    return any(
+        c.topic == "/mag/raw"
+        and (c.message_encoding == "json" or (c.message_encoding == "cdr" and c.schema_name == VECTOR3_CDR))
+        for c in channels
+    )
 
 
 def _meta(path: Path) -> dict:
@@ -71,8 +86,41 @@ def _num(v) -> float:
     return float("nan") if v is None else float(v)
 
 
+def _floats(path: Path, topic: str, payloads: list[bytes], size: int) -> np.ndarray:
+    """The float64 fields of fixed-size CDR messages (``size`` bytes each), one row a message."""
+    blob = b"".join(payloads)
+    if len(blob) != size * len(payloads) or any(len(p) != size for p in payloads):
+        bad = next(i for i, p in enumerate(payloads) if len(p) != size)
+        raise InputError(path, f"{topic}: a CDR message of {len(payloads[bad])} bytes, expected {size}")
+    u8 = np.frombuffer(blob, dtype=np.uint8).reshape(len(payloads), size)
+    head = u8[:, :4]
+    le = np.all(head == np.frombuffer(_CDR_LE, np.uint8), axis=1)
+    be = np.all(head == np.frombuffer(_CDR_BE, np.uint8), axis=1)
+    if not np.all(le | be):
+        raise InputError(
+            path, f"{topic}: a message that is not CDR (encapsulation {bytes(head[~(le | be)][0])!r})"
+        )
+    body = np.ascontiguousarray(u8[:, 4:])
+    out = body.view("<f8").copy()
+    if be.any():
+        out[be] = body[be].view(">f8")
+    return out
+
+
+def _pose_cdr(data: bytes) -> tuple[int, list[float]]:
+    """Timestamp (ns) and orientation (w, x, y, z) of a foxglove_msgs/msg/PoseInFrame CDR message."""
+    if data[:4] not in (_CDR_LE, _CDR_BE):
+        raise ValueError(f"not CDR (encapsulation {data[:4]!r})")
+    e = "<" if data[:4] == _CDR_LE else ">"
+    sec, nsec, n_frame = struct.unpack_from(e + "iII", data, 4)
+    pos = 16 + n_frame
+    pos += -(pos - 4) % 8  # float64 alignment, counted after the encapsulation header
+    x, y, z, w = struct.unpack_from(e + "4d", data, pos + 24)
+    return sec * 1_000_000_000 + nsec, [w, x, y, z]
+
+
 def read(path) -> Recording:
-    """Read a pdr_mag MCAP file into a :class:`Recording`."""
+    """Read a pdr_mag MCAP file (either layout) into a :class:`Recording`."""
     p = Path(path)
     channels, error = _mcap.scan(p)
     if error is not None:
@@ -83,33 +131,68 @@ def read(path) -> Recording:
     offsets = {c.id: int(c.metadata.get("time_offset_ns", "0") or 0) for c in channels}
     dropped: Counter = Counter()
     builders = {key: StreamBuilder(p, key, dropped) for t, key in TOPICS.items() if t in by_topic}
+    pending: dict[str, list[bytes]] = {t: [] for t in TOPICS}  # CDR payloads not yet decoded
+
+    def flush(topic: str) -> None:
+        if pending[topic]:
+            rows = _floats(p, topic, pending[topic], _V3_SIZE)
+            pending[topic] = []
+            builders[TOPICS[topic]].add_block(rows[:, 0], rows[:, 1:])
+
     truth_t: list[float] = []
     truth_exact_t: list[float] = []
     truth_q: list[list[float]] = []
+    ref_cdr: list[bytes] = []
     topics = [t for t in (*TOPICS, TRUTH_TOPIC, TRUTH_T_TOPIC) if t in by_topic]
     for n, (channel, message) in enumerate(_mcap.iter_messages(p, topics), start=1):
+        topic, cdr = channel.topic, channel.message_encoding == "cdr"
+        if cdr and topic in TOPICS:
+            pending[topic].append(message.data)
+            if len(pending[topic]) >= _BLOCK:
+                flush(topic)
+            continue
+        if cdr and topic == TRUTH_T_TOPIC:
+            ref_cdr.append(message.data)
+            continue
         try:
+            if cdr:  # TRUTH_TOPIC
+                ns, q = _pose_cdr(message.data)
+                truth_t.append((ns - offsets.get(channel.id, 0)) * 1e-9)
+                truth_q.append(q)
+                continue
             d = json.loads(message.data)
-            if channel.topic == TRUTH_TOPIC:
+            if topic == TRUTH_TOPIC:
                 ts = d.get("timestamp") or {}
                 ns = int(ts["sec"]) * 1_000_000_000 + int(ts["nsec"]) if ts else message.log_time
                 o = d["pose"]["orientation"]
                 truth_t.append((ns - offsets.get(channel.id, 0)) * 1e-9)
                 truth_q.append([_num(o[k]) for k in "wxyz"])
                 continue
-            if channel.topic == TRUTH_T_TOPIC:
+            if topic == TRUTH_T_TOPIC:
                 truth_exact_t.append(_num(d["t"]))
                 continue
             t = d["t"] if "t" in d else (message.log_time - offsets.get(channel.id, 0)) * 1e-9
             vals = [_num(d["x"]), _num(d["y"]), _num(d["z"])]
             t = _num(t)
-        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        except (
+            json.JSONDecodeError,
+            UnicodeDecodeError,
+            KeyError,
+            TypeError,
+            ValueError,
+            struct.error,
+        ) as exc:
+            what = "PoseInFrame CDR message" if cdr else "{t, x, y, z} JSON object"
             raise InputError(
                 p,
-                f"{channel.topic}: message {n} (log_time {message.log_time}) is not a valid "
-                f"{{t, x, y, z}} JSON object ({type(exc).__name__}: {exc})",
+                f"{topic}: message {n} (log_time {message.log_time}) is not a valid {what} "
+                f"({type(exc).__name__}: {exc})",
             ) from None
-        builders[TOPICS[channel.topic]].add(None, t, vals)
+        builders[TOPICS[topic]].add(None, t, vals)
+    for topic in TOPICS:
+        flush(topic)
+    if ref_cdr:
+        truth_exact_t = _floats(p, TRUTH_T_TOPIC, ref_cdr, _REF_SIZE)[:, 0].tolist()
     streams = {k: finish(b, unit_hint=_UNITS[k]) for k, b in builders.items()}
     truth = None
     if truth_q:
