@@ -69,8 +69,9 @@ def _key_estimate(name: str, est: dict) -> str:
         return f"{est['degrees']:.1f}°"
     if name == "bias_drift":
         return f"{np.linalg.norm(est['uT_per_min']):.1f} µT/min"
-    if name == "local_anomaly":
-        return f"peak {est['uT']:.0f} µT, {est['share'] * 100:.0f} % of time"
+    if name in ("local_anomaly", "hard_iron_change"):
+        amb = ", ambiguous" if est.get("ambiguous") else ""
+        return f"peak {est['uT']:.0f} µT, {est['share'] * 100:.0f} % of time{amb}"
     if name == "temperature_offset":
         return f"{np.linalg.norm(est['uT_per_degC']):.2f} µT/°C"
     return ""

@@ -49,7 +49,8 @@ GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
 
 #: Two names for a disturbance confined in time: fixed in the world (an external field) or fixed to the
 #: phone (an offset change).  They explain the same windows, so a model gets at most one of them — the one
-#: that scores better (they differ only where the phone turns inside a window).
+#: that scores better (they differ only where the phone turns inside a window).  The final estimate says
+#: how the other did, and ``ambiguous: true`` when its gap was within half the significance margin.
 _LOCAL = ("local_anomaly", "hard_iron_change")
 
 
@@ -349,6 +350,7 @@ def diagnose(
     n_eff = n / tau_int
 
     current, cur_problem, added = base, problem, []
+    notes: dict[str, dict] = {}
     rounds: list[tuple[Candidate, ...]] = []
     for rnd in range(settings.max_rounds):
         tried = []
@@ -378,10 +380,20 @@ def diagnose(
         best = max(sig, key=lambda x: x[0].score)
         added.append(best[0].effect)
         current, cur_problem = best[1], best[2]
+        if best[0].effect in _LOCAL:  # the other name for a local disturbance: how close did it come?
+            other = [c for c, _, _ in tried if c.effect in _LOCAL and c.effect != best[0].effect]
+            if other:
+                o = other[0]
+                notes[best[0].effect] = {
+                    "alternative": {"effect": o.effect, "gap": _r(o.gap), "score": _r(o.score, 2)},
+                    "ambiguous": bool(o.gap < best[0].gap * (1.0 + settings.min_gap_reduction / 2)),
+                }
 
     final_effects = (*BASELINE, *added)
-    final = ModelSummary(final_effects, gap(cur_problem, current),
-                         estimates(cur_problem, current, final_effects), current, cur_problem)
+    final_est = estimates(cur_problem, current, final_effects)
+    for eff, note in notes.items():
+        final_est[eff].update(note)
+    final = ModelSummary(final_effects, gap(cur_problem, current), final_est, current, cur_problem)
     return Diagnosis(
         baseline=baseline,
         candidates=rounds[0] if rounds else (),
