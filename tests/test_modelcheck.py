@@ -252,3 +252,16 @@ def test_hard_iron_change_body_fixed_offset():
     est = d.final.estimate["hard_iron_change"]
     assert est["uT"] == pytest.approx(np.linalg.norm(db), rel=0.15)
     assert 19.0 <= est["t_peak"] <= 25.0
+
+
+def test_demo_recording_mixed_names_its_hidden_effects():
+    """recordings/mixed: a typical phone (hard and soft iron, gyro bias, noise) walking through steel."""
+    from pathlib import Path
+
+    from replay.formats import read_recording
+
+    rec = read_recording(Path(__file__).resolve().parent.parent / "recordings" / "mixed")
+    d = diagnose(rec.mag.t, rec.mag.xyz, rec.gyro.t, rec.gyro.xyz, rec.accel.t, rec.accel.xyz)
+    assert d.missing_effects[0] == "local_anomaly"
+    assert set(d.missing_effects) == {"local_anomaly", "gyro_bias", "soft_iron"}
+    assert d.final.gap < d.baseline.gap / 4

@@ -49,8 +49,10 @@ GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
 
 #: Two names for a disturbance confined in time: fixed in the world (an external field) or fixed to the
 #: phone (an offset change).  They explain the same windows, so a model gets at most one of them — the one
-#: that scores better (they differ only where the phone turns inside a window).  The final estimate says
-#: how the other did, and ``ambiguous: true`` when its gap was within half the significance margin.
+#: that scores better (they differ only where the phone turns inside a window) — except that external
+#: fields being the common case, ``hard_iron_change`` must beat ``local_anomaly``'s gap by half the
+#: significance margin (5 %).  The final estimate says how the other did, and ``ambiguous: true`` when the
+#: two gaps are within that margin.
 _LOCAL = ("local_anomaly", "hard_iron_change")
 
 
@@ -378,6 +380,11 @@ def diagnose(
         if not sig:
             break
         best = max(sig, key=lambda x: x[0].score)
+        if best[0].effect == "hard_iron_change":
+            # external fields are the common case: a body-fixed change must win clearly
+            la = [x for x in sig if x[0].effect == "local_anomaly"]
+            if la and best[0].gap >= la[0][0].gap * (1.0 - settings.min_gap_reduction / 2):
+                best = la[0]
         added.append(best[0].effect)
         current, cur_problem = best[1], best[2]
         if best[0].effect in _LOCAL:  # the other name for a local disturbance: how close did it come?
@@ -386,7 +393,8 @@ def diagnose(
                 o = other[0]
                 notes[best[0].effect] = {
                     "alternative": {"effect": o.effect, "gap": _r(o.gap), "score": _r(o.score, 2)},
-                    "ambiguous": bool(o.gap < best[0].gap * (1.0 + settings.min_gap_reduction / 2)),
+                    "ambiguous": bool(abs(o.gap - best[0].gap)
+                                      < best[0].gap * settings.min_gap_reduction / 2),
                 }
 
     final_effects = (*BASELINE, *added)
