@@ -197,9 +197,15 @@ class ChunkWriter:
         n = len(sizes)
         if n == 0:
             return
-        if len(ns) != n or int(np.sum(sizes)) != len(blob):
+        sizes = np.asarray(sizes, dtype=np.int64)
+        if len(ns) != n or int(sizes.sum()) != len(blob):
             raise ValueError(f"add_records: {n} sizes, {len(ns)} log times, {len(blob)} bytes do not match")
         cid = int.from_bytes(blob[9:11], "little")
+        self._counts[cid] += n
+        if self._pending_bytes + len(blob) < self._chunk_size:  # the usual case: it all fits
+            self._pending.append((cid, ns, blob, sizes))
+            self._pending_bytes += len(blob)
+            return
         ends = np.cumsum(sizes)
         start, base = 0, 0
         while start < n:
@@ -208,7 +214,6 @@ class ChunkWriter:
             end = int(ends[stop - 1])
             self._pending.append((cid, ns[start:stop], blob[base:end], sizes[start:stop]))
             self._pending_bytes += end - base
-            self._counts[cid] += stop - start
             start, base = stop, end
             if self._pending_bytes >= self._chunk_size:
                 self._finalize_chunk()
@@ -217,26 +222,26 @@ class ChunkWriter:
         """Join the pending records into one chunk (here) and hand it to the I/O thread."""
         if not self._pending:
             return
-        pieces, indexes = [], {}
-        offset = 0
-        t_lo, t_hi = None, 0
-        for cid, ns, piece, sizes in self._pending:
-            starts = offset + np.concatenate([[0], np.cumsum(sizes[:-1])])
-            pieces.append(piece)
-            indexes.setdefault(cid, []).append(np.column_stack([ns, starts]).astype("<u8"))
-            offset += len(piece)
-            lo, hi = int(ns.min()), int(ns.max())
-            t_lo = lo if t_lo is None else min(t_lo, lo)
-            t_hi = max(t_hi, hi)
-        data = b"".join(pieces)
+        pending, self._pending, self._pending_bytes = self._pending, [], 0
+        data = b"".join(p[2] for p in pending)
+        ns = np.concatenate([p[1] for p in pending]).astype(np.int64, copy=False)
+        sizes = np.concatenate([p[3] for p in pending])
+        cids = np.repeat([p[0] for p in pending], [len(p[1]) for p in pending])
+        starts = np.cumsum(sizes) - sizes  # offset of each record in the uncompressed chunk
         index_bodies = {}
-        for cid in sorted(indexes):
-            entries = np.concatenate(indexes[cid])
-            index_bodies[cid] = entries[np.lexsort((entries[:, 1], entries[:, 0]))].tobytes()
-        self._n_messages += sum(len(p[1]) for p in self._pending)
+        for cid in sorted({p[0] for p in pending}):
+            sel = cids == cid
+            t, off = ns[sel], starts[sel]
+            if np.any(t[1:] < t[:-1]):  # message indexes are sorted by log time (offsets break ties)
+                order = np.argsort(t, kind="stable")
+                t, off = t[order], off[order]
+            entries = np.empty((len(t), 2), dtype="<u8")
+            entries[:, 0], entries[:, 1] = t, off
+            index_bodies[cid] = entries.tobytes()
+        t_lo, t_hi = int(ns.min()), int(ns.max())
+        self._n_messages += len(ns)
         self._t_start = t_lo if self._t_start is None else min(self._t_start, t_lo)
         self._t_end = max(self._t_end, t_hi)
-        self._pending, self._pending_bytes = [], 0
         self._submit(lambda: self._write_chunk(data, index_bodies, t_lo, t_hi))
 
     def _write_chunk(self, data: bytes, index_bodies: dict[int, bytes], t_lo: int, t_hi: int) -> None:
