@@ -27,26 +27,31 @@ accelerometer (default: the specific force averaged in the almost-inertial world
     linear acceleration of a walking, swinging or pocketed phone over τ is Δv/τ ≈ 0, so ā_w points up
     (gating single samples before averaging biased it — a swinging arm's large samples point along the
     arm — and was why this option once did worse).  At most every ``acc_interval_s``: ``u_w = ā_w/|ā_w|
-    ≈ e_z + (−δθ_y, δθ_x, 0)``, two scalar updates of the tilt errors only, noise
-    ``σ² = σ_avg² + (k_a (|ā| − g)/g)² + ⅔ tr(P_b) τ²`` — the last term because the average lags by ~τ,
-    over which an unknown bias error δb has moved the tilt by δb τ (raw phone offsets of 4–6 °/s would
-    otherwise be learnt from a delayed tilt, which the model does not represent); skipped when
+    ≈ e_z + (−δθ_y, δθ_x, 0)`` evaluated τ ago (the mean delay of the exponential window): since
+    ``δθ' = −R δb``, ``δθ(t − τ) = δθ(t) + τ R δb``, so the two scalar updates have
+    ``H_x = −e_δθy − τ (R row y) on δb`` and ``H_y = e_δθx + τ (R row x) on δb`` — the tilt drift of an
+    unknown raw offset (4–6 °/s on real phones) is read as bias instead of being smeared over the
+    average; noise ``σ_avg² + (k_a (|ā| − g)/g)²``; skipped when
     ``||ā| − g| > gate · g``.  ``acc_tau_s = 0``: per-sample updates from ``u_w = (R a)_h / g`` (the
     horizontal specific force over g, unbiased when horizontal and vertical accelerations are
     correlated), noise ``σ_a0² + (k_a (|a| − g)/g)² + (k_ω |ω|)² + var(a)/g² · τ_a/Δt_a``, skipped when
     ``||a| − g| > gate · g``.
 magnetometer (calibrated, per sample, at most every ``mag_interval_s``)
     heading-only: ``ψ = atan2(m_w,x, m_w,y)`` with ``m_w = R m_d``; residual ``r = wrap(ψ − D − c)`` (D the
-    declination, 0 for magnetic north) observes ``δθ_z + δc`` (``H = e_3 + e_7``), so a disturbed field
-    can never tilt the attitude.  Noise
-    ``σ_ψ² = σ_h² + (σ_m² + k² d_min²) / B_h² + h_t P_tilt h_tᵀ``: ``B_h`` the measured horizontal
+    declination, 0 for magnetic north) observes ``h_t·δθ_xy + δθ_z + δc`` with
+    ``h_t = −(m_x m_z, m_y m_z)/B_h²`` the sensitivity of ψ to tilt errors (× tan I about north).  The tilt
+    errors are *consider* states of this update (Schmidt–Kalman: in the gain and in P, never corrected),
+    so a disturbed field can never tilt the attitude, yet a tilt error is not taken for a heading error
+    and a later accelerometer correction of the tilt carries over to the heading through P.  (Before, the
+    tilt entered as white noise ``h_t P_tilt h_tᵀ``: the same tilt error, repeated in every update, was
+    averaged as if independent and ended in the heading × tan I.)  Noise
+    ``σ_ψ² = σ_h² + (σ_m² + k² d_min²) / B_h²``: ``B_h`` the measured horizontal
     strength, ``d_min² = (F − F_loc)² + (F (I − I_loc))² + (F ∠cons)²`` the smallest disturbance that
     explains the deviations of strength, dip and world-frame direction from the detectors' references
-    (a disturbance d turns the horizontal field by at most |d|/B_h), and ``h_t = −(m_x m_z, m_y m_z)/B_h²``
-    the sensitivity of ψ to tilt errors.  Skipped while the interference flag (:mod:`pdr_mag.interference`)
-    is up, when the caller disallows it, or when the innovation fails a χ² gate computed with the
-    undisturbed noise (a suspect field gets less weight; it cannot widen the gate).  The first usable
-    sample sets the heading directly.
+    (a disturbance d turns the horizontal field by at most |d|/B_h).  Skipped while the interference
+    flag (:mod:`pdr_mag.interference`) is up, when the caller disallows it, or when the innovation fails
+    a χ² gate computed with the undisturbed noise (a suspect field gets less weight; it cannot widen the
+    gate).  The first usable sample sets the heading directly.
 zero-rate (per gyro sample while the device is still)
     ``ω_m = b + δb + n``: three scalar updates of the bias.
 """
@@ -285,6 +290,41 @@ def _upd2(st, dx, j, s, j2, s2, r, rv):
 
 
 @njit(cache=True)
+def _upd_h(st, dx, h, r, rv, consider_tilt, consider_heading=False):
+    """Scalar update with a general H = h; with ``consider_tilt`` the tilt errors (0, 1), with
+    ``consider_heading`` the heading errors (2 and c) are consider states (Schmidt–Kalman): their gain is
+    zero, ``P ← P − k cᵀ − c kᵀ + S k kᵀ`` (``c = P h``; the Joseph form, valid for any gain).  r is the
+    residual before this update."""
+    P = st[S_P : S_P + NX * NX]
+    col = np.empty(NX)
+    for i in range(NX):
+        v = 0.0
+        for m in range(NX):
+            v += P[i * NX + m] * h[m]
+        col[i] = v
+    S = rv
+    for i in range(NX):
+        S += h[i] * col[i]
+        r -= h[i] * dx[i]
+    if S <= 0.0:
+        return
+    k = np.empty(NX)
+    for i in range(NX):
+        k[i] = col[i] / S
+    if consider_tilt:
+        k[0] = 0.0
+        k[1] = 0.0
+    if consider_heading:
+        k[2] = 0.0
+        k[6] = 0.0
+    for i in range(NX):
+        dx[i] += k[i] * r
+    for i in range(NX):
+        for m in range(NX):
+            P[i * NX + m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
+
+
+@njit(cache=True)
 def _rotvec_left(st, k, ex, ey, ez):
     """st[k:k+3] ← Exp(e) st[k:k+3] (second order in e)."""
     vx, vy, vz = st[k], st[k + 1], st[k + 2]
@@ -488,11 +528,25 @@ def _accel(st, R, ax, ay, az, t, p):
         if dev > p[P_ACC_GATE]:
             return
         rv = p[P_ACC_AVG_NOISE] ** 2 + (p[P_ACC_DYN] * dev) ** 2
-        # the average lags by ~τ: the tilt error has moved by the (unknown) bias error × τ meanwhile
-        Pm = st[S_P : S_P + NX * NX]
-        rv += (2.0 / 3.0) * (Pm[3 * NX + 3] + Pm[4 * NX + 4] + Pm[5 * NX + 5]) * p[P_ACC_TAU] ** 2
-        uxw = st[S_AW] / na
-        uyw = st[S_AW + 1] / na
+        # the average lags by τ (the mean delay of the exponential window): it observes the tilt error of
+        # τ ago, δθ(t − τ) = δθ(t) + τ R δb (δθ' = −R δb), so H carries the bias error too — the tilt drift
+        # of an unknown offset is then read as bias, not smeared over the average
+        tau = p[P_ACC_TAU]
+        hx = np.zeros(NX)
+        hy = np.zeros(NX)
+        hx[1] = -1.0
+        hy[0] = 1.0
+        for m in range(3):
+            hx[3 + m] = -tau * R[1, m]
+            hy[3 + m] = tau * R[0, m]
+        dx = np.zeros(NX)
+        # an unknown heading (before the first magnetometer sample) stays unknown: through the bias terms
+        # the linearised update would otherwise shrink its (capped, uniform) variance
+        unknown = st[S_INIT] < 2
+        _upd_h(st, dx, hx, st[S_AW] / na, rv, False, unknown)
+        _upd_h(st, dx, hy, st[S_AW + 1] / na, rv, False, unknown)
+        _inject(st, dx)
+        return
     else:
         if da > p[P_ACC_GATE]:
             return
@@ -631,24 +685,30 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         wx, wy, wz = st[S_WG] - st[S_B], st[S_WG + 1] - st[S_B + 1], st[S_WG + 2] - st[S_B + 2]
         rv_clean += (np.sqrt(wx * wx + wy * wy + wz * wz) * p[P_MAG_DT_UNC] * f / bh) ** 2
     rv = rv_clean + p[P_MAG_DIST_K] ** 2 * dmin2 / (bh * bh)
-    # the tilt is not corrected by the magnetometer, but its uncertainty enters the horizontal
-    # projection: dψ = δθ_z − (m_x m_z δθ_x + m_y m_z δθ_y) / B_h²  →  R += h_t P_tilt h_tᵀ
-    if p[P_MAG_TILT_K] > 0.0:
-        bh2 = mwx * mwx + mwy * mwy
-        hx = -mwx * mwz / bh2
-        hy = -mwy * mwz / bh2
-        rt = p[P_MAG_TILT_K] * (hx * hx * P[0] + 2.0 * hx * hy * P[1] + hy * hy * P[NX + 1])
-        rv += rt
-        rv_clean += rt
+    # the horizontal projection depends on the tilt: dψ = δθ_z − (m_x m_z δθ_x + m_y m_z δθ_y) / B_h²
+    # (× tan I ≈ 2 for a tilt error about north).  The tilt errors enter H as consider states (Schmidt):
+    # their uncertainty and correlations shape the gain and P — so when the accelerometer later corrects
+    # the tilt, the heading follows through P — but the magnetometer never corrects the tilt itself
+    bh2 = mwx * mwx + mwy * mwy
+    h = np.zeros(NX)
+    h[0] = -p[P_MAG_TILT_K] * mwx * mwz / bh2
+    h[1] = -p[P_MAG_TILT_K] * mwy * mwz / bh2
+    h[2] = 1.0
+    h[6] = 1.0
     if st[S_INIT] < 2:
         # first usable field (strength and dip right; variance and consistency need a history):
         # set the heading directly, keep the tilt and bias
         _qmul_left(st, S_Q, 0.0, 0.0, r)
         _qmul_left(st, S_QG, 0.0, 0.0, r)
+        if np.isfinite(st[S_AW]):  # the averaged specific force lives in the re-headed world frame
+            c, sn = np.cos(r), np.sin(r)
+            x0, y0 = st[S_AW], st[S_AW + 1]
+            st[S_AW], st[S_AW + 1] = c * x0 - sn * y0, sn * x0 + c * y0
         for i in range(NX):
             P[2 * NX + i] = 0.0
             P[i * NX + 2] = 0.0
-        P[2 * NX + 2] = rv + P[6 * NX + 6]
+        rt = h[0] * h[0] * P[0] + 2.0 * h[0] * h[1] * P[1] + h[1] * h[1] * P[NX + 1]
+        P[2 * NX + 2] = rv + P[6 * NX + 6] + rt
         st[S_INIT] = 2.0
         st[S_TMU] = t
         st[S_MAGUSED] = 1.0
@@ -657,7 +717,10 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     r = _wrap(r - st[S_C])
     # the χ² gate asks whether the innovation fits an undisturbed field (the inflation of rv for a suspect
     # field lowers the gain, it must not widen the gate)
-    S = P[2 * NX + 2] + 2.0 * P[2 * NX + 6] + P[6 * NX + 6] + rv_clean
+    S = rv_clean
+    for i in range(NX):
+        for m in range(NX):
+            S += h[i] * P[i * NX + m] * h[m]
     if r * r > p[P_MAG_GATE] ** 2 * S:
         # a clean-looking field that keeps disagreeing: our heading may be wrong rather than the field;
         # let its variance grow (only the heading's, so the bias is not dragged when the gate opens)
@@ -669,7 +732,7 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     st[S_TREJ] = np.nan
     st[S_NREJ] = 0.0
     dx = np.zeros(NX)
-    _upd2(st, dx, 2, 1.0, 6, 1.0, r, rv)
+    _upd_h(st, dx, h, r, rv, True)
     _inject(st, dx)
     st[S_TMU] = t
     st[S_MAGUSED] = 1.0

@@ -12,10 +12,12 @@ In short:
   almost-inertial world frame (the mean linear acceleration of a walking, swinging or pocketed phone over
   the window is ≈ 0); its noise grows with ``||ā| − g|`` and with the bias uncertainty × the lag of the
   average; the average is gated beyond ``acc_gate``;
-* magnetometer: corrects heading only (``H = e_z`` on ``δθ``), so a disturbed field can never corrupt the
-  tilt.  Gross disturbances are rejected by :mod:`pdr_mag.interference` (flag with hold-off timers);
-  moderate ones are down-weighted by the smallest disturbance that explains the deviations of strength,
-  dip and gyro consistency; the innovation must pass a χ² gate; the caller may veto (``mag_allowed``);
+* magnetometer: corrects heading only, so a disturbed field can never corrupt the tilt; the tilt errors
+  enter its H as consider states (Schmidt), so a tilt error (× tan I in the field's horizontal
+  projection) is not taken for a heading error.  Gross disturbances are rejected by
+  :mod:`pdr_mag.interference` (flag with hold-off timers); moderate ones are down-weighted by the
+  smallest disturbance that explains the deviations of strength, dip and gyro consistency; the
+  innovation must pass a χ² gate; the caller may veto (``mag_allowed``);
 * gyroscope bias: observable through the heading (magnetometer) and tilt (accelerometer) corrections as
   the device turns, plus a zero-rate update whenever the device is still (low gyro and accel variance for
   ``still_min_s``).  The initial bias standard deviation (``bias0_std``, 10 °/s) covers the raw offsets
@@ -71,7 +73,7 @@ from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import EarthField
 from pdr_mag.interference import DET_FLAG, InterferenceSettings
 
-STATE_VERSION = 2
+STATE_VERSION = 3
 
 #: diag columns of the kernel output, in order
 _DIAG_NAMES = (
@@ -148,8 +150,9 @@ class FusionSettings:
         Weight (0 = off, 1 = on) of the gyro-consistency angle in that smallest disturbance
         (``F · angle``).
     mag_tilt_k : float
-        Weight (0 = off, 1 = on) of the tilt uncertainty in the heading noise: the projection of the
-        field on the horizontal plane turns by ``−(m_x m_z δθ_x + m_y m_z δθ_y) / B_h²`` per tilt error.
+        Weight (0 = off, 1 = on) of the tilt errors in the heading update: the projection of the field on
+        the horizontal plane turns by ``−(m_x m_z δθ_x + m_y m_z δθ_y) / B_h²`` per tilt error; they enter
+        H as consider states (in the gain and P, never corrected by the magnetometer).
     mag_error_std_deg : float
         Standard deviation of the slowly varying magnetometer heading error c (residual calibration
         error, local anomalies of the building), deg.  Modelled as a first-order Gauss–Markov state so
