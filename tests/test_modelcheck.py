@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from pdr_mag.modelcheck import diagnose
-from pdr_mag.modelcheck.fit import anomaly_support, fit_model, make_problem
+from pdr_mag.modelcheck.fit import fit_model, make_problem
 from pdr_mag.modelcheck.orientation import estimate_orientation, prefix_product, qmul
 from pdr_mag.modelcheck.predict import simulate_mag
+from pdr_mag.modelcheck.support import anomaly_support
 from pdr_mag.sim import simulate
 from tests.conftest import dataset
 

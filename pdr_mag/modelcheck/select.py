@@ -31,7 +31,6 @@ from pdr_mag.modelcheck.fit import (
     CANDIDATES,
     FitResult,
     Problem,
-    anomaly_support,
     fit_model,
     integrated_autocorr_time,
     make_problem,
@@ -44,6 +43,7 @@ from pdr_mag.modelcheck.orientation import (
     track_from_truth,
 )
 from pdr_mag.modelcheck.predict import anomaly_field, gap
+from pdr_mag.modelcheck.support import anomaly_support
 
 GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
 
