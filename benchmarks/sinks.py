@@ -3,7 +3,7 @@
 A synthetic phone recording (accelerometer and gyroscope at 200 Hz, magnetometer at 100 Hz, truth at 50 Hz;
 a walker turning now and then, phone tilting a little, hard iron, noise, gyro bias; Zürich's WMM field) is
 replayed through :func:`replay.run.replay` — the real :class:`pdr_mag.pipeline.HeadingPipeline` — with no
-sink, with :class:`~pdr_mag.sinks.mcap.McapSink` (in-process, and ``_bg``: ``background=True``, formatting
+sink, with :class:`~pdr_mag.sinks.mcap.McapSink` (in-process, and ``_bg``: ``background=True``, encoding
 in a writer process), with :class:`~pdr_mag.sinks.rerun.RerunSink` and with both.
 Every configuration runs in its own process, so the peak memory of one does not leak into the next.
 

@@ -399,3 +399,24 @@ def test_cli_replay_of_the_written_mcap_gives_the_same_csv(tmp_path):
     first = csv1.read_bytes()
     assert first.count(b"\n") > 1000
     assert first == csv2.read_bytes()
+
+
+def test_message_indexes_sorted_when_a_channel_goes_back_in_time(tmp_path):
+    """A caller may hand a channel earlier times later (not the replay): indexes are still sorted."""
+    from mcap.records import MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    p = tmp_path / "unsorted.mcap"
+    with McapSink(p, chunk_size=1 << 16) as sink:
+        sink.open({})
+        sink.inputs("mag", 10.0 + np.arange(100) / 100, np.ones((100, 3)))
+        sink.inputs("mag", 5.0 + np.arange(100) / 100, np.ones((100, 3)))
+        sink.inputs("mag", 10.0 + np.arange(100) / 100, np.ones((100, 3)))  # repeated times: ties
+    with open(p, "rb") as f:
+        indexes = [r for r in StreamReader(f).records if isinstance(r, MessageIndex)]
+    assert len(indexes) == 1
+    entries = indexes[0].records
+    assert len(entries) == 300 and entries == sorted(entries)
+    with open(p, "rb") as f:
+        t = [m.log_time for _, _, m in make_reader(f, validate_crcs=True).iter_messages(log_time_order=True)]
+    assert t == sorted(t) and len(t) == 300

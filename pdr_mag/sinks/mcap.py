@@ -47,7 +47,7 @@ Metadata records:
 * ``pdr_mag`` — at close: ``format_version``, ``time_offset_ns``, ``clamped_log_times``,
   ``message_counts`` (JSON, per topic).
 
-Version 1 (before 2026-11) wrote every topic as JSON (``pdr_mag.Vector3Stamped`` ``{"t","x","y","z"}``
+Format version 1 wrote every topic as JSON (``pdr_mag.Vector3Stamped`` ``{"t","x","y","z"}``
 etc.); the reader still reads it.
 
 Negative times
