@@ -41,6 +41,8 @@ class Recording:
         ``device``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` — all optional.
     truth : (t (N,), q_wxyz (N, 4)) or None
         True orientation, device → ENU true north; for evaluation only.
+    temperature : (t (N,), °C (N,)) or None
+        Sensor temperature when the device logs it (e.g. the breadboard IMU's MPU6050).
     source : str
         Where it came from (path) and ``format``: the reader's name.
     dropped : Counter
@@ -52,6 +54,7 @@ class Recording:
     gyro: Stream | None = None
     meta: dict = field(default_factory=dict)
     truth: tuple[np.ndarray, np.ndarray] | None = None
+    temperature: tuple[np.ndarray, np.ndarray] | None = None
     source: str = ""
     format: str = ""
     dropped: Counter = field(default_factory=Counter)

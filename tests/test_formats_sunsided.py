@@ -108,3 +108,11 @@ def test_bad_header_and_mat_only(tmp_path):
     (e / "hmc5883l_compass.mat").write_bytes(b"MATLAB 7.3 MAT-file")
     with pytest.raises(InputError, match="h5py"):
         read_recording(e.parent)
+
+
+def test_breadboard_temperature_channel_is_exposed():
+    rec = read_recording(dataset("sunsided-marg", "set-2", "full-sphere"))
+    t, temp = rec.temperature
+    assert len(t) == len(temp) == len(rec.accel)
+    assert np.all(np.diff(t) > 0)
+    assert 0.0 < np.median(temp) < 60.0  # °C of a breadboard on a desk

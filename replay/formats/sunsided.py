@@ -68,13 +68,26 @@ def detect(path: Path) -> bool:
     return (path / "original_mat" / "hmc5883l_compass.mat").is_file()
 
 
-def _read_csv(path: Path, header: list[str], targets: list[tuple[StreamBuilder, list[int]]]) -> None:
+def _read_csv(
+    path: Path, header: list[str], targets: list[tuple[StreamBuilder, list[int]]], optional: tuple = ()
+) -> int:
+    """Read the table; ``optional`` columns after ``header`` are read when the header has them.
+
+    Returns how many of the optional columns were present.
+    """
     with open_text(path) as fh:
         first = fh.readline()
         got = [c.strip() for c in first.strip().split(",")]
         if got[: len(header)] != header:
             raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}…", 1)
-        read_table(fh, path, targets, len(header), first_line=2, delimiter=",")
+        extra = got[len(header) :]
+        n_opt = 0
+        while n_opt < min(len(optional), len(extra)) and extra[n_opt] == optional[n_opt]:
+            n_opt += 1
+        ncol = len(header) + n_opt
+        present = [(b, ix) for b, ix in targets if max(ix) < ncol]
+        read_table(fh, path, present, ncol, first_line=2, delimiter=",")
+    return n_opt
 
 
 def read(path) -> Recording:
@@ -90,15 +103,22 @@ def read(path) -> Recording:
     mag_b = StreamBuilder(hmc, "mag", dropped)
     _read_csv(hmc, HMC_HEADER, [(mag_b, [1, 2, 3])])
     mag = finish(mag_b, scale=UT_PER_GAUSS, axes=A_TO_DEVICE, unit_hint="gauss × 100")
-    accel = gyro = None
+    accel = gyro = temperature = None
     if mpu.is_file():
         acc_b = StreamBuilder(mpu, "accel", dropped, limit=ACCEL_LIMIT_G)
         gyr_b = StreamBuilder(mpu, "gyro", dropped, limit=GYRO_LIMIT_DPS)
-        _read_csv(mpu, MPU_HEADER, [(acc_b, [1, 2, 3]), (gyr_b, [4, 5, 6])])
+        tmp_b = StreamBuilder(mpu, "temperature", Counter(), width=1)  # same rows: counted once, above
+        targets = [(acc_b, [1, 2, 3]), (gyr_b, [4, 5, 6]), (tmp_b, [7])]
+        has_temp = _read_csv(mpu, MPU_HEADER, targets, optional=("temp_C",))
         accel = finish(acc_b, scale=-GRAVITY, axes=A_TO_DEVICE, unit_hint="g, gravity sign")
         gyro = finish(gyr_b, scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s")
+        t_temp, v_temp = tmp_b.arrays()
+        temperature = (t_temp, v_temp[:, 0].copy()) if has_temp and len(t_temp) else None
     meta = {
         "device": "MPU6050 + HMC5883L breadboard",
         "axes": "device x = -board y, y = board x (forward), z = z",
     }
-    return Recording(mag=mag, accel=accel, gyro=gyro, meta=meta, source=str(p), format=NAME, dropped=dropped)
+    return Recording(
+        mag=mag, accel=accel, gyro=gyro, meta=meta, temperature=temperature, source=str(p), format=NAME,
+        dropped=dropped,
+    )
