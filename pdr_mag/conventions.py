@@ -70,3 +70,69 @@ def rotation_about_up(angle_rad: float | np.ndarray) -> Rotation:
     A heading increase of δ degrees (clockwise) is ``rotation_about_up(-radians(δ))``.
     """
     return Rotation.from_rotvec(np.multiply.outer(np.asarray(angle_rad, dtype=float), [0.0, 0.0, 1.0]))
+
+
+# ---------------------------------------------------------------------------------------------- vectorised
+# Plain-numpy quaternion algebra for large arrays (the simulator, the model check): w-first, no scipy objects.
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p ⊗ q`` of w-first quaternions (…, 4); the rotation ``R(p) · R(q)``."""
+    pw, px, py, pz = np.moveaxis(np.asarray(p, dtype=float), -1, 0)
+    qw, qx, qy, qz = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_rotate(q_wd: np.ndarray, v: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """``rot_wd @ v`` (or ``rot_wdᵀ @ v`` with ``inverse``) for w-first unit quaternions, vectorised."""
+    q = np.asarray(q_wd, dtype=float)
+    w = q[..., :1]
+    u = q[..., 1:] if not inverse else -q[..., 1:]
+    v = np.asarray(v, dtype=float)
+    c = 2.0 * np.cross(u, v)
+    return v + w * c + np.cross(u, c)
+
+
+def quat_slerp(t_key: np.ndarray, q_key: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation of w-first quaternions ``q_key`` (N, 4) at times ``t``.
+
+    Times outside ``[t_key[0], t_key[-1]]`` take the end values.  The shorter arc is used.
+    """
+    tk = np.asarray(t_key, dtype=float)
+    qk = np.asarray(q_key, dtype=float)
+    t = np.asarray(t, dtype=float)
+    if len(tk) == 1:
+        return np.broadcast_to(qk[0], (*t.shape, 4)).copy()
+    i = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(tk) - 2)
+    u = np.clip((t - tk[i]) / (tk[i + 1] - tk[i]), 0.0, 1.0)[..., None]
+    q0, q1 = qk[i], qk[i + 1]
+    d = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(d < 0, -q1, q1)
+    d = np.abs(d)
+    ang = np.arccos(np.clip(d, -1.0, 1.0))
+    s = np.sin(ang)
+    small = s < 1e-9
+    s_safe = np.where(small, 1.0, s)
+    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * ang) / s_safe)
+    w1 = np.where(small, u, np.sin(u * ang) / s_safe)
+    q = w0 * q0 + w1 * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``exp([r]×)`` of a rotation vector r (3,), radians (Rodrigues)."""
+    r = np.asarray(rotvec, dtype=float)
+    ang = float(np.linalg.norm(r))
+    if ang < 1e-15:
+        return np.eye(3)
+    k = r / ang
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(ang) * kx + (1.0 - np.cos(ang)) * (kx @ kx)

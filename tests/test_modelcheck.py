@@ -11,9 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pdr_mag.conventions import quat_multiply as qmul
 from pdr_mag.modelcheck import diagnose
 from pdr_mag.modelcheck.fit import fit_model, make_problem
-from pdr_mag.modelcheck.orientation import estimate_orientation, prefix_product, qmul
+from pdr_mag.modelcheck.orientation import estimate_orientation, prefix_product
 from pdr_mag.modelcheck.predict import simulate_mag
 from pdr_mag.modelcheck.support import anomaly_support
 from pdr_mag.sim import simulate

@@ -41,8 +41,8 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import splu
 
+from pdr_mag.conventions import quat_slerp, rotvec_to_matrix
 from pdr_mag.modelcheck.orientation import OrientationTrack
-from pdr_mag.sensor_model import quat_slerp, rotvec_to_matrix
 
 #: Effects every model has (seed 003's sphere: hard-iron offset and white noise).
 BASELINE = ("hard_iron", "noise")

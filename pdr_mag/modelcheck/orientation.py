@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from pdr_mag.conventions import GRAVITY
+from pdr_mag.conventions import GRAVITY, quat_multiply
 
 
 @dataclass(frozen=True)
@@ -80,21 +80,6 @@ class OrientationTrack:
         return np.column_stack([np.interp(tt, self.t, self.up_cumint[:, k]) for k in range(3)])
 
 
-def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product of w-first quaternion arrays (…, 4)."""
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-
-
 def _rotvec_to_quat(v: np.ndarray) -> np.ndarray:
     ang = np.linalg.norm(v, axis=-1)
     half = 0.5 * ang
@@ -108,7 +93,7 @@ def prefix_product(q: np.ndarray) -> np.ndarray:
     k = 1
     n = len(out)
     while k < n:
-        out[k:] = qmul(out[:-k], out[k:])
+        out[k:] = quat_multiply(out[:-k], out[k:])
         k *= 2
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
@@ -207,7 +192,7 @@ def estimate_orientation(
     a_w = rot_g.apply(a_g)
     a_w_mean = _window_mean(t, a_w, 0.5 * settings.tilt_window_s)
     corr = _minimal_rotation_to_up(a_w_mean)
-    q = qmul(corr, q)
+    q = quat_multiply(corr, q)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
 

@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pdr_mag.conventions import quat_multiply, quat_slerp
 from pdr_mag.modelcheck.fit import FitResult, Problem, soft_iron_distortion
-from pdr_mag.sensor_model import SensorModel, predict_mag, quat_multiply, quat_slerp
+from pdr_mag.sensor_model import SensorModel, predict_mag
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,10 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pdr_mag.conventions import heading_deg_from_quat
+from pdr_mag.conventions import heading_deg_from_quat, quat_slerp
 from pdr_mag.modelcheck.predict import simulate_mag
 from pdr_mag.modelcheck.select import Diagnosis
-from pdr_mag.sensor_model import quat_slerp
 
 
 class ReportUnavailable(RuntimeError):

@@ -242,8 +242,8 @@ def _heading_drift_init(problem: Problem, fit: FitResult) -> np.ndarray:
     In the track's world frame the measured field ``R_wd (m − b)`` turns by ``−ψ(t)``, ``ψ = δ·∫up_d dt``,
     so δ is the least-squares solution of ``−unwrap(φ − φ_0) = ∫up_d dt · δ``.
     """
+    from pdr_mag.conventions import quat_slerp
     from pdr_mag.modelcheck.fit import _quat_to_matrix
-    from pdr_mag.sensor_model import quat_slerp
 
     q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
     h_w = np.einsum("nij,nj->ni", _quat_to_matrix(q), problem.mag - fit.linear["hard_iron"])

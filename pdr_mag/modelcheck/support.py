@@ -11,8 +11,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from pdr_mag.conventions import quat_slerp
 from pdr_mag.modelcheck.fit import FitResult, Problem, _quat_to_matrix
-from pdr_mag.sensor_model import quat_slerp
 
 
 def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_uT: float = 2.0,

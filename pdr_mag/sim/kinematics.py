@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pdr_mag.sensor_model import quat_multiply
+from pdr_mag.conventions import quat_multiply
 
 #: Axes of the chain Rz · Rx · Ry · Rz.
 CHAIN_AXES = (2, 0, 1, 2)
