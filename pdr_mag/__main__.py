@@ -1,7 +1,8 @@
-"""``python -m pdr_mag`` forwards to the ``pdr-mag`` command line (the one place the library points at replay)."""
+"""``python -m pdr_mag`` forwards to the ``pdr-mag`` command line.
 
-import sys
+The one place the library points at the ``replay`` application layer.
+"""
 
-from replay.cli import main
+from replay.cli import run
 
-sys.exit(main())
+run()
