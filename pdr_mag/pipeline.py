@@ -43,6 +43,8 @@ from pdr_mag.field import EarthField, earth_field_from_meta
 KINDS = {"accel": 0, "gyro": 1, "mag": 2}
 _NAMES = {v: k for k, v in KINDS.items()}
 STATE_VERSION = 1
+#: Blocks fused in one speculative span (see :meth:`HeadingPipeline._process`).
+_SPAN_BLOCKS = 16
 
 
 def _default_fusion_settings():
@@ -306,8 +308,16 @@ class HeadingPipeline:
         return min(s.last_t for s in self._streams.values())
 
     def _process(self, horizon: float, final: bool = False) -> None:
-        """Fuse every pending sample before ``horizon`` (all of them when ``final``), piece by piece within
-        blocks; a block whose end the horizon has passed is closed (online calibration update)."""
+        """Fuse every pending sample before ``horizon`` (all of them when ``final``); a block whose end the
+        horizon has passed is closed (online calibration update).
+
+        Fusion runs speculatively over spans of up to ``_SPAN_BLOCKS`` blocks with the calibration in use at
+        the span's start (one call into the compiled filter instead of one per block).  The blocks are then
+        closed in order; when a close changes the calibration, the filter is put back to its state at the
+        span's start and re-run up to that block boundary (the same rows: the filter's output does not
+        depend on how its input is cut), and a new span starts there with the new calibration.  The result
+        is that of fusing block by block.
+        """
         b = self.settings.block_s
         if final:
             t_end = np.inf
@@ -331,58 +341,111 @@ class HeadingPipeline:
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
             blk = np.floor(t / b)
-            cuts = np.flatnonzero(np.diff(blk)) + 1
-            for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(t)], strict=True):
-                if self._cur_blk is not None and blk[lo] > self._cur_blk:
+            i, n = 0, len(t)
+            while i < n:
+                if self._cur_blk is not None and blk[i] > self._cur_blk:
                     self._close_block()
-                self._cur_blk = float(blk[lo])
-                self._fuse(kind[lo:hi], t[lo:hi], xyz[lo:hi])
+                self._cur_blk = float(blk[i])
+                i += self._fuse_span(kind[i:], t[i:], xyz[i:], blk[i:])
         if self._cur_blk is not None and (final or (self._cur_blk + 1) * b <= t_end):
             self._close_block()
 
-    def _fuse(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray) -> None:
-        """Calibrate and fuse one piece (all inside one block, calibration fixed)."""
-        if not np.isfinite(self._t_first):
-            self._t_first = float(t[0])
-        self._t_last = float(t[-1])
+    def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
+        """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
+        inside it; returns the number of samples fused for good."""
+        e = int(np.searchsorted(blk, blk[0] + _SPAN_BLOCKS, side="left"))
+        kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
+        cuts = np.flatnonzero(blk[1:] != blk[:-1]) + 1
+        snap = self.fusion.get_state() if len(cuts) else None
         is_mag = kind == 2
-        raw = xyz[is_mag]
         cal = self.online.calibration
         data = xyz.copy()
-        data[is_mag] = cal.apply(raw) if cal is not None else np.nan
-        allowed = np.full(len(t), cal is not None)
+        data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
+        allowed = np.full(e, cal is not None)
         batch = self.fusion.process(kind, t, data, allowed)
-        n = len(batch)
-        if n:
-            batch.cal_state = np.full(n, self.online.cal_state, dtype="<U13")
-            batch.diag["coverage"] = np.full(n, self._coverage)
+        lo = np.r_[0, cuts]
+        hi = np.r_[cuts, e]
+        # rows (one per output gyro sample) and magnetometer samples of each block-piece
+        row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(len(lo), int)
+        n_mag = np.r_[0, np.cumsum(is_mag)]
+        ctx = self._mag_context(kind, t, xyz, batch) if self.settings.online else None
+        states = [self.online.cal_state]
+        covs = [self._coverage]
+        n_pieces = len(lo)
+        for p in range(1, len(lo)):
+            if ctx is not None and n_mag[hi[p - 1]] > n_mag[lo[p - 1]]:
+                self._pend.append(ctx[n_mag[lo[p - 1]] : n_mag[hi[p - 1]]])
+            before = self.online.calibration
+            self._close_block()
+            self._cur_blk = float(blk[lo[p]])
+            if self.online.calibration is not before:
+                n_pieces = p
+                break
+            states.append(self.online.cal_state)
+            covs.append(self._coverage)
+        end = int(hi[n_pieces - 1])
+        if end < e:
+            # the calibration changed at a block boundary inside the span: redo the filter up to there
+            self.fusion.set_state(snap)
+            self.fusion.process(kind[:end], t[:end], data[:end], allowed[:end])
+            self._sync_fusion_reference()
+        elif ctx is not None and n_mag[hi[-1]] > n_mag[lo[-1]]:
+            self._pend.append(ctx[n_mag[lo[-1]] : n_mag[hi[-1]]])
+        n_rows = int(row_hi[n_pieces - 1])
+        if ctx is not None:
+            self._carry_context(kind[:end], xyz[:end], batch, n_rows)
+        if n_rows:
+            if n_rows < len(batch):
+                batch = _head(batch, n_rows)
+            counts = np.diff(np.r_[0, row_hi[:n_pieces]])
+            if n_pieces == 1:
+                batch.cal_state = np.full(n_rows, states[0], dtype="<U13")
+                batch.diag["coverage"] = np.full(n_rows, covs[0])
+            else:
+                batch.cal_state = np.repeat(np.asarray(states, dtype="<U13"), counts)
+                batch.diag["coverage"] = np.repeat(np.asarray(covs, dtype=float), counts)
             self._interference_events(batch)
-            self._n_out += n
+            self._n_out += n_rows
             self._out.append(batch)
-        if self.settings.keep_mag_calibrated and np.any(is_mag) and cal is not None:
-            self._magcal.append((t[is_mag].copy(), data[is_mag].copy()))
-        if self.settings.online:
-            tm = t[is_mag]
-            up = self._causal(tm, batch.t, _up_of(batch.q_wd) if n else np.empty((0, 3)), "_up")
-            acc = xyz[kind == 0]
-            acc_up = acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-9)
-            up_acc = self._causal(tm, t[kind == 0], acc_up, "_up_acc")
-            up = np.where(np.isfinite(up), up, up_acc)  # before the first output row: the accelerometer
-            g = kind == 1
-            rate = self._causal(tm, t[g], np.linalg.norm(xyz[g], axis=1)[:, None], "_rate")[:, 0]
-            if len(tm):
-                self._pend.append(np.column_stack([tm, raw, up, rate]))
+        if not np.isfinite(self._t_first):
+            self._t_first = float(t[0])
+        self._t_last = float(t[end - 1])
+        if self.settings.keep_mag_calibrated and cal is not None:
+            m = is_mag[:end]
+            if np.any(m):
+                self._magcal.append((t[:end][m].copy(), data[:end][m].copy()))
+        return end
 
-    def _causal(self, tm: np.ndarray, ts: np.ndarray, vs: np.ndarray, attr: str) -> np.ndarray:
-        """Value of the latest row of (ts, vs) at or before each tm, else the one kept in ``attr`` from
-        earlier pieces; updates ``attr``.  Causal, so independent of how the stream was cut."""
-        prev = getattr(self, attr)
-        if len(ts):
-            j = np.searchsorted(ts, tm, side="right") - 1
-            out = np.where((j >= 0)[:, None], vs[np.clip(j, 0, None)], prev)
-            setattr(self, attr, np.asarray(vs[-1], dtype=float).copy())
+    def _mag_context(self, kind, t, xyz, batch: EstimateBatch) -> np.ndarray:
+        """Rows (t, raw, up, rate) for the span's magnetometer samples: the filter's up vector and the gyro
+        rate of the latest row / sample at or before each (before the first output row: the accelerometer's
+        direction) — causal, so independent of the cuts."""
+        is_mag = kind == 2
+        tm = t[is_mag]
+        out = np.empty((len(tm), 8))
+        if not len(tm):
             return out
-        return np.tile(prev, (len(tm), 1))
+        out[:, 0] = tm
+        out[:, 1:4] = xyz[is_mag]
+        out[:, 4:7] = _latest(tm, batch.t, batch.q_wd, self._up, _up_of)
+        bad = ~np.isfinite(out[:, 4])
+        if np.any(bad):
+            a = kind == 0
+            out[bad, 4:7] = _latest(tm[bad], t[a], xyz[a], self._up_acc, _unit)
+        g = kind == 1
+        out[:, 7] = _latest(tm, t[g], xyz[g], self._rate, _norm)[:, 0]
+        return out
+
+    def _carry_context(self, kind, xyz, batch: EstimateBatch, n_rows: int) -> None:
+        """Keep what :meth:`_mag_context` needs from before the next span (fused samples only)."""
+        if n_rows:
+            self._up = _up_of(batch.q_wd[n_rows - 1 : n_rows])[0]
+        a = np.flatnonzero(kind == 0)
+        if len(a):
+            self._up_acc = _unit(xyz[a[-1] : a[-1] + 1])[0]
+        g = np.flatnonzero(kind == 1)
+        if len(g):
+            self._rate = _norm(xyz[g[-1] : g[-1] + 1])[0]
 
     def _close_block(self) -> None:
         """End of a block: the online calibrator sees the block's magnetometer samples."""
@@ -509,6 +572,38 @@ def _up_of(q: np.ndarray) -> np.ndarray:
     """Device-frame up vectors (third row of rot_wd) of w-first quaternions (N, 4)."""
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     return np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+
+
+def _latest(tm: np.ndarray, ts: np.ndarray, vs: np.ndarray, prev: np.ndarray, fn) -> np.ndarray:
+    """``fn`` of the row of ``vs`` with the latest ``ts`` at or before each ``tm``, else ``prev``."""
+    if not len(ts):
+        return np.tile(prev, (len(tm), 1))
+    j = np.searchsorted(ts, tm, side="right") - 1
+    out = fn(vs[np.maximum(j, 0)])
+    out[j < 0] = prev
+    return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(v, axis=1)[:, None]
+
+
+def _head(batch: EstimateBatch, n: int) -> EstimateBatch:
+    """The first ``n`` rows of a batch."""
+    return EstimateBatch(
+        t=batch.t[:n],
+        q_wd=batch.q_wd[:n],
+        heading_deg=batch.heading_deg[:n],
+        heading_std_deg=batch.heading_std_deg[:n],
+        mag_used=batch.mag_used[:n],
+        interference=batch.interference[:n],
+        cal_state=batch.cal_state[:n],
+        diag={k: v[:n] for k, v in batch.diag.items()},
+    )
 
 
 def _kind_name(kind) -> str:
