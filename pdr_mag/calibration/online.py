@@ -53,6 +53,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.sphere import fit_sphere
 
@@ -312,16 +313,18 @@ _DIRS = np.column_stack(
 )
 
 
+_ZERO3 = np.zeros(3)
+_COS30 = float(np.cos(np.radians(30.0)))
+_EV_NAMES = {K.EV_EPISODE_START: "rotation_episode_start", K.EV_EPISODE_END: "rotation_episode_end"}
+
+
 def direction_coverage(mag_cal: np.ndarray) -> float:
     """Share of 64 near-uniform directions with a calibrated sample direction within 30°, in [0, 1].
 
     Used only when the calibration core's :mod:`pdr_mag.calibration.coverage` is not available.
     """
-    m = np.asarray(mag_cal, dtype=float)
-    if len(m) == 0:
-        return 0.0
-    d = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
-    return float(np.mean(np.max(d @ _DIRS.T, axis=0) > np.cos(np.radians(30.0))))
+    m = np.ascontiguousarray(mag_cal, dtype=float).reshape(-1, 3)
+    return float(K.coverage(m, len(m), _ZERO3, _DIRS, _COS30))
 
 
 def _coverage(mag_cal: np.ndarray) -> float:
@@ -398,6 +401,18 @@ def _full_fit(mag: np.ndarray, field_ref: float | None) -> MagCalibration:
 # ---------------------------------------------------------------------------------------------- calibrator
 
 
+def _ks_prop(i: int, kind):
+    """An attribute stored in ``self._ks[i]`` (the compiled loop's state vector)."""
+
+    def get(self):
+        return kind(self._ks[i])
+
+    def set_(self, v) -> None:
+        self._ks[i] = float(v)
+
+    return property(get, set_)
+
+
 class OnlineCalibrator:
     """The streaming calibration state machine: ``none`` → ``offset``/``ellipsoid`` ⇄ ``recalibrating``.
 
@@ -423,25 +438,52 @@ class OnlineCalibrator:
         self.settings = settings or OnlineSettings()
         self.strength_wmm = None if strength is None else float(strength)
         self.sin_dip_wmm = None if sin_dip is None else float(sin_dip)
+        s = self.settings
+        self._ks = np.zeros(K.N_KS)  # scalar state of the compiled loop (K_* indices)
+        self._ks[K.K_LAST_REC_T] = -np.inf
+        self._ks[K.K_NEXT_REFIT_T] = -np.inf
+        self._ks[K.K_NEXT_STALE_T] = -np.inf
+        self._ks[K.K_COV_VERSION] = -1.0
+        self._cp = np.zeros(K.N_CP)
+        self._cp[K.C_REFRESH_S] = s.refresh_s
+        self._cp[K.C_REC_DT] = 1.0 / s.stale_rate_hz
+        self._cp[K.C_EP_RATE] = s.episode_rate
+        self._cp[K.C_SIZE] = s.buffer_size
+        self._cp[K.C_COS_COV] = _COS30
+        self._cos_up = float(np.cos(np.radians(s.min_sep_up_deg)))
+        self._cal: MagCalibration | None = None
         self.calibration = calibration
         self.cal_state = "none" if calibration is None else _state_of(calibration)
         self.provided = calibration is not None
-        s = self.settings
         self._buf = np.full((s.buffer_size, 7), np.nan)  # t, m(3), u(3)
-        self._nbuf = 0
+        self._buf0 = np.empty_like(self._buf)  # the buffer at the start of the open block
         nrec = int(s.stale_window_s * s.stale_rate_hz) + 1
         self._rec = np.full((nrec, 7), np.nan)  # ring of recent samples
-        self._rec_i = 0
-        self._last_rec_t = -np.inf
-        self._next_refit_t = -np.inf
-        self._next_stale_t = -np.inf
-        self._rate_ema = 0.0
-        self._episode = False
-        self._episode_seen = False
         self._recal_t = np.nan
         self._stale_cand: list | None = None
         self._n_refits = 0
         self._last_reject_t = -np.inf
+        self._refit_memo: tuple | None = None
+
+    # scalar state kept in the compiled loop's vector
+    _rate_ema = _ks_prop(K.K_RATE_EMA, float)
+    _episode = _ks_prop(K.K_EPISODE, bool)
+    _episode_seen = _ks_prop(K.K_EPISODE_SEEN, bool)
+    _last_rec_t = _ks_prop(K.K_LAST_REC_T, float)
+    _rec_i = _ks_prop(K.K_REC_I, int)
+    _nbuf = _ks_prop(K.K_NBUF, int)
+    _next_refit_t = _ks_prop(K.K_NEXT_REFIT_T, float)
+    _next_stale_t = _ks_prop(K.K_NEXT_STALE_T, float)
+
+    @property
+    def calibration(self) -> MagCalibration | None:
+        """The calibration in use (None before the first accepted fit)."""
+        return self._cal
+
+    @calibration.setter
+    def calibration(self, cal: MagCalibration | None) -> None:
+        self._cal = cal
+        self._ks[K.K_COV_VERSION] = -1.0  # the coverage is taken about the calibration's offset
 
     # ------------------------------------------------------------------ reference field
     @property
@@ -478,129 +520,161 @@ class OnlineCalibrator:
         return self._buf[: self._nbuf, 1:4].copy()
 
     def coverage(self) -> float:
-        if self._nbuf == 0:
-            return 0.0
-        m = self._buf[: self._nbuf, 1:4]
-        centre = self.calibration.offset_array if self.calibration is not None else m.mean(axis=0)
-        return _coverage(m - centre)
+        """Direction coverage of the buffer about the calibration's offset (the buffer mean without one)."""
+        return float(K.cached_coverage(self._buf, self._ks, self._centre(), _DIRS, _COS30))
+
+    def _centre(self) -> np.ndarray:
+        c = np.zeros(4)
+        if self._cal is not None:
+            c[0] = 1.0
+            c[1:4] = self._cal.offset_array
+        return c
+
+    def _block_params(self) -> np.ndarray:
+        """Admission-test parameters for a block starting now (the calibration in use)."""
+        s = self.settings
+        bp = np.zeros(K.N_BP)
+        f = self.field_ref
+        bp[K.B_SEP2] = (s.min_sep_frac * (f or 50.0)) ** 2
+        bp[K.B_COS_UP] = self._cos_up
+        cal = self._cal
+        if cal is None or f is None or self.cal_state in ("none", "recalibrating"):
+            return bp
+        a = cal.soft_iron_array
+        if cal.mag_to_imu is not None:
+            a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+        bp[K.B_CHECK] = 1.0
+        bp[K.B_M : K.B_M + 9] = a.reshape(-1)
+        bp[K.B_OFF : K.B_OFF + 3] = cal.offset_array
+        bp[K.B_F] = f
+        bp[K.B_TOL_F] = s.add_tol_frac * f
+        sd = self.sin_dip_ref
+        if sd is not None:
+            bp[K.B_DIP_CHECK] = 1.0
+            bp[K.B_DIP_DEG] = np.degrees(np.arcsin(sd))
+            bp[K.B_DIP_TOL] = s.add_dip_tol_deg
+        return bp
 
     # ------------------------------------------------------------------ the loop
     def update(self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray) -> list:
         """Take raw magnetometer samples (time-ordered) with up vectors and gyro rates; return events.
 
-        Never raises on odd data: samples with NaN are skipped.  The per-sample checks (consistency with the
-        calibration, redundancy against the buffer) are computed for the whole chunk against the state at
-        its start; only the few samples that may enter the buffer go through the sequential path.
+        The samples are one block: the admission test of every sample (consistency with the calibration,
+        redundancy against the buffer) is against the calibration and the buffer at the block start.
+        Never raises on odd data: samples with NaN are skipped.
+        """
+        t = np.asarray(t, dtype=float).reshape(-1)
+        ends = np.zeros(len(t), dtype=np.bool_)
+        if len(t):
+            ends[-1] = True
+        events, _, _ = self.update_blocks(t, mag, up, rate, ends, stop_on_change=False)
+        return [e for _, e in events]
+
+    def update_blocks(
+        self,
+        t: np.ndarray,
+        mag: np.ndarray,
+        up: np.ndarray,
+        rate: np.ndarray,
+        block_end: np.ndarray,
+        stop_on_change: bool = True,
+    ) -> tuple[list, int, np.ndarray]:
+        """:meth:`update` for several blocks at once; ``block_end`` (N,) bool marks the last sample of each.
+
+        Returns ``(events, n, coverage)``: events as ``(row, (t, kind, data))`` with the row that raised
+        them, the number of rows taken in (all, or with ``stop_on_change`` up to the end of the first block
+        in which the calibration changed), and the buffer's coverage after each block end (NaN elsewhere).
         """
         events: list = []
-        s = self.settings
-        t = np.asarray(t, dtype=float)
+        t = np.asarray(t, dtype=float).reshape(-1)
+        n_all = len(t)
+        cov = np.full(n_all, np.nan)
+        if not n_all:
+            return events, 0, cov
         mag = np.asarray(mag, dtype=float)
         up = np.asarray(up, dtype=float)
         rate = np.asarray(rate, dtype=float)
+        block_end = np.asarray(block_end, dtype=np.bool_)
         good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
+        rows = None
         if not np.all(good):
-            t, mag, up, rate = t[good], mag[good], up[good], rate[good]
-        if not len(t):
-            return events
+            # a block whose last sample is dropped ends at its last good one
+            blk = np.cumsum(np.r_[False, block_end[:-1]])
+            rows = np.flatnonzero(good)
+            t, mag, up, rate, blk = t[rows], mag[rows], up[rows], rate[rows], blk[rows]
+            block_end = np.r_[blk[1:] != blk[:-1], True] if len(rows) else block_end[:0]
+            if not len(rows):
+                return events, n_all, cov
         rate = np.where(np.isfinite(rate), rate, 0.0)
-        ok = self._consistent(mag, up) | (self.cal_state in ("none", "recalibrating"))
-        cand = ok & ~self._redundant(t, mag, up)
-        t_list = t.tolist()
-        rate_list = rate.tolist()
-        rec_dt = 1.0 / s.stale_rate_hz
-        for i, ti in enumerate(t_list):
-            self._track_episode(ti, rate_list[i], events)
-            if ti - self._last_rec_t >= rec_dt:
-                self._rec[self._rec_i % len(self._rec)] = (ti, *mag[i], *up[i])
-                self._rec_i += 1
-                self._last_rec_t = ti
-            if cand[i]:
-                self._add(ti, mag[i], up[i])
-            if ti >= self._next_refit_t:
-                period = s.refit_period_s if self.calibration is not None else 0.5 * s.refit_period_s
-                self._next_refit_t = ti + period
-                self._refit(ti, events)
-            if (
-                ti >= self._next_stale_t
-                and self.calibration is not None
-                and self.cal_state != "recalibrating"
-            ):
-                self._next_stale_t = ti + s.stale_check_s
-                self._stale_check(ti, events)
-        return events
-
-    def _consistent(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Per sample: strength and dip of the calibrated field within the buffer-admission bands."""
-        f = self.field_ref
-        if self.calibration is None or f is None:
-            return np.ones(len(m), dtype=bool)
+        t = np.ascontiguousarray(t)
+        mag = np.ascontiguousarray(mag)
+        up = np.ascontiguousarray(up)
+        cov_g = np.full(len(t), np.nan)
+        ev_i = np.zeros(len(t) * 2 + 2, dtype=np.int64)
+        ev_k = np.zeros(len(t) * 2 + 2, dtype=np.int64)
         s = self.settings
-        mc = self.calibration.apply(m)
-        nm = np.linalg.norm(mc, axis=1)
-        ok = np.abs(nm - f) <= s.add_tol_frac * f
-        sd = self.sin_dip_ref
-        if sd is not None:
-            un = np.linalg.norm(u, axis=1)
-            sin_dip = -np.einsum("ij,ij->i", mc, u) / np.maximum(nm * un, 1e-9)
-            dip = np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0)))
-            ok &= np.abs(dip - np.degrees(np.arcsin(sd))) < s.add_dip_tol_deg
-        return ok
-
-    def _redundant(self, t: np.ndarray, m: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Per sample: close to a kept sample (buffer at the chunk start) that is too young to refresh."""
-        n = self._nbuf
-        if not n:
-            return np.zeros(len(t), dtype=bool)
-        s = self.settings
-        kept = self._buf[:n]
-        f = self.field_ref or 50.0
-        dm = np.sum((m[:, None, :] - kept[None, :, 1:4]) ** 2, axis=2)
-        du = u @ kept[:, 4:7].T
-        close = (dm < (s.min_sep_frac * f) ** 2) & (du > np.cos(np.radians(s.min_sep_up_deg)))
-        oldest = np.min(np.where(close, kept[None, :, 0], np.inf), axis=1)
-        return np.any(close, axis=1) & (t - oldest <= s.refresh_s)
-
-    def _track_episode(self, t: float, rate: float, events: list) -> None:
-        s = self.settings
-        self._rate_ema += 0.02 * (rate - self._rate_ema)  # ~1 s at 50 Hz
-        if not self._episode and self._rate_ema > s.episode_rate:
-            self._episode = True
-            self._episode_seen = True
-            events.append((t, "rotation_episode_start", {}))
-        elif self._episode and self._rate_ema < 0.5 * s.episode_rate:
-            self._episode = False
-            events.append((t, "rotation_episode_end", {}))
-            self._next_refit_t = t  # try the full fit right away
+        bp = self._block_params()
+        i = 0
+        changed = False
+        stop_at = len(t)
+        while i < len(t):
+            self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
+            sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
+            code, j, n_ev = K.scan(
+                t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._rec,
+                sep2, self._centre(), _DIRS, cov_g, changed, ev_i, ev_k,
+            )  # fmt: skip
+            for e in range(n_ev):
+                ie = int(ev_i[e])
+                events.append((ie, (float(t[ie]), _EV_NAMES[int(ev_k[e])], {})))
+            if code == K.DONE:
+                break
+            if code == K.DECIDE:
+                before = self._cal
+                ti = float(t[j])
+                out: list = []
+                if ti >= self._next_refit_t:
+                    period = s.refit_period_s if self._cal is not None else 0.5 * s.refit_period_s
+                    self._next_refit_t = ti + period
+                    self._refit(ti, out)
+                if ti >= self._next_stale_t and self._cal is not None and self.cal_state != "recalibrating":
+                    self._next_stale_t = ti + s.stale_check_s
+                    self._stale_check(ti, out)
+                events += [(j, e) for e in out]
+                changed = changed or self._cal is not before
+                if not block_end[j]:
+                    i = j + 1
+                    continue
+            # a block ended at j (its coverage is in cov_g[j] unless the calibration changed since)
+            if changed:
+                cov_g[j] = self.coverage()
+                if stop_on_change:
+                    stop_at = j + 1
+                    break
+                changed = False
+                bp = self._block_params()
+            i = j + 1
+        if rows is None:
+            cov = cov_g
+            n_done = stop_at if stop_at < len(t) else n_all
+        else:
+            cov[rows] = cov_g
+            events = [(int(rows[r]), e) for r, e in events]
+            n_done = int(rows[stop_at - 1]) + 1 if stop_at < len(t) else n_all
+        return events, n_done, cov
 
     # ------------------------------------------------------------------ diversity buffer
     def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
         s = self.settings
-        n = self._nbuf
-        f = self.field_ref or 50.0
-        if n:
-            kept = self._buf[:n]
-            dm = np.sum((kept[:, 1:4] - m) ** 2, axis=1)
-            du = kept[:, 4:7] @ u
-            close = (dm < (s.min_sep_frac * f) ** 2) & (du > np.cos(np.radians(s.min_sep_up_deg)))
-            if np.any(close):
-                j = int(np.flatnonzero(close)[np.argmin(kept[close, 0])])
-                if t - kept[j, 0] > s.refresh_s:
-                    self._buf[j] = (t, *m, *u)
-                return
-        if n < s.buffer_size:
-            self._buf[n] = (t, *m, *u)
-            self._nbuf += 1
-            return
-        kept = self._buf[:n, 1:4]
-        d2 = np.sum((kept[:, None, :] - kept[None, :, :]) ** 2, axis=2)
-        np.fill_diagonal(d2, np.inf)
-        j = int(np.argmin(np.min(d2, axis=1)))
-        self._buf[j] = (t, *m, *u)
+        K.add(
+            float(t), np.asarray(m, dtype=float), np.asarray(u, dtype=float), self._buf, self._ks,
+            (s.min_sep_frac * (self.field_ref or 50.0)) ** 2, self._cos_up, s.refresh_s, s.buffer_size,
+        )  # fmt: skip
 
     def clear_buffer(self) -> None:
         self._buf[:] = np.nan
         self._nbuf = 0
+        self._ks[K.K_VERSION] += 1.0
 
     # ------------------------------------------------------------------ refits
     def _refit(self, t: float, events: list) -> None:
@@ -850,7 +924,7 @@ class OnlineCalibrator:
         self._buf[:] = np.nan
         self._buf[: len(buf)] = buf
         self._nbuf = len(buf)
-        self._rec = _unarr(st["rec"], 7)
+        self._rec = np.ascontiguousarray(_unarr(st["rec"], 7))
         self._rec_i = int(st["rec_i"])
         self._last_rec_t = _uf(st["last_rec_t"])
         self._next_refit_t = _uf(st["next_refit_t"])
@@ -862,6 +936,8 @@ class OnlineCalibrator:
         self._stale_cand = None if st.get("stale_cand") is None else [float(v) for v in st["stale_cand"]]
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = _uf(st["last_reject_t"])
+        self._ks[K.K_IN_BLOCK] = 0.0
+        self._ks[K.K_VERSION] += 1.0
 
 
 def _state_of(cal: MagCalibration) -> str:

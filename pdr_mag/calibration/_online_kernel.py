@@ -1,0 +1,309 @@
+"""Compiled per-sample loop of :class:`pdr_mag.calibration.online.OnlineCalibrator` (numba, ``cache=True``).
+
+What the calibrator does for every magnetometer sample between two decisions (refit, stale test) lives
+here: the rotation-episode tracker, the decimated ring of recent samples, the buffer-admission test
+(consistency with the calibration of the block start, redundancy against the buffer of the block start)
+and the diversity buffer itself (refresh, eviction of the most redundant sample), plus the direction
+coverage of the buffer at every block end.  :func:`scan` returns to Python whenever a refit or a stale test
+is due, so those (rare, vectorised) decisions stay in ``online.py``.
+
+Scalar state lives in one float64 vector ``ks`` (the ``K_*`` indices), so the Python object reads and
+writes it by name and it round-trips through JSON with the rest of the calibrator's state.
+The block-start parameters of the admission test are in ``bp`` (the ``B_*`` indices): the calibration
+matrix ``M`` and offset ``b`` of ``M (m − b)``, the reference strength and dip, and the separation
+thresholds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# ---- scalar state ks
+K_RATE_EMA = 0
+K_EPISODE = 1
+K_EPISODE_SEEN = 2
+K_LAST_REC_T = 3
+K_REC_I = 4
+K_NBUF = 5
+K_NEXT_REFIT_T = 6
+K_NEXT_STALE_T = 7
+K_VERSION = 8  # incremented at every change of the buffer
+K_COV_VERSION = 9  # buffer version of the cached coverage (-1: stale)
+K_COV = 10
+K_STALE_ON = 11  # a stale test may run (calibrated, not recalibrating)
+K_IN_BLOCK = 12  # 1 while a block is open (its start parameters and buffer copy are set)
+K_NBUF0 = 13  # buffer size at the block start
+K_MIN_T0 = 14  # oldest time in the buffer at the block start
+K_HINT = 15  # index of the last buffer sample found close (where the redundancy scan starts)
+N_KS = 16
+
+# ---- block-start parameters bp
+B_CHECK = 0  # 1: test strength (and dip) against the calibration; 0: every sample is consistent
+B_M = 1  # 9 values, row-major
+B_OFF = 10  # 3 values
+B_F = 13
+B_TOL_F = 14  # add_tol_frac · F
+B_DIP_CHECK = 15
+B_DIP_DEG = 16
+B_DIP_TOL = 17
+B_SEP2 = 18  # (min_sep_frac · F)² of the redundancy test
+B_COS_UP = 19
+N_BP = 20
+
+# ---- constant settings cp
+C_REFRESH_S = 0
+C_REC_DT = 1
+C_EP_RATE = 2
+C_SIZE = 3
+C_COS_COV = 4
+N_CP = 5
+
+# ---- return codes of scan
+DONE = 0
+DECIDE = 1  # a refit or a stale test is due at the returned index (after the sample was taken in)
+BLOCK_END = 2  # stopped at a block end (the caller asked for it)
+
+EV_EPISODE_START = 1
+EV_EPISODE_END = 2
+
+
+@njit(cache=True)
+def _consistent(m, u, bp):
+    if bp[B_CHECK] == 0.0:
+        return True
+    x0 = m[0] - bp[B_OFF]
+    x1 = m[1] - bp[B_OFF + 1]
+    x2 = m[2] - bp[B_OFF + 2]
+    c0 = bp[B_M] * x0 + bp[B_M + 1] * x1 + bp[B_M + 2] * x2
+    c1 = bp[B_M + 3] * x0 + bp[B_M + 4] * x1 + bp[B_M + 5] * x2
+    c2 = bp[B_M + 6] * x0 + bp[B_M + 7] * x1 + bp[B_M + 8] * x2
+    nm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    f = bp[B_F]
+    if not abs(nm - f) <= bp[B_TOL_F]:
+        return False
+    if bp[B_DIP_CHECK] != 0.0:
+        un = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        s = -(c0 * u[0] + c1 * u[1] + c2 * u[2]) / max(nm * un, 1e-9)
+        s = min(max(s, -1.0), 1.0)
+        if not abs(np.degrees(np.arcsin(s)) - bp[B_DIP_DEG]) < bp[B_DIP_TOL]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _redundant(t, m, u, buf0, ks, bp, refresh_s):
+    """Close (raw µT and gravity direction) to a sample of the block-start buffer too young to refresh."""
+    n = int(ks[K_NBUF0])
+    if n == 0:
+        return False
+    sep2 = bp[B_SEP2]
+    cos_up = bp[B_COS_UP]
+    all_young = t - ks[K_MIN_T0] <= refresh_s
+    start = int(ks[K_HINT])
+    if start >= n:
+        start = 0
+    oldest = np.inf
+    for k in range(n):
+        j = start + k
+        if j >= n:
+            j -= n
+        d0 = buf0[j, 1] - m[0]
+        d1 = buf0[j, 2] - m[1]
+        d2 = buf0[j, 3] - m[2]
+        if d0 * d0 + d1 * d1 + d2 * d2 < sep2:
+            if buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up:
+                ks[K_HINT] = j
+                if all_young:
+                    return True
+                if buf0[j, 0] < oldest:
+                    oldest = buf0[j, 0]
+    return oldest < np.inf and t - oldest <= refresh_s
+
+
+@njit(cache=True)
+def _put(buf, j, t, m, u):
+    buf[j, 0] = t
+    buf[j, 1] = m[0]
+    buf[j, 2] = m[1]
+    buf[j, 3] = m[2]
+    buf[j, 4] = u[0]
+    buf[j, 5] = u[1]
+    buf[j, 6] = u[2]
+
+
+@njit(cache=True)
+def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
+    """Offer one sample to the diversity buffer (see ``OnlineCalibrator`` in ``online.py``)."""
+    n = int(ks[K_NBUF])
+    if n:
+        j = -1
+        tj = np.inf
+        for k in range(n):
+            d0 = buf[k, 1] - m[0]
+            d1 = buf[k, 2] - m[1]
+            d2 = buf[k, 3] - m[2]
+            if d0 * d0 + d1 * d1 + d2 * d2 < sep2:
+                if buf[k, 4] * u[0] + buf[k, 5] * u[1] + buf[k, 6] * u[2] > cos_up:
+                    if buf[k, 0] < tj:
+                        tj = buf[k, 0]
+                        j = k
+        if j >= 0:
+            if t - tj > refresh_s:
+                _put(buf, j, t, m, u)
+                ks[K_VERSION] += 1.0
+            return
+    if n < size:
+        _put(buf, n, t, m, u)
+        ks[K_NBUF] = n + 1
+        ks[K_VERSION] += 1.0
+        return
+    # full: evict the sample closest to another one
+    best = np.inf
+    jb = 0
+    for a in range(n):
+        ma = np.inf
+        for b in range(n):
+            if b != a:
+                d0 = buf[a, 1] - buf[b, 1]
+                d1 = buf[a, 2] - buf[b, 2]
+                d2 = buf[a, 3] - buf[b, 3]
+                d = d0 * d0 + d1 * d1 + d2 * d2
+                if d < ma:
+                    ma = d
+        if ma < best:
+            best = ma
+            jb = a
+    _put(buf, jb, t, m, u)
+    ks[K_VERSION] += 1.0
+
+
+@njit(cache=True)
+def coverage(m, n, centre, dirs, cos_lim):
+    """Share of the directions ``dirs`` with a sample direction of ``m[:n] − centre`` within the angle whose
+    cosine is ``cos_lim``."""
+    if n == 0:
+        return 0.0
+    nd = dirs.shape[0]
+    hit = np.zeros(nd, dtype=np.bool_)
+    for k in range(n):
+        x0 = m[k, 0] - centre[0]
+        x1 = m[k, 1] - centre[1]
+        x2 = m[k, 2] - centre[2]
+        nn = max(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), 1e-12)
+        x0 /= nn
+        x1 /= nn
+        x2 /= nn
+        for d in range(nd):
+            if not hit[d] and x0 * dirs[d, 0] + x1 * dirs[d, 1] + x2 * dirs[d, 2] > cos_lim:
+                hit[d] = True
+    c = 0
+    for d in range(nd):
+        if hit[d]:
+            c += 1
+    return c / nd
+
+
+@njit(cache=True)
+def cached_coverage(buf, ks, centre, dirs, cos_lim):
+    """:func:`coverage` of the buffer, recomputed only when it changed since the last call (the caller sets
+    ``ks[K_COV_VERSION] = -1`` when ``centre`` changes)."""
+    if ks[K_COV_VERSION] != ks[K_VERSION]:
+        n = int(ks[K_NBUF])
+        c = np.empty(3)
+        if centre[0] != 0.0:
+            c[:] = centre[1:4]
+        else:
+            c[:] = 0.0
+            for k in range(n):
+                c[0] += buf[k, 1]
+                c[1] += buf[k, 2]
+                c[2] += buf[k, 3]
+            c /= max(n, 1)
+        ks[K_COV] = coverage(buf[:, 1:4], n, c, dirs, cos_lim)
+        ks[K_COV_VERSION] = ks[K_VERSION]
+    return ks[K_COV]
+
+
+@njit(cache=True)
+def scan(
+    t,
+    mag,
+    up,
+    rate,
+    blk_end,
+    i,
+    ks,
+    bp,
+    cp,
+    buf,
+    buf0,
+    rec,
+    sep2_add,
+    centre,
+    dirs,
+    cov_out,
+    stop_at_block_end,
+    ev_i,
+    ev_k,
+):
+    """Take samples ``i, i+1, …`` in; return ``(code, index, n_events)``.
+
+    ``blk_end[i]`` is True for the last sample of a block; there ``cov_out[i]`` gets the buffer's
+    coverage about ``centre`` (``centre[0]`` = 1: ``centre[1:4]``, else the buffer mean), recomputed only
+    when the buffer changed (``K_COV_VERSION``).  ``DECIDE``: a refit or stale test is due at ``index``
+    (the sample itself has been taken in).  ``BLOCK_END``: ``stop_at_block_end`` and ``index`` closed a
+    block.  ``DONE``: every sample taken in.  Episode events go to ``ev_i`` / ``ev_k``.
+    """
+    n = len(t)
+    refresh_s = cp[C_REFRESH_S]
+    rec_dt = cp[C_REC_DT]
+    ep_rate = cp[C_EP_RATE]
+    size = int(cp[C_SIZE])
+    nrec = rec.shape[0]
+    n_ev = 0
+    while i < n:
+        ti = t[i]
+        m = mag[i]
+        u = up[i]
+        if ks[K_IN_BLOCK] == 0.0:
+            nb = int(ks[K_NBUF])
+            buf0[:nb] = buf[:nb]
+            ks[K_NBUF0] = nb
+            mt = np.inf
+            for k in range(nb):
+                if buf[k, 0] < mt:
+                    mt = buf[k, 0]
+            ks[K_MIN_T0] = mt
+            ks[K_IN_BLOCK] = 1.0
+        # rotation-rich episode (smoothed gyro rate)
+        ks[K_RATE_EMA] += 0.02 * (rate[i] - ks[K_RATE_EMA])
+        if ks[K_EPISODE] == 0.0 and ks[K_RATE_EMA] > ep_rate:
+            ks[K_EPISODE] = 1.0
+            ks[K_EPISODE_SEEN] = 1.0
+            ev_i[n_ev] = i
+            ev_k[n_ev] = EV_EPISODE_START
+            n_ev += 1
+        elif ks[K_EPISODE] != 0.0 and ks[K_RATE_EMA] < 0.5 * ep_rate:
+            ks[K_EPISODE] = 0.0
+            ev_i[n_ev] = i
+            ev_k[n_ev] = EV_EPISODE_END
+            n_ev += 1
+            ks[K_NEXT_REFIT_T] = ti
+        # decimated ring of recent samples
+        if ti - ks[K_LAST_REC_T] >= rec_dt:
+            r = int(ks[K_REC_I]) % nrec
+            _put(rec, r, ti, m, u)
+            ks[K_REC_I] += 1.0
+            ks[K_LAST_REC_T] = ti
+        if _consistent(m, u, bp) and not _redundant(ti, m, u, buf0, ks, bp, refresh_s):
+            add(ti, m, u, buf, ks, sep2_add, bp[B_COS_UP], refresh_s, size)
+        if blk_end[i]:
+            ks[K_IN_BLOCK] = 0.0
+            cov_out[i] = cached_coverage(buf, ks, centre, dirs, cp[C_COS_COV])
+        if ti >= ks[K_NEXT_REFIT_T] or (ks[K_STALE_ON] != 0.0 and ti >= ks[K_NEXT_STALE_T]):
+            return DECIDE, i, n_ev
+        if blk_end[i] and stop_at_block_end:
+            return BLOCK_END, i, n_ev
+        i += 1
+    return DONE, i, n_ev
