@@ -307,3 +307,140 @@ def scan(
             return BLOCK_END, i, n_ev
         i += 1
     return DONE, i, n_ev
+
+
+# ---- return codes of gravity_fit
+FIT_OK = 0
+FIT_DEGENERATE = 1
+
+_HUBER = 2.5
+
+
+@njit(cache=True)
+def _huber(r):
+    a = abs(r)
+    return 1.0 if a <= _HUBER else _HUBER / max(a, 1e-12)
+
+
+@njit(cache=True)
+def gravity_fit(mc, u, f_guess, strength, s_ref, free, sigma_s, sig2, iterations, prior, sig_f, sig_s):
+    """The numbers of :func:`pdr_mag.calibration.online.gravity_aided_offset` (see its docstring and the
+    module docstring of ``online.py``): centred samples ``mc``, unit up vectors ``u``.
+
+    Returns ``(code, b, f, s, cov, estimated, rms, dip_rms)`` with ``cov`` the (npar, npar) covariance;
+    ``code`` ``FIT_DEGENERATE`` when the linear initial value is rank-deficient.  Raises
+    ``np.linalg.LinAlgError`` on singular normal equations.
+    """
+    n = mc.shape[0]
+    # ---- linear initial value
+    p = 5 if free else 4
+    a = np.zeros((2 * n, p))
+    y = np.empty(2 * n)
+    k2 = 2.0 * f_guess
+    for i in range(n):
+        mm = mc[i, 0] * mc[i, 0] + mc[i, 1] * mc[i, 1] + mc[i, 2] * mc[i, 2]
+        mu = mc[i, 0] * u[i, 0] + mc[i, 1] * u[i, 1] + mc[i, 2] * u[i, 2]
+        for c in range(3):
+            a[i, c] = 2.0 * mc[i, c] / k2 / sigma_s
+            a[n + i, c] = u[i, c] / sig2
+        if free:
+            # unknowns (b, c, s): 2 m·b + c = |m|², u·b − s = m·u   (c = F² − |b|², s = F sin I)
+            a[i, 3] = 1.0 / k2 / sigma_s
+            a[n + i, 4] = -1.0 / sig2
+            y[i] = mm / k2 / sigma_s
+            y[n + i] = mu / sig2
+        else:
+            # unknowns (b, k): 2 m·b − k = |m|² − F²,  u·b = m·u + s
+            a[i, 3] = -1.0 / k2 / sigma_s
+            y[i] = (mm - strength * strength) / k2 / sigma_s
+            y[n + i] = (mu + s_ref) / sig2
+    rcond = np.finfo(np.float64).eps * max(2 * n, p)
+    sol, _, rank, sv = np.linalg.lstsq(a, y, rcond)
+    b = np.zeros(3)
+    cov = np.zeros((5, 5))
+    if rank < p or sv[-1] < 1e-9 * sv[0]:
+        return FIT_DEGENERATE, b, 0.0, 0.0, cov, free, 0.0, 0.0
+    b[:] = sol[:3]
+    if free:
+        s = sol[4]
+        f = np.sqrt(max(sol[3] + b[0] * b[0] + b[1] * b[1] + b[2] * b[2], 1e-6))
+    else:
+        f = strength
+        s = s_ref
+    # ---- Gauss–Newton with Huber weights (optionally F, s free with a prior around the given values)
+    f0 = f
+    s0 = s
+    est = free or prior
+    npar = 5 if est else 3
+    h = np.zeros((npar, npar))
+    g = np.zeros(npar)
+    jr = np.zeros(npar)
+    for _ in range(iterations):
+        h[:] = 0.0
+        g[:] = 0.0
+        for i in range(n):
+            d0 = mc[i, 0] - b[0]
+            d1 = mc[i, 1] - b[1]
+            d2 = mc[i, 2] - b[2]
+            nd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            # strength row
+            r = (nd - f) / sigma_s
+            w = _huber(r)
+            jr[0] = -d0 / nd / sigma_s
+            jr[1] = -d1 / nd / sigma_s
+            jr[2] = -d2 / nd / sigma_s
+            if est:
+                jr[3] = -1.0 / sigma_s
+                jr[4] = 0.0
+            for j in range(npar):
+                g[j] += jr[j] * w * r
+                for k in range(npar):
+                    h[j, k] += jr[j] * w * jr[k]
+            # dip row
+            r = (d0 * u[i, 0] + d1 * u[i, 1] + d2 * u[i, 2] + s) / sig2
+            w = _huber(r)
+            jr[0] = -u[i, 0] / sig2
+            jr[1] = -u[i, 1] / sig2
+            jr[2] = -u[i, 2] / sig2
+            if est:
+                jr[3] = 0.0
+                jr[4] = 1.0 / sig2
+            for j in range(npar):
+                g[j] += jr[j] * w * r
+                for k in range(npar):
+                    h[j, k] += jr[j] * w * jr[k]
+        if prior:
+            h[3, 3] += 1.0 / (sig_f * sig_f)
+            g[3] += (f - f0) / sig_f / sig_f
+            h[4, 4] += 1.0 / (sig_s * sig_s)
+            g[4] += (s - s0) / sig_s / sig_s
+        step = np.linalg.solve(h, -g)
+        b += step[:3]
+        if est:
+            f += step[3]
+            s += step[4]
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    chi = 0.0
+    sw1 = 0.0
+    swe1 = 0.0
+    se2 = 0.0
+    for i in range(n):
+        d0 = mc[i, 0] - b[0]
+        d1 = mc[i, 1] - b[1]
+        d2 = mc[i, 2] - b[2]
+        e1 = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - f
+        e2 = d0 * u[i, 0] + d1 * u[i, 1] + d2 * u[i, 2] + s
+        r1 = e1 / sigma_s
+        r2 = e2 / sig2
+        w1 = _huber(r1)
+        w2 = _huber(r2)
+        chi += w1 * r1 * r1 + w2 * r2 * r2
+        sw1 += w1
+        swe1 += w1 * e1 * e1
+        se2 += e2 * e2
+    chi2 = chi / max(2 * n - npar, 1)
+    ci = np.linalg.inv(h) * max(chi2, 1.0)
+    cov[:npar, :npar] = ci
+    rms = np.sqrt(swe1 / max(sw1, 1e-12))
+    return FIT_OK, b, f, s, cov, est, rms, np.sqrt(se2 / n)

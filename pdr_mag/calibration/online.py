@@ -201,99 +201,38 @@ def gravity_aided_offset(
     centre = m.mean(axis=0)
     mc = m - centre  # centred for conditioning
     f_guess = float(strength) if strength is not None else 50.0
-    # ---- linear initial value
-    if free:
-        # unknowns (b, c, s): 2 m·b + c = |m|², u·b − s = m·u   (c = F² − |b|², s = F sin I)
-        a1 = np.column_stack([2 * mc, np.ones(n), np.zeros(n)]) / (2 * f_guess)
-        y1 = np.einsum("ij,ij->i", mc, mc) / (2 * f_guess)
-        a2 = np.column_stack([u, np.zeros(n), -np.ones(n)])
-    else:
-        # unknowns (b, k): 2 m·b − k = |m|² − F²,  u·b = m·u + s
-        s_ref = float(strength) * float(sin_dip)
-        a1 = np.column_stack([2 * mc, -np.ones(n)]) / (2 * f_guess)
-        y1 = (np.einsum("ij,ij->i", mc, mc) - float(strength) ** 2) / (2 * f_guess)
-        a2 = np.column_stack([u, np.zeros(n)])
-    y2 = np.einsum("ij,ij->i", mc, u) + (0.0 if free else s_ref)
+    s_ref = 0.0 if free else float(strength) * float(sin_dip)
     sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
-    a = np.vstack([a1 / sigma_strength_uT, a2 / sig2])
-    y = np.concatenate([y1 / sigma_strength_uT, y2 / sig2])
-    sol, _, rank, sv = np.linalg.lstsq(a, y, rcond=None)
-    if rank < a.shape[1] or sv[-1] < 1e-9 * sv[0]:
-        raise ValueError("mag, up: offset not observable from these samples (degenerate geometry)")
-    b = sol[:3].copy()
-    if free:
-        s = float(sol[4])
-        f = float(np.sqrt(max(sol[3] + b @ b, 1e-6)))
-    else:
-        f, s = float(strength), s_ref
-    # ---- Gauss–Newton with Huber weights (optionally F, s free with a prior around the given values)
-    huber = 2.5
     prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
+    sig_f = sig_s = 1.0
     if prior:
-        f0, s0 = f, s
         sig_f = float(prior_strength_std_uT)
-        sig_s = float(f0 * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
-        free = True
-    npar = 5 if free else 3
-    for _ in range(iterations):
-        d = mc - b
-        nd = np.linalg.norm(d, axis=1)
-        r1 = (nd - f) / sigma_strength_uT
-        r2 = (np.einsum("ij,ij->i", d, u) + s) / sig2
-        r = np.concatenate([r1, r2])
-        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
-        j1 = np.zeros((n, npar))
-        j1[:, :3] = -d / nd[:, None] / sigma_strength_uT
-        j2 = np.zeros((n, npar))
-        j2[:, :3] = -u / sig2
-        if free:
-            j1[:, 3] = -1.0 / sigma_strength_uT
-            j2[:, 4] = 1.0 / sig2
-        jac = np.vstack([j1, j2])
-        if prior:
-            r = np.concatenate([r, [(f - f0) / sig_f, (s - s0) / sig_s]])
-            w = np.concatenate([w, [1.0, 1.0]])
-            jac = np.vstack([jac, [[0, 0, 0, 1 / sig_f, 0], [0, 0, 0, 0, 1 / sig_s]]])
-        jw = jac * w[:, None]
-        h = jac.T @ jw
-        g = jw.T @ r
-        try:
-            step = np.linalg.solve(h, -g)
-        except np.linalg.LinAlgError as exc:
-            raise ValueError("mag, up: singular normal equations") from exc
-        b = b + step[:3]
-        if free:
-            f += float(step[3])
-            s += float(step[4])
-        if np.max(np.abs(step)) < 1e-6:
-            break
-    d = mc - b
-    nd = np.linalg.norm(d, axis=1)
-    e1 = nd - f
-    e2 = np.einsum("ij,ij->i", d, u) + s
-    r = np.concatenate([e1 / sigma_strength_uT, e2 / sig2])
-    w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
-    chi2 = float(np.sum(w * r**2)) / max(len(r) - npar, 1)
+        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
     try:
-        cov = np.linalg.inv(h) * max(chi2, 1.0)
+        code, b, f, s, cov, est, rms, dip_rms = K.gravity_fit(
+            mc, u, f_guess, 0.0 if free else float(strength), s_ref, free, float(sigma_strength_uT), sig2,
+            int(iterations), prior, sig_f, sig_s,
+        )  # fmt: skip
     except np.linalg.LinAlgError as exc:
         raise ValueError("mag, up: singular normal equations") from exc
-    cov_b = cov[:3, :3]
-    w1 = w[:n]
-    rms = float(np.sqrt(np.sum(w1 * e1**2) / max(np.sum(w1), 1e-12)))
+    if code != K.FIT_OK:
+        raise ValueError("mag, up: offset not observable from these samples (degenerate geometry)")
+    cov_b = cov[:3, :3].copy()
+    free = bool(est)
+    e2_rms = float(dip_rms)
     return MagCalibration.from_arrays(
         b + centre,
         None,
         field_uT=f,
         method="gravity",
-        residual_rms_uT=rms,
+        residual_rms_uT=float(rms),
         offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
         n_samples=n,
         covariance=cov_b,
         extra={
             "covariance_params": ["offset_x", "offset_y", "offset_z"],
             "sin_dip": s / f if f > 0 else float("nan"),
-            "dip_rms_uT": float(np.sqrt(np.mean(e2**2))),
+            "dip_rms_uT": e2_rms,
             "strength_estimated": bool(free),
         },
     )
