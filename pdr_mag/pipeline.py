@@ -359,30 +359,56 @@ class HeadingPipeline:
         snap = self.fusion.get_state() if len(cuts) else None
         is_mag = kind == 2
         cal = self.online.calibration
+        state = self.online.cal_state
         data = xyz.copy()
         data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
         allowed = np.full(e, cal is not None)
         batch = self.fusion.process(kind, t, data, allowed)
         lo = np.r_[0, cuts]
         hi = np.r_[cuts, e]
+        n_p = len(lo)
         # rows (one per output gyro sample) and magnetometer samples of each block-piece
-        row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(len(lo), int)
+        row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
         n_mag = np.r_[0, np.cumsum(is_mag)]
+        piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
+        covs = np.full(n_p, self._coverage)
+        n_pieces = n_p
         ctx = self._mag_context(kind, t, xyz, batch) if self.settings.online else None
-        states = [self.online.cal_state]
-        covs = [self._coverage]
-        n_pieces = len(lo)
-        for p in range(1, len(lo)):
-            if ctx is not None and n_mag[hi[p - 1]] > n_mag[lo[p - 1]]:
-                self._pend.append(ctx[n_mag[lo[p - 1]] : n_mag[hi[p - 1]]])
+        if ctx is not None and n_p > 1:
+            # close every block but the last: the open block's earlier samples, then the span's
+            pre = np.concatenate(self._pend) if self._pend else np.empty((0, 8))
+            self._pend = []
+            rows = np.concatenate([pre, ctx[: n_mag[hi[-2]]]])
+            last = len(pre) + n_mag[hi[:-1]] - 1  # each closed piece's last row
+            has = np.r_[last[0] >= 0, n_mag[hi[1:-1]] > n_mag[lo[1:-1]]]
+            ends = np.zeros(len(rows), dtype=np.bool_)
+            ends[last[has]] = True
             before = self.online.calibration
-            self._close_block()
-            self._cur_blk = float(blk[lo[p]])
-            if self.online.calibration is not before:
-                n_pieces = p
-                break
-            states.append(self.online.cal_state)
-            covs.append(self._coverage)
+            events, n_done, cov = self.online.update_blocks(
+                rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
+            )
+            if len(rows):
+                piece_of_row = np.searchsorted(last[has], np.arange(len(rows)), side="left")
+                piece_of_row = np.flatnonzero(has)[np.minimum(piece_of_row, np.count_nonzero(has) - 1)]
+                for r, (te, k, d) in events:
+                    piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
+                # coverage after each closed block with samples, carried over the pieces without
+                c = np.full(n_p, np.nan)
+                c[1:][has] = cov[last[has]]
+                c[0] = self._coverage
+                ok = np.isfinite(c)
+                covs = c[np.maximum.accumulate(np.where(ok, np.arange(n_p), 0))]
+                if self.online.calibration is not before:
+                    q = int(piece_of_row[n_done - 1])
+                    n_pieces = q + 1
+                    self._coverage = float(covs[q + 1])
+                    if self.online.calibration is not None:
+                        self._calibrations.append((float(rows[n_done - 1, 0]), self.online.calibration))
+                else:
+                    self._coverage = float(covs[-1])
+            self._cur_blk = float(blk[lo[n_pieces]] if n_pieces < n_p else blk[lo[-1]])
+        elif n_p > 1:
+            self._cur_blk = float(blk[lo[-1]])
         end = int(hi[n_pieces - 1])
         if end < e:
             # the calibration changed at a block boundary inside the span: redo the filter up to there
@@ -397,16 +423,19 @@ class HeadingPipeline:
         if n_rows:
             if n_rows < len(batch):
                 batch = _head(batch, n_rows)
-            counts = np.diff(np.r_[0, row_hi[:n_pieces]])
+            # the calibration (hence cal_state) is the span start's in every piece kept
+            batch.cal_state = np.full(n_rows, state, dtype="<U13")
             if n_pieces == 1:
-                batch.cal_state = np.full(n_rows, states[0], dtype="<U13")
                 batch.diag["coverage"] = np.full(n_rows, covs[0])
             else:
-                batch.cal_state = np.repeat(np.asarray(states, dtype="<U13"), counts)
-                batch.diag["coverage"] = np.repeat(np.asarray(covs, dtype=float), counts)
-            self._interference_events(batch)
+                batch.diag["coverage"] = np.repeat(covs[:n_pieces], np.diff(np.r_[0, row_hi[:n_pieces]]))
+            for r, ev in self._interference_events(batch):
+                piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows
             self._out.append(batch)
+        if piece_ev:
+            piece_ev.sort(key=lambda x: (x[0], x[1]))
+            self._events += [ev for _, _, ev in piece_ev]
         if not np.isfinite(self._t_first):
             self._t_first = float(t[0])
         self._t_last = float(t[end - 1])
@@ -460,7 +489,9 @@ class HeadingPipeline:
                 self._calibrations.append((float(p[-1, 0]), self.online.calibration))
                 self._sync_fusion_reference()
 
-    def _interference_events(self, batch: EstimateBatch) -> None:
+    def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
+        """Flag changes in these rows, as (row, event)."""
+        out = []
         flags = np.asarray(batch.interference, dtype=bool)
         prev = np.r_[self._interf, flags[:-1]]
         for i in np.flatnonzero(flags != prev):
@@ -470,8 +501,9 @@ class HeadingPipeline:
                 v = batch.diag.get(key)
                 if v is not None and np.isfinite(v[i]):
                     data[key] = round(float(v[i]), 3)
-            self._events.append(Event(float(batch.t[i]), kind, data))
+            out.append((int(i), Event(float(batch.t[i]), kind, data)))
         self._interf = bool(flags[-1])
+        return out
 
     def _sync_fusion_reference(self) -> None:
         cal = self.online.calibration
