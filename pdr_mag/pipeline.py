@@ -43,8 +43,11 @@ from pdr_mag.field import EarthField, earth_field_from_meta
 KINDS = {"accel": 0, "gyro": 1, "mag": 2}
 _NAMES = {v: k for k, v in KINDS.items()}
 STATE_VERSION = 1
-#: Blocks fused in one speculative span (see :meth:`HeadingPipeline._process`).
-_SPAN_BLOCKS = 16
+#: Blocks fused in one speculative span (see :meth:`HeadingPipeline._process`): the first span after a
+#: calibration change is short (changes come in runs while the calibration converges, and each one costs a
+#: re-run of the span up to it), each span without a change doubles the next, up to the maximum.
+_SPAN_MIN = 8
+_SPAN_MAX = 64
 
 
 def _default_fusion_settings():
@@ -171,6 +174,9 @@ class HeadingPipeline:
         self._streams = {k: _Stream() for k in KINDS}
         self._done_t = -np.inf  # everything before this time has been processed
         self._cur_blk: float | None = None  # index of the block the last fused piece belonged to
+        self._span = (
+            _SPAN_MIN  # blocks in the next speculative span (speed only: results do not depend on it)
+        )
         self._pend: list[np.ndarray] = []  # magnetometer rows (t, raw, up, rate) of the open block
         self._coverage = 0.0
         self._up_acc = np.full(3, np.nan)
@@ -311,7 +317,8 @@ class HeadingPipeline:
         """Fuse every pending sample before ``horizon`` (all of them when ``final``); a block whose end the
         horizon has passed is closed (online calibration update).
 
-        Fusion runs speculatively over spans of up to ``_SPAN_BLOCKS`` blocks with the calibration in use at
+        Fusion runs speculatively over spans of ``_SPAN_MIN`` … ``_SPAN_MAX`` blocks with the calibration in
+        use at
         the span's start (one call into the compiled filter instead of one per block).  The blocks are then
         closed in order; when a close changes the calibration, the filter is put back to its state at the
         span's start and re-run up to that block boundary (the same rows: the filter's output does not
@@ -353,7 +360,7 @@ class HeadingPipeline:
     def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
         """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
         inside it; returns the number of samples fused for good."""
-        e = int(np.searchsorted(blk, blk[0] + _SPAN_BLOCKS, side="left"))
+        e = int(np.searchsorted(blk, blk[0] + self._span, side="left"))
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
         cuts = np.flatnonzero(blk[1:] != blk[:-1]) + 1
         snap = self.fusion.get_state() if len(cuts) else None
@@ -415,8 +422,12 @@ class HeadingPipeline:
             self.fusion.set_state(snap)
             self.fusion.process(kind[:end], t[:end], data[:end], allowed[:end])
             self._sync_fusion_reference()
-        elif ctx is not None and n_mag[hi[-1]] > n_mag[lo[-1]]:
-            self._pend.append(ctx[n_mag[lo[-1]] : n_mag[hi[-1]]])
+            self._span = _SPAN_MIN
+        else:
+            if ctx is not None and n_mag[hi[-1]] > n_mag[lo[-1]]:
+                self._pend.append(ctx[n_mag[lo[-1]] : n_mag[hi[-1]]])
+            if n_p == self._span:
+                self._span = min(2 * self._span, _SPAN_MAX)
         n_rows = int(row_hi[n_pieces - 1])
         if ctx is not None:
             self._carry_context(kind[:end], xyz[:end], batch, n_rows)

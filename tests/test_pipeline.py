@@ -205,3 +205,24 @@ def test_streaming_equals_batch_on_a_real_recording():
     outs.append(pipe.flush())
     _same(full, EstimateBatch.concat(outs))
     assert not pipe.dropped
+
+
+def test_speculative_spans_do_not_change_the_result(walk, monkeypatch):
+    """Fusion runs ahead over spans of blocks and is redone up to a calibration change: any span length
+    (one block: no speculation at all) gives the same rows, coverage, events and calibrations."""
+    import pdr_mag.pipeline as pl
+
+    streams = {k: walk[k] for k in ("accel", "gyro", "mag")}
+    ref = HeadingPipeline(meta=META)
+    out = ref.run(streams)
+    events = [(e.t, e.kind) for e in ref.pop_events()]
+    assert len(ref.calibrations) >= 2  # at least one change inside a span
+    for lo, hi in ((1, 1), (3, 3), (2, 128)):
+        monkeypatch.setattr(pl, "_SPAN_MIN", lo)
+        monkeypatch.setattr(pl, "_SPAN_MAX", hi)
+        pipe = HeadingPipeline(meta=META)
+        got = pipe.run(streams)
+        _same(out, got)
+        np.testing.assert_array_equal(out.diag["coverage"], got.diag["coverage"])
+        assert [(e.t, e.kind) for e in pipe.pop_events()] == events
+        assert [t for t, _ in pipe.calibrations] == [t for t, _ in ref.calibrations]

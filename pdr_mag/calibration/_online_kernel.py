@@ -312,6 +312,7 @@ def scan(
 # ---- return codes of gravity_fit
 FIT_OK = 0
 FIT_DEGENERATE = 1
+FIT_BAD_INPUT = 2
 
 _HUBER = 2.5
 
@@ -323,15 +324,32 @@ def _huber(r):
 
 
 @njit(cache=True)
-def gravity_fit(mc, u, f_guess, strength, s_ref, free, sigma_s, sig2, iterations, prior, sig_f, sig_s):
+def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations, prior, sig_f, sig_s):
     """The numbers of :func:`pdr_mag.calibration.online.gravity_aided_offset` (see its docstring and the
-    module docstring of ``online.py``): centred samples ``mc``, unit up vectors ``u``.
+    module docstring of ``online.py``): raw samples ``m`` (N, 3), up vectors ``up`` (N, 3).
 
-    Returns ``(code, b, f, s, cov, estimated, rms, dip_rms)`` with ``cov`` the (npar, npar) covariance;
-    ``code`` ``FIT_DEGENERATE`` when the linear initial value is rank-deficient.  Raises
-    ``np.linalg.LinAlgError`` on singular normal equations.
+    Returns ``(code, b, f, s, cov, estimated, rms, dip_rms)`` with ``b`` the offset and ``cov`` the
+    (npar, npar) covariance; ``code`` ``FIT_BAD_INPUT`` for NaN, infinite or zero vectors,
+    ``FIT_DEGENERATE`` when the linear initial value is rank-deficient.  Raises ``np.linalg.LinAlgError``
+    on singular normal equations.
     """
-    n = mc.shape[0]
+    n = m.shape[0]
+    b = np.zeros(3)
+    cov = np.zeros((5, 5))
+    u = np.empty((n, 3))
+    centre = np.zeros(3)
+    for i in range(n):
+        un = np.sqrt(up[i, 0] * up[i, 0] + up[i, 1] * up[i, 1] + up[i, 2] * up[i, 2])
+        if not (np.isfinite(un) and un > 0 and np.isfinite(m[i, 0] + m[i, 1] + m[i, 2])):
+            return FIT_BAD_INPUT, b, 0.0, 0.0, cov, free, 0.0, 0.0
+        for c in range(3):
+            u[i, c] = up[i, c] / un
+            centre[c] += m[i, c]
+    centre /= n
+    mc = np.empty((n, 3))  # centred for conditioning
+    for i in range(n):
+        for c in range(3):
+            mc[i, c] = m[i, c] - centre[c]
     # ---- linear initial value
     p = 5 if free else 4
     a = np.zeros((2 * n, p))
@@ -356,8 +374,6 @@ def gravity_fit(mc, u, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
             y[n + i] = (mu + s_ref) / sig2
     rcond = np.finfo(np.float64).eps * max(2 * n, p)
     sol, _, rank, sv = np.linalg.lstsq(a, y, rcond)
-    b = np.zeros(3)
-    cov = np.zeros((5, 5))
     if rank < p or sv[-1] < 1e-9 * sv[0]:
         return FIT_DEGENERATE, b, 0.0, 0.0, cov, free, 0.0, 0.0
     b[:] = sol[:3]
@@ -374,41 +390,84 @@ def gravity_fit(mc, u, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     npar = 5 if est else 3
     h = np.zeros((npar, npar))
     g = np.zeros(npar)
-    jr = np.zeros(npar)
+    ss = 1.0 / sigma_s
+    sd = 1.0 / sig2
     for _ in range(iterations):
-        h[:] = 0.0
-        g[:] = 0.0
+        # normal equations, symmetric, accumulated in scalars: strength row a = (−d/|d|, −1, 0)/σ_s,
+        # dip row c = (−u, 0, 1)/σ_dip
+        h00 = h01 = h02 = h11 = h12 = h22 = 0.0
+        h03 = h13 = h23 = h33 = h04 = h14 = h24 = h44 = 0.0
+        g0 = g1 = g2 = g3 = g4 = 0.0
         for i in range(n):
             d0 = mc[i, 0] - b[0]
             d1 = mc[i, 1] - b[1]
             d2 = mc[i, 2] - b[2]
             nd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            # strength row
-            r = (nd - f) / sigma_s
+            r = (nd - f) * ss
             w = _huber(r)
-            jr[0] = -d0 / nd / sigma_s
-            jr[1] = -d1 / nd / sigma_s
-            jr[2] = -d2 / nd / sigma_s
-            if est:
-                jr[3] = -1.0 / sigma_s
-                jr[4] = 0.0
-            for j in range(npar):
-                g[j] += jr[j] * w * r
-                for k in range(npar):
-                    h[j, k] += jr[j] * w * jr[k]
-            # dip row
-            r = (d0 * u[i, 0] + d1 * u[i, 1] + d2 * u[i, 2] + s) / sig2
+            a0 = -d0 / nd * ss
+            a1 = -d1 / nd * ss
+            a2 = -d2 / nd * ss
+            wa0 = w * a0
+            wa1 = w * a1
+            wa2 = w * a2
+            h00 += wa0 * a0
+            h01 += wa0 * a1
+            h02 += wa0 * a2
+            h11 += wa1 * a1
+            h12 += wa1 * a2
+            h22 += wa2 * a2
+            g0 += wa0 * r
+            g1 += wa1 * r
+            g2 += wa2 * r
+            h03 -= wa0 * ss
+            h13 -= wa1 * ss
+            h23 -= wa2 * ss
+            h33 += w * ss * ss
+            g3 -= w * ss * r
+            r = (d0 * u[i, 0] + d1 * u[i, 1] + d2 * u[i, 2] + s) * sd
             w = _huber(r)
-            jr[0] = -u[i, 0] / sig2
-            jr[1] = -u[i, 1] / sig2
-            jr[2] = -u[i, 2] / sig2
-            if est:
-                jr[3] = 0.0
-                jr[4] = 1.0 / sig2
-            for j in range(npar):
-                g[j] += jr[j] * w * r
-                for k in range(npar):
-                    h[j, k] += jr[j] * w * jr[k]
+            c0 = -u[i, 0] * sd
+            c1 = -u[i, 1] * sd
+            c2 = -u[i, 2] * sd
+            wc0 = w * c0
+            wc1 = w * c1
+            wc2 = w * c2
+            h00 += wc0 * c0
+            h01 += wc0 * c1
+            h02 += wc0 * c2
+            h11 += wc1 * c1
+            h12 += wc1 * c2
+            h22 += wc2 * c2
+            g0 += wc0 * r
+            g1 += wc1 * r
+            g2 += wc2 * r
+            h04 += wc0 * sd
+            h14 += wc1 * sd
+            h24 += wc2 * sd
+            h44 += w * sd * sd
+            g4 += w * sd * r
+        h[0, 0] = h00
+        h[0, 1] = h[1, 0] = h01
+        h[0, 2] = h[2, 0] = h02
+        h[1, 1] = h11
+        h[1, 2] = h[2, 1] = h12
+        h[2, 2] = h22
+        g[0] = g0
+        g[1] = g1
+        g[2] = g2
+        if est:
+            h[0, 3] = h[3, 0] = h03
+            h[1, 3] = h[3, 1] = h13
+            h[2, 3] = h[3, 2] = h23
+            h[3, 3] = h33
+            h[0, 4] = h[4, 0] = h04
+            h[1, 4] = h[4, 1] = h14
+            h[2, 4] = h[4, 2] = h24
+            h[4, 4] = h44
+            h[3, 4] = h[4, 3] = 0.0
+            g[3] = g3
+            g[4] = g4
         if prior:
             h[3, 3] += 1.0 / (sig_f * sig_f)
             g[3] += (f - f0) / sig_f / sig_f
@@ -443,4 +502,4 @@ def gravity_fit(mc, u, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     ci = np.linalg.inv(h) * max(chi2, 1.0)
     cov[:npar, :npar] = ci
     rms = np.sqrt(swe1 / max(sw1, 1e-12))
-    return FIT_OK, b, f, s, cov, est, rms, np.sqrt(se2 / n)
+    return FIT_OK, b + centre, f, s, cov, est, rms, np.sqrt(se2 / n)

@@ -49,6 +49,7 @@ Three pieces, all with bounded memory:
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -192,36 +193,17 @@ def gravity_aided_offset(
         raise ValueError(f"mag, up: expected two (N, 3) arrays, got {m.shape} and {u.shape}")
     if len(m) < 5:
         raise ValueError(f"mag: need at least 5 samples, got {len(m)}")
-    un = np.linalg.norm(u, axis=1, keepdims=True)
-    if not (np.all(np.isfinite(m)) and np.all(np.isfinite(u)) and np.all(un > 0)):
+    code, b, f, s, cov_b, free, rms, dip_rms = _gravity_numbers(
+        m, u, strength, sin_dip, sigma_strength_uT, sigma_tilt_deg, iterations, prior_strength_std_uT,
+        prior_dip_std_deg,
+    )  # fmt: skip
+    if code == K.FIT_BAD_INPUT:
         raise ValueError("mag, up: contain NaN, infinite or zero vectors")
-    u = u / un
-    free = strength is None or sin_dip is None
-    n = len(m)
-    centre = m.mean(axis=0)
-    mc = m - centre  # centred for conditioning
-    f_guess = float(strength) if strength is not None else 50.0
-    s_ref = 0.0 if free else float(strength) * float(sin_dip)
-    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
-    prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
-    sig_f = sig_s = 1.0
-    if prior:
-        sig_f = float(prior_strength_std_uT)
-        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
-    try:
-        code, b, f, s, cov, est, rms, dip_rms = K.gravity_fit(
-            mc, u, f_guess, 0.0 if free else float(strength), s_ref, free, float(sigma_strength_uT), sig2,
-            int(iterations), prior, sig_f, sig_s,
-        )  # fmt: skip
-    except np.linalg.LinAlgError as exc:
-        raise ValueError("mag, up: singular normal equations") from exc
     if code != K.FIT_OK:
         raise ValueError("mag, up: offset not observable from these samples (degenerate geometry)")
-    cov_b = cov[:3, :3].copy()
-    free = bool(est)
-    e2_rms = float(dip_rms)
+    n = len(m)
     return MagCalibration.from_arrays(
-        b + centre,
+        b,
         None,
         field_uT=f,
         method="gravity",
@@ -232,10 +214,43 @@ def gravity_aided_offset(
         extra={
             "covariance_params": ["offset_x", "offset_y", "offset_z"],
             "sin_dip": s / f if f > 0 else float("nan"),
-            "dip_rms_uT": e2_rms,
+            "dip_rms_uT": float(dip_rms),
             "strength_estimated": bool(free),
         },
     )
+
+
+def _gravity_numbers(
+    m,
+    u,
+    strength,
+    sin_dip,
+    sigma_strength_uT,
+    sigma_tilt_deg,
+    iterations,
+    prior_strength_std_uT,
+    prior_dip_std_deg,
+):
+    """:func:`gravity_aided_offset` without the checks of its arguments and without building the result:
+    ``(code, offset, F, F sin I, offset covariance, strength estimated, rms, dip rms)``."""
+    free = strength is None or sin_dip is None
+    f_guess = float(strength) if strength is not None else 50.0
+    s_ref = 0.0 if free else float(strength) * float(sin_dip)
+    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
+    prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
+    sig_f = sig_s = 1.0
+    if prior:
+        sig_f = float(prior_strength_std_uT)
+        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    try:
+        code, b, f, s, cov, est, rms, dip_rms = K.gravity_fit(
+            np.ascontiguousarray(m, dtype=float), np.ascontiguousarray(u, dtype=float), f_guess,
+            0.0 if free else float(strength), s_ref, free, float(sigma_strength_uT), sig2, int(iterations),
+            prior, sig_f, sig_s,
+        )  # fmt: skip
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("mag, up: singular normal equations") from exc
+    return code, b, float(f), float(s), cov[:3, :3].copy(), bool(est), float(rms), float(dip_rms)
 
 
 # ---------------------------------------------------------------------------------------------- coverage
@@ -621,6 +636,32 @@ class OnlineCalibrator:
         n = self._nbuf
         if n < s.min_samples:
             return
+        # the candidates and their verdicts depend on the buffer, the calibration in use and the episode
+        # flag only: when none of them changed since the last refit, they are the same
+        key = (float(self._ks[K.K_VERSION]), self._episode_seen, self.cal_state)
+        memo = self._refit_memo
+        if memo is not None and memo[0] == key and memo[1] is self._cal:
+            judged = memo[2]
+        else:
+            judged = self._candidates(n)
+            self._refit_memo = (key, self._cal, judged)
+        good = [c for c in judged if c.accepted]
+        if not good:
+            if judged and self.calibration is None and t - self._last_reject_t > 30.0:
+                self._last_reject_t = t
+                best = judged[-1]
+                events.append(
+                    (t, "calibration_rejected", {"method": best.method, "reasons": list(best.reasons)})
+                )
+            return
+        # prefer the richest model that passed: ellipsoid/ml > sphere > gravity
+        rank = {"gravity": 0, "sphere": 1}
+        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
+        self._accept(t, copy.copy(best), events)
+
+    def _candidates(self, n: int) -> list[MagCalibration]:
+        """Every refit of the buffer's ``n`` samples, judged (see :func:`judge`)."""
+        s = self.settings
         m = self._buf[:n, 1:4]
         u = self._buf[:n, 4:7]
         f_ref = self.field_ref
@@ -649,22 +690,9 @@ class OnlineCalibrator:
             except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
         first = self.calibration is None
-        judged = [
+        return [
             judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref, first) for c in cands
         ]
-        good = [c for c in judged if c.accepted]
-        if not good:
-            if judged and self.calibration is None and t - self._last_reject_t > 30.0:
-                self._last_reject_t = t
-                best = judged[-1]
-                events.append(
-                    (t, "calibration_rejected", {"method": best.method, "reasons": list(best.reasons)})
-                )
-            return
-        # prefer the richest model that passed: ellipsoid/ml > sphere > gravity
-        rank = {"gravity": 0, "sphere": 1}
-        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
-        self._accept(t, best, events)
 
     def _gravity_fit(self, m: np.ndarray, u: np.ndarray, f_ref: float | None) -> MagCalibration:
         """Gravity-aided offset fit that keeps the shape (soft iron, ``mag_to_imu``) of the current
@@ -682,7 +710,7 @@ class OnlineCalibrator:
             else None
         )
         mm = a if r is None else r @ a
-        shaped = not np.allclose(mm, np.eye(3), atol=1e-12)
+        shaped = not _is_identity(mm, 1e-12)
         y = m @ mm.T if shaped else m
         g = gravity_aided_offset(
             y,
@@ -768,24 +796,24 @@ class OnlineCalibrator:
             self._stale_cand = None
             return
         half = len(r) // 2
-        try:
-            whole = gravity_aided_offset(
-                mc, r[:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
-            )
-            a = gravity_aided_offset(
-                mc[:half], r[:half, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
-            )
-            b = gravity_aided_offset(
-                mc[half:], r[half:, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, **self._prior()
-            )
-        except ValueError:
-            return
-        delta = whole.offset_array
-        sig = np.asarray(whole.offset_std_uT)
-        sig_ab = np.sqrt(np.asarray(a.offset_std_uT) ** 2 + np.asarray(b.offset_std_uT) ** 2)
+        fits = []
+        for lo, hi in ((0, len(r)), (0, half), (half, len(r))):
+            try:
+                code, off, _, _, cov_b, _, rms, _ = _gravity_numbers(
+                    mc[lo:hi], r[lo:hi, 4:7], f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, 8,
+                    s.prior_strength_std_uT, s.prior_dip_std_deg,
+                )  # fmt: skip
+            except ValueError:
+                return
+            if code != K.FIT_OK:
+                return
+            fits.append((off, np.sqrt(np.clip(np.diag(cov_b), 0, None)), rms))
+        (delta, sig, whole_rms), (a_off, a_std, _), (b_off, b_std, _) = fits
+        whole_n = len(r)
+        sig_ab = np.sqrt(a_std**2 + b_std**2)
         shift = float(np.linalg.norm(delta))
-        consistent = bool(np.all(np.abs(a.offset_array - b.offset_array) < np.maximum(3 * sig_ab, 3.0)))
-        explained = whole.residual_rms_uT < 0.5 * s.strength_tol_frac * f
+        consistent = bool(np.all(np.abs(a_off - b_off) < np.maximum(3 * sig_ab, 3.0)))
+        explained = whole_rms < 0.5 * s.strength_tol_frac * f
         significant = shift > s.stale_min_shift_uT and shift > 4 * float(np.linalg.norm(sig))
         well_posed = float(np.max(sig)) < 2 * s.max_offset_std_uT
         if not (consistent and explained and significant and well_posed):
@@ -809,9 +837,9 @@ class OnlineCalibrator:
             cal.soft_iron_array,
             field_uT=cal.field_uT,
             method="gravity",
-            residual_rms_uT=whole.residual_rms_uT,
-            offset_std_uT=whole.offset_std_uT,
-            n_samples=whole.n_samples,
+            residual_rms_uT=whole_rms,
+            offset_std_uT=sig,
+            n_samples=whole_n,
             mag_to_imu=cal.mag_to_imu,
             extra={"sin_dip": sd, "provisional": True},
         )
@@ -822,7 +850,7 @@ class OnlineCalibrator:
                 {
                     "reason": "offset moved: orientation-dependent, time-stable strength residual",
                     "offset_shift_uT": [float(v) for v in a_inv @ delta],
-                    "residual_rms_uT": float(whole.residual_rms_uT),
+                    "residual_rms_uT": float(whole_rms),
                 },
             )
         )
@@ -877,11 +905,21 @@ class OnlineCalibrator:
         self._last_reject_t = _uf(st["last_reject_t"])
         self._ks[K.K_IN_BLOCK] = 0.0
         self._ks[K.K_VERSION] += 1.0
+        self._refit_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
-    a = cal.soft_iron_array
-    return "offset" if np.allclose(a, np.eye(3), atol=1e-9) else "ellipsoid"
+    return "offset" if _is_identity(cal.soft_iron, 1e-9) else "ellipsoid"
+
+
+def _is_identity(a, atol: float) -> bool:
+    """``np.allclose(a, np.eye(3), atol=atol)`` for a 3×3 nested sequence, without numpy's overhead."""
+    for i in range(3):
+        for j in range(3):
+            e = 1.0 if i == j else 0.0
+            if not abs(float(a[i][j]) - e) <= atol + 1e-5 * e:
+                return False
+    return True
 
 
 def _mean_sin_dip(m: np.ndarray, u: np.ndarray, cal: MagCalibration) -> float:
