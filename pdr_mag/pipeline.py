@@ -343,8 +343,11 @@ class HeadingPipeline:
             kind = np.concatenate([p[0] for p in parts])
             t = np.concatenate([p[1] for p in parts])
             xyz = np.concatenate([p[2] for p in parts])
-            order = np.lexsort((kind, t))
-            kind, t, xyz = kind[order], t[order], xyz[order]
+            if len(parts) > 1:
+                # each stream is time-ordered and the parts are in kind order, so a stable sort by time
+                # (a merge of sorted runs) gives ties in kind order: accel < gyro < mag
+                order = np.argsort(t, kind="stable")
+                kind, t, xyz = kind[order], t[order], xyz[order]
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
             blk = np.floor(t / b)

@@ -503,3 +503,47 @@ def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     cov[:npar, :npar] = ci
     rms = np.sqrt(swe1 / max(sw1, 1e-12))
     return FIT_OK, b + centre, f, s, cov, est, rms, np.sqrt(se2 / n)
+
+
+# ---- return codes of stale_precheck
+STALE_SKIP = 0  # too few recent samples: nothing to do
+STALE_CLEAR = 1  # the strength does not deviate: no candidate
+STALE_TEST = 2  # deviating: run the fits
+
+
+@njit(cache=True)
+def stale_precheck(rec, t, window, bp, f, tol, min_frac):
+    """The cheap first part of the stale test on the ring ``rec``: samples newer than ``t − window``, at
+    least 40 of them over ``0.6 · window``; share of samples with ``| |M (m − b)| − F | > tol`` overall and
+    in the last third of the window (``bp``: ``M`` and ``b`` as in :func:`scan`)."""
+    n = 0
+    n_last = 0
+    dev = 0
+    dev_last = 0
+    t_min = np.inf
+    t_max = -np.inf
+    for k in range(rec.shape[0]):
+        tk = rec[k, 0]
+        if not (np.isfinite(tk) and tk > t - window):
+            continue
+        n += 1
+        t_min = min(t_min, tk)
+        t_max = max(t_max, tk)
+        x0 = rec[k, 1] - bp[B_OFF]
+        x1 = rec[k, 2] - bp[B_OFF + 1]
+        x2 = rec[k, 3] - bp[B_OFF + 2]
+        c0 = bp[B_M] * x0 + bp[B_M + 1] * x1 + bp[B_M + 2] * x2
+        c1 = bp[B_M + 3] * x0 + bp[B_M + 4] * x1 + bp[B_M + 5] * x2
+        c2 = bp[B_M + 6] * x0 + bp[B_M + 7] * x1 + bp[B_M + 8] * x2
+        d = abs(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2) - f) > tol
+        last = tk > t - window / 3
+        dev += d
+        if last:
+            n_last += 1
+            dev_last += d
+    if n < 40 or t_max - t_min < 0.6 * window:
+        return STALE_SKIP
+    frac_last = dev_last / n_last if n_last else np.nan
+    if frac_last < min_frac or dev / n < 0.5 * min_frac:
+        return STALE_CLEAR
+    return STALE_TEST

@@ -786,9 +786,20 @@ class OnlineCalibrator:
         sd = self.sin_dip_ref
         if cal is None or f is None or sd is None:
             return
-        r = self._recent(t)
-        if len(r) < 40 or r[-1, 0] - r[0, 0] < 0.6 * s.stale_window_s:
+        bp = np.zeros(K.N_BP)
+        a = cal.soft_iron_array
+        if cal.mag_to_imu is not None:
+            a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+        bp[K.B_M : K.B_M + 9] = a.reshape(-1)
+        bp[K.B_OFF : K.B_OFF + 3] = cal.offset_array
+        tol = s.strength_tol_frac * f * 0.5
+        pre = K.stale_precheck(self._rec, t, s.stale_window_s, bp, f, tol, s.stale_min_frac)
+        if pre == K.STALE_SKIP:
             return
+        if pre == K.STALE_CLEAR:
+            self._stale_cand = None
+            return
+        r = self._recent(t)
         mc = cal.apply(r[:, 1:4])
         dev = np.abs(np.linalg.norm(mc, axis=1) - f) > s.strength_tol_frac * f * 0.5
         last = r[:, 0] > t - s.stale_window_s / 3
