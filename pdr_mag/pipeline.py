@@ -246,6 +246,21 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
+        if (
+            t[0] > s.last_t
+            and t[0] >= self._done_t
+            and (len(t) == 1 or bool(np.all(t[1:] > t[:-1])))
+            and bool(np.isfinite(t[-1]))
+            and bool(np.isfinite(xyz).all())
+        ):
+            # the common case: finite, strictly increasing, after everything pushed and processed
+            s.t.append(t.copy())
+            s.xyz.append(xyz.copy())
+            s.n += len(t)
+            s.last_t = float(t[-1])
+            if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+                self._process(self._safe_horizon())
+            return
         good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
         if not np.all(good):
             self.dropped[f"{name}:nan"] += int(np.count_nonzero(~good))
@@ -374,12 +389,17 @@ class HeadingPipeline:
         data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
         allowed = np.full(e, cal is not None)
         batch = self.fusion.process(kind, t, data, allowed)
-        lo = np.r_[0, cuts]
-        hi = np.r_[cuts, e]
+        lo = np.empty(len(cuts) + 1, dtype=np.intp)
+        lo[0] = 0
+        lo[1:] = cuts
+        hi = np.empty_like(lo)
+        hi[:-1] = cuts
+        hi[-1] = e
         n_p = len(lo)
         # rows (one per output gyro sample) and magnetometer samples of each block-piece
         row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
-        n_mag = np.r_[0, np.cumsum(is_mag)]
+        n_mag = np.zeros(e + 1, dtype=np.intp)
+        np.cumsum(is_mag, out=n_mag[1:])
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
@@ -390,7 +410,8 @@ class HeadingPipeline:
             self._pend = []
             rows = np.concatenate([pre, ctx[: n_mag[hi[-2]]]])
             last = len(pre) + n_mag[hi[:-1]] - 1  # each closed piece's last row
-            has = np.r_[last[0] >= 0, n_mag[hi[1:-1]] > n_mag[lo[1:-1]]]
+            has = n_mag[hi[:-1]] > n_mag[lo[:-1]]
+            has[0] = last[0] >= 0
             ends = np.zeros(len(rows), dtype=np.bool_)
             ends[last[has]] = True
             before = self.online.calibration
@@ -442,7 +463,7 @@ class HeadingPipeline:
             if n_pieces == 1:
                 batch.diag["coverage"] = np.full(n_rows, covs[0])
             else:
-                batch.diag["coverage"] = np.repeat(covs[:n_pieces], np.diff(np.r_[0, row_hi[:n_pieces]]))
+                batch.diag["coverage"] = np.repeat(covs[:n_pieces], np.diff(row_hi[:n_pieces], prepend=0))
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows
@@ -507,7 +528,9 @@ class HeadingPipeline:
         """Flag changes in these rows, as (row, event)."""
         out = []
         flags = np.asarray(batch.interference, dtype=bool)
-        prev = np.r_[self._interf, flags[:-1]]
+        prev = np.empty_like(flags)
+        prev[0] = self._interf
+        prev[1:] = flags[:-1]
         for i in np.flatnonzero(flags != prev):
             kind = "interference_start" if flags[i] else "interference_end"
             data = {}
