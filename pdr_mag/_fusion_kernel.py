@@ -51,7 +51,17 @@ magnetometer (calibrated, per sample, at most every ``mag_interval_s``)
     (a disturbance d turns the horizontal field by at most |d|/B_h).  Skipped while the interference
     flag (:mod:`pdr_mag.interference`) is up, when the caller disallows it, or when the innovation fails
     a χ² gate computed with the undisturbed noise (a suspect field gets less weight; it cannot widen the
-    gate).  The first usable sample sets the heading directly.
+    gate).  In ``d_min`` the consistency angle counts only beyond what the filter's own bias uncertainty
+    explains over the detector's window: ``∠cons_d = max(∠cons − σ_b W, 0)`` (σ_b = √tr P_bb, W =
+    ``consistency_window_s``).  The detector's mean world-frame field direction is rotated with every
+    correction injected into the attitude (as the averaged specific force is), so ``∠cons`` measures how the
+    field moved against the gyro-propagated frame — before, the mean lived in the corrected frame, and a
+    disturbed field that the filter was following looked consistent (the filter hid its own evidence).
+    The first usable sample sets the heading directly; the residual is then zero, so
+    ``δθ_z = −(δc + h_t·δθ_xy + n)``: the heading error *is* that sample's (correlated) field error, and
+    ``P[δθ_z, ·] = −P[c, ·] − h_t P[δθ_xy, ·]``, ``P[δθ_z, δθ_z] = σ_ψ² + P_cc + h_t P_tilt h_tᵀ +
+    2 h_t P[δθ_xy, c]`` (before, the heading was set uncorrelated with c, so a later field with the same
+    offset — a disturbance present since the start — was read as drift, i.e. as gyro bias along up).
 zero-rate (per gyro sample while the device is still)
     ``ω_m = b + δb + n``: three scalar updates of the bias.
 """
@@ -64,6 +74,7 @@ from numba import njit
 from pdr_mag.interference import (
     DET_FLAG,
     DET_MW,
+    I_CONS_WIN,
     I_DIP_TOL,
     N_DET,
     detect_step,
@@ -338,6 +349,8 @@ def _inject(st, dx):
     _qmul_left(st, S_Q, dx[0], dx[1], dx[2])
     if np.isfinite(st[S_AW]):  # the averaged specific force lives in the corrected frame too
         _rotvec_left(st, S_AW, dx[0], dx[1], dx[2])
+    if np.isfinite(st[S_DET + DET_MW]):  # so does the detectors' mean field direction
+        _rotvec_left(st, S_DET + DET_MW, dx[0], dx[1], dx[2])
     for i in range(3):
         st[S_B + i] += dx[3 + i]
     st[S_C] += dx[6]
@@ -677,7 +690,10 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         dmin2 += (f - floc) ** 2
     if np.isfinite(diploc):
         dmin2 += (f * np.radians(dip - diploc)) ** 2
-    dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons)) ** 2
+    # the consistency angle that the filter's own bias uncertainty explains over the detector's window
+    # (σ_b W) is no evidence of a disturbance; only the excess is
+    cons_d = max(cons - np.degrees(sb) * ip[I_CONS_WIN], 0.0)
+    dmin2 += p[P_MAG_CONS_K] * (f * np.radians(cons_d)) ** 2
     rv_clean = p[P_MAG_NOISE] ** 2 + p[P_MAG_NOISE_UT] ** 2 / (bh * bh)
     # timestamp uncertainty of the magnetometer against the gyroscope: the device turns by |ω| τ meanwhile,
     # which moves the field direction by up to that angle (× F / B_h on the horizontal projection)
@@ -707,8 +723,15 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
         for i in range(NX):
             P[2 * NX + i] = 0.0
             P[i * NX + 2] = 0.0
+        # after the reset the residual is zero: δθ_z = −(δc + h_t·δθ_xy + n), so the heading error is the
+        # (correlated) field error of this sample — its covariances follow, and a later field with the same
+        # offset is no evidence of drift (hence of gyro bias)
         rt = h[0] * h[0] * P[0] + 2.0 * h[0] * h[1] * P[1] + h[1] * h[1] * P[NX + 1]
-        P[2 * NX + 2] = rv + P[6 * NX + 6] + rt
+        P[2 * NX + 2] = rv + P[6 * NX + 6] + rt + 2.0 * (h[0] * P[6] + h[1] * P[NX + 6])
+        for j in (0, 1, 3, 4, 5, 6):
+            v = -P[6 * NX + j] - h[0] * P[j] - h[1] * P[NX + j]
+            P[2 * NX + j] = v
+            P[j * NX + 2] = v
         st[S_INIT] = 2.0
         st[S_TMU] = t
         st[S_MAGUSED] = 1.0

@@ -20,8 +20,8 @@ In short:
   innovation must pass a χ² gate; the caller may veto (``mag_allowed``);
 * gyroscope bias: observable through the heading (magnetometer) and tilt (accelerometer) corrections as
   the device turns, plus a zero-rate update whenever the device is still (low gyro and accel variance for
-  ``still_min_s``).  The initial bias standard deviation (``bias0_std``, 10 °/s) covers the raw offsets
-  of real phone gyroscopes (4–6 °/s);
+  ``still_min_s``).  The initial bias standard deviation (``bias0_std``, 5.7 °/s per axis) covers the raw
+  offsets of real phone gyroscopes (4–6 °/s);
 * magnetometer heading error ``c``: the errors of a calibrated magnetometer indoors are correlated over
   seconds (residual calibration, the building's field); modelling them keeps the bias estimate from
   absorbing them and keeps ``heading_std_deg`` honest (measured on the tyrex walks: the truth lies within
@@ -105,7 +105,10 @@ class FusionSettings:
     bias_rw : float
         Gyroscope bias random walk, rad/s/√s.
     bias0_std : float
-        Initial bias standard deviation, rad/s (0.17 = 10 °/s: raw phone offsets are 4–6 °/s).
+        Initial bias standard deviation per axis, rad/s.  0.1 (5.7 °/s per axis, √3 · 5.7 ≈ 10 °/s for the
+        norm) covers the raw offsets of real phones (4–6 °/s, on one axis: PEERS.md) at about 1σ; the
+        previous 0.17 (10 °/s per axis, 17 °/s norm) let the first seconds of a disturbed, not yet flagged
+        field teach the filter offsets no phone has (tyrex FrontPocket, online mode: 3–4 °/s on x/y).
     tilt0_std : float
         Initial tilt standard deviation, rad.
     acc_tau_s : float
@@ -192,7 +195,7 @@ class FusionSettings:
 
     gyro_noise: float = 0.005
     bias_rw: float = 2e-4
-    bias0_std: float = 0.17
+    bias0_std: float = 0.1
     tilt0_std: float = 0.2
     acc_tau_s: float = 0.5
     acc_interval_s: float = 0.05

@@ -18,9 +18,11 @@ dip
     (the filter's gravity estimate), ``I_ref`` the reference inclination (WMM) and ``I_loc`` the local
     dip learnt like ``F_loc`` (without a reference: learnt from the first clean samples).
 gyro consistency
-    a field fixed in the world frame stays fixed when rotated by the gyro-propagated attitude
+    a field fixed in the world frame stays fixed when rotated by the filter's attitude
     ``m_w = R_wd m_d``; its direction is compared with an exponentially weighted mean direction
-    ``m̄_w`` (time constant ``consistency_window_s``):
+    ``m̄_w`` (time constant ``consistency_window_s``), which the fusion rotates with every correction it
+    applies to the attitude (so the angle is the field's motion against the gyro-propagated frame, not
+    hidden by the filter following a disturbed field):
     ``s_G = ∠(m_w, m̄_w) / (consistency_tol_deg + k σ_b consistency_window_s)``, widened by the filter's
     bias uncertainty σ_b so that drift the filter knows it may have does not fire it.
     A field that turns in the device frame without the device turning (a passing magnet, a car) moves

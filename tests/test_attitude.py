@@ -311,9 +311,9 @@ def error_at_truth(batch, tt, qt):
 def test_real_walks_beat_the_best_peer(group):
     """PEERS.md: best mean heading error of any peer column — disturbed 10.6°, undisturbed 2.3°.
 
-    Disturbed: asserted well below the best peer (measured 5.6°).  Undisturbed: measured 2.03° (2.26°
-    before the gap / averaged-tilt / consider-tilt fixes), near the motion-capture floor (1–2°): asserted
-    below the best peer.
+    Disturbed: asserted well below the best peer (measured 4.8°; 5.6° before the bias guard).  Undisturbed:
+    measured 2.03° (2.26° before the gap / averaged-tilt / consider-tilt fixes), near the motion-capture
+    floor (1–2°): asserted below the best peer.
     """
     cache: dict = {}
     if group == "dist":
@@ -341,3 +341,84 @@ def test_other_phones_sample_rates(rates):
     assert np.mean(np.abs(err[late])) < 3.0 * np.degrees(res.model.effects["noise"][0] / b_h)
     assert np.mean(np.abs(err[late]) < 2.0 * std[late]) > 0.95
     assert np.all(np.abs(core.bias - np.array([0.02, -0.03, 0.07])) < 0.2 * DEG)
+
+
+# ------------------------------------------------------------------------------------------ honesty, guards
+def _coverage_cases():
+    """(|heading error|, reported std) over t > 5 s of simulated walks with the exact magnetometer
+    calibration (the cases of benchmarks/heading_sim.py, 60 s each), and the total scored duration."""
+    from pdr_mag.sensor_model import SensorModel
+
+    errs, stds, dur = [], [], 0.0
+    for scenario in ("walk", "swing", "pocket"):
+        for seed in (1, 2):
+            res = simulate(scenario, seed=seed, duration_s=60.0)
+            eff = {k: v for k, v in res.model.effects.items() if k in ("hard_iron", "soft_iron")}
+            cal = SensorModel(effects=eff).ideal_calibration(0.0)
+            b = FusionCore(field=res.field).process(*merge(res, mag=cal.apply(res.mag[1])))
+            t, err, std = twist_error_deg(b, res.truth)
+            s = t > 5.0
+            errs.append(np.abs(err[s]))
+            stds.append(std[s])
+            dur += float(t[s][-1] - t[s][0])
+    return np.concatenate(errs), np.concatenate(stds), dur
+
+
+def _coverage_band(p: float, duration_s: float) -> float:
+    """Three binomial standard deviations of a coverage fraction p measured on ``duration_s`` of output whose
+    heading errors are correlated over ``mag_error_tau_s`` (the magnetometer error's correlation time): about
+    one independent sample per correlation time."""
+    n_eff = duration_s / FusionSettings().mag_error_tau_s
+    return 3.0 * np.sqrt(p * (1.0 - p) / n_eff)
+
+
+def test_heading_std_is_not_overconfident_on_simulated_walks():
+    """The truth must lie within 1σ / 2σ of ``heading_std_deg`` at least as often as a Gaussian says (68 % /
+    95 %), within the band of :func:`_coverage_band` (≈ 70 independent samples: ±17 % / ±8 %)."""
+    err, std, dur = _coverage_cases()
+    assert np.mean(err < std) > 0.68 - _coverage_band(0.68, dur)
+    assert np.mean(err < 2.0 * std) > 0.95 - _coverage_band(0.95, dur)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open (issue 4): on clean simulated fields the std is conservative (truth within 1σ in ~100 %);"
+    " its floor is the tilt variance × tan I through the consider-tilt term of the heading update, and a"
+    " windowed innovation scale of the magnetometer noise alone does not lower it (benchmarks/RESULTS.md)",
+)
+def test_heading_std_is_not_too_loose_on_simulated_walks():
+    err, std, dur = _coverage_cases()
+    assert np.mean(err < std) < 0.68 + _coverage_band(0.68, dur)
+
+
+def test_unflagged_field_rotation_at_the_start_does_not_become_gyro_bias(walk):
+    """The field turns about up by A and back within T, starting 1 s after the first magnetometer sample:
+    strength and dip unchanged (only the gyro-consistency check can see it) and slower than its flag
+    threshold, so nothing is flagged — the FrontPocket situation of the online mode.  Read entirely as drift,
+    the ramp (A over T/2) is a rate 2A/T along up; the bias may take at most half of it (|δb| < A/T) at the
+    end of the anomaly, and must converge afterwards as on the undisturbed walk (0.2 °/s, see
+    test_raw_gyro_offset_is_estimated).  Measured: |δb| 2.0 / 4.3 °/s for (A, T) = (20°, 4 s) / (30°, 6 s)
+    (2.2–5.1 °/s before the heading was initialised with its correlation to the field error and the
+    consistency check saw the field against the gyro-propagated frame)."""
+    from scipy.spatial.transform import Rotation
+
+    from pdr_mag.sensor_model import quat_slerp
+
+    tm, m = walk.mag
+    tt, qt = walk.truth
+    true_bias = np.array([0.02, -0.03, 0.07])
+    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    for amp_deg, dur in ((20.0, 4.0), (30.0, 6.0)):
+        t0 = tm[0] + 1.0
+        a = np.radians(amp_deg) * np.sin(np.pi * np.clip((tm - t0) / dur, 0.0, 1.0)) ** 2
+        turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
+        m_dist = (rt.inv() * turn * rt).apply(m)
+        kind, t, xyz = merge(walk, mag=m_dist)
+        core = FusionCore(field=walk.field)
+        during = t <= t0 + dur
+        b = core.process(kind[during], t[during], xyz[during])
+        assert not b.interference.any()  # the anomaly is not flagged: the test is about the weighting
+        db = np.linalg.norm(core.bias - true_bias)
+        assert db < np.radians(amp_deg) / dur
+        core.process(kind[~during], t[~during], xyz[~during])
+        assert np.all(np.abs(core.bias - true_bias) < 0.2 * DEG)
