@@ -14,7 +14,15 @@ released samples pass the end of a block, the online calibrator is given that bl
 (with the filter's up vector and the gyro rate of the latest row at or before each — causal, so
 independent of the cuts) before any sample of the next block is fused.  Hence the output depends on the
 data alone, not on how it was cut into pushes: sample by sample, in chunks or all at once give identical
-rows.  The one exception is
+rows.
+
+Speed.  The filter is not called once per block: it runs ahead over a span of blocks with the calibration
+in use (one call into the compiled kernel), the span's blocks are then closed by one call to
+:meth:`OnlineCalibrator.update_blocks <pdr_mag.calibration.online.OnlineCalibrator.update_blocks>`, which
+stops at the first block whose close changes the calibration; the filter is then put back to its state at
+the span's start and re-run up to that boundary (calibration changes are rare: a few per recording), and
+the next span starts there.  The rows are those of block-by-block processing, whatever the span lengths
+(tested).  The one exception to streaming == batch is
 :meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
 waited for (its late samples are dropped and counted), which only happens when a stream stalls.
 

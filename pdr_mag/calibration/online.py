@@ -45,6 +45,11 @@ Three pieces, all with bounded memory:
    offset ``b + S⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
    rotation-rich episode (a figure-8: gyro rate above ``episode_rate`` for a while) with enough coverage gives
    the new calibration (``recalibrated``).
+
+Speed: the per-sample work (episode tracker, recent ring, admission test, diversity buffer, coverage) and
+the gravity-aided fit are compiled (:mod:`pdr_mag.calibration._online_kernel`, numba); Python runs only at
+the refit and stale-test instants (every ``refit_period_s`` / ``stale_check_s``), and a refit whose inputs
+(buffer, calibration, episode flag) did not change since the previous one reuses its candidates.
 """
 
 from __future__ import annotations
