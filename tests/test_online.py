@@ -234,3 +234,31 @@ def test_offset_refit_keeps_the_soft_iron_shape():
     np.testing.assert_allclose(oc.calibration.soft_iron_array, a, atol=1e-9)
     assert oc.cal_state == "ellipsoid"
     assert np.linalg.norm(oc.calibration.offset_array - (B_TRUE + delta)) < 2.5
+
+
+def test_update_blocks_equals_update_per_block():
+    """Several blocks in one call (the pipeline's path) == one call per block: same events, same state;
+    with ``stop_on_change`` it stops at the end of the block whose close changed the calibration."""
+    d = synth_walk(duration=40.0, seed=9)
+    t, q = d["truth"]
+    tm, mag = d["mag"]
+    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
+    up = rot.inv().apply([0.0, 0.0, 1.0])
+    rate = np.interp(tm, d["gyro"][0], np.linalg.norm(d["gyro"][1], axis=1))
+    blk = np.floor(tm / 0.5)
+    ends = np.r_[blk[1:] != blk[:-1], True]
+    a = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    ev_a = []
+    for k in np.unique(blk):
+        w = blk == k
+        ev_a += a.update(tm[w], mag[w], up[w], rate[w])
+    b = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    ev_b, n, cov = b.update_blocks(tm, mag, up, rate, ends, stop_on_change=False)
+    assert n == len(tm) and ev_a == [e for _, e in ev_b] and a.get_state() == b.get_state()
+    assert np.all(np.isfinite(cov[ends])) and not np.any(np.isfinite(cov[~ends]))
+    assert cov[-1] == pytest.approx(a.coverage())
+    # stopping at the first change: the prefix is a whole number of blocks and ends with the change
+    c = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    ev_c, n, _ = c.update_blocks(tm, mag, up, rate, ends)
+    assert 0 < n < len(tm) and ends[n - 1] and c.calibration is not None
+    assert [e for _, e in ev_c] == [e for e in ev_a if e[0] <= tm[n - 1]]
