@@ -32,7 +32,8 @@ Three pieces, all with bounded memory:
      allows it.
 
    Every refit goes through the acceptance rules (the calibration core's
-   :mod:`pdr_mag.calibration.coverage` when present) before it replaces the calibration.
+   :func:`pdr_mag.calibration.coverage.accept` plus the online rules of :func:`judge`) before it replaces
+   the calibration.
 
 3. A **stale-calibration test** telling a passing disturbance from an offset that moved (e.g. the phone got a
    magnetised case).  The physics: a new device-fixed offset ``δ`` adds the same vector to the calibrated
@@ -60,7 +61,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pdr_mag.calibration import _online_kernel as K
+from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
 
 # ---------------------------------------------------------------------------------------------- settings
@@ -280,24 +283,12 @@ _EV_NAMES = {K.EV_EPISODE_START: "rotation_episode_start", K.EV_EPISODE_END: "ro
 def direction_coverage(mag_cal: np.ndarray) -> float:
     """Share of 64 near-uniform directions with a calibrated sample direction within 30°, in [0, 1].
 
-    Used only when the calibration core's :mod:`pdr_mag.calibration.coverage` is not available.
+    The online trigger for the sphere and ellipsoid refits (``sphere_coverage``, ``ellipsoid_coverage``)
+    is set on this measure; the calibration core's equal-area :func:`pdr_mag.calibration.coverage.coverage`
+    is what the full fit reports and judges.
     """
     m = np.ascontiguousarray(mag_cal, dtype=float).reshape(-1, 3)
     return float(K.coverage(m, len(m), _ZERO3, _DIRS, _COS30))
-
-
-def _coverage(mag_cal: np.ndarray) -> float:
-    try:
-        from pdr_mag.calibration import coverage as core_cov
-    except ImportError:
-        return direction_coverage(mag_cal)
-    fn = getattr(core_cov, "coverage", None) or getattr(core_cov, "orientation_coverage", None)
-    if fn is None:
-        return direction_coverage(mag_cal)
-    try:
-        return float(fn(mag_cal))
-    except Exception:  # noqa: BLE001 - a foreign signature: fall back, never raise in the loop
-        return direction_coverage(mag_cal)
 
 
 def judge(
@@ -305,26 +296,15 @@ def judge(
 ) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
-    The calibration core's rules (``coverage.accept``/``acceptance``) are applied when present; the online
-    rules below are applied in any case: offset σ, residual RMS relative to F, offset magnitude, radius
-    against the reference strength.
+    The calibration core's rules (:func:`pdr_mag.calibration.coverage.accept`: sample count, radius against
+    the reference, residual, offset σ and range, soft-iron spread, conditioning — the coverage rules apply
+    where the fit recorded its coverage) are applied to every refit but the gravity-aided one, whose
+    geometry they do not describe; the online rules below are applied in any case: offset σ, residual RMS
+    relative to F, offset magnitude, radius against the reference strength.
     """
     reasons: list[str] = []
-    try:
-        from pdr_mag.calibration import coverage as core_cov
-
-        rule = getattr(core_cov, "accept", None) or getattr(core_cov, "acceptance", None)
-    except ImportError:
-        rule = None
-    if rule is not None and cal.method != "gravity":
-        try:
-            verdict = rule(cal, field=field_ref) if field_ref is not None else rule(cal)
-            if isinstance(verdict, MagCalibration):
-                reasons += list(verdict.reasons) if not verdict.accepted else []
-            elif isinstance(verdict, tuple) and len(verdict) == 2:
-                reasons += [] if verdict[0] else list(verdict[1])
-        except Exception:  # noqa: BLE001 - foreign signature; online rules still apply
-            pass
+    if cal.method != "gravity":
+        reasons += list(core_accept(cal, field=field_ref).reasons)
     std = np.asarray(cal.offset_std_uT, dtype=float)
     f = cal.field_uT
     bound = (
@@ -346,15 +326,8 @@ def judge(
 
 
 def _full_fit(mag: np.ndarray, field_ref: float | None) -> MagCalibration:
-    """The calibration core's fit (ellipsoid/ML) when present, else the sphere LLS."""
-    try:
-        from pdr_mag.calibration import calibrate  # type: ignore[attr-defined]
-    except ImportError:
-        return fit_sphere(mag)
-    try:
-        return calibrate(mag, method="auto", field=field_ref)
-    except TypeError:
-        return calibrate(mag)
+    """The calibration core's fit (model chosen by BIC, geometric ML; seeds 000/001/004)."""
+    return calibrate(mag, method="auto", field=field_ref)
 
 
 # ---------------------------------------------------------------------------------------------- calibrator
@@ -678,7 +651,7 @@ class OnlineCalibrator:
             centre = g.offset_array
         except ValueError:
             pass
-        cov = _coverage(m - (centre if centre is not None else m.mean(axis=0)))
+        cov = direction_coverage(m - (centre if centre is not None else m.mean(axis=0)))
         if cov >= s.sphere_coverage:
             try:
                 sp = fit_sphere(m)
