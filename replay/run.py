@@ -95,8 +95,9 @@ def load_calibration(path) -> MagCalibration:
         raise InputError(p, f"cannot read ({exc})") from None
 
 
-def make_sink(kind: str, path):
-    """An MCAP or rerun sink, or :class:`InputError` when that sink is not available in this build."""
+def make_sink(kind: str, path, *, spawn: bool = False):
+    """An MCAP or rerun sink (``spawn``: rerun also streams to a live viewer it starts; ``path`` may then be
+    None), or :class:`InputError` when that sink is not available in this build."""
     try:
         if kind == "mcap":
             from pdr_mag.sinks.mcap import McapSink
@@ -104,7 +105,7 @@ def make_sink(kind: str, path):
             return McapSink(path)
         from pdr_mag.sinks.rerun import RerunSink
 
-        return RerunSink(path)
+        return RerunSink(path, spawn=spawn)
     except ImportError:
         raise InputError(path, f"--{'mcap' if kind == 'mcap' else 'rrd'} output not available yet") from None
 

@@ -19,12 +19,13 @@ from replay.errors import InputError
     "--mcap", type=click.Path(path_type=Path), help="MCAP file with inputs, outputs and references."
 )
 @click.option("--rrd", type=click.Path(path_type=Path), help="rerun recording (.rrd).")
+@click.option("--viewer", is_flag=True, help="Also stream to a live rerun viewer (started for you).")
 @click.option("--json", "json_path", type=click.Path(path_type=Path), help="Run summary as JSON.")
 @click.option(
     "--progress/--no-progress", default=None, help="Progress bar (default: long recordings on a tty)."
 )
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
-def command(rec, calibration, out_csv, mcap, rrd, json_path, progress, quiet):
+def command(rec, calibration, out_csv, mcap, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
     from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
 
@@ -36,8 +37,8 @@ def command(rec, calibration, out_csv, mcap, rrd, json_path, progress, quiet):
     sinks = []
     if mcap is not None:
         sinks.append(make_sink("mcap", mcap))
-    if rrd is not None:
-        sinks.append(make_sink("rrd", rrd))
+    if rrd is not None or viewer:
+        sinks.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
         sinks.append(CsvSink(out_csv))
     for p in (out_csv, json_path, mcap, rrd):
