@@ -406,6 +406,17 @@ class FusionCore:
             "reference_strength_uT": self._ref_strength,
         }
 
+    def _snapshot(self) -> tuple:
+        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state vector; not serialisable)."""
+        return self._st.copy(), self._ref_strength
+
+    def _restore(self, snap: tuple) -> None:
+        """Put back a :meth:`_snapshot` (as :meth:`set_state` does for a :meth:`get_state` dict: the
+        reference field of this object wins)."""
+        st, self._ref_strength = snap
+        self._st = st.copy()
+        self.set_field(self.field)
+
     def set_state(self, state: dict) -> None:
         """Restore a state from :meth:`get_state` (the settings and field stay those of this object,
         except the strength reference, which is restored)."""

@@ -389,7 +389,7 @@ class HeadingPipeline:
         e = int(np.searchsorted(blk, blk[0] + self._span, side="left"))
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
         cuts = np.flatnonzero(blk[1:] != blk[:-1]) + 1
-        snap = self.fusion.get_state() if len(cuts) else None
+        snap = self.fusion._snapshot() if len(cuts) else None
         is_mag = kind == 2
         cal = self.online.calibration
         state = self.online.cal_state
@@ -451,7 +451,7 @@ class HeadingPipeline:
         end = int(hi[n_pieces - 1])
         if end < e:
             # the calibration changed at a block boundary inside the span: redo the filter up to there
-            self.fusion.set_state(snap)
+            self.fusion._restore(snap)
             self.fusion.process(kind[:end], t[:end], data[:end], allowed[:end])
             self._sync_fusion_reference()
             self._span = _SPAN_MIN

@@ -207,6 +207,22 @@ def test_streaming_equals_batch_on_a_real_recording():
     assert not pipe.dropped
 
 
+def test_fusion_fast_snapshot_restores_as_set_state(walk):
+    """The in-process snapshot the spans use puts the filter back exactly as get_state/set_state does."""
+    streams = {k: walk[k] for k in ("accel", "gyro", "mag")}
+    pipe = HeadingPipeline(meta=META)
+    pipe.run(streams)
+    core = pipe.fusion
+    core.set_reference_strength(47.5)
+    snap, js = core._snapshot(), core.get_state()
+    core.set_reference_strength(30.0)
+    core._st[:] = 1.0
+    core._restore(snap)
+    assert core.get_state() == js
+    snap[0][:] = 0.0  # the restored state is a copy
+    assert core.get_state() == js
+
+
 def test_speculative_spans_do_not_change_the_result(walk, monkeypatch):
     """Fusion runs ahead over spans of blocks and is redone up to a calibration change: any span length
     (one block: no speculation at all) gives the same rows, coverage, events and calibrations."""

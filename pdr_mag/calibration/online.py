@@ -797,6 +797,18 @@ class OnlineCalibrator:
             if code != K.FIT_OK:
                 return
             fits.append((off, np.sqrt(np.clip(np.diag(cov_b), 0, None)), rms))
+            if lo == 0 and hi == len(r) and self._stale_cand is None:
+                # speed only: with no candidate pending, a whole-window fit that fails the tests below
+                # ends the check as the halves would (a failed half returns, leaving the candidate None)
+                d, sg, w_rms = fits[0]
+                sh = float(np.linalg.norm(d))
+                if not (
+                    w_rms < 0.5 * s.strength_tol_frac * f
+                    and sh > s.stale_min_shift_uT
+                    and sh > 4 * float(np.linalg.norm(sg))
+                    and float(np.max(sg)) < 2 * s.max_offset_std_uT
+                ):
+                    return
         (delta, sig, whole_rms), (a_off, a_std, _), (b_off, b_std, _) = fits
         whole_n = len(r)
         sig_ab = np.sqrt(a_std**2 + b_std**2)
