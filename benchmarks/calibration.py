@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import re
 import sys
 import time
 from functools import partial
@@ -213,11 +212,9 @@ def render(acc, hemi, tim, real, trials) -> str:
 
 
 def write_section(text: str) -> None:
-    path = ROOT / "benchmarks" / "RESULTS.md"
-    old = path.read_text() if path.exists() else "# Benchmark results\n\n"
-    pat = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    new = pat.sub(lambda _: text + "\n", old) if pat.search(old) else old.rstrip("\n") + "\n\n" + text
-    path.write_text(new)
+    from _common import write_section as write
+
+    write(SECTION, text)
 
 
 def main() -> None:

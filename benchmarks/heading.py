@@ -39,7 +39,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 import time
@@ -48,20 +47,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parent.parent
-SHARED = (ROOT / ".." / "shared").resolve()
-DATA = SHARED / "datasets" / "tyrex-pdrcsv"
-SCORER = SHARED / "benchmarks" / "tyrex" / "score.py"
-RESULTS = ROOT / "benchmarks" / "RESULTS.md"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import DIST, NODIST, TRIALS, imufusion_ahrs, load_scorer  # noqa: E402
+from _common import TYREX as DATA  # noqa: E402
+from _common import write_section as _write_section  # noqa: E402
+
 SECTION = "## Heading accuracy (issue 4)"
-DIST = (
-    "Thibaud_Nexus5_Dist_FrontPocket",
-    "Thibaud_Nexus5_Dist_Swinging",
-    "Thibaud_Nexus5_Dist_Texting",
-    "Thibaud_iPhone5_Dist_Texting",
-)
-NODIST = ("Thibaud_Nexus5_NoDist_Swinging", "Thibaud_Nexus5_NoDist_Texting", "Thibaud_iPhone5_NoDist_Texting")
-TRIALS = DIST + NODIST
 #: best column of ../shared/benchmarks/PEERS.md (mean heading error, deg)
 PEERS_BEST = {"dist": 10.6, "nodist": 2.3}
 PEERS = (
@@ -76,15 +67,6 @@ PEERS = (
 )
 
 
-def _scorer():
-    sys.path.insert(0, str(SCORER.parent))
-    spec = importlib.util.spec_from_file_location("tyrex_score", SCORER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-# ---------------------------------------------------------------------------------------------- inputs
 def day_calibration(name: str, field):
     """The day's calibration, as ``pdr-mag calibrate`` makes it."""
     from pdr_mag.calibration import calibrate
@@ -131,19 +113,7 @@ def _to_true(q_wxyz, declination_deg, pre_yaw_deg=0.0):
 
 
 def run_imufusion(tg, gyr, acc, mag):
-    import imufusion
-
-    fs = (len(tg) - 1) / (tg[-1] - tg[0])
-    ahrs = imufusion.Ahrs()
-    s = imufusion.AhrsSettings()
-    s.convention = imufusion.CONVENTION_ENU
-    s.gain = 0.5
-    s.gyroscope_range = 2000.0
-    s.acceleration_rejection = 10.0
-    s.magnetic_rejection = 10.0
-    s.rejection_timeout = 5.0
-    s.sample_rate = fs
-    ahrs.set_settings(s)
+    ahrs = imufusion_ahrs((len(tg) - 1) / (tg[-1] - tg[0]))
     gd = np.degrees(gyr)
     ag = acc / 9.80665
     q = np.empty((len(tg), 4))
@@ -209,7 +179,7 @@ def accuracy(with_pipeline: bool = True, verbose: bool = True):
     from pdr_mag.field import earth_field_from_meta
     from replay.formats import read_recording
 
-    score = _scorer()
+    score = load_scorer()
     table: dict[str, dict[str, float]] = {}
     calib_counts = np.zeros(3, dtype=int)
     cal_cache: dict[str, object] = {}
@@ -351,16 +321,8 @@ def _fmt(v) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.1f}"
 
 
-def write_section(text: str, path: Path = RESULTS) -> None:
-    """Replace (or append) our section of RESULTS.md, leaving the others untouched."""
-    old = path.read_text() if path.exists() else "# Benchmark results\n\n"
-    start = old.find(SECTION)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("\n" + old[nxt + 1 :] if nxt >= 0 else "")
-    path.write_text(new)
+def write_section(text: str) -> None:
+    _write_section(SECTION, text)
 
 
 def main(argv=None) -> int:

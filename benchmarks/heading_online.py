@@ -13,7 +13,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 import time
@@ -21,27 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-SHARED = (ROOT / ".." / "shared").resolve()
-DATA = SHARED / "datasets" / "tyrex-pdrcsv"
-SCORER = SHARED / "benchmarks" / "tyrex" / "score.py"
-TRIALS = (
-    "Thibaud_Nexus5_Dist_FrontPocket",
-    "Thibaud_Nexus5_Dist_Swinging",
-    "Thibaud_Nexus5_Dist_Texting",
-    "Thibaud_iPhone5_Dist_Texting",
-    "Thibaud_Nexus5_NoDist_Swinging",
-    "Thibaud_Nexus5_NoDist_Texting",
-    "Thibaud_iPhone5_NoDist_Texting",
-)
-
-
-def _scorer():
-    sys.path.insert(0, str(SCORER.parent))
-    spec = importlib.util.spec_from_file_location("tyrex_score", SCORER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import ROOT, TRIALS, load_scorer  # noqa: E402
+from _common import TYREX as DATA  # noqa: E402
 
 
 def _score(score, trial_dir: Path, est_csv: Path) -> dict:
@@ -63,7 +44,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from replay.run import CsvSink, replay
 
-    score = _scorer()
+    score = load_scorer()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for trial in TRIALS:

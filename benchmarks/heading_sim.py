@@ -40,9 +40,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "benchmarks"))
-RESULTS = ROOT / "benchmarks" / "RESULTS.md"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_section as _write_section  # noqa: E402
+
 SECTION = "## Heading on simulated walks (issue 4)"
 SCENARIOS = ("walk", "swing", "pocket", "mixed", "figure8")
 PHONES = ("default", "imu50")
@@ -271,16 +271,8 @@ def markdown(rows, commit: str = "") -> str:
     return "\n".join(lines)
 
 
-def write_section(text: str, path: Path = RESULTS) -> None:
-    """Replace (or append) this section of RESULTS.md, leaving the others untouched."""
-    old = path.read_text() if path.exists() else "# Benchmark results\n\n"
-    start = old.find(SECTION)
-    if start < 0:
-        new = old.rstrip("\n") + "\n\n" + text
-    else:
-        nxt = old.find("\n## ", start + len(SECTION))
-        new = old[:start] + text + ("\n" + old[nxt + 1 :] if nxt >= 0 else "")
-    path.write_text(new)
+def write_section(text: str) -> None:
+    _write_section(SECTION, text)
 
 
 def main(argv=None) -> int:

@@ -16,23 +16,16 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import rss_mb  # noqa: E402
+
 META = {"latitude_deg": 45.19, "longitude_deg": 5.73, "altitude_m": 200.0, "date": "2016-05-31"}
 B = np.array([58.0, -74.0, 412.0])
-
-
-def _rss_mb() -> float:
-    try:
-        import psutil
-
-        return psutil.Process().memory_info().rss / 2**20
-    except ImportError:
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _second(k: int, field_w: np.ndarray, rng) -> dict:
@@ -82,7 +75,7 @@ def main(argv=None) -> int:
         pipe.pop_events()
         t_proc += time.perf_counter() - t0
         if k % 300 == 0 or k == int(args.minutes * 60) - 1:
-            marks.append({"minute": round(k / 60.0, 1), "rss_mb": round(_rss_mb(), 1)})
+            marks.append({"minute": round(k / 60.0, 1), "rss_mb": round(rss_mb(), 1)})
             print(f"{marks[-1]['minute']:5.1f} min  RSS {marks[-1]['rss_mb']:7.1f} MB", file=sys.stderr)
     n_out += len(pipe.flush())
     res = {

@@ -40,6 +40,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import heading as hb  # noqa: E402  (benchmarks/heading.py: the imufusion runner and the day's calibration)
+from _common import imufusion_ahrs, rss_mb  # noqa: E402
 
 
 def _streams(rec) -> dict:
@@ -110,17 +111,6 @@ def recording(trial: str, repeats: int) -> dict:
     return out
 
 
-def _rss_mb() -> float:
-    try:
-        import psutil
-
-        return psutil.Process().memory_info().rss / 2**20
-    except ImportError:
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def hour(minutes: float = 60.0) -> dict:
     import memory_pipeline as mp  # benchmarks/memory_pipeline.py: the synthetic walk, one second at a time
 
@@ -143,24 +133,13 @@ def hour(minutes: float = 60.0) -> dict:
         t_pipe += time.perf_counter() - t0
         samples += sum(len(t) for t, _ in data.values())
         if k % 600 == 0 or k == seconds - 1:
-            rss.append((round(k / 60.0, 1), round(_rss_mb(), 1)))
+            rss.append((round(k / 60.0, 1), round(rss_mb(), 1)))
     t0 = time.perf_counter()
     n_out += len(pipe.flush())
     t_pipe += time.perf_counter() - t0
     # the same hour through imufusion (per gyro sample, magnetometer held), one second at a time
-    import imufusion
-
     rng = np.random.default_rng(0)
-    ahrs = imufusion.Ahrs()
-    s = imufusion.AhrsSettings()
-    s.convention = imufusion.CONVENTION_ENU
-    s.gain = 0.5
-    s.gyroscope_range = 2000.0
-    s.acceleration_rejection = 10.0
-    s.magnetic_rejection = 10.0
-    s.rejection_timeout = 5.0
-    s.sample_rate = 200.0
-    ahrs.set_settings(s)
+    ahrs = imufusion_ahrs(200.0)
     t_imu = 0.0
     for k in range(seconds):
         data = mp._second(k, field_w, rng)

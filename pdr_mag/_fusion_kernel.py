@@ -227,15 +227,19 @@ def _rot(st, R):
 
 
 @njit(cache=True)
-def _qmul_right(st, k, vx, vy, vz):
-    """q[k:k+4] ← q ⊗ Exp(v) (v a rotation vector in the body frame)."""
+def _exp_half(vx, vy, vz):
+    """Unit quaternion ``Exp(v)`` of a rotation vector v (rad), w-first."""
     a = np.sqrt(vx * vx + vy * vy + vz * vz)
     if a < 1e-12:
         c, s = 1.0, 0.5
     else:
         c, s = np.cos(0.5 * a), np.sin(0.5 * a) / a
-    bw, bx, by, bz = c, s * vx, s * vy, s * vz
-    aw, ax, ay, az = st[k], st[k + 1], st[k + 2], st[k + 3]
+    return c, s * vx, s * vy, s * vz
+
+
+@njit(cache=True)
+def _store_product(st, k, aw, ax, ay, az, bw, bx, by, bz):
+    """q[k:k+4] ← normalised Hamilton product ``a ⊗ b``."""
     w = aw * bw - ax * bx - ay * by - az * bz
     x = aw * bx + ax * bw + ay * bz - az * by
     y = aw * by - ax * bz + ay * bw + az * bx
@@ -245,21 +249,17 @@ def _qmul_right(st, k, vx, vy, vz):
 
 
 @njit(cache=True)
+def _qmul_right(st, k, vx, vy, vz):
+    """q[k:k+4] ← q ⊗ Exp(v) (v a rotation vector in the body frame)."""
+    bw, bx, by, bz = _exp_half(vx, vy, vz)
+    _store_product(st, k, st[k], st[k + 1], st[k + 2], st[k + 3], bw, bx, by, bz)
+
+
+@njit(cache=True)
 def _qmul_left(st, k, vx, vy, vz):
     """q[k:k+4] ← Exp(v) ⊗ q (v a rotation vector in the world frame)."""
-    a = np.sqrt(vx * vx + vy * vy + vz * vz)
-    if a < 1e-12:
-        c, s = 1.0, 0.5
-    else:
-        c, s = np.cos(0.5 * a), np.sin(0.5 * a) / a
-    aw, ax, ay, az = c, s * vx, s * vy, s * vz
-    bw, bx, by, bz = st[k], st[k + 1], st[k + 2], st[k + 3]
-    w = aw * bw - ax * bx - ay * by - az * bz
-    x = aw * bx + ax * bw + ay * bz - az * by
-    y = aw * by - ax * bz + ay * bw + az * bx
-    z = aw * bz + ax * by - ay * bx + az * bw
-    n = np.sqrt(w * w + x * x + y * y + z * z)
-    st[k], st[k + 1], st[k + 2], st[k + 3] = w / n, x / n, y / n, z / n
+    aw, ax, ay, az = _exp_half(vx, vy, vz)
+    _store_product(st, k, aw, ax, ay, az, st[k], st[k + 1], st[k + 2], st[k + 3])
 
 
 @njit(cache=True)
