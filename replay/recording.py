@@ -41,6 +41,9 @@ class Recording:
         ``device``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` — all optional.
     truth : (t (N,), q_wxyz (N, 4)) or None
         True orientation, device → ENU true north; for evaluation only.
+    references : dict
+        Other orientation series to compare with, by name (``"os"``: the phone's own fused attitude, w-first
+        device → ENU), as ``(t (N,), q_wxyz (N, 4))``; for evaluation only, never read by the pipeline.
     temperature : (t (N,), °C (N,)) or None
         Sensor temperature when the device logs it (e.g. the breadboard IMU's MPU6050).
     source : str
@@ -55,6 +58,7 @@ class Recording:
     meta: dict = field(default_factory=dict)
     truth: tuple[np.ndarray, np.ndarray] | None = None
     temperature: tuple[np.ndarray, np.ndarray] | None = None
+    references: dict = field(default_factory=dict)
     source: str = ""
     format: str = ""
     dropped: Counter = field(default_factory=Counter)

@@ -111,20 +111,8 @@ def make_sink(kind: str, path, *, spawn: bool = False):
 
 
 def os_reference(rec: Recording):
-    """The phone's own orientation (``os``), when the reader exposes it or the pdr-csv has ``os.csv``."""
-    ref = getattr(rec, "os", None)
-    if ref is not None:
-        return ref
-    refs = getattr(rec, "references", None)
-    if isinstance(refs, dict) and "os" in refs:
-        return refs["os"]
-    p = Path(rec.source) / "os.csv" if rec.source else None
-    if p is not None and p.is_file():
-        from replay.formats import pdrcsv
-
-        arr = pdrcsv._parse_csv(p, pdrcsv.TRUTH_HEADER, Counter(), "os")
-        return arr[:, 0].copy(), arr[:, 1:5].copy()
-    return None
+    """The phone's own orientation (``os``) when the reader found one, else None."""
+    return rec.references.get("os")
 
 
 def replay(

@@ -31,6 +31,16 @@ def test_write_read_round_trip(tmp_path):
     assert not back.dropped
 
 
+def test_phone_orientation_round_trips_as_a_reference(tmp_path):
+    rec = _rec()
+    q = np.tile([0.5, 0.5, -0.5, 0.5], (len(rec.mag.t), 1))
+    rec.references["os"] = (rec.mag.t, q)
+    pdrcsv.write(rec, tmp_path / "r")
+    back = read_recording(tmp_path / "r")
+    np.testing.assert_allclose(back.references["os"][1], q, atol=1e-9)
+    assert back.truth is None
+
+
 def test_odd_rows_are_dropped_and_counted(tmp_path):
     pdrcsv.write(_rec(), tmp_path / "r")
     lines = (tmp_path / "r" / "mag.csv").read_text().splitlines()

@@ -10,99 +10,38 @@ unit) raises :class:`InputError` naming the file and line.
 from __future__ import annotations
 
 import json
-import math
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from replay.errors import InputError
+from replay.formats._common import StreamBuilder, finish, open_text, read_table
 from replay.recording import Recording, Stream
 
 NAME = "pdr-csv"
 VECTOR_HEADER = ["t", "x", "y", "z"]
 TRUTH_HEADER = ["t", "qw", "qx", "qy", "qz"]
 
-# Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
-_UNIT_RANGES = {
-    "mag": (5.0, 2000.0, "µT"),
-    "accel": (3.0, 30.0, "m/s²"),
-    "gyro": (0.0, 20.0, "rad/s"),
-}
-
-
 def detect(path: Path) -> bool:
     return path.is_dir() and (path / "mag.csv").is_file()
 
 
-def _parse_csv(path: Path, header: list[str], dropped: Counter, key: str) -> np.ndarray:
-    """Rows of floats (N, len(header)); NaN rows and duplicate times dropped and counted."""
-    try:
-        fh = path.open("r", encoding="utf-8", newline="")
-    except OSError as exc:
-        raise InputError(path, f"cannot open ({exc.strerror})") from exc
-    ncol = len(header)
-    rows: list[list[float]] = []
-    with fh:
+def _read_builder(path: Path, header: list[str], key: str, dropped: Counter) -> StreamBuilder:
+    """Parse one file (header row, then ``t`` and values) into a cleaning :class:`StreamBuilder`."""
+    b = StreamBuilder(path, key, dropped, width=len(header) - 1)
+    with open_text(path) as fh:
         first = fh.readline()
         got = [c.strip() for c in first.strip().split(",")]
-        if got[:ncol] != header:
+        if got[: len(header)] != header:
             raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}", line=1)
-        last_t = -math.inf
-        for lineno, line in enumerate(fh, start=2):
-            s = line.strip()
-            if not s:
-                continue
-            parts = s.split(",")
-            if len(parts) < ncol:
-                raise InputError(path, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-            try:
-                vals = [float(v) for v in parts[:ncol]]
-            except ValueError:
-                bad = next(v for v in parts[:ncol] if not _is_float(v))
-                raise InputError(path, f"not a number: {bad.strip()!r}", lineno) from None
-            if not all(math.isfinite(v) for v in vals):
-                dropped[f"{key}:nan"] += 1
-                continue
-            t = vals[0]
-            if t == last_t:
-                dropped[f"{key}:duplicate_t"] += 1
-                continue
-            if t < last_t:
-                raise InputError(path, f"time goes backwards ({t!r} after {last_t!r})", lineno)
-            last_t = t
-            rows.append(vals)
-    if not rows:
-        raise InputError(path, "empty stream (no valid samples)")
-    return np.asarray(rows, dtype=float)
-
-
-def _is_float(v: str) -> bool:
-    try:
-        float(v)
-        return True
-    except ValueError:
-        return False
-
-
-def _check_units(path: Path, key: str, xyz: np.ndarray) -> None:
-    lo, hi, unit = _UNIT_RANGES[key]
-    med = float(np.median(np.linalg.norm(xyz, axis=1)))
-    if not (lo <= med <= hi):
-        raise InputError(
-            path, f"median |{key}| is {med:.4g}, outside the plausible {lo:g}–{hi:g} {unit} (wrong unit?)"
-        )
+        read_table(fh, path, [(b, list(range(1, len(header))))], len(header), first_line=2, delimiter=",")
+    return b
 
 
 def read_stream(path: Path, key: str, dropped: Counter) -> Stream:
-    arr = _parse_csv(path, VECTOR_HEADER, dropped, key)
-    if len(arr) < 2:
-        raise InputError(path, "fewer than 2 valid samples")
-    _check_units(path, key, arr[:, 1:4])
-    from replay.formats._common import flag_saturation
-
-    flag_saturation(key, arr[:, 1:4], dropped)  # counted as "<key>:saturated", samples kept
-    return Stream(t=arr[:, 0].copy(), xyz=arr[:, 1:4].copy())
+    """One vector stream; units checked, saturated samples counted (kept)."""
+    return finish(_read_builder(path, VECTOR_HEADER, key, dropped))
 
 
 def read(path) -> Recording:
@@ -124,10 +63,18 @@ def read(path) -> Recording:
             raise InputError(p / "meta.json", "expected a JSON object")
     truth = None
     if (p / "truth.csv").is_file():
-        arr = _parse_csv(p / "truth.csv", TRUTH_HEADER, dropped, "truth")
-        truth = (arr[:, 0].copy(), arr[:, 1:5].copy())
+        b = _read_builder(p / "truth.csv", TRUTH_HEADER, "truth", dropped)
+        if len(b) == 0:
+            raise InputError(p / "truth.csv", "truth: empty stream (no valid samples)")
+        truth = b.arrays()
+    references = {}
+    if (p / "os.csv").is_file():  # the phone's own fused attitude, same columns as truth.csv
+        b = _read_builder(p / "os.csv", TRUTH_HEADER, "os", dropped)
+        if len(b):
+            references["os"] = b.arrays()
     return Recording(
-        mag=mag, accel=accel, gyro=gyro, meta=meta, truth=truth, source=str(p), format=NAME, dropped=dropped
+        mag=mag, accel=accel, gyro=gyro, meta=meta, truth=truth, references=references, source=str(p),
+        format=NAME, dropped=dropped,
     )
 
 
@@ -149,5 +96,7 @@ def write(rec: Recording, path, value_fmt: str = "%.6f") -> None:
         _write_csv(p / "gyro.csv", VECTOR_HEADER, rec.gyro.t, rec.gyro.xyz, "%.8f")
     if rec.truth is not None:
         _write_csv(p / "truth.csv", TRUTH_HEADER, rec.truth[0], rec.truth[1], "%.9f")
+    if "os" in rec.references:
+        _write_csv(p / "os.csv", TRUTH_HEADER, rec.references["os"][0], rec.references["os"][1], "%.9f")
     if rec.meta:
         (p / "meta.json").write_text(json.dumps(rec.meta, indent=1, sort_keys=True) + "\n")
