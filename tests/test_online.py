@@ -28,12 +28,14 @@ def synth_walk(
     figure8=None,
     offset_change=None,
     anomaly=None,
+    local_w=(0.0, 0.0, 0.0),
 ):
     """A texting-pose walk: yaw turns (random, 30–180°), tilt ~20° with sway, walking bounce.
 
     ``figure8=(t0, t1)`` adds a rotation-rich episode (all axes); ``offset_change=(t, δ)`` adds a device-fixed
     δ from time t (a magnetised case); ``anomaly=(t0, t1, d_w)`` adds a world-frame field d_w between t0
-    and t1 (a passing disturbance).  Returns a dict of streams and the truth.
+    and t1 (a passing disturbance); ``local_w`` a constant world-frame field added throughout (a building
+    whose field differs from the WMM).  Returns a dict of streams and the truth.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 1.0 / rate)
@@ -72,7 +74,7 @@ def synth_walk(
     acc = r_inv.apply(np.array([0.0, 0.0, G]) + lin_w) + rng.normal(0, 0.05, (n, 3))
     tm = np.arange(0.003, duration, 1.0 / mag_rate)
     rm = Rotation.from_quat(np.array([np.interp(tm, t, rot.as_quat()[:, i]) for i in range(4)]).T)
-    f_w = np.tile(FIELD_W, (len(tm), 1))
+    f_w = np.tile(FIELD_W + np.asarray(local_w, dtype=float), (len(tm), 1))
     if anomaly is not None:
         a, b, d_w = anomaly
         w = (tm >= a) & (tm < b)
@@ -204,6 +206,21 @@ def test_passing_disturbance_does_not_request_recalibration():
     events = _feed(oc, d)
     assert not [k for _, k, _ in events if k == "recalibration_requested"]
     assert np.linalg.norm(oc.calibration.offset_array - B_TRUE) < 3.0
+
+
+def test_local_vertical_field_is_not_taken_for_a_moved_offset():
+    """A building whose vertical field is 8 µT weaker than the WMM's (|m_cal| 39.6 µT instead of 47 µT all
+    along the walk): in the texting pose it looks like an offset shift along the mean up vector, but no
+    device-fixed shift is needed once the local field is free — no recalibration, the given offset stays
+    (tyrex iPhone 5 NoDist had this and lost 1.3° of heading to a wrong recalibration)."""
+    from pdr_mag.calibration.model import MagCalibration
+
+    d = synth_walk(duration=120.0, seed=9, local_w=(0.0, 0.0, 8.0))
+    given = MagCalibration.from_arrays(B_TRUE, None, field_uT=F, method="ml", offset_std_uT=[0.3] * 3)
+    oc = OnlineCalibrator(OnlineSettings(), calibration=given, strength=F, sin_dip=np.sin(INC))
+    events = _feed(oc, d)
+    assert not [k for _, k, _ in events if k == "recalibration_requested"]
+    np.testing.assert_allclose(oc.calibration.offset_array, B_TRUE)
 
 
 def test_calibrator_state_round_trips_through_json():

@@ -817,7 +817,7 @@ class OnlineCalibrator:
         explained = whole_rms < 0.5 * s.strength_tol_frac * f
         significant = shift > s.stale_min_shift_uT and shift > 4 * float(np.linalg.norm(sig))
         well_posed = float(np.max(sig)) < 2 * s.max_offset_std_uT
-        if not (consistent and explained and significant and well_posed):
+        if not (consistent and explained and significant and well_posed and self._device_fixed(mc, r, f)):
             self._stale_cand = None
             return
         # persistence: a magnetised case stays, a disturbed area is walked out of — the same δ must be
@@ -862,6 +862,36 @@ class OnlineCalibrator:
         self._episode_seen = self._episode
         self.clear_buffer()
         self._rec[:] = np.nan
+
+    def _device_fixed(self, mc: np.ndarray, r: np.ndarray, f: float) -> bool:
+        """Whether the window's deviation needs a *device-fixed* offset shift, whatever the local field.
+
+        The stale test's fits hold the local field near the WMM (priors of a few µT / degrees), so a
+        building whose vertical field differs by several µT is, for a phone held in one pose (texting:
+        device z ≈ up, only yaw turns), indistinguishable from an offset shift along the mean up vector
+        ``ū``: ``|m_cal|`` and the dip deviate the same way, orientation-dependently only through the tilt.
+        Such a shift is not evidence of a moved offset, and taking it as one puts its across-``ū`` part
+        into the horizontal field (tyrex iPhone 5 NoDist: a local field 8 µT weaker vertically read as an
+        offset shift of (−2.5, −3.4, 7.1) µT; heading 1.7° → 3.0°).  Here F and F sin I are free (the
+        alternative hypothesis "the local field differs" gets its own two unknowns): a shift counts only
+        where the data determine it: its components along the covariance's eigen-directions that exceed
+        4 σ each must together exceed ``stale_min_shift_uT`` (a shift along an ill-determined direction, even
+        at 3 σ, is what a few µT of local field error and the walk's tilt errors make of the ambiguity).
+        """
+        s = self.settings
+        try:
+            code, off, _, _, cov_b, _, _, _ = _gravity_numbers(
+                mc, r[:, 4:7], None, None, s.sigma_strength_uT, s.sigma_tilt_deg, 8, 0.0, 0.0
+            )
+        except ValueError:
+            return False
+        if code != K.FIT_OK or not np.all(np.isfinite(cov_b)):
+            return False
+        w, v = np.linalg.eigh(0.5 * (cov_b + cov_b.T))
+        c = v.T @ off  # the shift along the covariance's eigen-directions
+        sig = np.sqrt(np.clip(w, 0.0, None))
+        c = c[np.abs(c) > 4.0 * sig]  # the components the data determine
+        return bool(np.linalg.norm(c) > s.stale_min_shift_uT)
 
     # ------------------------------------------------------------------ state
     def get_state(self) -> dict:
