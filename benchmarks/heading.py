@@ -33,7 +33,7 @@ same recording in the same run; both timings include the preparation of their in
 
 Usage::
 
-    python benchmarks/heading.py [--write-results] [--speed-repeats N]
+    python benchmarks/heading.py [--write-results] [--speed-repeats N] [--commit HASH]
 """
 
 from __future__ import annotations
@@ -293,7 +293,7 @@ def speed(trial: str = "Thibaud_Nexus5_NoDist_Texting", repeats: int = 3):
 
 
 # ---------------------------------------------------------------------------------------------- report
-def markdown(table, calib_counts, spd) -> str:
+def markdown(table, calib_counts, spd, commit: str = "") -> str:
     pipe = ["pdr_mag_pipe"] if any("pdr_mag_pipe" in r for r in table.values()) else []
     cols = ["pdr_mag", *pipe, *PEERS]
     lines = [
@@ -304,7 +304,7 @@ def markdown(table, calib_counts, spd) -> str:
         " column in the same run on the same inputs, scored with `../shared/benchmarks/tyrex/score.py` (mean"
         " |heading error|, degrees, 5–120 s). `pdr_mag` = `FusionCore` defaults; `pdr_mag_pipe` = the whole"
         " pipeline via `replay(REC, calibration=…)`; peers as in PEERS.md (`*_gcal`: also handed the day's"
-        " gyro offset).",
+        " gyro offset)." + (f" Commit measured: {commit}." if commit else ""),
         "",
         "| trial | " + " | ".join(cols) + " |",
         "|---|" + "---|" * len(cols),
@@ -315,11 +315,17 @@ def markdown(table, calib_counts, spd) -> str:
         vals = [np.mean([table[t].get(c, np.nan) for t in group]) for c in cols]
         lines.append(f"| **mean, {label}** | " + " | ".join(_fmt(v) for v in vals) + " |")
     n1, n2, n = calib_counts
-    ours = {g: np.mean([table[t]["pdr_mag"] for t in grp]) for g, grp in (("dist", DIST), ("nodist", NODIST))}
+    groups = (("dist", DIST), ("nodist", NODIST))
+    ours = {g: np.mean([table[t]["pdr_mag"] for t in grp]) for g, grp in groups}
+    pipe_m = {g: np.mean([table[t].get("pdr_mag_pipe", np.nan) for t in grp]) for g, grp in groups}
+    both = {g: f"{ours[g]:.2f}°" for g in ours}
+    for g in both:
+        if np.isfinite(pipe_m[g]):
+            both[g] += f" (pipeline {pipe_m[g]:.2f}°)"
     lines += [
         "",
-        f"Against PEERS.md's published bests (best column separately): disturbed {ours['dist']:.2f}° vs"
-        f" {PEERS_BEST['dist']}° (vqf_cal_gcal), undisturbed {ours['nodist']:.2f}° vs {PEERS_BEST['nodist']}°"
+        f"Against PEERS.md's published bests (best column separately): disturbed {both['dist']} vs"
+        f" {PEERS_BEST['dist']}° (vqf_cal_gcal), undisturbed {both['nodist']} vs {PEERS_BEST['nodist']}°"
         " (madgwick_cal_gcal). The peers above are re-run on this project's calibration (the same inputs as"
         " ours), so a few of their figures differ from PEERS.md, which used its own ellipsoid fit.",
         "",
@@ -351,10 +357,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--no-pipeline", action="store_true", help="skip the pdr_mag_pipe column")
     ap.add_argument("--speed-repeats", type=int, default=3)
+    ap.add_argument("--commit", default="", help="commit to name in the section")
     args = ap.parse_args(argv)
     table, counts = accuracy(with_pipeline=not args.no_pipeline)
     spd = speed(repeats=args.speed_repeats)
-    text = markdown(table, counts, spd)
+    text = markdown(table, counts, spd, args.commit)
     print(text)
     if args.write_results:
         write_section(text)
