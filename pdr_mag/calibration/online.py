@@ -42,8 +42,11 @@ Three pieces, all with bounded memory:
    explains it down to the noise, with the same ``δ`` from the older and the newer half of the window.  An
    external anomaly is fixed in the world (or moves with the walker's position), so it rotates with the
    device like the Earth's field: no constant device-frame ``δ`` explains it, the two halves disagree and
-   the fit residual stays large; and it passes.  Only the first case requests a recalibration: the provisional
-   offset ``b + S⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
+   the fit residual stays large; and it passes.  A building whose field differs from the WMM is a third case:
+   held in one pose, it mimics a shift along the mean up vector, so a shift counts only where the data
+   determine it with the local strength and dip free (:meth:`OnlineCalibrator._device_fixed`).  Only the
+   first case requests a recalibration: the provisional offset ``b + S⁻¹δ`` is used at once
+   (``cal_state = "recalibrating"``), the buffer is cleared, and the next
    rotation-rich episode (a figure-8: gyro rate above ``episode_rate`` for a while) with enough coverage gives
    the new calibration (``recalibrated``).
 
@@ -817,7 +820,7 @@ class OnlineCalibrator:
         explained = whole_rms < 0.5 * s.strength_tol_frac * f
         significant = shift > s.stale_min_shift_uT and shift > 4 * float(np.linalg.norm(sig))
         well_posed = float(np.max(sig)) < 2 * s.max_offset_std_uT
-        if not (consistent and explained and significant and well_posed and self._device_fixed(mc, r, f)):
+        if not (consistent and explained and significant and well_posed and self._device_fixed(mc, r)):
             self._stale_cand = None
             return
         # persistence: a magnetised case stays, a disturbed area is walked out of — the same δ must be
@@ -863,7 +866,7 @@ class OnlineCalibrator:
         self.clear_buffer()
         self._rec[:] = np.nan
 
-    def _device_fixed(self, mc: np.ndarray, r: np.ndarray, f: float) -> bool:
+    def _device_fixed(self, mc: np.ndarray, r: np.ndarray) -> bool:
         """Whether the window's deviation needs a *device-fixed* offset shift, whatever the local field.
 
         The stale test's fits hold the local field near the WMM (priors of a few µT / degrees), so a
