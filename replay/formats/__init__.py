@@ -1,10 +1,25 @@
 """Readers: one module per format, each converting units and axes into the contract (INTERFACE.md).
 
-:func:`read_recording` detects the format of a path and returns a :class:`replay.recording.Recording`.
+:func:`open_recording` detects the format of a path and returns a :class:`replay.source.RecordingSource`:
+the recording's metadata, and its sensor streams read as they are consumed, a chunk at a time, never whole
+(:mod:`replay.source`). :func:`read_recording` collects one into a :class:`replay.recording.Recording`.
+
+Streaming
+---------
+Every reader streams, except the MATLAB files of ``broad`` (``scipy.io.loadmat`` cannot read a variable
+in parts; those are small research recordings): they are loaded whole, then served through the same source
+API. Readers of several files (``pdr-csv``, ``tyrex``, ``sunsided-marg``, ``sensor-logger``, ``phyphox``)
+have one lazily advanced parser per file; readers of one interleaved file (``ipin``, ``ms-indoor``,
+``xio-csv``, ``pdr-mcap``, ``ros2-mcap``) demultiplex it in one pass. Where metadata needs the whole file —
+IPIN's clock shift and fixes, ms-indoor's choice of raw or calibrated streams and its waypoints, pdr-mcap's
+truth topics — a first pass collects it without keeping samples (the file is parsed twice). Because the
+checks run as the samples stream, an error late in a file is raised after the earlier slices went through
+the pipeline; it is the same one-line :class:`InputError`.
 
 Detection
 ---------
-Every reader module has ``NAME`` (str), ``detect(path) -> bool`` and ``read(path) -> Recording``.
+Every reader module has ``NAME`` (str), ``detect(path) -> bool``, ``open_source(path) -> RecordingSource``
+and ``read(path) -> Recording`` (``open_source(path).collect()``).
 ``detect`` is cheap and certain: it looks at file names, a header line or a file's magic bytes — never at the
 whole file — and it never raises. :data:`READERS` lists the modules in the order they are asked; the first
 that recognises the path reads it. A path that no reader recognises is an :class:`InputError`.
@@ -84,15 +99,25 @@ def detect(path) -> str | None:
 
 
 def read_recording(path, fmt: str | None = None) -> Recording:
-    """Read any recording a reader recognises; raises :class:`InputError` otherwise."""
+    """Read any recording a reader recognises, whole; raises :class:`InputError` otherwise."""
+    return open_recording(path, fmt).collect()
+
+
+def open_recording(path, fmt: str | None = None):
+    """Open any recording a reader recognises as a :class:`replay.source.RecordingSource` (streaming)."""
     p = Path(path)
+    return _reader(p, fmt).open_source(p)
+
+
+def _reader(p: Path, fmt: str | None):
+    """The reader module for ``p`` (by name when ``fmt`` is given), else InputError."""
     if not p.exists():
         raise InputError(p, "no such file or directory")
     mods = list(_modules())
     if fmt is not None:
         for mod in mods:
             if mod.NAME == fmt:
-                return mod.read(p)
+                return mod
         raise InputError(p, f"unknown format {fmt!r} (known: {', '.join(m.NAME for m in mods)})")
     for mod in mods:
         try:
@@ -100,7 +125,7 @@ def read_recording(path, fmt: str | None = None) -> Recording:
         except OSError:
             hit = False
         if hit:
-            return mod.read(p)
+            return mod
     if p.is_file():
         with p.open("rb") as fh:
             head = fh.read(8)
