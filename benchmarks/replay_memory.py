@@ -6,7 +6,7 @@ file — truth is evaluation-only and loaded whole) is written once per length i
 drift/bias columns included) and pdr-csv. Then ``pdr-mag replay REC`` runs, each run in its own process,
 without sinks, with ``--mcap`` and with ``--rrd``, from the code of one or more checkouts (``--repo``, e.g.
 ``/work/main`` for before and this checkout for after). Reported per run: the process's peak resident
-memory (``ru_maxrss``), the resident memory after the imports and before the replay, and the difference —
+memory (``VmHWM``), the resident memory after the imports and before the replay, and the difference —
 what the replay itself held at its peak. Running 10 and 60 minutes shows whether memory grows with length.
 
     python benchmarks/replay_memory.py                                  # this checkout, 10 and 60 min
@@ -54,10 +54,22 @@ def write_recordings(minutes: float, folder: Path) -> dict[str, Path]:
     return {"android": android, "pdr-csv": pdr}
 
 
-def run_one(repo: str, rec: str, sink: str, out: str) -> dict:
-    """One replay in this process, with ``repo``'s code; peak and start resident memory, MB."""
+def _peak_mb() -> float:
+    """Peak resident memory of this process, MB: ``VmHWM`` (Linux; it starts afresh at exec), else
+    ``ru_maxrss`` (which on Linux keeps the parent's resident memory at the fork, hence not first)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     import resource
 
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_one(repo: str, rec: str, sink: str, out: str) -> dict:
+    """One replay in this process, with ``repo``'s code; peak and start resident memory, MB."""
     import psutil
 
     sys.path.insert(0, repo)
@@ -69,7 +81,7 @@ def run_one(repo: str, rec: str, sink: str, out: str) -> dict:
     t0 = time.perf_counter()
     code = main(args)
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = _peak_mb()
     import replay
 
     return {"code": code, "start_MB": start, "peak_MB": peak, "wall_s": wall, "code_from": replay.__file__}

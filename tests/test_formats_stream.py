@@ -126,9 +126,10 @@ def _pdrcsv(path: Path, seconds: float, rate: float = 100.0) -> Path:
 def test_merge_holds_a_bounded_number_of_samples(tmp_path, tiny):
     held = {}
     for seconds in (20.0, 80.0):
-        m = Merge(open_recording(_pdrcsv(tmp_path / f"r{seconds:g}", seconds)))
+        src = open_recording(_pdrcsv(tmp_path / f"r{seconds:g}", seconds))
+        m = Merge(src)
         n = sum(len(b[0]) for _, blocks in m.slices(2.0) for b in blocks.values() if b is not None)
-        assert n == 3 * int(seconds * 100)
+        assert n == 3 * int(seconds * 100) and m.position == src.size  # progress: every byte read
         held[seconds] = max(m.max_pending.values())
     # one slice (2 s at 100 Hz) plus one chunk, whatever the length
     assert held[20.0] == held[80.0] <= 200 + _common.CHUNK
@@ -167,8 +168,8 @@ def test_unit_check_on_the_first_samples(tmp_path, tiny):
 def test_replay_from_path_equals_replay_from_recording(tmp_path, tiny, name):
     path = ROOT / "recordings" / name
     a, b = tmp_path / "path.csv", tmp_path / "rec.csv"
-    sa = replay(path, sinks=[CsvSink(a)], progress=False)
-    sb = replay(read_recording(path), sinks=[CsvSink(b)], progress=False)
+    sa = replay(path, sinks=[CsvSink(a)], progress=True)  # a bar over the bytes read
+    sb = replay(read_recording(path), sinks=[CsvSink(b)], progress=True)  # a bar without a total
     assert a.read_bytes() == b.read_bytes() and a.stat().st_size > 1000
     for s in (sa, sb):
         s.pop("elapsed_s"), s.pop("samples_per_s")

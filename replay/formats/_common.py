@@ -40,7 +40,9 @@ import numpy as np
 from replay.errors import InputError
 
 #: Rows (text lines, messages) a parser reads before it hands its cleaned rows on; tests make it tiny.
-CHUNK = 65536
+#: Three files read side by side hold three chunks of text lines at once: 8192 keeps that to a few MB, and
+#: larger chunks are no faster (benchmarks/replay_memory.py: 65536 lines cost +50 MB of peak memory).
+CHUNK = 8192
 #: The unit check looks at the median norm of a stream's first this many samples.
 UNIT_CHECK_SAMPLES = 4096
 
