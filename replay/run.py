@@ -138,7 +138,8 @@ def replay(
         Opened, fed and closed here.
     settings : PipelineSettings, optional
     progress : bool or None
-        Progress bar on stderr; None = only for long recordings on a terminal.
+        Progress bar on stderr, over the input bytes read (the number of samples is not known before the
+        end); None = only for recordings of at least :data:`PROGRESS_MIN_BYTES` on a terminal.
     slice_s : float
         Stream time pushed between polls, s.
     """

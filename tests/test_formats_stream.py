@@ -66,8 +66,7 @@ def _paths(tmp_path):
     yield _mcap(tmp_path)
     yield write_bag(tmp_path / "bag.mcap", n=120)
     for parts in sorted(REAL):
-        if parts[0] != "ms-indoor-location-2020":  # large; its reader is covered by the fixture
-            yield dataset(*parts)
+        yield dataset(*parts)
 
 
 def test_every_reader_streams_the_same_samples(tmp_path, monkeypatch):
@@ -123,10 +122,23 @@ def _pdrcsv(path: Path, seconds: float, rate: float = 100.0) -> Path:
     return path
 
 
-def test_merge_holds_a_bounded_number_of_samples(tmp_path, tiny):
+def _xio(path: Path, seconds: float, rate: float = 100.0) -> Path:
+    """An x-io CSV (one interleaved file for the three streams), deg/s, g, µT."""
+    rng = np.random.default_rng(7)
+    sensors = (("Gyroscope", "deg/s"), ("Accelerometer", "g"), ("Magnetometer", "uT"))
+    cols = [f"{s} {a} ({u})" for s, u in sensors for a in "XYZ"]
+    t = np.arange(int(seconds * rate)) / rate
+    v = np.asarray([0, 0, 0, 0, 0, 1, 20, 0, -40.0]) + rng.normal(0.0, 0.05, (len(t), 9))
+    rows = "\n".join(",".join(f"{x:.5f}" for x in (a, *r)) for a, r in zip(t, v, strict=True))
+    path.write_text("Time (s)," + ",".join(cols) + "\n" + rows + "\n")
+    return path
+
+
+@pytest.mark.parametrize("write,name", [(_pdrcsv, "r"), (_xio, "r.csv")])
+def test_merge_holds_a_bounded_number_of_samples(tmp_path, tiny, write, name):
     held = {}
     for seconds in (20.0, 80.0):
-        src = open_recording(_pdrcsv(tmp_path / f"r{seconds:g}", seconds))
+        src = open_recording(write(tmp_path / f"{seconds:g}{name}", seconds))
         m = Merge(src)
         n = sum(len(b[0]) for _, blocks in m.slices(2.0) for b in blocks.values() if b is not None)
         assert n == 3 * int(seconds * 100) and m.position == src.size  # progress: every byte read

@@ -120,10 +120,12 @@ def _pose_cdr(data: bytes) -> tuple[int, list[float]]:
     return sec * 1_000_000_000 + nsec, [w, x, y, z]
 
 
-def _parse(p: Path, topics: list[str], offsets: dict, builders: dict, truth: dict, opened: list):
-    """Read the messages of ``topics`` into ``builders`` (sensor topics) and ``truth`` (lists ``t``, ``q``,
-    ``exact_t``, ``cdr``: the truth topics); yields after every :data:`~replay.formats._common.CHUNK`
-    messages, with the CDR messages read so far decoded (in blocks, with numpy)."""
+def _parse(p: Path, by_topic: dict, keep, offsets: dict, builders: dict, truth: dict, opened: list):
+    """Read the messages of the topics in ``keep`` into ``builders`` (sensor topics) and ``truth`` (lists
+    ``t``, ``q``, ``exact_t``, ``cdr``: the truth topics); yields after every
+    :data:`~replay.formats._common.CHUNK` messages, with the CDR messages read so far decoded (in blocks, with
+    numpy). Messages are numbered (in errors) over all the topics read, whichever pass reads them."""
+    topics = [t for t in (*TOPICS, TRUTH_TOPIC, TRUTH_T_TOPIC) if t in by_topic]
     pending: dict[str, list[bytes]] = {t: [] for t in TOPICS}  # CDR payloads not yet decoded
 
     def flush() -> None:
@@ -138,6 +140,8 @@ def _parse(p: Path, topics: list[str], offsets: dict, builders: dict, truth: dic
             flush()
             yield
         topic, cdr = channel.topic, channel.message_encoding == "cdr"
+        if topic not in keep:
+            continue
         if cdr and topic in TOPICS:
             pending[topic].append(message.data)
             continue
@@ -185,10 +189,9 @@ def _parse(p: Path, topics: list[str], offsets: dict, builders: dict, truth: dic
 def _truth(p: Path, by_topic: dict, offsets: dict, dropped: Counter):
     """The truth orientation (first pass over the truth topics), or None."""
     truth: dict = {"t": [], "q": [], "exact_t": [], "cdr": []}
-    topics = [t for t in (TRUTH_TOPIC, TRUTH_T_TOPIC) if t in by_topic]
-    if not topics:
+    if TRUTH_TOPIC not in by_topic:
         return None
-    for _ in _parse(p, topics, offsets, {}, truth, []):
+    for _ in _parse(p, by_topic, (TRUTH_TOPIC, TRUTH_T_TOPIC), offsets, {}, truth, []):
         pass
     if truth["cdr"]:
         truth["exact_t"] = _floats(p, TRUTH_T_TOPIC, truth["cdr"], _REF_SIZE)[:, 0].tolist()
@@ -218,13 +221,12 @@ def open_source(path) -> RecordingSource:
     offsets = {c.id: int(c.metadata.get("time_offset_ns", "0") or 0) for c in channels}
     dropped: Counter = Counter()
     truth = _truth(p, by_topic, offsets, dropped)
-    topics = [t for t in TOPICS if t in by_topic]
-    keys = tuple(TOPICS[t] for t in topics)
+    keys = tuple(key for t, key in TOPICS.items() if t in by_topic)
 
     def chunks():
         builders = {key: StreamBuilder(p, key, dropped) for key in keys}
         opened: list = []
-        yield from chunks_of(opened, builders, _parse(p, topics, offsets, builders, {}, opened))
+        yield from chunks_of(opened, builders, _parse(p, by_topic, TOPICS, offsets, builders, {}, opened))
 
     specs = {k: StreamSpec(p, k, unit_hint=_UNITS[k]) for k in keys}
     return RecordingSource(
