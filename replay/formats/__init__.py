@@ -14,7 +14,9 @@ have one lazily advanced parser per file; readers of one interleaved file (``ipi
 IPIN's clock shift and fixes, ms-indoor's choice of raw or calibrated streams and its waypoints, pdr-mcap's
 truth topics — a first pass collects it without keeping samples (the file is parsed twice). Because the
 checks run as the samples stream, an error late in a file is raised after the earlier slices went through
-the pipeline; it is the same one-line :class:`InputError`.
+the pipeline; it is the same one-line :class:`InputError`. The evaluation-only series (truth — e.g. the
+tyrex Qualisys ``.mat`` —, the phone's own orientation, temperature) are loaded whole: they are small and
+never read by the pipeline. ``replay`` streams; ``calibrate`` and ``diagnose`` fit batches and collect.
 
 Detection
 ---------
@@ -36,13 +38,16 @@ MagneticField).
 
 Errors and odd samples
 ----------------------
-A file that cannot be right (missing stream, bad header, text in a number column, time going backwards,
-truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming the file and, for text,
-the line. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
+A file that cannot be right (missing stream, bad header, text in a number column, time going backwards —
+also across chunks —, truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming
+the file and, for text, the line. The unit is judged on a stream's first
+:data:`~replay.formats._common.UNIT_CHECK_SAMPLES` samples (median vector norm), a stream too short when it
+ends. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
 
 * ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
-  the format states, else from :func:`replay.formats._common.flag_saturation`;
+  the format states, else from :func:`replay.formats._common.flag_saturation`'s heuristic, run as the
+  stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);
 * format-specific: ``truth:nan``/``truth:glitch`` (mocap occlusions), ``mag:held_repeat`` (a
   sample-and-hold repeat), ``accel:no_gravity_sample`` (Sensor Logger's user acceleration without a
   gravity sample at the same time).

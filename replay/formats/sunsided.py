@@ -34,6 +34,7 @@ times and come in bursts (median 2 ms, gaps of 42 ms); they are kept as they are
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
 from pathlib import Path
 
@@ -137,7 +138,7 @@ def open_source(path) -> RecordingSource:
         specs["gyro"] = StreamSpec(
             mpu, "gyro", scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s", limit_known=True
         )
-        temperature = lambda: _temperature(mpu)  # noqa: E731
+        temperature = functools.partial(_temperature, mpu)
     meta = {
         "device": "MPU6050 + HMC5883L breadboard",
         "axes": "device x = -board y, y = board x (forward), z = z",
