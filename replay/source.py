@@ -16,7 +16,9 @@ one code path.  A source has
 :class:`Merge` drives the feeds lazily and cuts time slices for the pipeline: a feed is advanced only when
 one of its streams has no sample at or after the next slice edge, so it holds about one chunk per stream
 (plus the first :data:`~replay.formats._common.UNIT_CHECK_SAMPLES` of a stream until its unit check has
-run) — memory independent of the recording's length.
+run) — memory independent of the recording's length. (One interleaved file whose streams lie far apart in
+time at the same place in the file — e.g. very different IPIN clock shifts — makes the merge hold that
+lag's worth of the leading streams.)
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ names its line; replay from a path equals replay from a Recording."""
 
 from __future__ import annotations
 
+import shutil
 from collections import Counter
 from pathlib import Path
 
@@ -63,6 +64,7 @@ def _mcap(tmp_path: Path) -> Path:
 
 def _paths(tmp_path):
     yield from (FIX / name for name in sorted(FIXTURES))
+    yield Path(shutil.make_archive(str(tmp_path / "ios"), "zip", FIX / "sensorlogger_ios"))  # a zip export
     yield _mcap(tmp_path)
     yield write_bag(tmp_path / "bag.mcap", n=120)
     for parts in sorted(REAL):
