@@ -1,8 +1,9 @@
 """Drive a recording through :class:`pdr_mag.pipeline.HeadingPipeline` and into the sinks.
 
-The recording's streams are pushed in slices of ``slice_s`` seconds of stream time (the way a phone would
-deliver them), the pipeline is polled after each slice, and everything it gives out — estimates, events,
-calibrations, calibrated magnetometer samples — goes to every sink through the
+The recording streams (:mod:`replay.source`): its samples are read a chunk at a time and pushed in slices
+of ``slice_s`` seconds of stream time (the way a phone would deliver them), so memory does not grow with
+the recording's length; the pipeline is polled after each slice, and everything it gives out — estimates,
+events, calibrations, calibrated magnetometer samples — goes to every sink through the
 :class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink.
 """
 
@@ -18,11 +19,12 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from replay.errors import InputError
-from replay.formats import read_recording
+from replay.formats import open_recording
 from replay.recording import Recording
+from replay.source import Merge, RecordingSource
 
-#: Recordings with more samples than this get a progress bar.
-PROGRESS_MIN_SAMPLES = 200_000
+#: Recordings of more input bytes than this get a progress bar (≈ 200 000 samples of text).
+PROGRESS_MIN_BYTES = 8_000_000
 
 
 class CsvSink:
@@ -110,7 +112,7 @@ def make_sink(kind: str, path, *, spawn: bool = False):
         raise InputError(path, f"--{'mcap' if kind == 'mcap' else 'rrd'} output not available yet") from None
 
 
-def os_reference(rec: Recording):
+def os_reference(rec: Recording | RecordingSource):
     """The phone's own orientation (``os``) when the reader found one, else None."""
     return rec.references.get("os")
 
@@ -127,39 +129,46 @@ def replay(
 
     Parameters
     ----------
-    rec_path : path or Recording
-        A recording (any format a reader recognises) or one already read.
+    rec_path : path, RecordingSource or Recording
+        A recording (any format a reader recognises: streamed, a chunk at a time), one opened with
+        :func:`replay.formats.open_recording`, or one already read (pushed from memory, same slices).
     calibration : MagCalibration, path or None
         The device calibration (a path is read as the ``calibrate --json`` file); None = online only.
     sinks : sequence of Sink
         Opened, fed and closed here.
     settings : PipelineSettings, optional
     progress : bool or None
-        Progress bar on stderr; None = only for long recordings on a terminal.
+        Progress bar on stderr, over the input bytes read (the number of samples is not known before the
+        end); None = only for recordings of at least :data:`PROGRESS_MIN_BYTES` on a terminal.
     slice_s : float
         Stream time pushed between polls, s.
     """
-    rec = rec_path if isinstance(rec_path, Recording) else read_recording(rec_path)
-    if rec.accel is None or rec.gyro is None:
-        missing = "accel" if rec.accel is None else "gyro"
-        raise InputError(rec.source or rec_path, f"no {missing} stream (heading needs accel, gyro and mag)")
+    if isinstance(rec_path, RecordingSource):
+        src = rec_path
+    elif isinstance(rec_path, Recording):
+        src = RecordingSource.from_recording(rec_path)
+    else:
+        src = open_recording(rec_path)
+    where = src.source or rec_path
+    merge = Merge(src)  # reads the first chunk of every stream
+    for key in ("accel", "gyro"):
+        if key not in merge.present:
+            raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
     if calibration is not None and not isinstance(calibration, MagCalibration):
         calibration = load_calibration(calibration)
     sinks = list(sinks)
     if settings is None and any(not isinstance(s, CsvSink) for s in sinks):
         settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
     try:
-        pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=rec.meta)
+        pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta)
     except ValueError as exc:
-        raise InputError(rec.source or rec_path, str(exc)) from None
-    streams = {"accel": rec.accel, "gyro": rec.gyro, "mag": rec.mag}
-    n_samples = sum(len(s) for s in streams.values())
+        raise InputError(where, str(exc)) from None
     meta = {
-        **rec.meta,
-        "source": rec.source,
-        "format": rec.format,
+        **src.meta,
+        "source": src.source,
+        "format": src.format,
         "north": pipe.north,
-        "t0": rec.t0,
+        "t0": merge.t0,
     }
     if pipe.field is not None:
         meta["field"] = {
@@ -171,43 +180,40 @@ def replay(
     for s in sinks:
         s.open(meta)
     if sinks:
-        if rec.truth is not None:
+        if src.truth is not None:
             for s in sinks:
-                s.reference("truth", rec.truth[0], rec.truth[1])
-        osref = os_reference(rec)
+                s.reference("truth", src.truth[0], src.truth[1])
+        osref = os_reference(src)
         if osref is not None:
             for s in sinks:
                 s.reference("os", osref[0], osref[1])
     if calibration is not None:
         for s in sinks:
-            s.calibration(rec.t0, calibration)
+            s.calibration(merge.t0, calibration)
     if progress is None:
         import sys
 
-        progress = n_samples >= PROGRESS_MIN_SAMPLES and sys.stderr.isatty()
+        progress = src.size >= PROGRESS_MIN_BYTES and sys.stderr.isatty()
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_samples, unit="sample", unit_scale=True, desc="replay", leave=False)
+        total = src.size or None
+        bar = tqdm(total=total, unit="B", unit_scale=True, desc="replay", leave=False)
     events: list = []
     state_counts: Counter = Counter()
     n_cal_seen = len(pipe.calibrations)
-    idx = {k: 0 for k in streams}
+    n_pushed = dict.fromkeys(merge.present, 0)
     t_start = time.perf_counter()
-    edges = np.arange(rec.t0 + slice_s, rec.t1 + slice_s, slice_s)
     try:
-        for final, edge in [(False, e) for e in edges] + [(True, np.inf)]:
-            pushed = 0
-            for name, st in streams.items():
-                j = len(st.t) if final else int(np.searchsorted(st.t, edge, side="left"))
-                i = idx[name]
-                if j > i:
-                    pipe.push_arrays(name, st.t[i:j], st.xyz[i:j])
+        for final, blocks in merge.slices(slice_s):
+            for name, block in blocks.items():
+                if block is not None:
+                    t, xyz = block
+                    pipe.push_arrays(name, t, xyz)
                     for s in sinks:
-                        s.inputs(name, st.t[i:j], st.xyz[i:j])
-                    pushed += j - i
-                    idx[name] = j
+                        s.inputs(name, t, xyz)
+                    n_pushed[name] += len(t)
             batch = pipe.flush() if final else pipe.poll()
             _emit(pipe, batch, sinks, events, state_counts)
             cals = pipe.calibrations
@@ -216,23 +222,24 @@ def replay(
                     s.calibration(t_cal, cal)
             n_cal_seen = len(cals)
             if bar is not None:
-                bar.update(pushed)
+                bar.update(merge.position - bar.n)
     finally:
         if bar is not None:
             bar.close()
         for s in sinks:
             s.close()
     elapsed = time.perf_counter() - t_start
+    n_samples = sum(n_pushed.values())
     summary = pipe.summary()
-    dropped = Counter(rec.dropped)
+    dropped = Counter(src.dropped)
     dropped.update(pipe.dropped)
     summary.update(
         {
-            "source": rec.source,
-            "format": rec.format,
+            "source": src.source,
+            "format": src.format,
             "events": events,
             "dropped_samples": dict(sorted(dropped.items())),
-            "n_samples": {k: len(v) for k, v in streams.items()},
+            "n_samples": n_pushed,
             "cal_state_rows": dict(sorted(state_counts.items())),
             "calibration_given": calibration is not None,
             "elapsed_s": elapsed,

@@ -1,10 +1,27 @@
 """Readers: one module per format, each converting units and axes into the contract (INTERFACE.md).
 
-:func:`read_recording` detects the format of a path and returns a :class:`replay.recording.Recording`.
+:func:`open_recording` detects the format of a path and returns a :class:`replay.source.RecordingSource`:
+the recording's metadata, and its sensor streams read as they are consumed, a chunk at a time, never whole
+(:mod:`replay.source`). :func:`read_recording` collects one into a :class:`replay.recording.Recording`.
+
+Streaming
+---------
+Every reader streams, except the MATLAB files of ``broad`` (``scipy.io.loadmat`` cannot read a variable
+in parts; those are small research recordings): they are loaded whole, then served through the same source
+API. Readers of several files (``pdr-csv``, ``tyrex``, ``sunsided-marg``, ``sensor-logger``, ``phyphox``)
+have one lazily advanced parser per file; readers of one interleaved file (``ipin``, ``ms-indoor``,
+``xio-csv``, ``pdr-mcap``, ``ros2-mcap``) demultiplex it in one pass. Where metadata needs the whole file —
+IPIN's clock shift and fixes, ms-indoor's choice of raw or calibrated streams and its waypoints, pdr-mcap's
+truth topics — a first pass collects it without keeping samples (the file is parsed twice). Because the
+checks run as the samples stream, an error late in a file is raised after the earlier slices went through
+the pipeline; it is the same one-line :class:`InputError`. The evaluation-only series (truth — e.g. the
+tyrex Qualisys ``.mat`` —, the phone's own orientation, temperature) are loaded whole: they are small and
+never read by the pipeline. ``replay`` streams; ``calibrate`` and ``diagnose`` fit batches and collect.
 
 Detection
 ---------
-Every reader module has ``NAME`` (str), ``detect(path) -> bool`` and ``read(path) -> Recording``.
+Every reader module has ``NAME`` (str), ``detect(path) -> bool``, ``open_source(path) -> RecordingSource``
+and ``read(path) -> Recording`` (``open_source(path).collect()``).
 ``detect`` is cheap and certain: it looks at file names, a header line or a file's magic bytes — never at the
 whole file — and it never raises. :data:`READERS` lists the modules in the order they are asked; the first
 that recognises the path reads it. A path that no reader recognises is an :class:`InputError`.
@@ -21,13 +38,16 @@ MagneticField).
 
 Errors and odd samples
 ----------------------
-A file that cannot be right (missing stream, bad header, text in a number column, time going backwards,
-truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming the file and, for text,
-the line. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
+A file that cannot be right (missing stream, bad header, text in a number column, time going backwards —
+also across chunks —, truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming
+the file and, for text, the line. The unit is judged on a stream's first
+:data:`~replay.formats._common.UNIT_CHECK_SAMPLES` samples (median vector norm), a stream too short when it
+ends. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
 
 * ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
-  the format states, else from :func:`replay.formats._common.flag_saturation`;
+  the format states, else from :func:`replay.formats._common.flag_saturation`'s heuristic, run as the
+  stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);
 * format-specific: ``truth:nan``/``truth:glitch`` (mocap occlusions), ``mag:held_repeat`` (a
   sample-and-hold repeat), ``accel:no_gravity_sample`` (Sensor Logger's user acceleration without a
   gravity sample at the same time).
@@ -84,15 +104,25 @@ def detect(path) -> str | None:
 
 
 def read_recording(path, fmt: str | None = None) -> Recording:
-    """Read any recording a reader recognises; raises :class:`InputError` otherwise."""
+    """Read any recording a reader recognises, whole; raises :class:`InputError` otherwise."""
+    return open_recording(path, fmt).collect()
+
+
+def open_recording(path, fmt: str | None = None):
+    """Open any recording a reader recognises as a :class:`replay.source.RecordingSource` (streaming)."""
     p = Path(path)
+    return _reader(p, fmt).open_source(p)
+
+
+def _reader(p: Path, fmt: str | None):
+    """The reader module for ``p`` (by name when ``fmt`` is given), else InputError."""
     if not p.exists():
         raise InputError(p, "no such file or directory")
     mods = list(_modules())
     if fmt is not None:
         for mod in mods:
             if mod.NAME == fmt:
-                return mod.read(p)
+                return mod
         raise InputError(p, f"unknown format {fmt!r} (known: {', '.join(m.NAME for m in mods)})")
     for mod in mods:
         try:
@@ -100,7 +130,7 @@ def read_recording(path, fmt: str | None = None) -> Recording:
         except OSError:
             hit = False
         if hit:
-            return mod.read(p)
+            return mod
     if p.is_file():
         with p.open("rb") as fh:
             head = fh.read(8)

@@ -9,11 +9,20 @@ Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilde
   when the reader knows that limit;
 * stores values in compact ``array('d')`` buffers (8 bytes a number, not a Python float object each).
 
-:func:`finish` converts to a :class:`~replay.recording.Stream` in the contract's units and checks that the
-median vector norm is plausible for the stream (µT, m/s², rad/s), which catches a file in the wrong unit;
-where the reader does not know the sensor's range, :func:`flag_saturation` counts clipped samples.
+Readers stream: after every chunk (:data:`CHUNK` lines or messages) a parser hands the rows cleaned so far
+on (:meth:`StreamBuilder.take`), so a builder never holds more than one chunk. A :class:`StreamSpec` says
+how a stream's rows become the contract's units; its :class:`Converter` converts block by block and runs the
+checks that used to look at the whole stream, in streaming form:
 
-:func:`read_table` parses numeric text in chunks (numpy fast path, exact-line errors), :class:`Bundle`
+* the unit plausibility check (median vector norm, µT / m/s² / rad/s — a file in the wrong unit) looks at
+  the first :data:`UNIT_CHECK_SAMPLES` samples (or all, when the stream is shorter): blocks are held back
+  until it has run;
+* the too-few-samples check runs when the stream ends;
+* where the reader does not know the sensor's range, :class:`Saturation` counts clipped samples with a
+  running per-axis peak; the count is exactly :func:`flag_saturation`'s on the whole stream, and it enters
+  ``dropped`` when the stream ends.
+
+:func:`iter_table` parses numeric text in chunks (numpy fast path, exact-line errors), :class:`Bundle`
 reads the files of a folder or a zip export as streams, :func:`iter_csv` reads quoted CSV.
 """
 
@@ -22,12 +31,22 @@ from __future__ import annotations
 import math
 from array import array
 from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from replay.errors import InputError
-from replay.recording import Stream
+
+#: Rows (text lines, messages) a parser reads before it hands its cleaned rows on; tests make it tiny.
+#: Three files read side by side hold three chunks of text lines at once: 8192 keeps that to a few MB, and
+#: larger chunks are no faster (benchmarks/replay_memory.py: 65536 lines cost +50 MB of peak memory).
+CHUNK = 8192
+#: The unit check looks at the median norm of a stream's first this many samples.
+UNIT_CHECK_SAMPLES = 4096
+
+Block = tuple[np.ndarray, np.ndarray]
 
 # Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
 UNIT_RANGES = {
@@ -141,7 +160,8 @@ class StreamBuilder:
         if len(back):
             i = back[0]
             line = None if first_line is None else first_line + int(rows[i])
-            raise InputError(self.path, f"{self.key}: time goes backwards ({t[i]!r} after {prev[i]!r})", line)
+            back, last = float(t[i]), float(prev[i])
+            raise InputError(self.path, f"{self.key}: time goes backwards ({back!r} after {last!r})", line)
         keep = t != prev
         self._count("duplicate_t", int((~keep).sum()))
         t, vals = t[keep], vals[keep]
@@ -161,12 +181,62 @@ class StreamBuilder:
         v = np.frombuffer(self.v, dtype=float).copy().reshape(-1, self.width)
         return t, v
 
+    def take(self) -> Block:
+        """The rows added since the last ``take()`` (as :meth:`arrays`), and forget them (the cleaning state —
+        last time, counters — carries on)."""
+        out = self.arrays()
+        self.t = array("d")
+        self.v = array("d")
+        return out
+
+
+def take_all(builders: dict) -> dict[str, Block]:
+    """``{key: builder.take()}`` of the builders that hold rows: what a parser yields after a chunk."""
+    return {k: b.take() for k, b in builders.items() if len(b)}
+
 
 #: Heuristic saturation (when the reader does not know the sensor's range): per axis, the largest |value| is
 #: a clipped range limit if at least SAT_MIN_COUNT samples sit exactly on it and it is above the floor — the
 #: smallest range phones use is ±2 g (19.6 m/s²) and ±250 deg/s (4.36 rad/s), so normal data never qualifies.
 SAT_FLOOR = {"accel": 15.0, "gyro": 4.0}
 SAT_MIN_COUNT = 3
+_BITS = np.array([1, 2, 4])
+
+
+class Saturation:
+    """:func:`flag_saturation`'s count, streaming: a running per-axis peak of ``|value|``.
+
+    Each sample is filed under the set of axes (a 3-bit pattern) at which it equals the running peak; when an
+    axis's peak rises, the earlier samples lose that axis's bit. At the end, axis ``a`` qualifies when its
+    peak is ≥ :data:`SAT_FLOOR` and at least :data:`SAT_MIN_COUNT` samples sit on it, and the count is the
+    number of samples whose pattern holds a qualifying axis: exactly the whole-array count, from 8 counters.
+    """
+
+    def __init__(self, key: str):
+        self.floor = SAT_FLOOR.get(key)
+        self.peak = np.full(3, -np.inf)
+        self.patterns = np.zeros(8, dtype=np.int64)
+
+    def update(self, xyz: np.ndarray) -> None:
+        if self.floor is None or len(xyz) == 0:
+            return
+        a = np.abs(xyz)
+        peak = np.maximum(self.peak, a.max(axis=0))
+        for axis in np.flatnonzero(peak > self.peak):
+            bit = 1 << int(axis)
+            for pat in range(8):
+                if pat & bit and self.patterns[pat]:
+                    self.patterns[pat & ~bit] += self.patterns[pat]
+                    self.patterns[pat] = 0
+        self.peak = peak
+        self.patterns += np.bincount((a == peak) @ _BITS, minlength=8)
+
+    def count(self) -> int:
+        if self.floor is None:
+            return 0
+        per_axis = [int(self.patterns[[p for p in range(8) if p & (1 << a)]].sum()) for a in range(3)]
+        hit = sum(1 << a for a in range(3) if self.peak[a] >= self.floor and per_axis[a] >= SAT_MIN_COUNT)
+        return int(sum(self.patterns[p] for p in range(8) if p & hit))
 
 
 def flag_saturation(key: str, xyz: np.ndarray, dropped: Counter) -> int:
@@ -174,49 +244,132 @@ def flag_saturation(key: str, xyz: np.ndarray, dropped: Counter) -> int:
 
     Only for ``accel`` and ``gyro``, in the contract's units (see :data:`SAT_FLOOR`). Samples are kept.
     """
-    floor = SAT_FLOOR.get(key)
-    if floor is None or len(xyz) == 0:
-        return 0
-    a = np.abs(xyz)
-    peak = a.max(axis=0)
-    at = (a == peak) & (peak >= floor)
-    counts = at.sum(axis=0)
-    hit = np.any(at[:, counts >= SAT_MIN_COUNT], axis=1)
-    n = int(hit.sum())
+    sat = Saturation(key)
+    sat.update(np.asarray(xyz, dtype=float).reshape(-1, 3))
+    n = sat.count()
     if n:
         dropped[f"{key}:saturated"] += n
     return n
 
 
-def finish(
-    b: StreamBuilder,
-    scale: float = 1.0,
-    axes: np.ndarray | None = None,
-    t_offset: float = 0.0,
-    unit_hint: str = "",
-    check: bool = True,
-    min_samples: int = 2,
-) -> Stream:
-    """Convert a builder to a Stream in the contract: ``xyz = scale * (axes @ v)``, ``t = t_raw + t_offset``.
+@dataclass(frozen=True)
+class StreamSpec:
+    """How the rows of one stream become the contract's: ``xyz = scale * (axes @ v)``,
+    ``t = t_raw + t_offset``.
 
-    ``axes`` is the 3×3 matrix taking a source-frame vector into the Android device frame (a signed
-    permutation for the devices here). Raises InputError for an empty/too short stream or an implausible unit.
+    Attributes
+    ----------
+    path : file named in errors.
+    key : ``"mag"``, ``"accel"``, ``"gyro"``.
+    scale, axes, t_offset : the conversion (``axes``: 3×3, source frame → Android device frame, a signed
+        permutation for the devices here).
+    unit_hint : the source unit, named in the unit-check error.
+    check : run the unit plausibility check.
+    limit_known : the reader counts saturation against the sensor's range (``StreamBuilder(limit=…)``), else
+        the :class:`Saturation` heuristic counts it.
+    min_samples : fewer valid samples is an error (``empty stream``)…
+    optional : …unless the stream has none at all and is optional (a format where it may be absent): then
+        the recording has no such stream.
     """
-    if len(b) < min_samples:
-        what = "no valid samples" if len(b) == 0 else f"only {len(b)} valid sample(s)"
-        raise InputError(b.path, f"{b.key}: empty stream ({what})")
-    t, v = b.arrays()
-    if axes is not None:
-        v = v @ np.asarray(axes, dtype=float).T
-    if scale != 1.0:
-        v *= scale
-    if t_offset:
-        t += t_offset
-    if check:
-        check_units(b.path, b.key, v, unit_hint)
-    if b.limit is None:
-        flag_saturation(b.key, v, b.dropped)
-    return Stream(t=t, xyz=v)
+
+    path: object
+    key: str
+    scale: float = 1.0
+    axes: np.ndarray | None = None
+    t_offset: float = 0.0
+    unit_hint: str = ""
+    check: bool = True
+    limit_known: bool = False
+    min_samples: int = 2
+    optional: bool = False
+
+    def converter(self, dropped: Counter) -> Converter:
+        return Converter(self, dropped)
+
+
+class Converter:
+    """Blocks of cleaned rows in, blocks in the contract's units out, with the stream's checks (module doc).
+
+    :meth:`push` returns the blocks ready to go on (none until the unit check has run), :meth:`end` the rest;
+    ``n`` counts the samples.
+    """
+
+    def __init__(self, spec: StreamSpec, dropped: Counter):
+        self.spec = spec
+        self.dropped = dropped
+        self.n = 0
+        self.held: list[Block] | None = [] if spec.check else None
+        self.sat = None if spec.limit_known else Saturation(spec.key)
+
+    def push(self, t: np.ndarray, v: np.ndarray) -> list[Block]:
+        if len(t) == 0:
+            return []
+        sp = self.spec
+        if sp.axes is not None:
+            v = v @ np.asarray(sp.axes, dtype=float).T
+        if sp.scale != 1.0:
+            v *= sp.scale
+        if sp.t_offset:
+            t += sp.t_offset
+        self.n += len(t)
+        if self.sat is not None:
+            self.sat.update(v)
+        if self.held is None:
+            return [(t, v)]
+        self.held.append((t, v))
+        return self._release() if self.n >= UNIT_CHECK_SAMPLES else []
+
+    def _release(self) -> list[Block]:
+        held, self.held = self.held, None
+        if held:
+            head = np.concatenate([v for _, v in held])[:UNIT_CHECK_SAMPLES]
+            check_units(self.spec.path, self.spec.key, head, self.spec.unit_hint)
+        return held
+
+    def end(self) -> list[Block]:
+        """The blocks still held; InputError for a stream too short (or an implausible unit)."""
+        sp = self.spec
+        if self.n < sp.min_samples and not (sp.optional and self.n == 0):
+            what = "no valid samples" if self.n == 0 else f"only {self.n} valid sample(s)"
+            raise InputError(sp.path, f"{sp.key}: empty stream ({what})")
+        out = self._release() if self.held is not None else []
+        if self.sat is not None:
+            n = self.sat.count()
+            if n:
+                self.dropped[f"{sp.key}:saturated"] += n
+        return out
+
+
+def chunks_of(fh, builders: dict, steps) -> Iterator[tuple[int, dict[str, Block]]]:
+    """After each step of a parser (``steps``: an iterator run for its effect on ``builders``), yield the
+    bytes of ``fh`` consumed and the rows the builders took in since the last step
+    (:meth:`StreamBuilder.take`) — the ``chunks()`` of a :class:`replay.source.Feed`."""
+    for _ in steps:
+        yield tell(fh), take_all(builders)
+    yield tell(fh), take_all(builders)
+
+
+def every(rows, n_lines: int | None = None) -> Iterator[None]:
+    """Run a line-by-line parser (``rows``: its per-line iterator) and yield after every ``n_lines``
+    (default :data:`CHUNK`)."""
+    n = n_lines or CHUNK
+    for i, _ in enumerate(rows, start=1):
+        if i % n == 0:
+            yield None
+
+
+def tell(fh) -> int:
+    """Bytes of a file consumed so far (text or binary stream; a zip member: uncompressed), for progress.
+
+    ``fh`` may also be a list that a parser appends its file to once it has opened it."""
+    if isinstance(fh, list):
+        if not fh:
+            return 0
+        fh = fh[0]
+    try:
+        return int(getattr(fh, "buffer", fh).tell())
+    except (OSError, ValueError, AttributeError):
+        return 0
 
 
 def require(path: Path, what: str) -> Path:
@@ -267,6 +420,12 @@ class Bundle:
         hits = [n for n in self.names() if n.rsplit("/", 1)[-1].lower() == basename.lower()]
         return min(hits, key=lambda n: (n.count("/"), n)) if hits else None
 
+    def size(self, name: str) -> int:
+        """Bytes of ``name`` (uncompressed), for progress."""
+        if self.zip is not None:
+            return self.zip.getinfo(name).file_size
+        return (self.path / name).stat().st_size
+
     def where(self, name: str) -> str:
         return f"{self.path}!{name}" if self.zip is not None else str(self.path / name)
 
@@ -302,7 +461,13 @@ def iter_csv(fh, where: str, delimiter: str = ","):
         raise InputError(where, f"bad CSV ({exc})", reader.line_num) from None
 
 
-def read_table(
+def read_table(fh, path, targets, ncol: int, **kw) -> None:
+    """Parse a whole text stream into builders (:func:`iter_table` run to the end)."""
+    for _ in iter_table(fh, path, targets, ncol, **kw):
+        pass
+
+
+def iter_table(
     fh,
     path,
     targets,
@@ -311,8 +476,8 @@ def read_table(
     delimiter: str | None = None,
     tcol: int = 0,
     t_scale: float = 1.0,
-    chunk: int = 65536,
-) -> None:
+    chunk: int | None = None,
+) -> Iterator[int]:
     """Parse numeric rows ``t, v…`` of a text stream in chunks into builders, with exact errors.
 
     Parameters
@@ -324,13 +489,16 @@ def read_table(
     first_line : line number of the stream's next line.
     delimiter : None for whitespace, else e.g. ``","``.
     tcol, t_scale : the time column and its factor to seconds.
+    chunk : lines a chunk, default :data:`CHUNK`.
 
+    Yields the number of lines read so far after each chunk (the builders then hold that chunk's rows).
     The fast path parses a chunk with :func:`numpy.loadtxt` and cleans it with
     :meth:`StreamBuilder.add_block`; a chunk that does not parse (text in a number column, a short row, a
     blank line) is re-read line by line so that the error names the exact line.
     """
     import itertools
 
+    chunk = chunk or CHUNK
     lineno = first_line
     cols = list(range(ncol))
     while True:
@@ -364,3 +532,4 @@ def read_table(
                 for b, ix in targets:
                     b.add(lineno + i, vals[tcol] * t_scale, [vals[j] for j in ix])
         lineno += len(lines)
+        yield lineno - first_line

@@ -94,12 +94,16 @@ def why_unknown(path: Path) -> str:
     )
 
 
-def iter_messages(path: Path, topics: list[str], decoder_factories=()):
-    """Yield ``(channel, message[, decoded])`` of ``topics`` in file order; a damaged file → InputError."""
+def iter_messages(path: Path, topics: list[str], decoder_factories=(), opened: list | None = None):
+    """Yield ``(channel, message[, decoded])`` of ``topics`` in file order; a damaged file → InputError.
+
+    ``opened``, when given, gets the open file appended (its position tells the progress)."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     with path.open("rb") as fh:
+        if opened is not None:
+            opened.append(fh)
         reader = make_reader(fh, decoder_factories=list(decoder_factories))
         try:
             if decoder_factories:

@@ -14,19 +14,24 @@ A MATLAB v5 file (``scipy.io.loadmat``) with, on one common clock of ``sampling_
 The IMU's own axes are taken as the device frame (it is not a phone; x, y, z of the board). Units are the
 contract's already. Times are ``i / sampling_rate``. ``opt_quat`` becomes :attr:`Recording.truth` without its
 NaN rows (counted as ``truth:nan``), with ``meta["truth_north"] = "magnetic"`` (the lab's measured field
-defines north). Only the needed variables are loaded (``opt_pos`` is skipped).
+defines north). Only the needed variables are loaded (``opt_pos`` is skipped). ``scipy.io.loadmat`` cannot
+read a variable in parts, so this reader loads the file whole (the one reader that does; the trials are a
+few minutes long) and then serves it through the streaming source API like the others.
 """
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish
+from replay.formats import _common
+from replay.formats._common import StreamBuilder, StreamSpec
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "broad"
 _NEEDED = ("imu_acc", "imu_gyr", "imu_mag")
@@ -47,8 +52,22 @@ def detect(path: Path) -> bool:
     return "imu_mag" in names and ("imu_acc" in names or "imu_gyr" in names)
 
 
+def _array_chunks(p: Path, key: str, t: np.ndarray, v: np.ndarray, dropped: Counter):
+    """Arrays already in memory, cleaned (:meth:`StreamBuilder.add_block`) a chunk at a time."""
+    b = StreamBuilder(p, key, dropped)
+    step = _common.CHUNK
+    for i in range(0, len(t), step):
+        b.add_block(t[i : i + step], v[i : i + step])
+        yield 0, ({key: b.take()} if len(b) else {})
+
+
 def read(path) -> Recording:
     """Read a BROAD trial ``.mat`` into a :class:`Recording` (with truth)."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open a BROAD trial ``.mat`` (loaded whole, see the module docstring) as a source."""
     p = Path(path)
     from scipy.io import loadmat
 
@@ -70,16 +89,15 @@ def read(path) -> Recording:
     n = np.asarray(m["imu_mag"]).shape[0]
     t = np.arange(n) / rate
     dropped: Counter = Counter()
-    streams = {}
+    specs, feeds = {}, []
     for var, key in (("imu_mag", "mag"), ("imu_acc", "accel"), ("imu_gyr", "gyro")):
         if var not in m:
             continue
         v = np.asarray(m[var], dtype=float)
         if v.ndim != 2 or v.shape != (n, 3):
             raise InputError(p, f"{var} has shape {v.shape}, expected ({n}, 3)")
-        b = StreamBuilder(p, key, dropped)
-        b.add_block(t, v)
-        streams[key] = finish(b, unit_hint={"mag": "µT", "accel": "m/s²", "gyro": "rad/s"}[key])
+        specs[key] = StreamSpec(p, key, unit_hint={"mag": "µT", "accel": "m/s²", "gyro": "rad/s"}[key])
+        feeds.append(Feed((key,), functools.partial(_array_chunks, p, key, t, v, dropped)))
     truth = None
     if "opt_quat" in m:
         q = np.asarray(m["opt_quat"], dtype=float)
@@ -100,13 +118,4 @@ def read(path) -> Recording:
         if mv.shape == (n,) and mv.any():
             idx = np.flatnonzero(mv)
             meta["movement_s"] = [float(t[idx[0]]), float(t[idx[-1]])]
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
-        meta=meta,
-        truth=truth,
-        source=str(p),
-        format=NAME,
-        dropped=dropped,
-    )
+    return RecordingSource(specs, feeds, meta=meta, truth=truth, source=str(p), format=NAME, dropped=dropped)

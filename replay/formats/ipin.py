@@ -16,7 +16,8 @@ stamped on delivery, so jittered; ``SensorTimestamp`` is the sensor's own, preci
 origin. The sensor timestamps are moved onto the app clock by the smallest ``AppTimestamp -
 SensorTimestamp`` (the delivery latency's floor), so the streams share the app clock (and the ``POSI`` fixes)
 while keeping the sensors' precise spacing and their relative timing: one shift for all streams when their
-sensor clocks agree (within 0.5 s, the usual case on Android), else one shift per stream.
+sensor clocks agree (within 0.5 s, the usual case on Android), else one shift per stream. The shifts need
+the whole file: a first pass finds them (and the fixes and the header), the second streams the samples.
 ``POSI`` fixes go to ``meta["positions"]`` as ``[t, latitude_deg, longitude_deg, floor, building]``; the
 first one also sets ``latitude_deg``/``longitude_deg``. The ``% Model:`` and ``% Manufacturer:`` header
 lines give ``meta["device"]``.
@@ -29,9 +30,10 @@ from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.formats._common import is_float as _is_number
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "ipin"
 _TYPES = {"ACCE": "accel", "GYRO": "gyro", "MAGN": "mag"}
@@ -53,68 +55,76 @@ def detect(path: Path) -> bool:
     return any(b"'MAGN;AppTimestamp" in ln for ln in lines if ln.startswith(b"%"))
 
 
-def read(path) -> Recording:
-    """Read an IPIN/GetSensorData logfile (line by line) into a :class:`Recording`."""
-    p = Path(path)
-    dropped: Counter = Counter()
+def _parse(p: Path, fh, builders: dict, found: dict):
+    """Parse the logfile line by line into ``builders`` (yielding after each line); ``found`` collects the
+    delivery-latency floors (``offsets``), the ``positions`` and the header's ``model``/``maker``."""
+    for lineno, line in enumerate(fh, start=1):
+        yield
+        if line.startswith("%"):
+            body = line.lstrip("% ").strip()
+            if body.startswith("Model:"):
+                found["model"] = body.split(":", 1)[1].strip()
+            elif body.startswith("Manufacturer:"):
+                found["maker"] = body.split(":", 1)[1].strip()
+            continue
+        s = line.strip()
+        if not s:
+            continue
+        parts = s.split(";")
+        kind = parts[0]
+        key = _TYPES.get(kind)
+        if key is not None:
+            if len(parts) < 6:
+                raise InputError(
+                    p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
+                )
+            app, sensor, x, y, z = floats(p, lineno, parts[1:6])
+            if builders[key].add(lineno, sensor, (x, y, z)):
+                found["offsets"][key] = min(found["offsets"][key], app - sensor)
+        elif kind == "POSI":
+            if len(parts) < 5:
+                raise InputError(
+                    p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
+                )
+            t, _, lat, lon = floats(p, lineno, parts[1:5])
+            rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
+            found["positions"].append([t, lat, lon, *rest])
+
+
+def _chunks(p: Path, dropped: Counter, found: dict):
     builders = {k: StreamBuilder(p, k, dropped) for k in _TYPES.values()}
-    offsets = dict.fromkeys(_TYPES.values(), math.inf)
-    positions: list[list[float]] = []
-    meta: dict = {}
-    model = maker = ""
     with open_text(p) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if line.startswith("%"):
-                body = line.lstrip("% ").strip()
-                if body.startswith("Model:"):
-                    model = body.split(":", 1)[1].strip()
-                elif body.startswith("Manufacturer:"):
-                    maker = body.split(":", 1)[1].strip()
-                continue
-            s = line.strip()
-            if not s:
-                continue
-            parts = s.split(";")
-            kind = parts[0]
-            key = _TYPES.get(kind)
-            if key is not None:
-                if len(parts) < 6:
-                    raise InputError(
-                        p,
-                        f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)",
-                        lineno,
-                    )
-                app, sensor, x, y, z = floats(p, lineno, parts[1:6])
-                if builders[key].add(lineno, sensor, (x, y, z)):
-                    offsets[key] = min(offsets[key], app - sensor)
-            elif kind == "POSI":
-                if len(parts) < 5:
-                    raise InputError(
-                        p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
-                    )
-                t, _, lat, lon = floats(p, lineno, parts[1:5])
-                rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
-                positions.append([t, lat, lon, *rest])
-    if not len(builders["mag"]):
+        yield from chunks_of(fh, builders, every(_parse(p, fh, builders, found)))
+
+
+def read(path) -> Recording:
+    """Read an IPIN/GetSensorData logfile into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open an IPIN/GetSensorData logfile: a first pass for the clock shifts and fixes, then streamed."""
+    p = Path(path)
+    found: dict = {"offsets": dict.fromkeys(_TYPES.values(), math.inf), "positions": []}
+    counts: Counter = Counter()
+    for _, chunk in _chunks(p, Counter(), found):
+        counts.update({k: len(t) for k, (t, _) in chunk.items()})
+    if not counts["mag"]:
         raise InputError(p, "no MAGN records (a stream missing)")
-    finite = [o for k, o in offsets.items() if len(builders[k])]
+    offsets = found["offsets"]
+    finite = [o for k, o in offsets.items() if counts[k]]
     if max(finite) - min(finite) < _SAME_CLOCK_S:  # one sensor clock (the usual case): one shift for all
         offsets = dict.fromkeys(offsets, min(finite))
-    streams = {}
-    for key, b in builders.items():
-        if len(b):
-            streams[key] = finish(b, t_offset=offsets[key], unit_hint=_UNITS[key])
-    if model:
-        meta["device"] = f"{maker} {model}".strip()
+    keys = [k for k in _TYPES.values() if counts[k]]
+    specs = {k: StreamSpec(p, k, t_offset=offsets[k], unit_hint=_UNITS[k]) for k in keys}
+    dropped: Counter = Counter()
+    chunks = lambda: _chunks(p, dropped, {"offsets": dict(offsets), "positions": []})  # noqa: E731
+    feed = Feed(tuple(keys), chunks, p.stat().st_size)
+    meta: dict = {}
+    if found.get("model"):
+        meta["device"] = f"{found.get('maker', '')} {found['model']}".strip()
+    positions = found["positions"]
     if positions:
         meta["positions"] = positions
         meta["latitude_deg"], meta["longitude_deg"] = positions[0][1], positions[0][2]
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
-        meta=meta,
-        source=str(p),
-        format=NAME,
-        dropped=dropped,
-    )
+    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)

@@ -20,7 +20,9 @@ the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope fro
 ``meta["mag_os_bias_uT"]``. Times are seconds since the header's ``startTime``
 (``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
-header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped.
+header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped. Choosing
+the streams needs the whole file (and the header's ``endTime`` and the waypoints are spread over it): a
+first pass reads it without keeping samples, the second streams the chosen types.
 When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
 WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
 and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
@@ -33,8 +35,9 @@ from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "ms-indoor"
 
@@ -108,61 +111,83 @@ def _site_location(path: Path, meta: dict) -> None:
         meta["map_bbox_deg"] = [min(lats), min(lons), max(lats), max(lons)]
 
 
-def read(path) -> Recording:
-    """Read one path log (streaming line by line) into a :class:`Recording`."""
-    p = Path(path)
-    dropped: Counter = Counter()
-    meta: dict = {}
-    ranges: dict[int, float] = {}
-    builders: dict[str, StreamBuilder] = {}
-    waypoints: list[list[float]] = []
+def _parse(p: Path, fh, builders: dict, found: dict, kinds):
+    """Parse the log line by line (yielding after each line) into ``builders`` (by data type, made here for
+    the types in ``kinds``, counting odd samples in ``found["dropped"]``); ``found`` collects the header
+    (``meta``, ``ranges``), the ``waypoints`` and the OS's last bias (``last_bias``)."""
+    meta, ranges = found["meta"], found["ranges"]
     t0_ms: float | None = None
-    last_bias: list[str] | None = None
-    with open_text(p) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if line.startswith("#"):
-                try:
-                    _header(line, meta, ranges)
-                except ValueError:
-                    raise InputError(p, f"bad header line {line.strip()!r}", lineno) from None
-                continue
-            parts = line.rstrip("\r\n").split("\t")
-            if len(parts) < 2:
-                if line.strip():
-                    raise InputError(p, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", lineno)
-                continue
-            kind = parts[1]
-            if kind not in _TYPES and kind != "TYPE_WAYPOINT":
-                continue
-            if t0_ms is None:
-                t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
-            nval = 2 if kind == "TYPE_WAYPOINT" else 3
-            if len(parts) < 2 + nval:
-                raise InputError(
-                    p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno
-                )
-            vals = floats(p, lineno, [parts[0], *parts[2 : 2 + nval]])
-            t = (vals[0] - t0_ms) / 1000.0
-            if kind == "TYPE_WAYPOINT":
-                waypoints.append([t, vals[1], vals[2]])
-                continue
-            b = builders.get(kind)
-            if b is None:
-                key = _TYPES[kind][0]
-                limit = ranges.get(_TYPES[kind][2])
-                b = builders[kind] = StreamBuilder(p, key, Counter(), limit=limit)
-            b.add(lineno, t, vals[1:])
-            if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(parts) >= 8:
-                last_bias = parts[5:8]
-    chosen: dict[str, StreamBuilder] = {}
+    for lineno, line in enumerate(fh, start=1):
+        yield
+        if line.startswith("#"):
+            try:
+                _header(line, meta, ranges)
+            except ValueError:
+                raise InputError(p, f"bad header line {line.strip()!r}", lineno) from None
+            continue
+        parts = line.rstrip("\r\n").split("\t")
+        if len(parts) < 2:
+            if line.strip():
+                raise InputError(p, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", lineno)
+            continue
+        kind = parts[1]
+        if kind not in _TYPES and kind != "TYPE_WAYPOINT":
+            continue
+        if t0_ms is None:
+            t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
+        nval = 2 if kind == "TYPE_WAYPOINT" else 3
+        if len(parts) < 2 + nval:
+            raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
+        vals = floats(p, lineno, [parts[0], *parts[2 : 2 + nval]])
+        t = (vals[0] - t0_ms) / 1000.0
+        if kind == "TYPE_WAYPOINT":
+            found["waypoints"].append([t, vals[1], vals[2]])
+            continue
+        if kind not in kinds:
+            continue
+        b = builders.get(kind)
+        if b is None:
+            key, _, android_type = _TYPES[kind]
+            b = builders[kind] = StreamBuilder(p, key, found["dropped"], limit=ranges.get(android_type))
+        b.add(lineno, t, vals[1:])
+        if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(parts) >= 8:
+            found["last_bias"] = parts[5:8]
+
+
+def _pass(p: Path, dropped: Counter, kinds):
+    """One pass over the log: ``(found, builders, chunks)``; the chunks are keyed by data type."""
+    found = {"meta": {}, "ranges": {}, "waypoints": [], "last_bias": None, "dropped": dropped}
+    builders: dict[str, StreamBuilder] = {}
+
+    def chunks():
+        with open_text(p) as fh:
+            yield from chunks_of(fh, builders, every(_parse(p, fh, builders, found, kinds)))
+
+    return found, builders, chunks()
+
+
+def read(path) -> Recording:
+    """Read one path log into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open one path log: a first pass chooses the streams and gathers the metadata, then they stream."""
+    p = Path(path)
+    found, builders, chunks = _pass(p, Counter(), _TYPES)  # its odd samples are counted by the second pass
+    n_valid: Counter = Counter()
+    for _, chunk in chunks:
+        n_valid.update({kind: len(t) for kind, (t, _) in chunk.items()})
+    meta = found["meta"]
+    chosen: dict[str, str] = {}  # stream → data type
     for kind, (key, rank, _) in sorted(_TYPES.items(), key=lambda kv: kv[1][1]):
-        if kind in builders and len(builders[kind]) and key not in chosen:
-            chosen[key] = builders[kind]
-            dropped.update(builders[kind].dropped)
+        if n_valid[kind] and key not in chosen:
+            chosen[key] = kind
             if key == "mag":
                 meta["mag_os_calibrated"] = rank > 0
     if "mag" not in chosen:
         raise InputError(p, "no magnetometer lines (TYPE_MAGNETIC_FIELD[_UNCALIBRATED])")
+    last_bias = found["last_bias"]
     if last_bias is not None and not meta["mag_os_calibrated"]:
         try:
             meta["mag_os_bias_uT"] = [float(v) for v in last_bias]
@@ -171,17 +196,20 @@ def read(path) -> Recording:
     if "start_time_unix" in meta:
         meta["date"] = dt.datetime.fromtimestamp(meta["start_time_unix"], dt.UTC).date().isoformat()
     _site_location(p, meta)
-    if waypoints:
-        waypoints.sort()
-        meta["waypoints"] = waypoints
+    if found["waypoints"]:
+        meta["waypoints"] = sorted(found["waypoints"])
         meta["waypoints_frame"] = "floor map, metres, x east, y north (true)"
-    streams = {k: finish(b, unit_hint=f"{k} in Android units") for k, b in chosen.items()}
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
-        meta=meta,
-        source=str(p),
-        format=NAME,
-        dropped=dropped,
-    )
+    specs = {
+        key: StreamSpec(
+            p, key, unit_hint=f"{key} in Android units", limit_known=builders[kind].limit is not None
+        )
+        for key, kind in chosen.items()
+    }
+    dropped: Counter = Counter()
+
+    def streams():
+        for pos, chunk in _pass(p, dropped, set(chosen.values()))[2]:
+            yield pos, {_TYPES[kind][0]: block for kind, block in chunk.items()}
+
+    feed = Feed(tuple(chosen), streams, p.stat().st_size)
+    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)

@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, open_text, read_table
-from replay.recording import Recording, Stream
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, read_table
+from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "pdr-csv"
 VECTOR_HEADER = ["t", "x", "y", "z"]
@@ -27,32 +28,43 @@ def detect(path: Path) -> bool:
     return path.is_dir() and (path / "mag.csv").is_file()
 
 
+def _header(fh, path: Path, header: list[str]) -> None:
+    first = fh.readline()
+    got = [c.strip() for c in first.strip().split(",")]
+    if got[: len(header)] != header:
+        raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}", line=1)
+
+
 def _read_builder(path: Path, header: list[str], key: str, dropped: Counter) -> StreamBuilder:
-    """Parse one file (header row, then ``t`` and values) into a cleaning :class:`StreamBuilder`."""
+    """Parse one whole file (header row, then ``t`` and values) into a cleaning :class:`StreamBuilder`."""
     b = StreamBuilder(path, key, dropped, width=len(header) - 1)
     with open_text(path) as fh:
-        first = fh.readline()
-        got = [c.strip() for c in first.strip().split(",")]
-        if got[: len(header)] != header:
-            raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}", line=1)
+        _header(fh, path, header)
         read_table(fh, path, [(b, list(range(1, len(header))))], len(header), first_line=2, delimiter=",")
     return b
 
 
-def read_stream(path: Path, key: str, dropped: Counter) -> Stream:
-    """One vector stream; units checked, saturated samples counted (kept)."""
-    return finish(_read_builder(path, VECTOR_HEADER, key, dropped))
+def vector_feed(path: Path, key: str, dropped: Counter) -> Feed:
+    """One ``t,x,y,z`` file, parsed a chunk at a time."""
+
+    def chunks():
+        b = StreamBuilder(path, key, dropped)
+        with open_text(path) as fh:
+            _header(fh, path, VECTOR_HEADER)
+            yield from chunks_of(fh, {key: b}, iter_table(fh, path, [(b, [1, 2, 3])], 4, 2, ","))
+
+    return Feed((key,), chunks, path.stat().st_size)
 
 
-def read(path) -> Recording:
-    """Read a pdr-csv directory into a :class:`Recording`."""
+def open_source(path) -> RecordingSource:
+    """Open a pdr-csv directory: metadata and truth now, the streams as they are read."""
     p = Path(path)
     if not (p / "mag.csv").is_file():
         raise InputError(p / "mag.csv", "missing (a pdr-csv recording needs mag.csv)")
     dropped: Counter = Counter()
-    mag = read_stream(p / "mag.csv", "mag", dropped)
-    accel = read_stream(p / "accel.csv", "accel", dropped) if (p / "accel.csv").is_file() else None
-    gyro = read_stream(p / "gyro.csv", "gyro", dropped) if (p / "gyro.csv").is_file() else None
+    keys = [k for k in ("mag", "accel", "gyro") if (p / f"{k}.csv").is_file()]
+    specs = {k: StreamSpec(p / f"{k}.csv", k) for k in keys}
+    feeds = [vector_feed(p / f"{k}.csv", k, dropped) for k in keys]
     meta: dict = {}
     if (p / "meta.json").is_file():
         try:
@@ -72,10 +84,15 @@ def read(path) -> Recording:
         b = _read_builder(p / "os.csv", TRUTH_HEADER, "os", dropped)
         if len(b):
             references["os"] = b.arrays()
-    return Recording(
-        mag=mag, accel=accel, gyro=gyro, meta=meta, truth=truth, references=references, source=str(p),
-        format=NAME, dropped=dropped,
+    return RecordingSource(
+        specs, feeds, meta=meta, truth=truth, references=references, source=str(p), format=NAME,
+        dropped=dropped,
     )
+
+
+def read(path) -> Recording:
+    """Read a pdr-csv directory into a :class:`Recording`."""
+    return open_source(path).collect()
 
 
 def _write_csv(path: Path, header: list[str], t: np.ndarray, values: np.ndarray, fmt: str) -> None:

@@ -21,8 +21,9 @@ Each topic is decoded by its own channel's encoding, so either layout (or a mix)
 ``t`` is the sample time as float64, so the streams read back bit-identical to what was written.  NaN
 values are dropped as ``<stream>:nan``.  The metadata record ``recording`` becomes ``Recording.meta``
 (values JSON-decoded where they are JSON, else kept as strings).  ``/mag/raw`` is required; the other
-topics are optional.  The file is read once, front to back (mcap's reader decompresses one chunk at a
-time); CDR messages are decoded in blocks with numpy.
+topics are optional.  The file is read twice, front to back (mcap's reader decompresses one chunk at a
+time): first the truth topics (loaded whole, for evaluation), then the sensor topics, streamed; CDR messages
+are decoded in blocks with numpy.
 """
 
 from __future__ import annotations
@@ -35,9 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats import _mcap
-from replay.formats._common import StreamBuilder, finish
+from replay.formats import _common, _mcap
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "pdr-mcap"
 TOPICS = {"/mag/raw": "mag", "/imu/accel": "accel", "/imu/gyro": "gyro"}
@@ -48,7 +50,6 @@ VECTOR3_CDR = "pdr_mag/msg/Vector3Stamped"
 #: CDR message sizes: encapsulation header (4 bytes) + float64 fields
 _V3_SIZE, _REF_SIZE = 4 + 32, 4 + 16
 _CDR_LE, _CDR_BE = b"\x00\x01\x00\x00", b"\x00\x00\x00\x00"
-_BLOCK = 8192  # CDR messages decoded at once
 
 
 def detect(path: Path) -> bool:
@@ -119,57 +120,50 @@ def _pose_cdr(data: bytes) -> tuple[int, list[float]]:
     return sec * 1_000_000_000 + nsec, [w, x, y, z]
 
 
-def read(path) -> Recording:
-    """Read a pdr_mag MCAP file (either layout) into a :class:`Recording`."""
-    p = Path(path)
-    channels, error = _mcap.scan(p)
-    if error is not None:
-        raise InputError(p, error)
-    by_topic = {c.topic: c for c in channels}
-    if "/mag/raw" not in by_topic:
-        raise InputError(p, "no /mag/raw channel (a stream missing)")
-    offsets = {c.id: int(c.metadata.get("time_offset_ns", "0") or 0) for c in channels}
-    dropped: Counter = Counter()
-    builders = {key: StreamBuilder(p, key, dropped) for t, key in TOPICS.items() if t in by_topic}
+def _parse(p: Path, by_topic: dict, keep, offsets: dict, builders: dict, truth: dict, opened: list):
+    """Read the messages of the topics in ``keep`` into ``builders`` (sensor topics) and ``truth`` (lists
+    ``t``, ``q``, ``exact_t``, ``cdr``: the truth topics); yields after every
+    :data:`~replay.formats._common.CHUNK` messages, with the CDR messages read so far decoded (in blocks, with
+    numpy). Messages are numbered (in errors) over all the topics read, whichever pass reads them."""
+    topics = [t for t in (*TOPICS, TRUTH_TOPIC, TRUTH_T_TOPIC) if t in by_topic]
     pending: dict[str, list[bytes]] = {t: [] for t in TOPICS}  # CDR payloads not yet decoded
 
-    def flush(topic: str) -> None:
-        if pending[topic]:
-            rows = _floats(p, topic, pending[topic], _V3_SIZE)
-            pending[topic] = []
-            builders[TOPICS[topic]].add_block(rows[:, 0], rows[:, 1:])
+    def flush() -> None:
+        for topic, payloads in pending.items():
+            if payloads:
+                rows = _floats(p, topic, payloads, _V3_SIZE)
+                pending[topic] = []
+                builders[TOPICS[topic]].add_block(rows[:, 0], rows[:, 1:])
 
-    truth_t: list[float] = []
-    truth_exact_t: list[float] = []
-    truth_q: list[list[float]] = []
-    ref_cdr: list[bytes] = []
-    topics = [t for t in (*TOPICS, TRUTH_TOPIC, TRUTH_T_TOPIC) if t in by_topic]
-    for n, (channel, message) in enumerate(_mcap.iter_messages(p, topics), start=1):
+    for n, (channel, message) in enumerate(_mcap.iter_messages(p, topics, opened=opened), start=1):
+        if n % _common.CHUNK == 0:
+            flush()
+            yield
         topic, cdr = channel.topic, channel.message_encoding == "cdr"
+        if topic not in keep:
+            continue
         if cdr and topic in TOPICS:
             pending[topic].append(message.data)
-            if len(pending[topic]) >= _BLOCK:
-                flush(topic)
             continue
         if cdr and topic == TRUTH_T_TOPIC:
-            ref_cdr.append(message.data)
+            truth["cdr"].append(message.data)
             continue
         try:
             if cdr:  # TRUTH_TOPIC
                 ns, q = _pose_cdr(message.data)
-                truth_t.append((ns - offsets.get(channel.id, 0)) * 1e-9)
-                truth_q.append(q)
+                truth["t"].append((ns - offsets.get(channel.id, 0)) * 1e-9)
+                truth["q"].append(q)
                 continue
             d = json.loads(message.data)
             if topic == TRUTH_TOPIC:
                 ts = d.get("timestamp") or {}
                 ns = int(ts["sec"]) * 1_000_000_000 + int(ts["nsec"]) if ts else message.log_time
                 o = d["pose"]["orientation"]
-                truth_t.append((ns - offsets.get(channel.id, 0)) * 1e-9)
-                truth_q.append([_num(o[k]) for k in "wxyz"])
+                truth["t"].append((ns - offsets.get(channel.id, 0)) * 1e-9)
+                truth["q"].append([_num(o[k]) for k in "wxyz"])
                 continue
             if topic == TRUTH_T_TOPIC:
-                truth_exact_t.append(_num(d["t"]))
+                truth["exact_t"].append(_num(d["t"]))
                 continue
             t = d["t"] if "t" in d else (message.log_time - offsets.get(channel.id, 0)) * 1e-9
             vals = [_num(d["x"]), _num(d["y"]), _num(d["z"])]
@@ -189,26 +183,53 @@ def read(path) -> Recording:
                 f"({type(exc).__name__}: {exc})",
             ) from None
         builders[TOPICS[topic]].add(None, t, vals)
-    for topic in TOPICS:
-        flush(topic)
-    if ref_cdr:
-        truth_exact_t = _floats(p, TRUTH_T_TOPIC, ref_cdr, _REF_SIZE)[:, 0].tolist()
-    streams = {k: finish(b, unit_hint=_UNITS[k]) for k, b in builders.items()}
-    truth = None
-    if truth_q:
-        # the pose's timestamp is the log time, which the sink may clamp at 0: prefer the heading's exact t
-        t_truth = truth_exact_t if len(truth_exact_t) == len(truth_q) else truth_t
-        b = StreamBuilder(p, "truth", dropped, width=4)
-        b.add_block(np.asarray(t_truth), np.asarray(truth_q))
-        if len(b):
-            truth = b.arrays()
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
-        meta=_meta(p),
-        truth=truth,
-        source=str(p),
-        format=NAME,
+    flush()
+
+
+def _truth(p: Path, by_topic: dict, offsets: dict, dropped: Counter):
+    """The truth orientation (first pass over the truth topics), or None."""
+    truth: dict = {"t": [], "q": [], "exact_t": [], "cdr": []}
+    if TRUTH_TOPIC not in by_topic:
+        return None
+    for _ in _parse(p, by_topic, (TRUTH_TOPIC, TRUTH_T_TOPIC), offsets, {}, truth, []):
+        pass
+    if truth["cdr"]:
+        truth["exact_t"] = _floats(p, TRUTH_T_TOPIC, truth["cdr"], _REF_SIZE)[:, 0].tolist()
+    if not truth["q"]:
+        return None
+    # the pose's timestamp is the log time, which the sink may clamp at 0: prefer the heading's exact t
+    t_truth = truth["exact_t"] if len(truth["exact_t"]) == len(truth["q"]) else truth["t"]
+    b = StreamBuilder(p, "truth", dropped, width=4)
+    b.add_block(np.asarray(t_truth), np.asarray(truth["q"]))
+    return b.arrays() if len(b) else None
+
+
+def read(path) -> Recording:
+    """Read a pdr_mag MCAP file (either layout) into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open a pdr_mag MCAP file (either layout): metadata and truth now, the sensor topics streamed."""
+    p = Path(path)
+    channels, error = _mcap.scan(p)
+    if error is not None:
+        raise InputError(p, error)
+    by_topic = {c.topic: c for c in channels}
+    if "/mag/raw" not in by_topic:
+        raise InputError(p, "no /mag/raw channel (a stream missing)")
+    offsets = {c.id: int(c.metadata.get("time_offset_ns", "0") or 0) for c in channels}
+    dropped: Counter = Counter()
+    truth = _truth(p, by_topic, offsets, dropped)
+    keys = tuple(key for t, key in TOPICS.items() if t in by_topic)
+
+    def chunks():
+        builders = {key: StreamBuilder(p, key, dropped) for key in keys}
+        opened: list = []
+        yield from chunks_of(opened, builders, _parse(p, by_topic, TOPICS, offsets, builders, {}, opened))
+
+    specs = {k: StreamSpec(p, k, unit_hint=_UNITS[k]) for k in keys}
+    return RecordingSource(
+        specs, [Feed(keys, chunks, p.stat().st_size)], meta=_meta(p), truth=truth, source=str(p), format=NAME,
         dropped=dropped,
     )

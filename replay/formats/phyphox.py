@@ -18,13 +18,15 @@ converted. ``meta/device.csv`` (``property,value``) gives the device name when p
 
 from __future__ import annotations
 
+import functools
 import re
 from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
-from replay.formats._common import Bundle, StreamBuilder, finish, floats, iter_csv
+from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, every, floats, iter_csv
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "phyphox"
 
@@ -90,34 +92,45 @@ def detect(path: Path) -> bool:
         b.close()
 
 
-def _read_member(b: Bundle, name: str, dropped: Counter) -> tuple[str, StreamBuilder] | None:
-    where = b.where(name)
-    delim, decimal_comma = _dialect(_first_line(b, name))
+def _classify_member(b: Bundle, name: str) -> tuple[str, list[int], int] | None:
+    """Stream key, column indices (t, x, y, z) and column count of a member's header row, or None."""
+    delim, _ = _dialect(_first_line(b, name))
     with b.open(name) as fh:
-        rows = iter_csv(fh, where, delimiter=delim)
         try:
-            _, header = next(rows)
+            _, header = next(iter_csv(fh, b.where(name), delimiter=delim))
         except StopIteration:
             return None
-        hit = _classify([c.lstrip("\ufeff") for c in header])
-        if hit is None:
-            return None
-        key, idx = hit
-        builder = StreamBuilder(where, key, dropped)
-        need = max(idx) + 1
-        for lineno, cells in rows:
+    hit = _classify([c.lstrip("\ufeff") for c in header])
+    return None if hit is None else (*hit, len(header))
+
+
+def _member_chunks(p: Path, name: str, key: str, idx: list[int], n_header: int, dropped: Counter):
+    """The rows of one member, parsed a chunk at a time (a Feed's chunks)."""
+    b = Bundle(p)
+    where = b.where(name)
+    delim, decimal_comma = _dialect(_first_line(b, name))
+    builder = StreamBuilder(where, key, dropped)
+    need = max(idx) + 1
+
+    def rows(fh):
+        lines = iter_csv(fh, where, delimiter=delim)
+        next(lines)  # the header
+        for lineno, cells in lines:
             if not cells or all(not c.strip() for c in cells):
                 continue
             if len(cells) < need:
-                raise InputError(
-                    where, f"expected {len(header)} columns, got {len(cells)} (truncated?)", lineno
-                )
+                raise InputError(where, f"expected {n_header} columns, got {len(cells)} (truncated?)", lineno)
             vals = [cells[i] for i in idx]
             if decimal_comma:
                 vals = [v.replace(",", ".") for v in vals]
             vals = floats(where, lineno, vals)
-            builder.add(lineno, vals[0], vals[1:])
-    return key, builder
+            yield builder.add(lineno, vals[0], vals[1:])
+
+    try:
+        with b.open(name) as fh:
+            yield from chunks_of(fh, {key: builder}, every(rows(fh)))
+    finally:
+        b.close()
 
 
 def _device(b: Bundle) -> str | None:
@@ -136,30 +149,30 @@ def _device(b: Bundle) -> str | None:
 
 def read(path) -> Recording:
     """Read a phyphox CSV export (folder or zip) into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open a phyphox CSV export (folder or zip): each sensor's file is read as it is consumed."""
     p = Path(path)
     b = Bundle(p)
     try:
         dropped: Counter = Counter()
-        builders: dict[str, StreamBuilder] = {}
+        specs, feeds = {}, []
         for name in _csv_members(b):
-            got = _read_member(b, name, dropped)
-            if got is not None and got[0] not in builders:
-                builders[got[0]] = got[1]
-        if "mag" not in builders:
+            got = _classify_member(b, name)
+            if got is None or got[0] in specs:
+                continue
+            key, idx, n_header = got
+            specs[key] = StreamSpec(b.where(name), key, unit_hint=_UNITS[key])
+            chunks = functools.partial(_member_chunks, p, name, key, idx, n_header, dropped)
+            feeds.append(Feed((key,), chunks, b.size(name)))
+        if "mag" not in specs:
             raise InputError(p, "no magnetometer file (columns 'Magnetic field x (µT)' …): a stream missing")
-        streams = {k: finish(v, unit_hint=_UNITS[k]) for k, v in builders.items()}
         meta: dict = {}
         device = _device(b)
         if device:
             meta["device"] = device
     finally:
         b.close()
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
-        meta=meta,
-        source=str(p),
-        format=NAME,
-        dropped=dropped,
-    )
+    return RecordingSource(specs, feeds, meta=meta, source=str(p), format=NAME, dropped=dropped)

@@ -1,7 +1,7 @@
 """ROS 2 MCAP (rosbag2's MCAP storage) with ``sensor_msgs/msg/Imu`` and ``sensor_msgs/msg/MagneticField``.
 
 Messages are CDR-encoded (``message_encoding="cdr"``, schemas ``ros2msg``) and decoded with
-``mcap-ros2-support``'s decoder, one at a time as the file is read.
+``mcap-ros2-support``'s decoder, one at a time as the file is read (once, streamed).
 
 Streams
     * magnetometer: the ``sensor_msgs/msg/MagneticField`` channel (``magnetic_field`` in **tesla** → ×1e6 µT);
@@ -33,9 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats import _mcap
-from replay.formats._common import StreamBuilder, finish
+from replay.formats import _common, _mcap
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "ros2-mcap"
 IMU = "sensor_msgs/msg/Imu"
@@ -95,30 +96,17 @@ def _provided(cov) -> bool:
     return len(cov) == 0 or cov[0] != -1.0
 
 
-def read(path, axes: str = "flu") -> Recording:
-    """Read a ROS 2 MCAP file into a :class:`Recording` (see the module docstring for the axis assumption)."""
+def _parse(p: Path, mag_topic: str, imu_topic: str | None, builders: dict, opened: list):
+    """Decode the messages into the builders, yielding after each; errors name the message."""
     from mcap_ros2.decoder import DecoderFactory
 
-    p = Path(path)
-    if axes not in _AXES:
-        raise ValueError(f"axes: expected one of {sorted(_AXES)}, got {axes!r}")
-    channels, error = _mcap.scan(p)
-    if error is not None:
-        raise InputError(p, error)
-    ros = _ros_channels(channels)
-    counts = _message_counts(p)
-    mag_topic, imu_topic = _pick(ros, MAG, counts), _pick(ros, IMU, counts)
-    if mag_topic is None:
-        raise InputError(p, f"no {MAG} channel (a stream missing)")
-    dropped: Counter = Counter()
-    mag_b = StreamBuilder(p, "mag", dropped)
-    acc_b = StreamBuilder(p, "accel", dropped)
-    gyr_b = StreamBuilder(p, "gyro", dropped)
     topics = [t for t in (mag_topic, imu_topic) if t is not None]
+    mag_b, acc_b, gyr_b = builders["mag"], builders["accel"], builders["gyro"]
     n = 0
     try:
-        for channel, message, msg in _mcap.iter_messages(p, topics, [DecoderFactory()]):
+        for channel, message, msg in _mcap.iter_messages(p, topics, [DecoderFactory()], opened=opened):
             n += 1
+            yield
             t = _stamp(msg, message.log_time)
             if channel.topic == mag_topic:
                 f = msg.magnetic_field
@@ -138,12 +126,42 @@ def read(path, axes: str = "flu") -> Recording:
         raise InputError(
             p, f"message {n + 1}: cannot decode as {IMU}/{MAG} ({type(exc).__name__}: {exc})"
         ) from None
+
+
+def read(path, axes: str = "flu") -> Recording:
+    """Read a ROS 2 MCAP file into a :class:`Recording` (see the module docstring for the axis assumption)."""
+    return open_source(path, axes).collect()
+
+
+def open_source(path, axes: str = "flu") -> RecordingSource:
+    """Open a ROS 2 MCAP file: channels now, messages streamed (the module docstring has the axes)."""
+    p = Path(path)
+    if axes not in _AXES:
+        raise ValueError(f"axes: expected one of {sorted(_AXES)}, got {axes!r}")
+    channels, error = _mcap.scan(p)
+    if error is not None:
+        raise InputError(p, error)
+    ros = _ros_channels(channels)
+    counts = _message_counts(p)
+    mag_topic, imu_topic = _pick(ros, MAG, counts), _pick(ros, IMU, counts)
+    if mag_topic is None:
+        raise InputError(p, f"no {MAG} channel (a stream missing)")
+    dropped: Counter = Counter()
+
+    def chunks():
+        builders = {k: StreamBuilder(p, k, dropped) for k in ("mag", "accel", "gyro")}
+        opened: list = []
+        steps = _common.every(_parse(p, mag_topic, imu_topic, builders, opened))
+        yield from chunks_of(opened, builders, steps)
+
     m = _AXES[axes]
-    mag = finish(mag_b, scale=UT_PER_TESLA, axes=m, unit_hint="tesla × 1e6")
-    accel = finish(acc_b, axes=m, unit_hint="m/s²") if len(acc_b) else None
-    gyro = finish(gyr_b, axes=m, unit_hint="rad/s") if len(gyr_b) else None
+    specs = {"mag": StreamSpec(p, "mag", scale=UT_PER_TESLA, axes=m, unit_hint="tesla × 1e6")}
+    if imu_topic is not None:
+        specs["accel"] = StreamSpec(p, "accel", axes=m, unit_hint="m/s²", optional=True)
+        specs["gyro"] = StreamSpec(p, "gyro", axes=m, unit_hint="rad/s", optional=True)
     meta = {
         "ros_topics": {"mag": mag_topic, "imu": imu_topic},
         "ros_axes": "flu: x_d=-y, y_d=x, z_d=z" if axes == "flu" else "device: unchanged",
     }
-    return Recording(mag=mag, accel=accel, gyro=gyro, meta=meta, source=str(p), format=NAME, dropped=dropped)
+    feed = Feed(tuple(specs), chunks, p.stat().st_size)
+    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)

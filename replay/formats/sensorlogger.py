@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import Bundle, StreamBuilder, finish, iter_csv, read_table
+from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "sensor-logger"
 GRAVITY = 9.80665
@@ -81,15 +82,16 @@ def _metadata(b: Bundle) -> dict:
     return {k.strip(): v.strip() for k, v in zip(rows[0], rows[1], strict=False)}
 
 
-def _read_vectors(b: Bundle, name: str, key: str, dropped: Counter) -> StreamBuilder:
-    """A ``time,seconds_elapsed,z,y,x`` file (columns by name) into a builder, in chunks."""
+def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
+    """A ``time,seconds_elapsed,z,y,x`` file (columns by name), parsed a chunk at a time (a Feed's chunks)."""
     import zlib
     from zipfile import BadZipFile
 
+    b = Bundle(p)
     where = b.where(name)
     builder = StreamBuilder(where, key, dropped)
-    with b.open(name) as fh:
-        try:
+    try:
+        with b.open(name) as fh:
             first = fh.readline()
             header = [c.strip().lstrip("\ufeff") for c in first.strip().split(",")]
             cols = {c.lower(): i for i, c in enumerate(header)}
@@ -101,12 +103,18 @@ def _read_vectors(b: Bundle, name: str, key: str, dropped: Counter) -> StreamBui
             t_scale = 1.0 if "seconds_elapsed" in cols else 1e-9
             idx = [cols["x"], cols["y"], cols["z"]]
             ncol = max([tcol, *idx]) + 1
-            read_table(
+            steps = iter_table(
                 fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol, t_scale=t_scale
             )
-        except (BadZipFile, EOFError, zlib.error) as exc:
-            raise InputError(where, f"truncated or damaged archive member ({exc})") from None
-    return builder
+            yield from chunks_of(fh, {key: builder}, steps)
+    except (BadZipFile, EOFError, zlib.error) as exc:
+        raise InputError(where, f"truncated or damaged archive member ({exc})") from None
+    finally:
+        b.close()
+
+
+def _vector_feed(p: Path, b: Bundle, name: str, key: str, dropped: Counter) -> Feed:
+    return Feed((key,), lambda: _vector_chunks(p, name, key, dropped), b.size(name))
 
 
 def _location(b: Bundle, meta: dict) -> None:
@@ -136,28 +144,56 @@ def _location(b: Bundle, meta: dict) -> None:
             return
 
 
-def _sum_at_common_times(a: StreamBuilder, g: StreamBuilder, dropped: Counter) -> StreamBuilder:
-    ta, va = a.arrays()
-    tg, vg = g.arrays()
-    common, ia, ig = np.intersect1d(ta, tg, assume_unique=True, return_indices=True)
-    if len(ta) - len(common):
-        dropped["accel:no_gravity_sample"] += len(ta) - len(common)
-    out = StreamBuilder(a.path, "accel", dropped)
-    out.add_block(common, va[ia] + vg[ig])
-    return out
+def _sum_at_common_times(p: Path, user: str, grav: str, dropped: Counter):
+    """User acceleration + gravity at their common times (a Feed's chunks), the two files read in step.
+
+    A user sample is matched once both files have been read up to its time (or have ended); unmatched
+    ones are counted as ``accel:no_gravity_sample`` — the same as intersecting the whole streams.
+    """
+    parts = {
+        "accel": _vector_chunks(p, user, "accel", dropped),
+        "gravity": _vector_chunks(p, grav, "gravity", Counter()),
+    }
+    buf = {k: (np.empty(0), np.empty((0, 3))) for k in parts}
+    seen = dict.fromkeys(parts, -np.inf)
+    pos = dict.fromkeys(parts, 0)
+    while parts:
+        k = min(parts, key=lambda k: seen[k])  # the file that is behind
+        try:
+            pos[k], chunk = next(parts[k])
+        except StopIteration:
+            del parts[k]
+        else:
+            if k in chunk:
+                t, v = chunk[k]
+                buf[k] = (np.concatenate([buf[k][0], t]), np.concatenate([buf[k][1], v]))
+                seen[k] = float(t[-1])
+        limit = min((seen[k] for k in parts), default=np.inf)
+        (ta, va), (tg, vg) = buf["accel"], buf["gravity"]
+        na, ng = int(np.searchsorted(ta, limit, "right")), int(np.searchsorted(tg, limit, "right"))
+        common, ia, ig = np.intersect1d(ta[:na], tg[:ng], assume_unique=True, return_indices=True)
+        if na - len(common):
+            dropped["accel:no_gravity_sample"] += na - len(common)
+        buf = {"accel": (ta[na:], va[na:]), "gravity": (tg[ng:], vg[ng:])}
+        yield sum(pos.values()), ({"accel": (common, va[ia] + vg[ig])} if len(common) else {})
 
 
 def read(path) -> Recording:
     """Read a Sensor Logger export (folder or zip) into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open a Sensor Logger export (folder or zip): metadata now, the streams as they are read."""
     p = Path(path)
     b = Bundle(p)
     try:
-        return _read(b, p)
+        return _open(b, p)
     finally:
         b.close()
 
 
-def _read(b: Bundle, p: Path) -> Recording:
+def _open(b: Bundle, p: Path) -> RecordingSource:
     md = _metadata(b)
     platform = md.get("platform", "").lower() or "unknown"
     standard = md.get("standardisation", "").lower() == "true"
@@ -166,36 +202,39 @@ def _read(b: Bundle, p: Path) -> Recording:
     if md.get("device name"):
         meta["device"] = md["device name"]
     dropped: Counter = Counter()
+    specs, feeds = {}, []
 
     mag_name = next((n for n in map(b.find, _MAG_FILES) if n is not None), None)
     if mag_name is None:
         raise InputError(p, "no Magnetometer.csv or MagnetometerUncalibrated.csv (a stream missing)")
     meta["mag_os_calibrated"] = not mag_name.endswith("MagnetometerUncalibrated.csv")
-    mag = finish(_read_vectors(b, mag_name, "mag", dropped), unit_hint="µT")
+    specs["mag"] = StreamSpec(b.where(mag_name), "mag", unit_hint="µT")
+    feeds.append(_vector_feed(p, b, mag_name, "mag", dropped))
     day = md.get("recording time", "")[:10]
     if re.fullmatch(r"\d{4}-\d{2}-\d{2}", day):
         meta["date"] = day
 
-    gyro = None
     gyr_name = b.find("GyroscopeUncalibrated.csv") or b.find("Gyroscope.csv")
     if gyr_name is not None:
-        gyro = finish(_read_vectors(b, gyr_name, "gyro", dropped), unit_hint="rad/s")
+        specs["gyro"] = StreamSpec(b.where(gyr_name), "gyro", unit_hint="rad/s")
+        feeds.append(_vector_feed(p, b, gyr_name, "gyro", dropped))
 
-    accel = None
     sign = -1.0 if ios_frame else 1.0
     total, uncal = b.find("TotalAcceleration.csv"), b.find("AccelerometerUncalibrated.csv")
     user, grav = b.find("Accelerometer.csv"), b.find("Gravity.csv")
     if total is not None:
-        accel = finish(_read_vectors(b, total, "accel", dropped), scale=sign, unit_hint="m/s²")
+        specs["accel"] = StreamSpec(b.where(total), "accel", scale=sign, unit_hint="m/s²")
+        feeds.append(_vector_feed(p, b, total, "accel", dropped))
         meta["accel_source"] = "TotalAcceleration"
     elif uncal is not None:
         scale = -GRAVITY if ios_frame else 1.0
-        accel = finish(_read_vectors(b, uncal, "accel", dropped), scale=scale, unit_hint="iOS g / m/s²")
+        specs["accel"] = StreamSpec(b.where(uncal), "accel", scale=scale, unit_hint="iOS g / m/s²")
+        feeds.append(_vector_feed(p, b, uncal, "accel", dropped))
         meta["accel_source"] = "AccelerometerUncalibrated"
     elif user is not None and grav is not None:
-        ub = _read_vectors(b, user, "accel", dropped)
-        gb = _read_vectors(b, grav, "gravity", Counter())
-        accel = finish(_sum_at_common_times(ub, gb, dropped), scale=sign, unit_hint="m/s²")
+        specs["accel"] = StreamSpec(b.where(user), "accel", scale=sign, unit_hint="m/s²")
+        size = b.size(user) + b.size(grav)
+        feeds.append(Feed(("accel",), lambda: _sum_at_common_times(p, user, grav, dropped), size))
         meta["accel_source"] = "Accelerometer+Gravity"
     _location(b, meta)
-    return Recording(mag=mag, accel=accel, gyro=gyro, meta=meta, source=str(p), format=NAME, dropped=dropped)
+    return RecordingSource(specs, feeds, meta=meta, source=str(p), format=NAME, dropped=dropped)

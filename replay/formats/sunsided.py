@@ -34,14 +34,16 @@ times and come in bursts (median 2 ms, gaps of 42 ms); they are kept as they are
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, open_text, read_table
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, read_table
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "sunsided-marg"
 GRAVITY = 9.80665
@@ -68,30 +70,54 @@ def detect(path: Path) -> bool:
     return (path / "original_mat" / "hmc5883l_compass.mat").is_file()
 
 
-def _read_csv(
-    path: Path, header: list[str], targets: list[tuple[StreamBuilder, list[int]]], optional: tuple = ()
-) -> int:
-    """Read the table; ``optional`` columns after ``header`` are read when the header has them.
+def _open_csv(path: Path, header: list[str], optional: tuple = ()) -> tuple[object, int]:
+    """Open the table and check its header; ``optional`` columns after ``header`` are read when the header
+    has them. Returns the open file (after the header) and how many of the optional columns are present."""
+    fh = open_text(path)
+    first = fh.readline()
+    got = [c.strip() for c in first.strip().split(",")]
+    if got[: len(header)] != header:
+        fh.close()
+        raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}…", 1)
+    extra = got[len(header) :]
+    n_opt = 0
+    while n_opt < min(len(optional), len(extra)) and extra[n_opt] == optional[n_opt]:
+        n_opt += 1
+    return fh, n_opt
 
-    Returns how many of the optional columns were present.
-    """
-    with open_text(path) as fh:
-        first = fh.readline()
-        got = [c.strip() for c in first.strip().split(",")]
-        if got[: len(header)] != header:
-            raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}…", 1)
-        extra = got[len(header) :]
-        n_opt = 0
-        while n_opt < min(len(optional), len(extra)) and extra[n_opt] == optional[n_opt]:
-            n_opt += 1
-        ncol = len(header) + n_opt
-        present = [(b, ix) for b, ix in targets if max(ix) < ncol]
-        read_table(fh, path, present, ncol, first_line=2, delimiter=",")
-    return n_opt
+
+def _feed(path: Path, header: list[str], targets: dict[str, tuple[float | None, list[int]]], dropped) -> Feed:
+    """One CSV file of the pair, parsed a chunk at a time: ``targets`` = ``{key: (range limit, columns)}``."""
+
+    def chunks():
+        builders = {k: StreamBuilder(path, k, dropped, limit=lim) for k, (lim, _) in targets.items()}
+        fh, _ = _open_csv(path, header)
+        with fh:
+            cols = [(builders[k], ix) for k, (_, ix) in targets.items()]
+            yield from chunks_of(fh, builders, iter_table(fh, path, cols, len(header), 2, ","))
+
+    return Feed(tuple(targets), chunks, path.stat().st_size)
+
+
+def _temperature(mpu: Path):
+    """The MPU6050's temperature column (evaluation only), read whole when asked for, or None."""
+    fh, has_temp = _open_csv(mpu, MPU_HEADER, optional=("temp_C",))
+    with fh:
+        if not has_temp:
+            return None
+        b = StreamBuilder(mpu, "temperature", Counter(), width=1)  # rows counted by the accel/gyro stream
+        read_table(fh, mpu, [(b, [7])], len(MPU_HEADER) + 1, first_line=2, delimiter=",")
+    t, v = b.arrays()
+    return (t, v[:, 0].copy()) if len(t) else None
 
 
 def read(path) -> Recording:
     """Read a set-2 recording folder (the CSV pair) into a :class:`Recording` in the contract's frame."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open a set-2 recording folder (the CSV pair): the streams are read as they are consumed."""
     p = Path(path)
     mpu, hmc = p / "mpu6050.csv", p / "hmc5883l.csv"
     if not hmc.is_file():
@@ -100,25 +126,23 @@ def read(path) -> Recording:
             "missing (only MATLAB v7.3/HDF5 buffers in original_mat/: decode them to CSV, or install h5py)",
         )
     dropped: Counter = Counter()
-    mag_b = StreamBuilder(hmc, "mag", dropped)
-    _read_csv(hmc, HMC_HEADER, [(mag_b, [1, 2, 3])])
-    mag = finish(mag_b, scale=UT_PER_GAUSS, axes=A_TO_DEVICE, unit_hint="gauss × 100")
-    accel = gyro = temperature = None
+    specs = {"mag": StreamSpec(hmc, "mag", scale=UT_PER_GAUSS, axes=A_TO_DEVICE, unit_hint="gauss × 100")}
+    feeds = [_feed(hmc, HMC_HEADER, {"mag": (None, [1, 2, 3])}, dropped)]
+    temperature = None
     if mpu.is_file():
-        acc_b = StreamBuilder(mpu, "accel", dropped, limit=ACCEL_LIMIT_G)
-        gyr_b = StreamBuilder(mpu, "gyro", dropped, limit=GYRO_LIMIT_DPS)
-        tmp_b = StreamBuilder(mpu, "temperature", Counter(), width=1)  # same rows: counted once, above
-        targets = [(acc_b, [1, 2, 3]), (gyr_b, [4, 5, 6]), (tmp_b, [7])]
-        has_temp = _read_csv(mpu, MPU_HEADER, targets, optional=("temp_C",))
-        accel = finish(acc_b, scale=-GRAVITY, axes=A_TO_DEVICE, unit_hint="g, gravity sign")
-        gyro = finish(gyr_b, scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s")
-        t_temp, v_temp = tmp_b.arrays()
-        temperature = (t_temp, v_temp[:, 0].copy()) if has_temp and len(t_temp) else None
+        targets = {"accel": (ACCEL_LIMIT_G, [1, 2, 3]), "gyro": (GYRO_LIMIT_DPS, [4, 5, 6])}
+        feeds.append(_feed(mpu, MPU_HEADER, targets, dropped))
+        specs["accel"] = StreamSpec(
+            mpu, "accel", scale=-GRAVITY, axes=A_TO_DEVICE, unit_hint="g, gravity sign", limit_known=True
+        )
+        specs["gyro"] = StreamSpec(
+            mpu, "gyro", scale=DEG, axes=A_TO_DEVICE @ GYRO_TO_A, unit_hint="deg/s", limit_known=True
+        )
+        temperature = functools.partial(_temperature, mpu)
     meta = {
         "device": "MPU6050 + HMC5883L breadboard",
         "axes": "device x = -board y, y = board x (forward), z = z",
     }
-    return Recording(
-        mag=mag, accel=accel, gyro=gyro, meta=meta, temperature=temperature, source=str(p), format=NAME,
-        dropped=dropped,
+    return RecordingSource(
+        specs, feeds, meta=meta, temperature=temperature, source=str(p), format=NAME, dropped=dropped
     )

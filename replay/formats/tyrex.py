@@ -38,8 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, open_text, read_table, require
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "tyrex"
 GRAVITY = 9.80665
@@ -82,12 +83,16 @@ def _properties(path: Path) -> configparser.ConfigParser:
     return cp
 
 
-def read_columns(path: Path, key: str, dropped: Counter, ncol: int = 3) -> StreamBuilder:
-    """Stream a header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` into a builder."""
-    b = StreamBuilder(path, key, dropped)
-    with open_text(path) as fh:
-        read_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
-    return b
+def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
+    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
+
+    def chunks():
+        b = StreamBuilder(path, key, dropped)
+        with open_text(path) as fh:
+            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
+            yield from chunks_of(fh, {key: b}, steps)
+
+    return Feed((key,), chunks, path.stat().st_size)
 
 
 def _truth(path: Path, dropped: Counter):
@@ -133,6 +138,11 @@ def _truth(path: Path, dropped: Counter):
 
 def read(path) -> Recording:
     """Read an Android (Senslogs) or iOS trial folder of the benchmark into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open an Android (Senslogs) or iOS trial folder: metadata and truth now, the streams when read."""
     p = Path(path)
     platform = _platform(p)
     if platform is None:
@@ -168,27 +178,23 @@ def read(path) -> Recording:
         meta["device"] = "iPhone"
         meta["boot_time"] = -t_off
 
-    mag_b = read_columns(require(p / "magnetometer.txt", "magnetometer stream"), "mag", dropped)
-    acc_b = read_columns(require(p / "accelerometer.txt", "accelerometer stream"), "accel", dropped)
-    gyr_b = read_columns(require(p / "gyroscope.txt", "gyroscope stream"), "gyro", dropped)
-    mag = finish(mag_b, t_offset=t_off, unit_hint="µT")
-    if platform == "android":
-        accel = finish(acc_b, unit_hint="m/s²")
-    else:
-        accel = finish(acc_b, scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign")
-    gyro = finish(gyr_b, t_offset=t_off, unit_hint="rad/s")
-
+    files = {
+        "mag": require(p / "magnetometer.txt", "magnetometer stream"),
+        "accel": require(p / "accelerometer.txt", "accelerometer stream"),
+        "gyro": require(p / "gyroscope.txt", "gyroscope stream"),
+    }
+    specs = {
+        "mag": StreamSpec(files["mag"], "mag", t_offset=t_off, unit_hint="µT"),
+        "accel": StreamSpec(files["accel"], "accel", unit_hint="m/s²")
+        if platform == "android"
+        else StreamSpec(files["accel"], "accel", scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign"),
+        "gyro": StreamSpec(files["gyro"], "gyro", t_offset=t_off, unit_hint="rad/s"),
+    }
+    feeds = [columns_feed(f, k, dropped) for k, f in files.items()]
     truth = _truth(p, dropped)
     if truth is not None:
         meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})
         meta["truth_north"] = "true"
-    return Recording(
-        mag=mag,
-        accel=accel,
-        gyro=gyro,
-        meta=meta,
-        truth=truth,
-        source=str(p),
-        format=f"{NAME}-{platform}",
-        dropped=dropped,
+    return RecordingSource(
+        specs, feeds, meta=meta, truth=truth, source=str(p), format=f"{NAME}-{platform}", dropped=dropped
     )

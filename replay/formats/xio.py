@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, finish, floats, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.recording import Recording
+from replay.source import Feed, RecordingSource
 
 NAME = "xio-csv"
 _COL = re.compile(r"^(gyroscope|accelerometer|magnetometer) ([xyz]) \((.+)\)$")
@@ -43,53 +44,72 @@ def detect(path: Path) -> bool:
     return first.startswith("time (s),") and "magnetometer x (" in first
 
 
+def _header(p: Path, fh) -> tuple[dict[str, list[int]], dict[str, str], int]:
+    """Columns of x, y, z by stream, units by stream, and the column count, from the header row."""
+    header = [c.strip() for c in fh.readline().strip().split(",")]
+    if not header or header[0].lower() != "time (s)":
+        raise InputError(p, f"bad header {','.join(header)!r}, expected 'Time (s),…'", 1)
+    cols: dict[str, dict[str, int]] = {}
+    units: dict[str, str] = {}
+    for i, name in enumerate(header):
+        m = _COL.match(name.lower())
+        if m:
+            key = _KEY[m.group(1)]
+            cols.setdefault(key, {})[m.group(2)] = i
+            units[key] = m.group(3)
+    if "mag" not in cols or len(cols["mag"]) != 3:
+        raise InputError(p, "no Magnetometer X/Y/Z columns (a stream missing)", 1)
+    for key, unit in units.items():
+        if unit not in _SCALE[key]:
+            raise InputError(p, f"unknown unit {unit!r} for {key} (known: {', '.join(_SCALE[key])})", 1)
+    return {k: [c[a] for a in "xyz"] for k, c in cols.items() if len(c) == 3}, units, len(header)
+
+
+def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
+    """Parse the rows line by line (yielding after each) into the builders; held magnetometer repeats out."""
+    last_mag = None
+    for lineno, line in enumerate(fh, start=2):
+        yield
+        s = line.strip()
+        if not s:
+            continue
+        parts = s.split(",")
+        if len(parts) < ncol:
+            raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
+        vals = floats(p, lineno, parts[:ncol])
+        t = vals[0]
+        for key, ix in idx.items():
+            v = [vals[i] for i in ix]
+            if key == "mag":
+                if v == last_mag:
+                    dropped["mag:held_repeat"] += 1
+                    continue
+                last_mag = v
+            builders[key].add(lineno, t, v)
+
+
 def read(path) -> Recording:
-    """Read an x-io CSV into a :class:`Recording` (line by line)."""
+    """Read an x-io CSV into a :class:`Recording`."""
+    return open_source(path).collect()
+
+
+def open_source(path) -> RecordingSource:
+    """Open an x-io CSV: the header now, the rows as they are read (one pass for all streams)."""
     p = Path(path)
-    dropped: Counter = Counter()
     with open_text(p) as fh:
-        header = [c.strip() for c in fh.readline().strip().split(",")]
-        if not header or header[0].lower() != "time (s)":
-            raise InputError(p, f"bad header {','.join(header)!r}, expected 'Time (s),…'", 1)
-        cols: dict[str, dict[str, int]] = {}
-        units: dict[str, str] = {}
-        for i, name in enumerate(header):
-            m = _COL.match(name.lower())
-            if m:
-                key = _KEY[m.group(1)]
-                cols.setdefault(key, {})[m.group(2)] = i
-                units[key] = m.group(3)
-        if "mag" not in cols or len(cols["mag"]) != 3:
-            raise InputError(p, "no Magnetometer X/Y/Z columns (a stream missing)", 1)
-        for key, unit in units.items():
-            if unit not in _SCALE[key]:
-                raise InputError(p, f"unknown unit {unit!r} for {key} (known: {', '.join(_SCALE[key])})", 1)
-        idx = {k: [c[a] for a in "xyz"] for k, c in cols.items() if len(c) == 3}
-        builders = {k: StreamBuilder(p, k, dropped) for k in idx}
-        ncol = len(header)
-        last_mag = None
-        for lineno, line in enumerate(fh, start=2):
-            s = line.strip()
-            if not s:
-                continue
-            parts = s.split(",")
-            if len(parts) < ncol:
-                raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-            vals = floats(p, lineno, parts[:ncol])
-            t = vals[0]
-            for key, ix in idx.items():
-                v = [vals[i] for i in ix]
-                if key == "mag":
-                    if v == last_mag:
-                        dropped["mag:held_repeat"] += 1
-                        continue
-                    last_mag = v
-                builders[key].add(lineno, t, v)
-    streams = {k: finish(b, scale=_SCALE[k][units[k]], unit_hint=units[k]) for k, b in builders.items()}
-    return Recording(
-        mag=streams["mag"],
-        accel=streams.get("accel"),
-        gyro=streams.get("gyro"),
+        idx, units, _ = _header(p, fh)
+    dropped: Counter = Counter()
+
+    def chunks():
+        with open_text(p) as fh:
+            _, _, ncol = _header(p, fh)
+            builders = {k: StreamBuilder(p, k, dropped) for k in idx}
+            yield from chunks_of(fh, builders, every(_rows(p, fh, idx, ncol, builders, dropped)))
+
+    specs = {k: StreamSpec(p, k, scale=_SCALE[k][units[k]], unit_hint=units[k]) for k in idx}
+    return RecordingSource(
+        specs,
+        [Feed(tuple(idx), chunks, p.stat().st_size)],
         meta={"device": "x-io IMU", "units_in_file": units},
         source=str(p),
         format=NAME,
