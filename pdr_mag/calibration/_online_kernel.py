@@ -36,7 +36,8 @@ K_IN_BLOCK = 12  # 1 while a block is open (its start parameters and buffer copy
 K_NBUF0 = 13  # buffer size at the block start
 K_MIN_T0 = 14  # oldest time in the buffer at the block start
 K_HINT = 15  # index of the last buffer sample found close (where the redundancy scan starts)
-N_KS = 16
+K_FIT_NEW = 16  # samples taken into the buffer since the last refit (inf: a refit is due whatever the count)
+N_KS = 17
 
 # ---- block-start parameters bp
 B_CHECK = 0  # 1: test strength (and dip) against the calibration; 0: every sample is consistent
@@ -152,11 +153,13 @@ def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
             if t - tj > refresh_s:
                 _put(buf, j, t, m, u)
                 ks[K_VERSION] += 1.0
+                ks[K_FIT_NEW] += 1.0
             return
     if n < size:
         _put(buf, n, t, m, u)
         ks[K_NBUF] = n + 1
         ks[K_VERSION] += 1.0
+        ks[K_FIT_NEW] += 1.0
         return
     # full: evict the sample closest to another one
     best = np.inf
@@ -176,6 +179,7 @@ def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
             jb = a
     _put(buf, jb, t, m, u)
     ks[K_VERSION] += 1.0
+    ks[K_FIT_NEW] += 1.0
 
 
 @njit(cache=True)
@@ -281,6 +285,7 @@ def scan(
         if ks[K_EPISODE] == 0.0 and ks[K_RATE_EMA] > ep_rate:
             ks[K_EPISODE] = 1.0
             ks[K_EPISODE_SEEN] = 1.0
+            ks[K_FIT_NEW] = np.inf
             ev_i[n_ev] = i
             ev_k[n_ev] = EV_EPISODE_START
             n_ev += 1
@@ -290,6 +295,7 @@ def scan(
             ev_k[n_ev] = EV_EPISODE_END
             n_ev += 1
             ks[K_NEXT_REFIT_T] = ti
+            ks[K_FIT_NEW] = np.inf
         # decimated ring of recent samples
         if ti - ks[K_LAST_REC_T] >= rec_dt:
             r = int(ks[K_REC_I]) % nrec

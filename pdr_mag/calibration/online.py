@@ -86,6 +86,13 @@ class OnlineSettings:
         A redundant new sample replaces its kept neighbour when that one is older than this.
     refit_period_s : float
         Stream time between refit attempts (before the first acceptance: ``refit_period_s / 2``).
+    refit_min_new, refit_new_frac : float
+        Once calibrated (and not recalibrating), a refit attempt fits only when the buffer took in at least
+        ``max(refit_min_new, refit_new_frac · n)`` samples since the last fit (n: samples in the buffer);
+        otherwise the last fit's verdict stands.  The fitted offset's covariance scales as 1/n, so k new
+        samples shrink its σ by ≈ k/(2n) and move it by ≈ σ·√(k/n): far less than the 20 % shrink or
+        2 σ shift a new fit needs to replace the calibration (see ``_accept``).  A change of the
+        calibration, a rotation episode's start or end and a cleared buffer make the next attempt fit.
     min_samples : int
         Fewer samples in the buffer: no refit.
     sigma_strength_uT : float
@@ -134,6 +141,8 @@ class OnlineSettings:
     min_sep_up_deg: float = 6.0
     refresh_s: float = 120.0
     refit_period_s: float = 2.0
+    refit_min_new: float = 2.0
+    refit_new_frac: float = 0.1
     min_samples: int = 8
     sigma_strength_uT: float = 1.0
     sigma_tilt_deg: float = 3.0
@@ -416,6 +425,7 @@ class OnlineCalibrator:
     def calibration(self, cal: MagCalibration | None) -> None:
         self._cal = cal
         self._ks[K.K_COV_VERSION] = -1.0  # the coverage is taken about the calibration's offset
+        self._ks[K.K_FIT_NEW] = np.inf  # the next refit attempt fits
 
     # ------------------------------------------------------------------ reference field
     @property
@@ -607,6 +617,7 @@ class OnlineCalibrator:
         self._buf[:] = np.nan
         self._nbuf = 0
         self._ks[K.K_VERSION] += 1.0
+        self._ks[K.K_FIT_NEW] = np.inf
 
     # ------------------------------------------------------------------ refits
     def _refit(self, t: float, events: list) -> None:
@@ -614,6 +625,13 @@ class OnlineCalibrator:
         n = self._nbuf
         if n < s.min_samples:
             return
+        if (
+            self._cal is not None
+            and self.cal_state != "recalibrating"
+            and self._ks[K.K_FIT_NEW] < max(s.refit_min_new, s.refit_new_frac * n)
+        ):
+            return  # too few new samples since the last fit to change its verdict (refit_min_new)
+        self._ks[K.K_FIT_NEW] = 0.0
         # the candidates and their verdicts depend on the buffer, the calibration in use and the episode
         # flag only: when none of them changed since the last refit, they are the same
         key = (float(self._ks[K.K_VERSION]), self._episode_seen, self.cal_state)
@@ -882,6 +900,7 @@ class OnlineCalibrator:
             "stale_cand": self._stale_cand,
             "n_refits": self._n_refits,
             "last_reject_t": _f(self._last_reject_t),
+            "fit_new": _f(self._ks[K.K_FIT_NEW]),
         }
 
     def set_state(self, st: dict) -> None:
@@ -904,6 +923,7 @@ class OnlineCalibrator:
         self._stale_cand = None if st.get("stale_cand") is None else [float(v) for v in st["stale_cand"]]
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = _uf(st["last_reject_t"])
+        self._ks[K.K_FIT_NEW] = _uf(st.get("fit_new", "inf"))
         self._ks[K.K_IN_BLOCK] = 0.0
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
