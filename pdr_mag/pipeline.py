@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pdr_mag import _pipeline_kernel as PK
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
@@ -355,25 +356,14 @@ class HeadingPipeline:
             if not np.isfinite(horizon) or horizon <= self._done_t:
                 return
             t_end = horizon
-        parts = []
-        for name, s in self._streams.items():
-            t, xyz = s.take_before(t_end)
-            if len(t):
-                parts.append((np.full(len(t), KINDS[name], dtype=np.int8), t, xyz))
+        (ta, xa), (tg, xg), (tm, xm) = (s.take_before(t_end) for s in self._streams.values())
         if not final:
             self._done_t = t_end
-        if parts:
-            kind = np.concatenate([p[0] for p in parts])
-            t = np.concatenate([p[1] for p in parts])
-            xyz = np.concatenate([p[2] for p in parts])
-            if len(parts) > 1:
-                # each stream is time-ordered and the parts are in kind order, so a stable sort by time
-                # (a merge of sorted runs) gives ties in kind order: accel < gyro < mag
-                order = np.argsort(t, kind="stable")
-                kind, t, xyz = kind[order], t[order], xyz[order]
+        if len(ta) + len(tg) + len(tm):
+            # time-ordered merge, ties in kind order: accel < gyro < mag
+            kind, t, xyz, blk = PK.merge3(ta, xa, tg, xg, tm, xm, b)
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
-            blk = np.floor(t / b)
             i, n = 0, len(t)
             while i < n:
                 if self._cur_blk is not None and blk[i] > self._cur_blk:
@@ -411,7 +401,11 @@ class HeadingPipeline:
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
-        ctx = self._mag_context(kind, t, xyz, batch) if self.settings.online else None
+        ctx = (
+            PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._up, self._up_acc, self._rate)
+            if self.settings.online
+            else None
+        )
         if ctx is not None and n_p > 1:
             # close every block but the last: the open block's earlier samples, then the span's
             pre = np.concatenate(self._pend) if self._pend else np.empty((0, 8))
@@ -462,7 +456,7 @@ class HeadingPipeline:
                 self._span = min(2 * self._span, _SPAN_MAX)
         n_rows = int(row_hi[n_pieces - 1])
         if ctx is not None:
-            self._carry_context(kind[:end], xyz[:end], batch, n_rows)
+            PK.carry_context(kind, xyz, end, batch.q_wd, n_rows, self._up, self._up_acc, self._rate)
         if n_rows:
             if n_rows < len(batch):
                 batch = _head(batch, n_rows)
@@ -487,37 +481,6 @@ class HeadingPipeline:
             if np.any(m):
                 self._magcal.append((t[:end][m].copy(), data[:end][m].copy()))
         return end
-
-    def _mag_context(self, kind, t, xyz, batch: EstimateBatch) -> np.ndarray:
-        """Rows (t, raw, up, rate) for the span's magnetometer samples: the filter's up vector and the gyro
-        rate of the latest row / sample at or before each (before the first output row: the accelerometer's
-        direction) — causal, so independent of the cuts."""
-        is_mag = kind == 2
-        tm = t[is_mag]
-        out = np.empty((len(tm), 8))
-        if not len(tm):
-            return out
-        out[:, 0] = tm
-        out[:, 1:4] = xyz[is_mag]
-        out[:, 4:7] = _latest(tm, batch.t, batch.q_wd, self._up, _up_of)
-        bad = ~np.isfinite(out[:, 4])
-        if np.any(bad):
-            a = kind == 0
-            out[bad, 4:7] = _latest(tm[bad], t[a], xyz[a], self._up_acc, _unit)
-        g = kind == 1
-        out[:, 7] = _latest(tm, t[g], xyz[g], self._rate, _norm)[:, 0]
-        return out
-
-    def _carry_context(self, kind, xyz, batch: EstimateBatch, n_rows: int) -> None:
-        """Keep what :meth:`_mag_context` needs from before the next span (fused samples only)."""
-        if n_rows:
-            self._up = _up_of(batch.q_wd[n_rows - 1 : n_rows])[0]
-        a = np.flatnonzero(kind == 0)
-        if len(a):
-            self._up_acc = _unit(xyz[a[-1] : a[-1] + 1])[0]
-        g = np.flatnonzero(kind == 1)
-        if len(g):
-            self._rate = _norm(xyz[g[-1] : g[-1] + 1])[0]
 
     def _close_block(self) -> None:
         """End of a block: the online calibrator sees the block's magnetometer samples."""
@@ -643,30 +606,6 @@ class HeadingPipeline:
         except (KeyError, TypeError) as exc:
             raise ValueError(f"state: malformed ({exc!r})") from exc
         self._out, self._events, self._magcal = [], [], []
-
-
-def _up_of(q: np.ndarray) -> np.ndarray:
-    """Device-frame up vectors (third row of rot_wd) of w-first quaternions (N, 4)."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-
-
-def _latest(tm: np.ndarray, ts: np.ndarray, vs: np.ndarray, prev: np.ndarray, fn) -> np.ndarray:
-    """``fn`` of the row of ``vs`` with the latest ``ts`` at or before each ``tm``, else ``prev``."""
-    if not len(ts):
-        return np.tile(prev, (len(tm), 1))
-    j = np.searchsorted(ts, tm, side="right") - 1
-    out = fn(vs[np.maximum(j, 0)])
-    out[j < 0] = prev
-    return out
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-
-
-def _norm(v: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(v, axis=1)[:, None]
 
 
 def _head(batch: EstimateBatch, n: int) -> EstimateBatch:
