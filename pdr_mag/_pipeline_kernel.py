@@ -162,3 +162,18 @@ def carry_context(kind, xyz, end, row_q, n_rows, up, up_acc, rate):
         up_acc[2] = xyz[a, 2] / nn
     if g >= 0:
         rate[0] = _norm3(xyz[g, 0], xyz[g, 1], xyz[g, 2])
+
+
+@njit(cache=True)
+def in_order(t, xyz, after):
+    """True when the times are strictly increasing from above ``after`` and every time and value is finite
+    (the common case of a push: nothing to drop)."""
+    prev = after
+    for i in range(len(t)):
+        ti = t[i]
+        if not (ti > prev and np.isfinite(ti)):
+            return False
+        if not (np.isfinite(xyz[i, 0]) and np.isfinite(xyz[i, 1]) and np.isfinite(xyz[i, 2])):
+            return False
+        prev = ti
+    return True

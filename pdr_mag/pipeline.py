@@ -255,13 +255,7 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
-        if (
-            t[0] > s.last_t
-            and t[0] >= self._done_t
-            and (len(t) == 1 or bool(np.all(t[1:] > t[:-1])))
-            and bool(np.isfinite(t[-1]))
-            and bool(np.isfinite(xyz).all())
-        ):
+        if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
             # the common case: finite, strictly increasing, after everything pushed and processed
             s.t.append(t.copy())
             s.xyz.append(xyz.copy())

@@ -405,6 +405,7 @@ class OnlineCalibrator:
         self._n_refits = 0
         self._last_reject_t = -np.inf
         self._refit_memo: tuple | None = None
+        self._bp_memo: tuple | None = None
 
     # scalar state kept in the compiled loop's vector
     _rate_ema = _ks_prop(K.K_RATE_EMA, float)
@@ -473,7 +474,16 @@ class OnlineCalibrator:
         return c
 
     def _block_params(self) -> np.ndarray:
-        """Admission-test parameters for a block starting now (the calibration in use)."""
+        """Admission-test parameters for a block starting now (the calibration in use; the same array until
+        the calibration or its state changes — read-only)."""
+        memo = self._bp_memo
+        if memo is not None and memo[0] is self._cal and memo[1] == self.cal_state:
+            return memo[2]
+        bp = self._new_block_params()
+        self._bp_memo = (self._cal, self.cal_state, bp)
+        return bp
+
+    def _new_block_params(self) -> np.ndarray:
         s = self.settings
         bp = np.zeros(K.N_BP)
         f = self.field_ref
@@ -537,9 +547,9 @@ class OnlineCalibrator:
         up = np.asarray(up, dtype=float)
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
-        good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
         rows = None
-        if not np.all(good):
+        if not (np.isfinite(t).all() and np.isfinite(mag).all() and np.isfinite(up).all()):
+            good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
             # a block whose last sample is dropped ends at its last good one
             blk = np.cumsum(np.r_[False, block_end[:-1]])
             rows = np.flatnonzero(good)
@@ -927,6 +937,7 @@ class OnlineCalibrator:
         self._ks[K.K_IN_BLOCK] = 0.0
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
+        self._bp_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
