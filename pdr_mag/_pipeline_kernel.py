@@ -177,3 +177,87 @@ def in_order(t, xyz, after):
             return False
         prev = ti
     return True
+
+
+@njit(cache=True)
+def span_pieces(blk, kind, span):
+    """The span starting at sample 0: its end ``e`` (the first sample of block ``blk[0] + span``) and its
+    block-pieces ``[lo, hi)``, with the number of magnetometer samples before each ``lo`` and ``hi``."""
+    n = len(blk)
+    stop = blk[0] + span
+    e = n
+    n_p = 1
+    for i in range(1, n):
+        if blk[i] >= stop:
+            e = i
+            break
+        if blk[i] != blk[i - 1]:
+            n_p += 1
+    lo = np.empty(n_p, dtype=np.intp)
+    hi = np.empty(n_p, dtype=np.intp)
+    mag_lo = np.empty(n_p, dtype=np.intp)
+    mag_hi = np.empty(n_p, dtype=np.intp)
+    j = 0
+    m = 0
+    lo[0] = 0
+    mag_lo[0] = 0
+    for i in range(e):
+        if i > 0 and blk[i] != blk[i - 1]:
+            hi[j] = i
+            mag_hi[j] = m
+            j += 1
+            lo[j] = i
+            mag_lo[j] = m
+        if kind[i] == 2:
+            m += 1
+    hi[j] = e
+    mag_hi[j] = m
+    return e, lo, hi, mag_lo, mag_hi
+
+
+@njit(cache=True)
+def close_layout(n_pre, mag_lo, mag_hi):
+    """Rows handed to the calibrator when every piece but the last is closed: the ``n_pre`` rows of the open
+    block, then the span's magnetometer samples up to the last piece.  Returns ``(n_rows, last, has, ends,
+    piece_of_row)``: each closed piece's last row and whether it has one (the first piece also owns the
+    open block's rows), the block-end flags of the rows, and the piece each row closes with."""
+    n_c = len(mag_hi) - 1
+    n_rows = n_pre + mag_hi[n_c - 1]
+    last = np.empty(n_c, dtype=np.intp)
+    has = np.empty(n_c, dtype=np.bool_)
+    ends = np.zeros(n_rows, dtype=np.bool_)
+    for j in range(n_c):
+        last[j] = n_pre + mag_hi[j] - 1
+        has[j] = mag_hi[j] > mag_lo[j]
+    has[0] = last[0] >= 0
+    n_has = 0
+    for j in range(n_c):
+        if has[j]:
+            ends[last[j]] = True
+            n_has += 1
+    hp = np.empty(n_has, dtype=np.intp)
+    k = 0
+    for j in range(n_c):
+        if has[j]:
+            hp[k] = j
+            k += 1
+    piece_of_row = np.empty(n_rows, dtype=np.intp)
+    k = 0
+    for r in range(n_rows):
+        while k < n_has - 1 and last[hp[k]] < r:
+            k += 1
+        piece_of_row[r] = hp[k]
+    return n_rows, last, has, ends, piece_of_row
+
+
+@njit(cache=True)
+def piece_coverage(cov, last, has, c0):
+    """Coverage in effect in each piece: ``c0`` in the first, then the coverage after the close of the
+    previous piece with rows (``cov`` at its last row), carried over pieces without rows or a finite value."""
+    n_p = len(last) + 1
+    out = np.empty(n_p)
+    out[0] = c0
+    for j in range(1, n_p):
+        v = cov[last[j - 1]] if has[j - 1] else np.nan
+        out[j] = v if np.isfinite(v) else out[j - 1]
+    return out

@@ -370,10 +370,10 @@ class HeadingPipeline:
     def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
         """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
         inside it; returns the number of samples fused for good."""
-        e = int(np.searchsorted(blk, blk[0] + self._span, side="left"))
+        e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
-        cuts = np.flatnonzero(blk[1:] != blk[:-1]) + 1
-        snap = self.fusion._snapshot() if len(cuts) else None
+        n_p = len(lo)
+        snap = self.fusion._snapshot() if n_p > 1 else None
         is_mag = kind == 2
         cal = self.online.calibration
         state = self.online.cal_state
@@ -381,17 +381,8 @@ class HeadingPipeline:
         data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
         allowed = np.full(e, cal is not None)
         batch = self.fusion.process(kind, t, data, allowed)
-        lo = np.empty(len(cuts) + 1, dtype=np.intp)
-        lo[0] = 0
-        lo[1:] = cuts
-        hi = np.empty_like(lo)
-        hi[:-1] = cuts
-        hi[-1] = e
-        n_p = len(lo)
-        # rows (one per output gyro sample) and magnetometer samples of each block-piece
+        # rows (one per output gyro sample) of each block-piece
         row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
-        n_mag = np.zeros(e + 1, dtype=np.intp)
-        np.cumsum(is_mag, out=n_mag[1:])
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
@@ -402,29 +393,19 @@ class HeadingPipeline:
         )
         if ctx is not None and n_p > 1:
             # close every block but the last: the open block's earlier samples, then the span's
-            pre = np.concatenate(self._pend) if self._pend else np.empty((0, 8))
+            pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
             self._pend = []
-            rows = np.concatenate([pre, ctx[: n_mag[hi[-2]]]])
-            last = len(pre) + n_mag[hi[:-1]] - 1  # each closed piece's last row
-            has = n_mag[hi[:-1]] > n_mag[lo[:-1]]
-            has[0] = last[0] >= 0
-            ends = np.zeros(len(rows), dtype=np.bool_)
-            ends[last[has]] = True
+            n_rows_c, last, has, ends, piece_of_row = PK.close_layout(len(pre), mag_lo, mag_hi)
+            rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
             before = self.online.calibration
             events, n_done, cov = self.online.update_blocks(
                 rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
             )
-            if len(rows):
-                piece_of_row = np.searchsorted(last[has], np.arange(len(rows)), side="left")
-                piece_of_row = np.flatnonzero(has)[np.minimum(piece_of_row, np.count_nonzero(has) - 1)]
+            if n_rows_c:
                 for r, (te, k, d) in events:
                     piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
                 # coverage after each closed block with samples, carried over the pieces without
-                c = np.full(n_p, np.nan)
-                c[1:][has] = cov[last[has]]
-                c[0] = self._coverage
-                ok = np.isfinite(c)
-                covs = c[np.maximum.accumulate(np.where(ok, np.arange(n_p), 0))]
+                covs = PK.piece_coverage(cov, last, has, self._coverage)
                 if self.online.calibration is not before:
                     q = int(piece_of_row[n_done - 1])
                     n_pieces = q + 1
@@ -444,8 +425,8 @@ class HeadingPipeline:
             self._sync_fusion_reference()
             self._span = _SPAN_MIN
         else:
-            if ctx is not None and n_mag[hi[-1]] > n_mag[lo[-1]]:
-                self._pend.append(ctx[n_mag[lo[-1]] : n_mag[hi[-1]]])
+            if ctx is not None and mag_hi[-1] > mag_lo[-1]:
+                self._pend.append(ctx[mag_lo[-1] : mag_hi[-1]])
             if n_p == self._span:
                 self._span = min(2 * self._span, _SPAN_MAX)
         n_rows = int(row_hi[n_pieces - 1])
