@@ -440,7 +440,9 @@ class HeadingPipeline:
             if n_pieces == 1:
                 batch.diag["coverage"] = np.full(n_rows, covs[0])
             else:
-                batch.diag["coverage"] = np.repeat(covs[:n_pieces], np.diff(row_hi[:n_pieces], prepend=0))
+                per_piece = row_hi[:n_pieces].copy()  # rows in each piece
+                per_piece[1:] -= row_hi[: n_pieces - 1]
+                batch.diag["coverage"] = np.repeat(covs[:n_pieces], per_piece)
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows

@@ -569,12 +569,16 @@ class OnlineCalibrator:
         i = 0
         changed = False
         stop_at = len(t)
+        cal_of = False  # the calibration the separation and the coverage centre below were taken from
         while i < len(t):
+            if self._cal is not cal_of:
+                cal_of = self._cal
+                sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
+                centre = self._centre()
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
-            sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
             code, j, n_ev = K.scan(
                 t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._rec,
-                sep2, self._centre(), _DIRS, cov_g, changed, ev_i, ev_k,
+                sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
             )  # fmt: skip
             for e in range(n_ev):
                 ie = int(ev_i[e])
