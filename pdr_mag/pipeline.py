@@ -119,8 +119,8 @@ class _Stream:
     def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
         if not self.n:
             return np.empty(0), np.empty((0, 3))
-        t = np.concatenate(self.t)
-        xyz = np.concatenate(self.xyz)
+        t = self.t[0] if len(self.t) == 1 else np.concatenate(self.t)
+        xyz = self.xyz[0] if len(self.xyz) == 1 else np.concatenate(self.xyz)
         k = int(np.searchsorted(t, t_end, side="left"))
         self.t = [t[k:]] if k < len(t) else []
         self.xyz = [xyz[k:]] if k < len(t) else []
@@ -197,6 +197,7 @@ class HeadingPipeline:
         self._interf = False
         self._up = np.array([np.nan, np.nan, np.nan])
         self._calibrations: list[tuple[float, MagCalibration]] = []
+        self._cal_mats: tuple = (None,)  # (calibration, offset, matrix transposed) of _apply
         self._n_out = 0
         self._t_first = np.nan
         self._t_last = np.nan
@@ -378,7 +379,7 @@ class HeadingPipeline:
         cal = self.online.calibration
         state = self.online.cal_state
         data = xyz.copy()
-        data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
+        data[is_mag] = self._apply(cal, xyz[is_mag]) if cal is not None else np.nan
         allowed = np.full(e, cal is not None)
         batch = self.fusion.process(kind, t, data, allowed)
         # rows (one per output gyro sample) of each block-piece
@@ -472,10 +473,22 @@ class HeadingPipeline:
                 self._calibrations.append((float(p[-1, 0]), self.online.calibration))
                 self._sync_fusion_reference()
 
+    def _apply(self, cal: MagCalibration, mag: np.ndarray) -> np.ndarray:
+        """:meth:`MagCalibration.apply`, its matrices kept while the calibration stays the same."""
+        if self._cal_mats[0] is not cal:
+            a = cal.soft_iron_array
+            if cal.mag_to_imu is not None:
+                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+            self._cal_mats = (cal, cal.offset_array, a.T)
+        _, off, a_t = self._cal_mats
+        return (mag - off) @ a_t
+
     def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
         """Flag changes in these rows, as (row, event)."""
         out = []
         flags = np.asarray(batch.interference, dtype=bool)
+        if flags.any() == self._interf and flags.all() == self._interf:
+            return out  # no change (the common case)
         prev = np.empty_like(flags)
         prev[0] = self._interf
         prev[1:] = flags[:-1]
