@@ -57,6 +57,8 @@ STATE_VERSION = 1
 #: re-run of the span up to it), each span without a change doubles the next, up to the maximum.
 _SPAN_MIN = 8
 _SPAN_MAX = 64
+#: Blocks between the filter snapshots taken inside a span (a change re-runs the filter from the latest one).
+_SNAP_EVERY = 4
 
 
 def _default_fusion_settings():
@@ -374,6 +376,9 @@ class HeadingPipeline:
         e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
         n_p = len(lo)
+        # filter snapshots at the span's start and every _SNAP_EVERY pieces: what a calibration change inside
+        # the span puts back before re-running the filter up to the change
+        snap_at = lo[_SNAP_EVERY::_SNAP_EVERY]
         snap = self.fusion._snapshot() if n_p > 1 else None
         is_mag = kind == 2
         cal = self.online.calibration
@@ -381,7 +386,12 @@ class HeadingPipeline:
         data = xyz.copy()
         data[is_mag] = self._apply(cal, xyz[is_mag]) if cal is not None else np.nan
         allowed = np.full(e, cal is not None)
-        batch = self.fusion.process(kind, t, data, allowed)
+        batch = (
+            self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
+            if len(snap_at)
+            else self.fusion.process(kind, t, data, allowed)
+        )
+        snaps = self.fusion.snapshots if len(snap_at) else []
         # rows (one per output gyro sample) of each block-piece
         row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
@@ -420,9 +430,13 @@ class HeadingPipeline:
             self._cur_blk = float(blk[lo[-1]])
         end = int(hi[n_pieces - 1])
         if end < e:
-            # the calibration changed at a block boundary inside the span: redo the filter up to there
-            self.fusion._restore(snap)
-            self.fusion.process(kind[:end], t[:end], data[:end], allowed[:end])
+            # the calibration changed at a block boundary inside the span: redo the filter up to there from
+            # the latest snapshot before it
+            j = int(np.searchsorted(snap_at, end, side="right"))
+            start = int(snap_at[j - 1]) if j else 0
+            self.fusion._restore(snaps[j - 1] if j else snap)
+            if end > start:
+                self.fusion.process(kind[start:end], t[start:end], data[start:end], allowed[start:end])
             self._sync_fusion_reference()
             self._span = _SPAN_MIN
         else:
