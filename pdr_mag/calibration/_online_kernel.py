@@ -511,6 +511,28 @@ def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     return FIT_OK, b + centre, f, s, cov, est, rms, np.sqrt(se2 / n)
 
 
+@njit(cache=True)
+def recent(rec, rec_i, t_min):
+    """Rows of the ring ``rec`` (written cyclically, the next at ``rec_i % len(rec)``: the oldest first)
+    with a finite time after ``t_min``, in time order."""
+    nrec = rec.shape[0]
+    start = int(rec_i) % nrec
+    n = 0
+    for k in range(nrec):
+        tk = rec[(start + k) % nrec, 0]
+        if np.isfinite(tk) and tk > t_min:
+            n += 1
+    out = np.empty((n, rec.shape[1]))
+    j = 0
+    for k in range(nrec):
+        i = (start + k) % nrec
+        tk = rec[i, 0]
+        if np.isfinite(tk) and tk > t_min:
+            out[j] = rec[i]
+            j += 1
+    return out
+
+
 # ---- return codes of stale_precheck
 STALE_SKIP = 0  # too few recent samples: nothing to do
 STALE_CLEAR = 1  # the strength does not deviate: no candidate

@@ -687,7 +687,7 @@ class OnlineCalibrator:
         if cov >= s.sphere_coverage:
             try:
                 sp = fit_sphere(m)
-                sp = replace(sp, coverage=cov, extra={**sp.extra, "sin_dip": _mean_sin_dip(m, u, sp)})
+                sp = replace(sp, coverage=cov)
                 cands.append(sp)
             except (ValueError, ArithmeticError):
                 pass
@@ -695,7 +695,6 @@ class OnlineCalibrator:
             try:
                 full = _full_fit(m, f_ref)
                 full = replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
-                full = replace(full, extra={**full.extra, "sin_dip": _mean_sin_dip(m, u, full)})
                 cands.append(full)
             except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
@@ -748,10 +747,20 @@ class OnlineCalibrator:
             extra={**g.extra, "shape_from": cur.method},
         )
 
+    def _with_dip(self, cal: MagCalibration) -> MagCalibration:
+        """A sphere or full refit taken into use gets ``extra["sin_dip"]``: the median dip of the buffer's
+        samples under it (the buffer the refit was made on; computed only for the refit taken)."""
+        if cal.method == "gravity":
+            return cal
+        n = self._nbuf
+        sin_dip = _mean_sin_dip(self._buf[:n, 1:4], self._buf[:n, 4:7], cal)
+        return replace(cal, extra={**cal.extra, "sin_dip": sin_dip})
+
     def _accept(self, t: float, cal: MagCalibration, events: list) -> None:
         s = self.settings
         old = self.calibration
         if self.cal_state == "recalibrating":
+            cal = self._with_dip(cal)
             rich = cal.method != "gravity" and self._episode_seen
             waited = np.isfinite(self._recal_t) and t - self._recal_t > s.recal_fallback_s
             if not (rich or waited):
@@ -778,6 +787,7 @@ class OnlineCalibrator:
                 return  # the buffer got worse (disturbed samples): keep the calibration
             if not upgrade and shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old:
                 return
+        cal = self._with_dip(cal)
         self.calibration = cal
         self.cal_state = _state_of(cal)
         self._n_refits += 1
@@ -785,9 +795,8 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ stale test
     def _recent(self, t: float) -> np.ndarray:
-        r = self._rec[np.isfinite(self._rec[:, 0])]
-        r = r[r[:, 0] > t - self.settings.stale_window_s]
-        return r[np.argsort(r[:, 0])]
+        """The ring's samples of the last ``stale_window_s``, oldest first."""
+        return K.recent(self._rec, self._ks[K.K_REC_I], t - self.settings.stale_window_s)
 
     def _stale_check(self, t: float, events: list) -> None:
         s = self.settings
@@ -809,13 +818,9 @@ class OnlineCalibrator:
         if pre == K.STALE_CLEAR:
             self._stale_cand = None
             return
+        # deviating (the precheck's share test passed): fit a device-fixed offset shift on the window
         r = self._recent(t)
         mc = cal.apply(r[:, 1:4])
-        dev = np.abs(np.linalg.norm(mc, axis=1) - f) > s.strength_tol_frac * f * 0.5
-        last = r[:, 0] > t - s.stale_window_s / 3
-        if np.mean(dev[last]) < s.stale_min_frac or np.mean(dev) < 0.5 * s.stale_min_frac:
-            self._stale_cand = None
-            return
         half = len(r) // 2
         fits = []
         for lo, hi in ((0, len(r)), (0, half), (half, len(r))):
