@@ -379,9 +379,9 @@ class HeadingPipeline:
         e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
         n_p = len(lo)
-        # filter snapshots at the span's start and every _SNAP_EVERY pieces: what a calibration change inside
-        # the span puts back before re-running the filter up to the change
-        snap_at = lo[_SNAP_EVERY::_SNAP_EVERY]
+        # filter snapshots at the span's start and (long spans) every _SNAP_EVERY pieces: what a calibration
+        # change inside the span puts back before re-running the filter up to the change
+        snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
         snap = self.fusion._snapshot() if n_p > 1 else None
         is_mag = kind == 2
         cal = self.online.calibration
