@@ -361,7 +361,7 @@ class FusionCore:
         out_std = np.empty(m)
         out_mag = np.empty(m, dtype=np.bool_)
         out_int = np.empty(m, dtype=np.bool_)
-        out_diag = np.empty((m, K.N_DIAG))
+        out_diag = np.empty((K.N_DIAG, m)).T  # each diagnostic a contiguous column: no copies below
         k = 0
         a = 0
         self.snapshots = []
@@ -389,14 +389,14 @@ class FusionCore:
         q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
         w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
         heading = np.mod(np.degrees(np.arctan2(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z))), 360.0)
-        diag = {name: out_diag[:k, i].copy() for i, name in enumerate(_DIAG_NAMES)}
+        diag = {name: out_diag[:k, i] for i, name in enumerate(_DIAG_NAMES)}
         return EstimateBatch(
-            t=out_t[:k].copy(),
-            q_wd=q.copy(),
+            t=out_t[:k],
+            q_wd=q,
             heading_deg=heading,
-            heading_std_deg=out_std[:k].copy(),
-            mag_used=out_mag[:k].copy(),
-            interference=out_int[:k].copy(),
+            heading_std_deg=out_std[:k],
+            mag_used=out_mag[:k],
+            interference=out_int[:k],
             cal_state=np.full(k, "none", dtype="<U13"),
             diag=diag,
         )
