@@ -512,6 +512,27 @@ def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
 
 
 @njit(cache=True)
+def contiguous_rows(t, mag, up, rate):
+    """``(ok, t, mag, up, rate)``: contiguous copies, ``ok`` when every time, field and up value is finite,
+    non-finite rates set to 0 (the rows :func:`scan` takes)."""
+    n = len(t)
+    ok = True
+    tc = np.empty(n)
+    mc = np.empty((n, 3))
+    uc = np.empty((n, 3))
+    rc = np.empty(n)
+    for i in range(n):
+        tc[i] = t[i]
+        ok = ok and np.isfinite(t[i])
+        for c in range(3):
+            mc[i, c] = mag[i, c]
+            uc[i, c] = up[i, c]
+            ok = ok and np.isfinite(mag[i, c]) and np.isfinite(up[i, c])
+        rc[i] = rate[i] if np.isfinite(rate[i]) else 0.0
+    return ok, tc, mc, uc, rc
+
+
+@njit(cache=True)
 def recent(rec, rec_i, t_min):
     """Rows of the ring ``rec`` (written cyclically, the next at ``rec_i % len(rec)``: the oldest first)
     with a finite time after ``t_min``, in time order."""

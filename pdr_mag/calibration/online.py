@@ -540,15 +540,18 @@ class OnlineCalibrator:
         events: list = []
         t = np.asarray(t, dtype=float).reshape(-1)
         n_all = len(t)
-        cov = np.full(n_all, np.nan)
         if not n_all:
-            return events, 0, cov
+            return events, 0, np.empty(0)
         mag = np.asarray(mag, dtype=float)
         up = np.asarray(up, dtype=float)
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
         rows = None
-        if not (np.isfinite(t).all() and np.isfinite(mag).all() and np.isfinite(up).all()):
+        ok, t_c, mag_c, up_c, rate_c = K.contiguous_rows(t, mag, up, rate)
+        if ok:
+            t, mag, up, rate = t_c, mag_c, up_c, rate_c
+        else:
+            cov = np.full(n_all, np.nan)
             good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
             # a block whose last sample is dropped ends at its last good one
             blk = np.cumsum(np.r_[False, block_end[:-1]])
@@ -557,10 +560,10 @@ class OnlineCalibrator:
             block_end = np.r_[blk[1:] != blk[:-1], True] if len(rows) else block_end[:0]
             if not len(rows):
                 return events, n_all, cov
-        rate = np.where(np.isfinite(rate), rate, 0.0)
-        t = np.ascontiguousarray(t)
-        mag = np.ascontiguousarray(mag)
-        up = np.ascontiguousarray(up)
+            rate = np.where(np.isfinite(rate), rate, 0.0)
+            t = np.ascontiguousarray(t)
+            mag = np.ascontiguousarray(mag)
+            up = np.ascontiguousarray(up)
         cov_g = np.full(len(t), np.nan)
         ev_i = np.zeros(len(t) * 2 + 2, dtype=np.int64)
         ev_k = np.zeros(len(t) * 2 + 2, dtype=np.int64)
