@@ -261,3 +261,16 @@ def piece_coverage(cov, last, has, c0):
         v = cov[last[j - 1]] if has[j - 1] else np.nan
         out[j] = v if np.isfinite(v) else out[j - 1]
     return out
+
+
+@njit(cache=True)
+def minus_offset(kind, xyz, off):
+    """``xyz`` with ``off`` subtracted from the magnetometer rows (``kind == 2``): the calibration
+    ``A (m − b)`` when ``A`` is the identity (an offset-only calibration)."""
+    out = xyz.copy()
+    for i in range(len(kind)):
+        if kind[i] == 2:
+            out[i, 0] = xyz[i, 0] - off[0]
+            out[i, 1] = xyz[i, 1] - off[1]
+            out[i, 2] = xyz[i, 2] - off[2]
+    return out

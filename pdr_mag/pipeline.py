@@ -383,11 +383,9 @@ class HeadingPipeline:
         # change inside the span puts back before re-running the filter up to the change
         snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
         snap = self.fusion._snapshot() if n_p > 1 else None
-        is_mag = kind == 2
         cal = self.online.calibration
         state = self.online.cal_state
-        data = xyz.copy()
-        data[is_mag] = self._apply(cal, xyz[is_mag]) if cal is not None else np.nan
+        data = self._calibrated(cal, kind, xyz)
         allowed = np.full(e, cal is not None)
         batch = (
             self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
@@ -472,7 +470,7 @@ class HeadingPipeline:
             self._t_first = float(t[0])
         self._t_last = float(t[end - 1])
         if self.settings.keep_mag_calibrated and cal is not None:
-            m = is_mag[:end]
+            m = kind[:end] == 2
             if np.any(m):
                 self._magcal.append((t[:end][m].copy(), data[:end][m].copy()))
         return end
@@ -490,15 +488,26 @@ class HeadingPipeline:
                 self._calibrations.append((float(p[-1, 0]), self.online.calibration))
                 self._sync_fusion_reference()
 
-    def _apply(self, cal: MagCalibration, mag: np.ndarray) -> np.ndarray:
-        """:meth:`MagCalibration.apply`, its matrices kept while the calibration stays the same."""
+    def _calibrated(self, cal: MagCalibration | None, kind: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """The merged samples with the magnetometer's calibrated by :meth:`MagCalibration.apply` (NaN
+        without a calibration); the calibration's matrices are kept while it stays the same."""
+        if cal is None:
+            data = xyz.copy()
+            data[kind == 2] = np.nan
+            return data
         if self._cal_mats[0] is not cal:
             a = cal.soft_iron_array
             if cal.mag_to_imu is not None:
                 a = np.asarray(cal.mag_to_imu, dtype=float) @ a
-            self._cal_mats = (cal, cal.offset_array, a.T)
-        _, off, a_t = self._cal_mats
-        return (mag - off) @ a_t
+            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
+            self._cal_mats = (cal, cal.offset_array, a.T, eye)
+        _, off, a_t, eye = self._cal_mats
+        if eye:
+            return PK.minus_offset(kind, xyz, off)
+        data = xyz.copy()
+        is_mag = kind == 2
+        data[is_mag] = (xyz[is_mag] - off) @ a_t
+        return data
 
     def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
         """Flag changes in these rows, as (row, event)."""
