@@ -111,26 +111,48 @@ class PipelineSettings:
 
 
 class _Stream:
-    """Pending samples of one input stream (chunks, appended in order)."""
+    """Pending samples of one input stream: rows ``[lo, hi)`` of one buffer that grows (doubling) when a
+    push does not fit after moving the pending rows to its start — so a push is one copy, and taking the
+    samples before a time is a slice (valid until the next append)."""
 
-    __slots__ = ("t", "xyz", "n", "last_t")
+    __slots__ = ("t", "xyz", "lo", "hi", "last_t")
 
     def __init__(self):
-        self.t: list[np.ndarray] = []
-        self.xyz: list[np.ndarray] = []
-        self.n = 0
+        self.t = np.empty(0)
+        self.xyz = np.empty((0, 3))
+        self.lo = 0
+        self.hi = 0
         self.last_t = -np.inf
 
+    @property
+    def n(self) -> int:
+        return self.hi - self.lo
+
+    def append(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        k = len(t)
+        if self.hi + k > len(self.t):
+            n = self.hi - self.lo
+            if n + k > len(self.t):
+                cap = max(2 * len(self.t), n + k, 256)
+                bt, bx = np.empty(cap), np.empty((cap, 3))
+            else:
+                bt, bx = self.t, self.xyz
+            bt[:n] = self.t[self.lo : self.hi]
+            bx[:n] = self.xyz[self.lo : self.hi]
+            self.t, self.xyz, self.lo, self.hi = bt, bx, 0, n
+        self.t[self.hi : self.hi + k] = t
+        self.xyz[self.hi : self.hi + k] = xyz
+        self.hi += k
+        self.last_t = float(t[-1])
+
     def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-        if not self.n:
-            return np.empty(0), np.empty((0, 3))
-        t = self.t[0] if len(self.t) == 1 else np.concatenate(self.t)
-        xyz = self.xyz[0] if len(self.xyz) == 1 else np.concatenate(self.xyz)
-        k = int(np.searchsorted(t, t_end, side="left"))
-        self.t = [t[k:]] if k < len(t) else []
-        self.xyz = [xyz[k:]] if k < len(t) else []
-        self.n = len(t) - k
-        return t[:k], xyz[:k]
+        lo = self.lo
+        k = lo + int(np.searchsorted(self.t[lo : self.hi], t_end, side="left"))
+        self.lo = k
+        return self.t[lo:k], self.xyz[lo:k]
+
+    def pending(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.t[self.lo : self.hi].copy(), self.xyz[self.lo : self.hi].copy()
 
 
 class HeadingPipeline:
@@ -263,10 +285,7 @@ class HeadingPipeline:
         s = self._streams[name]
         if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
             # the common case: finite, strictly increasing, after everything pushed and processed
-            s.t.append(t.copy())
-            s.xyz.append(xyz.copy())
-            s.n += len(t)
-            s.last_t = float(t[-1])
+            s.append(t, xyz)
             if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
                 self._process(self._safe_horizon())
             return
@@ -286,10 +305,7 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
-            s.t.append(t.copy())
-            s.xyz.append(xyz.copy())
-            s.n += len(t)
-            s.last_t = float(t[-1])
+            s.append(t, xyz)
         if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
             self._process(self._safe_horizon())
 
@@ -567,8 +583,7 @@ class HeadingPipeline:
         polled are not — poll them first."""
         pend = {}
         for name, s in self._streams.items():
-            t = np.concatenate(s.t) if s.n else np.empty(0)
-            x = np.concatenate(s.xyz) if s.n else np.empty((0, 3))
+            t, x = s.pending()
             pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": _f(s.last_t)}
         st = {
             "version": STATE_VERSION,
@@ -601,7 +616,7 @@ class HeadingPipeline:
                 p = state["pending"][name]
                 t = np.asarray(p["t"], dtype=float)
                 x = np.asarray(p["xyz"], dtype=float).reshape(-1, 3)
-                s.t, s.xyz, s.n = ([t], [x], len(t)) if len(t) else ([], [], 0)
+                s.t, s.xyz, s.lo, s.hi = t, x, 0, len(t)
                 s.last_t = float(p["last_t"])
             self._done_t = float(state["done_t"])
             self.dropped = Counter(state["dropped"])
