@@ -34,7 +34,7 @@ K_COV = 10
 K_STALE_ON = 11  # a stale test may run (calibrated, not recalibrating)
 K_IN_BLOCK = 12  # 1 while a block is open (its start parameters and buffer copy are set)
 K_NBUF0 = 13  # buffer size at the block start
-K_MIN_T0 = 14  # oldest time in the buffer at the block start
+K_NOLD0 = 14  # block-start buffer samples that may be older than refresh_s within the block (in ``old0``)
 K_HINT = 15  # index of the last buffer sample found close (where the redundancy scan starts)
 K_FIT_NEW = 16  # samples taken into the buffer since the last refit (inf: a refit is due whatever the count)
 N_KS = 17
@@ -93,33 +93,44 @@ def _consistent(m, u, bp):
 
 
 @njit(cache=True)
-def _redundant(t, m, u, buf0, ks, bp, refresh_s):
-    """Close (raw µT and gravity direction) to a sample of the block-start buffer too young to refresh."""
+def _close(j, m, u, buf0, sep2, cos_up):
+    d0 = buf0[j, 1] - m[0]
+    d1 = buf0[j, 2] - m[1]
+    d2 = buf0[j, 3] - m[2]
+    if not d0 * d0 + d1 * d1 + d2 * d2 < sep2:
+        return False
+    return buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up
+
+
+@njit(cache=True)
+def _redundant(t, m, u, buf0, old0, ks, bp, refresh_s):
+    """Close (raw µT and gravity direction) to a sample of the block-start buffer, and none of the close
+    ones old enough to refresh (older than ``refresh_s``).
+
+    The samples that may be that old within the block are listed in ``old0`` (``K_NOLD0`` of them, see
+    :func:`scan`): those are checked first, then any close sample will do — from ``K_HINT``, where the last
+    one was found.
+    """
     n = int(ks[K_NBUF0])
     if n == 0:
         return False
     sep2 = bp[B_SEP2]
     cos_up = bp[B_COS_UP]
-    all_young = t - ks[K_MIN_T0] <= refresh_s
+    for k in range(int(ks[K_NOLD0])):
+        j = old0[k]
+        if not t - buf0[j, 0] <= refresh_s and _close(j, m, u, buf0, sep2, cos_up):
+            return False
     start = int(ks[K_HINT])
     if start >= n:
         start = 0
-    oldest = np.inf
     for k in range(n):
         j = start + k
         if j >= n:
             j -= n
-        d0 = buf0[j, 1] - m[0]
-        d1 = buf0[j, 2] - m[1]
-        d2 = buf0[j, 3] - m[2]
-        if d0 * d0 + d1 * d1 + d2 * d2 < sep2:
-            if buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up:
-                ks[K_HINT] = j
-                if all_young:
-                    return True
-                if buf0[j, 0] < oldest:
-                    oldest = buf0[j, 0]
-    return oldest < np.inf and t - oldest <= refresh_s
+        if _close(j, m, u, buf0, sep2, cos_up):
+            ks[K_HINT] = j
+            return True
+    return False
 
 
 @njit(cache=True)
@@ -242,6 +253,7 @@ def scan(
     cp,
     buf,
     buf0,
+    old0,
     rec,
     sep2_add,
     centre,
@@ -274,11 +286,19 @@ def scan(
             nb = int(ks[K_NBUF])
             buf0[:nb] = buf[:nb]
             ks[K_NBUF0] = nb
-            mt = np.inf
+            # the block's last time (unknown: +inf when the block goes on after these samples) bounds which
+            # block-start samples can be older than refresh_s at any sample of the block
+            t_last = np.inf
+            for k in range(i, n):
+                if blk_end[k]:
+                    t_last = t[k]
+                    break
+            n_old = 0
             for k in range(nb):
-                if buf[k, 0] < mt:
-                    mt = buf[k, 0]
-            ks[K_MIN_T0] = mt
+                if t_last - buf[k, 0] > refresh_s:
+                    old0[n_old] = k
+                    n_old += 1
+            ks[K_NOLD0] = n_old
             ks[K_IN_BLOCK] = 1.0
         # rotation-rich episode (smoothed gyro rate)
         ks[K_RATE_EMA] += 0.02 * (rate[i] - ks[K_RATE_EMA])
@@ -302,7 +322,7 @@ def scan(
             _put(rec, r, ti, m, u)
             ks[K_REC_I] += 1.0
             ks[K_LAST_REC_T] = ti
-        if _consistent(m, u, bp) and not _redundant(ti, m, u, buf0, ks, bp, refresh_s):
+        if _consistent(m, u, bp) and not _redundant(ti, m, u, buf0, old0, ks, bp, refresh_s):
             add(ti, m, u, buf, ks, sep2_add, bp[B_COS_UP], refresh_s, size)
         if blk_end[i]:
             ks[K_IN_BLOCK] = 0.0

@@ -398,6 +398,7 @@ class OnlineCalibrator:
         self.provided = calibration is not None
         self._buf = np.full((s.buffer_size, 7), np.nan)  # t, m(3), u(3)
         self._buf0 = np.empty_like(self._buf)  # the buffer at the start of the open block
+        self._old0 = np.zeros(s.buffer_size, dtype=np.int64)  # its samples that may be old enough to refresh
         nrec = int(s.stale_window_s * s.stale_rate_hz) + 1
         self._rec = np.full((nrec, 7), np.nan)  # ring of recent samples
         self._recal_t = np.nan
@@ -580,8 +581,8 @@ class OnlineCalibrator:
                 centre = self._centre()
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
             code, j, n_ev = K.scan(
-                t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._rec,
-                sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
+                t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._old0,
+                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
             )  # fmt: skip
             for e in range(n_ev):
                 ie = int(ev_i[e])
