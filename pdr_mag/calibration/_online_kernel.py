@@ -37,7 +37,9 @@ K_NBUF0 = 13  # buffer size at the block start
 K_NOLD0 = 14  # block-start buffer samples that may be older than refresh_s within the block (in ``old0``)
 K_HINT = 15  # index of the last buffer sample found close (where the redundancy scan starts)
 K_FIT_NEW = 16  # samples taken into the buffer since the last refit (inf: a refit is due whatever the count)
-N_KS = 17
+K_FIT_SCALE = 17  # back-off factor of the samples the next refit needs (OnlineSettings.refit_backoff)
+K_FIT_N = 18  # buffer size at the last refit
+N_KS = 19
 
 # ---- block-start parameters bp
 B_CHECK = 0  # 1: test strength (and dip) against the calibration; 0: every sample is consistent

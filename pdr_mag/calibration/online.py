@@ -93,6 +93,11 @@ class OnlineSettings:
         samples shrink its σ by ≈ k/(2n) and move it by ≈ σ·√(k/n): far less than the 20 % shrink or
         2 σ shift a new fit needs to replace the calibration (see ``_accept``).  A change of the
         calibration, a rotation episode's start or end and a cleared buffer make the next attempt fit.
+    refit_backoff : float
+        A buffer that stopped growing changes only by replacement (an old sample refreshed by a close new
+        one, the most redundant one evicted when full): while it does not grow, each fit that leaves the
+        calibration as it was multiplies the number of new samples the next fit needs by this, up to n (the
+        whole buffer renewed); growth, a change of calibration or any of the events above starts over.
     min_samples : int
         Fewer samples in the buffer: no refit.
     sigma_strength_uT : float
@@ -143,6 +148,7 @@ class OnlineSettings:
     refit_period_s: float = 2.0
     refit_min_new: float = 2.0
     refit_new_frac: float = 0.1
+    refit_backoff: float = 2.0
     min_samples: int = 8
     sigma_strength_uT: float = 1.0
     sigma_tilt_deg: float = 3.0
@@ -385,6 +391,7 @@ class OnlineCalibrator:
         self._ks[K.K_NEXT_REFIT_T] = -np.inf
         self._ks[K.K_NEXT_STALE_T] = -np.inf
         self._ks[K.K_COV_VERSION] = -1.0
+        self._ks[K.K_FIT_SCALE] = 1.0
         self._cp = np.zeros(K.N_CP)
         self._cp[K.C_REFRESH_S] = s.refresh_s
         self._cp[K.C_REC_DT] = 1.0 / s.stale_rate_hz
@@ -643,13 +650,15 @@ class OnlineCalibrator:
         n = self._nbuf
         if n < s.min_samples:
             return
-        if (
-            self._cal is not None
-            and self.cal_state != "recalibrating"
-            and self._ks[K.K_FIT_NEW] < max(s.refit_min_new, s.refit_new_frac * n)
-        ):
+        ks = self._ks
+        if ks[K.K_FIT_NEW] == np.inf or n > ks[K.K_FIT_N]:
+            ks[K.K_FIT_SCALE] = 1.0  # an event, or the buffer grew since the last fit: no back-off
+        need = min(max(s.refit_min_new, s.refit_new_frac * n) * ks[K.K_FIT_SCALE], n)
+        if self._cal is not None and self.cal_state != "recalibrating" and ks[K.K_FIT_NEW] < need:
             return  # too few new samples since the last fit to change its verdict (refit_min_new)
-        self._ks[K.K_FIT_NEW] = 0.0
+        ks[K.K_FIT_NEW] = 0.0
+        ks[K.K_FIT_N] = n
+        ks[K.K_FIT_SCALE] *= s.refit_backoff  # reset above by the change of calibration, if this makes one
         # the candidates and their verdicts depend on the buffer, the calibration in use and the episode
         # flag only: when none of them changed since the last refit, they are the same
         key = (float(self._ks[K.K_VERSION]), self._episode_seen, self.cal_state)
@@ -924,6 +933,8 @@ class OnlineCalibrator:
             "n_refits": self._n_refits,
             "last_reject_t": _f(self._last_reject_t),
             "fit_new": _f(self._ks[K.K_FIT_NEW]),
+            "fit_scale": _f(self._ks[K.K_FIT_SCALE]),
+            "fit_n": int(self._ks[K.K_FIT_N]),
         }
 
     def set_state(self, st: dict) -> None:
@@ -947,6 +958,8 @@ class OnlineCalibrator:
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = _uf(st["last_reject_t"])
         self._ks[K.K_FIT_NEW] = _uf(st.get("fit_new", "inf"))
+        self._ks[K.K_FIT_SCALE] = _uf(st.get("fit_scale", 1.0))
+        self._ks[K.K_FIT_N] = int(st.get("fit_n", 0))
         self._ks[K.K_IN_BLOCK] = 0.0
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
