@@ -165,6 +165,30 @@ def _feed(cal: OnlineCalibrator, d, chunk=0.25):
     return events
 
 
+def test_refits_fit_only_on_new_samples():
+    """Once calibrated, a refit attempt fits only after ``max(refit_min_new, refit_new_frac·n)`` new buffer
+    samples (more while the buffer only renews: ``refit_backoff``): far fewer fits than fitting whenever the
+    buffer changed, and the same offset within the fit's σ."""
+    d = synth_walk(duration=240.0, seed=11)
+    fits, cals = {}, {}
+    every = OnlineSettings(refit_min_new=0.0, refit_new_frac=0.0, refit_backoff=1.0)
+    for name, s in (("every", every), ("gated", OnlineSettings())):
+        oc = OnlineCalibrator(s, strength=F, sin_dip=np.sin(INC))
+        count = [0]
+
+        def counted(n, fit=oc._candidates, count=count):
+            count[0] += 1
+            return fit(n)
+
+        oc._candidates = counted
+        _feed(oc, d)
+        fits[name], cals[name] = count[0], oc.calibration
+    assert fits["gated"] < 0.5 * fits["every"], fits
+    std = np.asarray(cals["every"].offset_std_uT)
+    diff = cals["gated"].offset_array - cals["every"].offset_array
+    assert np.all(np.abs(diff) < 3 * std), (diff, std)
+
+
 def test_online_converges_on_a_walk_and_buffer_stays_bounded():
     d = synth_walk(duration=90.0, seed=4)
     s = OnlineSettings(buffer_size=60)
