@@ -312,12 +312,15 @@ class HeadingPipeline:
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
         """Process what can be processed and return the estimates produced since the last poll."""
+        self._process(self._poll_horizon())
+        return self._take_out()
+
+    def _poll_horizon(self) -> float:
         h = self._safe_horizon()
         newest = max(s.last_t for s in self._streams.values())
         if np.isfinite(newest):
             h = max(h, newest - self.settings.max_lag_s)
-        self._process(h)
-        return self._take_out()
+        return h
 
     def flush(self) -> EstimateBatch:
         """Process everything pending (end of stream) and return the remaining estimates."""
@@ -343,7 +346,10 @@ class HeadingPipeline:
         """Batch convenience: ``{"accel": (t, xyz), ...}`` all at once → every estimate (a loop over push)."""
         for name, (t, xyz) in streams.items():
             self.push_arrays(name, t, xyz)
-        return EstimateBatch.concat([self.poll(), self.flush()])
+        self._process(self._poll_horizon())  # poll, then flush: the rows of both concatenated once
+        self._process(np.inf, final=True)
+        out, self._out = self._out, []
+        return EstimateBatch.concat(out)
 
     def _take_out(self) -> EstimateBatch:
         out, self._out = self._out, []
