@@ -16,7 +16,7 @@ from numba import njit
 N_CTX = 8
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def merge3(t0, x0, t1, x1, t2, x2, block_s):
     """Merge three time-ordered streams into ``(kind, t, xyz, blk)``; ties in stream order (0 < 1 < 2),
     ``blk = floor(t / block_s)`` — a stable sort of the concatenation by time."""
@@ -63,7 +63,7 @@ def merge3(t0, x0, t1, x1, t2, x2, block_s):
     return kind, t, xyz, blk
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _up_into(out, k, q, j):
     """Device-frame up vector (third row of rot_wd) of the w-first quaternion ``q[j]`` to ``out[k, 4:7]``."""
     w = q[j, 0]
@@ -75,12 +75,12 @@ def _up_into(out, k, q, j):
     out[k, 6] = 1 - 2 * (x * x + y * y)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _norm3(a, b, c):
     return np.sqrt(a * a + b * b + c * c)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def mag_context(kind, t, xyz, row_t, row_q, up, up_acc, rate):
     """Rows ``(t, raw, up, rate)`` for the magnetometer samples (``kind == 2``) of a merged stream.
 
@@ -134,7 +134,7 @@ def mag_context(kind, t, xyz, row_t, row_q, up, up_acc, rate):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def carry_context(kind, xyz, end, row_q, n_rows, up, up_acc, rate):
     """Update ``up``, ``up_acc`` and ``rate`` (in place) with what :func:`mag_context` needs from the first
     ``end`` samples and ``n_rows`` output rows before the next call."""
@@ -164,7 +164,7 @@ def carry_context(kind, xyz, end, row_q, n_rows, up, up_acc, rate):
         rate[0] = _norm3(xyz[g, 0], xyz[g, 1], xyz[g, 2])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def in_order(t, xyz, after):
     """True when the times are strictly increasing from above ``after`` and every time and value is finite
     (the common case of a push: nothing to drop)."""
@@ -179,7 +179,7 @@ def in_order(t, xyz, after):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def span_pieces(blk, kind, span):
     """The span starting at sample 0: its end ``e`` (the first sample of block ``blk[0] + span``) and its
     block-pieces ``[lo, hi)``, with the number of magnetometer samples before each ``lo`` and ``hi``."""
@@ -215,7 +215,7 @@ def span_pieces(blk, kind, span):
     return e, lo, hi, mag_lo, mag_hi
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def close_layout(n_pre, mag_lo, mag_hi):
     """Rows handed to the calibrator when every piece but the last is closed: the ``n_pre`` rows of the open
     block, then the span's magnetometer samples up to the last piece.  Returns ``(n_rows, last, has, ends,
@@ -250,7 +250,7 @@ def close_layout(n_pre, mag_lo, mag_hi):
     return n_rows, last, has, ends, piece_of_row
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def piece_coverage(cov, last, has, c0):
     """Coverage in effect in each piece: ``c0`` in the first, then the coverage after the close of the
     previous piece with rows (``cov`` at its last row), carried over pieces without rows or a finite value."""
@@ -263,7 +263,7 @@ def piece_coverage(cov, last, has, c0):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def minus_offset(kind, xyz, off):
     """``xyz`` with ``off`` subtracted from the magnetometer rows (``kind == 2``): the calibration
     ``A (m − b)`` when ``A`` is the identity (an offset-only calibration)."""

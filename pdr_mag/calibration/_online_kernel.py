@@ -71,7 +71,7 @@ EV_EPISODE_START = 1
 EV_EPISODE_END = 2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _consistent(m, u, bp):
     if bp[B_CHECK] == 0.0:
         return True
@@ -94,7 +94,7 @@ def _consistent(m, u, bp):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _close(j, m, u, buf0, sep2, cos_up):
     d0 = buf0[j, 1] - m[0]
     d1 = buf0[j, 2] - m[1]
@@ -104,7 +104,7 @@ def _close(j, m, u, buf0, sep2, cos_up):
     return buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _redundant(t, m, u, buf0, old0, ks, bp, refresh_s):
     """Close (raw µT and gravity direction) to a sample of the block-start buffer, and none of the close
     ones old enough to refresh (older than ``refresh_s``).
@@ -135,7 +135,7 @@ def _redundant(t, m, u, buf0, old0, ks, bp, refresh_s):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _put(buf, j, t, m, u):
     buf[j, 0] = t
     buf[j, 1] = m[0]
@@ -146,7 +146,7 @@ def _put(buf, j, t, m, u):
     buf[j, 6] = u[2]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
     """Offer one sample to the diversity buffer (see ``OnlineCalibrator`` in ``online.py``)."""
     n = int(ks[K_NBUF])
@@ -195,7 +195,7 @@ def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
     ks[K_FIT_NEW] += 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def coverage(m, n, centre, dirs, cos_lim):
     """Share of the directions ``dirs`` with a sample direction of ``m[:n] − centre`` within the angle whose
     cosine is ``cos_lim``."""
@@ -221,7 +221,7 @@ def coverage(m, n, centre, dirs, cos_lim):
     return c / nd
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def cached_coverage(buf, ks, centre, dirs, cos_lim):
     """:func:`coverage` of the buffer, recomputed only when it changed since the last call (the caller sets
     ``ks[K_COV_VERSION] = -1`` when ``centre`` changes)."""
@@ -242,7 +242,7 @@ def cached_coverage(buf, ks, centre, dirs, cos_lim):
     return ks[K_COV]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def scan(
     t,
     mag,
@@ -345,13 +345,13 @@ FIT_BAD_INPUT = 2
 _HUBER = 2.5
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _huber(r):
     a = abs(r)
     return 1.0 if a <= _HUBER else _HUBER / max(a, 1e-12)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations, prior, sig_f, sig_s):
     """The numbers of :func:`pdr_mag.calibration.online.gravity_aided_offset` (see its docstring and the
     module docstring of ``online.py``): raw samples ``m`` (N, 3), up vectors ``up`` (N, 3).
@@ -533,7 +533,7 @@ def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     return FIT_OK, b + centre, f, s, cov, est, rms, np.sqrt(se2 / n)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def contiguous_rows(t, mag, up, rate):
     """``(ok, t, mag, up, rate)``: contiguous copies, ``ok`` when every time, field and up value is finite,
     non-finite rates set to 0 (the rows :func:`scan` takes)."""
@@ -554,7 +554,7 @@ def contiguous_rows(t, mag, up, rate):
     return ok, tc, mc, uc, rc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def recent(rec, rec_i, t_min):
     """Rows of the ring ``rec`` (written cyclically, the next at ``rec_i % len(rec)``: the oldest first)
     with a finite time after ``t_min``, in time order."""
@@ -582,7 +582,7 @@ STALE_CLEAR = 1  # the strength does not deviate: no candidate
 STALE_TEST = 2  # deviating: run the fits
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def stale_precheck(rec, t, window, bp, f, tol, min_frac):
     """The cheap first part of the stale test on the ring ``rec``: samples newer than ``t − window``, at
     least 40 of them over ``0.6 · window``; share of samples with ``| |M (m − b)| − F | > tol`` overall and
