@@ -61,7 +61,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pdr_mag.calibration import _online_kernel as K
+from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
+from pdr_mag.calibration.coverage import coverage as core_coverage
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
@@ -124,6 +126,11 @@ class OnlineSettings:
         its dip within ``add_dip_tol_deg`` of the reference (no disturbed samples in the fits).
     ellipsoid_coverage : float
         Coverage from which the core's full (ellipsoid) fit is attempted.
+    ellipsoid_precheck_frac : float
+        The full fit is attempted only when, besides, the buffer's coverage by the core's own measure (the
+        equal-area grid of :func:`pdr_mag.calibration.coverage.coverage`, on which the fit is judged) about
+        the current offset estimate reaches this share of the core's ``min_coverage``: the fit is judged about
+        its own centre, a few µT away, which moves a direction by a few degrees against cells of 22° × 45°.
     sphere_coverage : float
         Coverage from which the sphere LLS fit is attempted.
     stale_window_s, stale_check_s, stale_min_frac, stale_min_shift_uT : float
@@ -162,6 +169,7 @@ class OnlineSettings:
     add_tol_frac: float = 0.06
     add_dip_tol_deg: float = 4.0
     ellipsoid_coverage: float = 0.6
+    ellipsoid_precheck_frac: float = 0.8
     sphere_coverage: float = 0.4
     stale_window_s: float = 30.0
     stale_check_s: float = 2.0
@@ -704,7 +712,12 @@ class OnlineCalibrator:
                 cands.append(sp)
             except (ValueError, ArithmeticError):
                 pass
-        if cov >= s.ellipsoid_coverage and (self._episode_seen or self.cal_state == "none"):
+        if (
+            cov >= s.ellipsoid_coverage
+            and (self._episode_seen or self.cal_state == "none")
+            and core_coverage(m - (centre if centre is not None else m.mean(axis=0)))
+            >= s.ellipsoid_precheck_frac * AcceptanceSettings().min_coverage
+        ):
             try:
                 full = _full_fit(m, f_ref)
                 full = replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
