@@ -19,10 +19,12 @@ rows.
 Speed.  The filter is not called once per block: it runs ahead over a span of blocks with the calibration
 in use (one call into the compiled kernel), the span's blocks are then closed by one call to
 :meth:`OnlineCalibrator.update_blocks <pdr_mag.calibration.online.OnlineCalibrator.update_blocks>`, which
-stops at the first block whose close changes the calibration; the filter is then put back to its state at
-the span's start and re-run up to that boundary (calibration changes are rare: a few per recording), and
-the next span starts there.  The rows are those of block-by-block processing, whatever the span lengths
-(tested).  The one exception to streaming == batch is
+stops at the first block whose close changes the calibration; the filter is then put back to its latest
+snapshot before that boundary (the span's start, or one taken every ``_SNAP_EVERY`` blocks inside long
+spans) and re-run up to it (calibration changes are rare: a few per recording), and the next span starts
+there.  The rows are those of block-by-block processing, whatever the span lengths (tested).  The
+per-poll bookkeeping (merge, magnetometer context, span layout) is compiled
+(:mod:`pdr_mag._pipeline_kernel`).  The one exception to streaming == batch is
 :meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
 waited for (its late samples are dropped and counted), which only happens when a stream stalls.
 
