@@ -212,7 +212,7 @@ def new_state() -> np.ndarray:
 
 
 # ---------------------------------------------------------------- small maths
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rot(st, R):
     w, x, y, z = st[S_Q], st[S_Q + 1], st[S_Q + 2], st[S_Q + 3]
     R[0, 0] = 1 - 2 * (y * y + z * z)
@@ -226,7 +226,7 @@ def _rot(st, R):
     R[2, 2] = 1 - 2 * (x * x + y * y)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _exp_half(vx, vy, vz):
     """Unit quaternion ``Exp(v)`` of a rotation vector v (rad), w-first."""
     a = np.sqrt(vx * vx + vy * vy + vz * vz)
@@ -237,7 +237,7 @@ def _exp_half(vx, vy, vz):
     return c, s * vx, s * vy, s * vz
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _store_product(st, k, aw, ax, ay, az, bw, bx, by, bz):
     """q[k:k+4] ← normalised Hamilton product ``a ⊗ b``."""
     w = aw * bw - ax * bx - ay * by - az * bz
@@ -248,21 +248,21 @@ def _store_product(st, k, aw, ax, ay, az, bw, bx, by, bz):
     st[k], st[k + 1], st[k + 2], st[k + 3] = w / n, x / n, y / n, z / n
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qmul_right(st, k, vx, vy, vz):
     """q[k:k+4] ← q ⊗ Exp(v) (v a rotation vector in the body frame)."""
     bw, bx, by, bz = _exp_half(vx, vy, vz)
     _store_product(st, k, st[k], st[k + 1], st[k + 2], st[k + 3], bw, bx, by, bz)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qmul_left(st, k, vx, vy, vz):
     """q[k:k+4] ← Exp(v) ⊗ q (v a rotation vector in the world frame)."""
     aw, ax, ay, az = _exp_half(vx, vy, vz)
     _store_product(st, k, aw, ax, ay, az, st[k], st[k + 1], st[k + 2], st[k + 3])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _heading(st, k):
     w, x, y, z = st[k], st[k + 1], st[k + 2], st[k + 3]
     r01 = 2.0 * (x * y - w * z)
@@ -270,18 +270,18 @@ def _heading(st, k):
     return np.degrees(np.arctan2(r01, r11)) % 360.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _wrap(a):
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _upd(st, dx, j, s, r, rv):
     """Scalar update with H = s·e_j; r is the residual before this update (dx applied inside)."""
     _upd2(st, dx, j, s, j, 0.0, r, rv)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _upd2(st, dx, j, s, j2, s2, r, rv):
     """Scalar update with H = s·e_j + s2·e_j2 (j ≠ j2 or s2 = 0); r is the residual before this update."""
     P = st[S_P : S_P + NX * NX]
@@ -300,7 +300,7 @@ def _upd2(st, dx, j, s, j2, s2, r, rv):
             P[i * NX + m] -= ci * col[m]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _upd_h(st, dx, h, r, rv, consider_tilt, consider_heading=False):
     """Scalar update with a general H = h; with ``consider_tilt`` the tilt errors (0, 1), with
     ``consider_heading`` the heading errors (2 and c) are consider states (Schmidt–Kalman): their gain is
@@ -335,7 +335,7 @@ def _upd_h(st, dx, h, r, rv, consider_tilt, consider_heading=False):
             P[i * NX + m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rotvec_left(st, k, ex, ey, ez):
     """st[k:k+3] ← Exp(e) st[k:k+3] (second order in e)."""
     vx, vy, vz = st[k], st[k + 1], st[k + 2]
@@ -344,7 +344,7 @@ def _rotvec_left(st, k, ex, ey, ez):
     st[k], st[k + 1], st[k + 2] = vx + cx + 0.5 * dx, vy + cy + 0.5 * dy, vz + cz + 0.5 * dz
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _inject(st, dx):
     _qmul_left(st, S_Q, dx[0], dx[1], dx[2])
     if np.isfinite(st[S_AW]):  # the averaged specific force lives in the corrected frame too
@@ -364,7 +364,7 @@ def _inject(st, dx):
             P[m * NX + i] = v
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _predict(st, R, wx, wy, wz, dt, p):
     _qmul_right(st, S_Q, wx * dt, wy * dt, wz * dt)
     _qmul_right(st, S_QG, wx * dt, wy * dt, wz * dt)
@@ -430,7 +430,7 @@ def _predict(st, R, wx, wy, wz, dt, p):
             P[i * NX + 2] *= fs
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _inflate_att(st, v):
     """Add v (rad²) to the variance of each attitude error; tilt capped at TILT_VAR_MAX, heading at π²."""
     P = st[S_P : S_P + NX * NX]
@@ -440,7 +440,7 @@ def _inflate_att(st, v):
         P[j * NX + j] += vj
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _init_tilt(st, ax, ay, az, p):
     """Attitude from one accelerometer sample, heading 0 (device +y horizontal projection to north)."""
     n = np.sqrt(ax * ax + ay * ay + az * az)
@@ -491,7 +491,7 @@ def _init_tilt(st, ax, ay, az, p):
     st[S_INIT] = 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _accel(st, R, ax, ay, az, t, p):
     st[S_ACC], st[S_ACC + 1], st[S_ACC + 2] = ax, ay, az
     # still detection statistics
@@ -588,7 +588,7 @@ def _accel(st, R, ax, ay, az, t, p):
     _inject(st, dx)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _gyro(st, R, wx, wy, wz, t, p):
     # still detection statistics
     if st[S_HAVEG] > 0 and np.isfinite(st[S_TG]):
@@ -639,7 +639,7 @@ def _gyro(st, R, wx, wy, wz, t, p):
     st[S_HAVEG] = 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or st[S_INIT] == 0:
         return
@@ -761,7 +761,7 @@ def _mag(st, R, mx, my, mz, t, allowed, p, ip):
     st[S_MAGUSED] = 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def run(kind, t, xyz, allowed, st, p, ip, out_t, out_q, out_std, out_mag, out_int, out_diag):
     """Process a merged, time-ordered chunk; returns the number of output rows written."""
     R = np.empty((3, 3))

@@ -302,6 +302,7 @@ class FusionCore:
         self._ip = self.settings.interference.as_array()
         self._st = K.new_state()
         self._ref_strength: float | None = None
+        self.snapshots: list = []  # kept by process(snapshot_at=…)
         self.field: EarthField | None = None
         self.set_field(field)
 
@@ -334,8 +335,12 @@ class FusionCore:
         return "true" if self.field is not None else "magnetic"
 
     # ------------------------------------------------------------------ processing
-    def process(self, kind, t, xyz, mag_allowed=None) -> EstimateBatch:
-        """Run a merged, time-ordered chunk through the filter; returns its output rows."""
+    def process(self, kind, t, xyz, mag_allowed=None, snapshot_at=None) -> EstimateBatch:
+        """Run a merged, time-ordered chunk through the filter; returns its output rows.
+
+        ``snapshot_at``: increasing sample indices before each of which a :meth:`_snapshot` is kept in
+        ``self.snapshots`` (same rows: the filter's output does not depend on how its input is cut).
+        """
         kind = np.ascontiguousarray(kind, dtype=np.int8)
         t = np.ascontiguousarray(t, dtype=np.float64)
         xyz = np.ascontiguousarray(xyz, dtype=np.float64)
@@ -356,34 +361,42 @@ class FusionCore:
         out_std = np.empty(m)
         out_mag = np.empty(m, dtype=np.bool_)
         out_int = np.empty(m, dtype=np.bool_)
-        out_diag = np.empty((m, K.N_DIAG))
-        k = K.run(
-            kind,
-            t,
-            xyz,
-            allowed,
-            self._st,
-            self._p,
-            self._ip,
-            out_t,
-            out_q,
-            out_std,
-            out_mag,
-            out_int,
-            out_diag,
-        )
+        out_diag = np.empty((K.N_DIAG, m)).T  # each diagnostic a contiguous column: no copies below
+        k = 0
+        a = 0
+        self.snapshots = []
+        for b in (*(snapshot_at if snapshot_at is not None else ()), n):
+            if b > a or snapshot_at is None:
+                k += K.run(
+                    kind[a:b],
+                    t[a:b],
+                    xyz[a:b],
+                    allowed[a:b],
+                    self._st,
+                    self._p,
+                    self._ip,
+                    out_t[k:],
+                    out_q[k:],
+                    out_std[k:],
+                    out_mag[k:],
+                    out_int[k:],
+                    out_diag[k:],
+                )
+            if b < n:
+                self.snapshots.append(self._snapshot())
+            a = b
         q = out_q[:k]
         q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
         w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
         heading = np.mod(np.degrees(np.arctan2(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z))), 360.0)
-        diag = {name: out_diag[:k, i].copy() for i, name in enumerate(_DIAG_NAMES)}
+        diag = {name: out_diag[:k, i] for i, name in enumerate(_DIAG_NAMES)}
         return EstimateBatch(
-            t=out_t[:k].copy(),
-            q_wd=q.copy(),
+            t=out_t[:k],
+            q_wd=q,
             heading_deg=heading,
-            heading_std_deg=out_std[:k].copy(),
-            mag_used=out_mag[:k].copy(),
-            interference=out_int[:k].copy(),
+            heading_std_deg=out_std[:k],
+            mag_used=out_mag[:k],
+            interference=out_int[:k],
             cal_state=np.full(k, "none", dtype="<U13"),
             diag=diag,
         )

@@ -167,13 +167,13 @@ _FIELDS = (
 
 
 # ----------------------------------------------------------------------------------------------- scalar
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def strength_tol(ref_uT, p):
     """Half-width of the accepted strength band, µT."""
     return max(p[I_STR_TOL], p[I_STR_REL] * ref_uT)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def dip_of(mx, my, mz, ux, uy, uz):
     """Dip (deg, positive below the horizon) of field m against the unit up direction u."""
     n = np.sqrt(mx * mx + my * my + mz * mz)
@@ -184,7 +184,7 @@ def dip_of(mx, my, mz, ux, uy, uz):
     return np.degrees(np.arcsin(s))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def ew_alpha(dt, tau):
     """Weight of a new sample in an exponentially weighted mean with time constant tau."""
     if dt <= 0.0:
@@ -192,7 +192,7 @@ def ew_alpha(dt, tau):
     return 1.0 - np.exp(-dt / tau)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def angle_deg(ax, ay, az, bx, by, bz):
     """Angle between two vectors, deg."""
     cx = ay * bz - az * by
@@ -201,7 +201,7 @@ def angle_deg(ax, ay, az, bx, by, bz):
     return np.degrees(np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def hold_step(flag, since, score, t, p):
     """One step of the hold-off timer.
 
@@ -242,7 +242,7 @@ def new_detector_state() -> np.ndarray:
     return det
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def detect_step(det, f, dip, mwx, mwy, mwz, t, fref, dipref, sigma_b_deg, ip):
     """All four checks and the hold timer for one calibrated sample (the formulas of the module docstring).
 
@@ -339,7 +339,7 @@ def windowed_variance(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarr
     return _ew_var(t, x, float(window_s))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _ew_var(t, x, tau):
     out = np.empty(len(x))
     m = np.nan
@@ -362,7 +362,7 @@ def consistency_angle_deg(t: np.ndarray, mag_w: np.ndarray, window_s: float) -> 
     return _cons(np.asarray(t, dtype=float), np.asarray(mag_w, dtype=float), float(window_s))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cons(t, m, tau):
     n = len(t)
     out = np.empty(n)
@@ -390,7 +390,7 @@ def hold_off(t: np.ndarray, score: np.ndarray, settings: InterferenceSettings | 
     return _hold(np.asarray(t, dtype=float), np.asarray(score, dtype=float), s.as_array())
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _hold(t, score, p):
     out = np.empty(len(t), dtype=np.bool_)
     flag = False

@@ -19,10 +19,12 @@ rows.
 Speed.  The filter is not called once per block: it runs ahead over a span of blocks with the calibration
 in use (one call into the compiled kernel), the span's blocks are then closed by one call to
 :meth:`OnlineCalibrator.update_blocks <pdr_mag.calibration.online.OnlineCalibrator.update_blocks>`, which
-stops at the first block whose close changes the calibration; the filter is then put back to its state at
-the span's start and re-run up to that boundary (calibration changes are rare: a few per recording), and
-the next span starts there.  The rows are those of block-by-block processing, whatever the span lengths
-(tested).  The one exception to streaming == batch is
+stops at the first block whose close changes the calibration; the filter is then put back to its latest
+snapshot before that boundary (the span's start, or one taken every ``_SNAP_EVERY`` blocks inside long
+spans) and re-run up to it (calibration changes are rare: a few per recording), and the next span starts
+there.  The rows are those of block-by-block processing, whatever the span lengths (tested).  The
+per-poll bookkeeping (merge, magnetometer context, span layout) is compiled
+(:mod:`pdr_mag._pipeline_kernel`).  The one exception to streaming == batch is
 :meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
 waited for (its late samples are dropped and counted), which only happens when a stream stalls.
 
@@ -42,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pdr_mag import _pipeline_kernel as PK
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
@@ -52,10 +55,15 @@ KINDS = {"accel": 0, "gyro": 1, "mag": 2}
 _NAMES = {v: k for k, v in KINDS.items()}
 STATE_VERSION = 1
 #: Blocks fused in one speculative span (see :meth:`HeadingPipeline._process`): the first span after a
-#: calibration change is short (changes come in runs while the calibration converges, and each one costs a
-#: re-run of the span up to it), each span without a change doubles the next, up to the maximum.
+#: calibration change is short (changes come in runs while the calibration converges, and each one throws
+#: away the span's fusion after it), each span without a change doubles the next, up to the maximum.  A
+#: span of L blocks costs a fixed c ≈ 7 blocks' worth of fusion (Python per span) and, at a rate r of
+#: changes per block, r·L/2 blocks thrown away per block: L ≈ √(2·7/r) ≈ 30 for the one change in 40 s of
+#: the walks' later minutes (measured: 32 beats 64 by 4–5 ms on the swinging walks, ±0.5 ms elsewhere).
 _SPAN_MIN = 8
-_SPAN_MAX = 64
+_SPAN_MAX = 32
+#: Blocks between the filter snapshots taken inside a span (a change re-runs the filter from the latest one).
+_SNAP_EVERY = 4
 
 
 def _default_fusion_settings():
@@ -105,26 +113,48 @@ class PipelineSettings:
 
 
 class _Stream:
-    """Pending samples of one input stream (chunks, appended in order)."""
+    """Pending samples of one input stream: rows ``[lo, hi)`` of one buffer that grows (doubling) when a
+    push does not fit after moving the pending rows to its start — so a push is one copy, and taking the
+    samples before a time is a slice (valid until the next append)."""
 
-    __slots__ = ("t", "xyz", "n", "last_t")
+    __slots__ = ("t", "xyz", "lo", "hi", "last_t")
 
     def __init__(self):
-        self.t: list[np.ndarray] = []
-        self.xyz: list[np.ndarray] = []
-        self.n = 0
+        self.t = np.empty(0)
+        self.xyz = np.empty((0, 3))
+        self.lo = 0
+        self.hi = 0
         self.last_t = -np.inf
 
+    @property
+    def n(self) -> int:
+        return self.hi - self.lo
+
+    def append(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        k = len(t)
+        if self.hi + k > len(self.t):
+            n = self.hi - self.lo
+            if n + k > len(self.t):
+                cap = max(2 * len(self.t), n + k, 256)
+                bt, bx = np.empty(cap), np.empty((cap, 3))
+            else:
+                bt, bx = self.t, self.xyz
+            bt[:n] = self.t[self.lo : self.hi]
+            bx[:n] = self.xyz[self.lo : self.hi]
+            self.t, self.xyz, self.lo, self.hi = bt, bx, 0, n
+        self.t[self.hi : self.hi + k] = t
+        self.xyz[self.hi : self.hi + k] = xyz
+        self.hi += k
+        self.last_t = float(t[-1])
+
     def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-        if not self.n:
-            return np.empty(0), np.empty((0, 3))
-        t = np.concatenate(self.t)
-        xyz = np.concatenate(self.xyz)
-        k = int(np.searchsorted(t, t_end, side="left"))
-        self.t = [t[k:]] if k < len(t) else []
-        self.xyz = [xyz[k:]] if k < len(t) else []
-        self.n = len(t) - k
-        return t[:k], xyz[:k]
+        lo = self.lo
+        k = lo + int(np.searchsorted(self.t[lo : self.hi], t_end, side="left"))
+        self.lo = k
+        return self.t[lo:k], self.xyz[lo:k]
+
+    def pending(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.t[self.lo : self.hi].copy(), self.xyz[self.lo : self.hi].copy()
 
 
 class HeadingPipeline:
@@ -196,6 +226,7 @@ class HeadingPipeline:
         self._interf = False
         self._up = np.array([np.nan, np.nan, np.nan])
         self._calibrations: list[tuple[float, MagCalibration]] = []
+        self._cal_mats: tuple = (None,)  # (calibration, offset, matrix transposed) of _apply
         self._n_out = 0
         self._t_first = np.nan
         self._t_last = np.nan
@@ -254,18 +285,9 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
-        if (
-            t[0] > s.last_t
-            and t[0] >= self._done_t
-            and (len(t) == 1 or bool(np.all(t[1:] > t[:-1])))
-            and bool(np.isfinite(t[-1]))
-            and bool(np.isfinite(xyz).all())
-        ):
+        if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
             # the common case: finite, strictly increasing, after everything pushed and processed
-            s.t.append(t.copy())
-            s.xyz.append(xyz.copy())
-            s.n += len(t)
-            s.last_t = float(t[-1])
+            s.append(t, xyz)
             if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
                 self._process(self._safe_horizon())
             return
@@ -285,22 +307,22 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
-            s.t.append(t.copy())
-            s.xyz.append(xyz.copy())
-            s.n += len(t)
-            s.last_t = float(t[-1])
+            s.append(t, xyz)
         if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
             self._process(self._safe_horizon())
 
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
         """Process what can be processed and return the estimates produced since the last poll."""
+        self._process(self._poll_horizon())
+        return self._take_out()
+
+    def _poll_horizon(self) -> float:
         h = self._safe_horizon()
         newest = max(s.last_t for s in self._streams.values())
         if np.isfinite(newest):
             h = max(h, newest - self.settings.max_lag_s)
-        self._process(h)
-        return self._take_out()
+        return h
 
     def flush(self) -> EstimateBatch:
         """Process everything pending (end of stream) and return the remaining estimates."""
@@ -326,7 +348,10 @@ class HeadingPipeline:
         """Batch convenience: ``{"accel": (t, xyz), ...}`` all at once → every estimate (a loop over push)."""
         for name, (t, xyz) in streams.items():
             self.push_arrays(name, t, xyz)
-        return EstimateBatch.concat([self.poll(), self.flush()])
+        self._process(self._poll_horizon())  # poll, then flush: the rows of both concatenated once
+        self._process(np.inf, final=True)
+        out, self._out = self._out, []
+        return EstimateBatch.concat(out)
 
     def _take_out(self) -> EstimateBatch:
         out, self._out = self._out, []
@@ -355,25 +380,14 @@ class HeadingPipeline:
             if not np.isfinite(horizon) or horizon <= self._done_t:
                 return
             t_end = horizon
-        parts = []
-        for name, s in self._streams.items():
-            t, xyz = s.take_before(t_end)
-            if len(t):
-                parts.append((np.full(len(t), KINDS[name], dtype=np.int8), t, xyz))
+        (ta, xa), (tg, xg), (tm, xm) = (s.take_before(t_end) for s in self._streams.values())
         if not final:
             self._done_t = t_end
-        if parts:
-            kind = np.concatenate([p[0] for p in parts])
-            t = np.concatenate([p[1] for p in parts])
-            xyz = np.concatenate([p[2] for p in parts])
-            if len(parts) > 1:
-                # each stream is time-ordered and the parts are in kind order, so a stable sort by time
-                # (a merge of sorted runs) gives ties in kind order: accel < gyro < mag
-                order = np.argsort(t, kind="stable")
-                kind, t, xyz = kind[order], t[order], xyz[order]
+        if len(ta) + len(tg) + len(tm):
+            # time-ordered merge, ties in kind order: accel < gyro < mag
+            kind, t, xyz, blk = PK.merge3(ta, xa, tg, xg, tm, xm, b)
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
-            blk = np.floor(t / b)
             i, n = 0, len(t)
             while i < n:
                 if self._cur_blk is not None and blk[i] > self._cur_blk:
@@ -386,57 +400,48 @@ class HeadingPipeline:
     def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
         """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
         inside it; returns the number of samples fused for good."""
-        e = int(np.searchsorted(blk, blk[0] + self._span, side="left"))
+        e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
-        cuts = np.flatnonzero(blk[1:] != blk[:-1]) + 1
-        snap = self.fusion._snapshot() if len(cuts) else None
-        is_mag = kind == 2
+        n_p = len(lo)
+        # filter snapshots at the span's start and (long spans) every _SNAP_EVERY pieces: what a calibration
+        # change inside the span puts back before re-running the filter up to the change
+        snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
+        snap = self.fusion._snapshot() if n_p > 1 else None
         cal = self.online.calibration
         state = self.online.cal_state
-        data = xyz.copy()
-        data[is_mag] = cal.apply(xyz[is_mag]) if cal is not None else np.nan
+        data = self._calibrated(cal, kind, xyz)
         allowed = np.full(e, cal is not None)
-        batch = self.fusion.process(kind, t, data, allowed)
-        lo = np.empty(len(cuts) + 1, dtype=np.intp)
-        lo[0] = 0
-        lo[1:] = cuts
-        hi = np.empty_like(lo)
-        hi[:-1] = cuts
-        hi[-1] = e
-        n_p = len(lo)
-        # rows (one per output gyro sample) and magnetometer samples of each block-piece
+        batch = (
+            self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
+            if len(snap_at)
+            else self.fusion.process(kind, t, data, allowed)
+        )
+        snaps = self.fusion.snapshots if len(snap_at) else []
+        # rows (one per output gyro sample) of each block-piece
         row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
-        n_mag = np.zeros(e + 1, dtype=np.intp)
-        np.cumsum(is_mag, out=n_mag[1:])
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
-        ctx = self._mag_context(kind, t, xyz, batch) if self.settings.online else None
+        ctx = (
+            PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._up, self._up_acc, self._rate)
+            if self.settings.online
+            else None
+        )
         if ctx is not None and n_p > 1:
             # close every block but the last: the open block's earlier samples, then the span's
-            pre = np.concatenate(self._pend) if self._pend else np.empty((0, 8))
+            pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
             self._pend = []
-            rows = np.concatenate([pre, ctx[: n_mag[hi[-2]]]])
-            last = len(pre) + n_mag[hi[:-1]] - 1  # each closed piece's last row
-            has = n_mag[hi[:-1]] > n_mag[lo[:-1]]
-            has[0] = last[0] >= 0
-            ends = np.zeros(len(rows), dtype=np.bool_)
-            ends[last[has]] = True
+            n_rows_c, last, has, ends, piece_of_row = PK.close_layout(len(pre), mag_lo, mag_hi)
+            rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
             before = self.online.calibration
             events, n_done, cov = self.online.update_blocks(
                 rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
             )
-            if len(rows):
-                piece_of_row = np.searchsorted(last[has], np.arange(len(rows)), side="left")
-                piece_of_row = np.flatnonzero(has)[np.minimum(piece_of_row, np.count_nonzero(has) - 1)]
+            if n_rows_c:
                 for r, (te, k, d) in events:
                     piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
                 # coverage after each closed block with samples, carried over the pieces without
-                c = np.full(n_p, np.nan)
-                c[1:][has] = cov[last[has]]
-                c[0] = self._coverage
-                ok = np.isfinite(c)
-                covs = c[np.maximum.accumulate(np.where(ok, np.arange(n_p), 0))]
+                covs = PK.piece_coverage(cov, last, has, self._coverage)
                 if self.online.calibration is not before:
                     q = int(piece_of_row[n_done - 1])
                     n_pieces = q + 1
@@ -450,19 +455,23 @@ class HeadingPipeline:
             self._cur_blk = float(blk[lo[-1]])
         end = int(hi[n_pieces - 1])
         if end < e:
-            # the calibration changed at a block boundary inside the span: redo the filter up to there
-            self.fusion._restore(snap)
-            self.fusion.process(kind[:end], t[:end], data[:end], allowed[:end])
+            # the calibration changed at a block boundary inside the span: redo the filter up to there from
+            # the latest snapshot before it
+            j = int(np.searchsorted(snap_at, end, side="right"))
+            start = int(snap_at[j - 1]) if j else 0
+            self.fusion._restore(snaps[j - 1] if j else snap)
+            if end > start:
+                self.fusion.process(kind[start:end], t[start:end], data[start:end], allowed[start:end])
             self._sync_fusion_reference()
             self._span = _SPAN_MIN
         else:
-            if ctx is not None and n_mag[hi[-1]] > n_mag[lo[-1]]:
-                self._pend.append(ctx[n_mag[lo[-1]] : n_mag[hi[-1]]])
+            if ctx is not None and mag_hi[-1] > mag_lo[-1]:
+                self._pend.append(ctx[mag_lo[-1] : mag_hi[-1]])
             if n_p == self._span:
                 self._span = min(2 * self._span, _SPAN_MAX)
         n_rows = int(row_hi[n_pieces - 1])
         if ctx is not None:
-            self._carry_context(kind[:end], xyz[:end], batch, n_rows)
+            PK.carry_context(kind, xyz, end, batch.q_wd, n_rows, self._up, self._up_acc, self._rate)
         if n_rows:
             if n_rows < len(batch):
                 batch = _head(batch, n_rows)
@@ -471,7 +480,9 @@ class HeadingPipeline:
             if n_pieces == 1:
                 batch.diag["coverage"] = np.full(n_rows, covs[0])
             else:
-                batch.diag["coverage"] = np.repeat(covs[:n_pieces], np.diff(row_hi[:n_pieces], prepend=0))
+                per_piece = row_hi[:n_pieces].copy()  # rows in each piece
+                per_piece[1:] -= row_hi[: n_pieces - 1]
+                batch.diag["coverage"] = np.repeat(covs[:n_pieces], per_piece)
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows
@@ -483,41 +494,10 @@ class HeadingPipeline:
             self._t_first = float(t[0])
         self._t_last = float(t[end - 1])
         if self.settings.keep_mag_calibrated and cal is not None:
-            m = is_mag[:end]
+            m = kind[:end] == 2
             if np.any(m):
                 self._magcal.append((t[:end][m].copy(), data[:end][m].copy()))
         return end
-
-    def _mag_context(self, kind, t, xyz, batch: EstimateBatch) -> np.ndarray:
-        """Rows (t, raw, up, rate) for the span's magnetometer samples: the filter's up vector and the gyro
-        rate of the latest row / sample at or before each (before the first output row: the accelerometer's
-        direction) — causal, so independent of the cuts."""
-        is_mag = kind == 2
-        tm = t[is_mag]
-        out = np.empty((len(tm), 8))
-        if not len(tm):
-            return out
-        out[:, 0] = tm
-        out[:, 1:4] = xyz[is_mag]
-        out[:, 4:7] = _latest(tm, batch.t, batch.q_wd, self._up, _up_of)
-        bad = ~np.isfinite(out[:, 4])
-        if np.any(bad):
-            a = kind == 0
-            out[bad, 4:7] = _latest(tm[bad], t[a], xyz[a], self._up_acc, _unit)
-        g = kind == 1
-        out[:, 7] = _latest(tm, t[g], xyz[g], self._rate, _norm)[:, 0]
-        return out
-
-    def _carry_context(self, kind, xyz, batch: EstimateBatch, n_rows: int) -> None:
-        """Keep what :meth:`_mag_context` needs from before the next span (fused samples only)."""
-        if n_rows:
-            self._up = _up_of(batch.q_wd[n_rows - 1 : n_rows])[0]
-        a = np.flatnonzero(kind == 0)
-        if len(a):
-            self._up_acc = _unit(xyz[a[-1] : a[-1] + 1])[0]
-        g = np.flatnonzero(kind == 1)
-        if len(g):
-            self._rate = _norm(xyz[g[-1] : g[-1] + 1])[0]
 
     def _close_block(self) -> None:
         """End of a block: the online calibrator sees the block's magnetometer samples."""
@@ -532,10 +512,33 @@ class HeadingPipeline:
                 self._calibrations.append((float(p[-1, 0]), self.online.calibration))
                 self._sync_fusion_reference()
 
+    def _calibrated(self, cal: MagCalibration | None, kind: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """The merged samples with the magnetometer's calibrated by :meth:`MagCalibration.apply` (NaN
+        without a calibration); the calibration's matrices are kept while it stays the same."""
+        if cal is None:
+            data = xyz.copy()
+            data[kind == 2] = np.nan
+            return data
+        if self._cal_mats[0] is not cal:
+            a = cal.soft_iron_array
+            if cal.mag_to_imu is not None:
+                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
+            self._cal_mats = (cal, cal.offset_array, a.T, eye)
+        _, off, a_t, eye = self._cal_mats
+        if eye:
+            return PK.minus_offset(kind, xyz, off)
+        data = xyz.copy()
+        is_mag = kind == 2
+        data[is_mag] = (xyz[is_mag] - off) @ a_t
+        return data
+
     def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
         """Flag changes in these rows, as (row, event)."""
         out = []
         flags = np.asarray(batch.interference, dtype=bool)
+        if flags.any() == self._interf and flags.all() == self._interf:
+            return out  # no change (the common case)
         prev = np.empty_like(flags)
         prev[0] = self._interf
         prev[1:] = flags[:-1]
@@ -588,8 +591,7 @@ class HeadingPipeline:
         polled are not — poll them first."""
         pend = {}
         for name, s in self._streams.items():
-            t = np.concatenate(s.t) if s.n else np.empty(0)
-            x = np.concatenate(s.xyz) if s.n else np.empty((0, 3))
+            t, x = s.pending()
             pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": _f(s.last_t)}
         st = {
             "version": STATE_VERSION,
@@ -622,7 +624,7 @@ class HeadingPipeline:
                 p = state["pending"][name]
                 t = np.asarray(p["t"], dtype=float)
                 x = np.asarray(p["xyz"], dtype=float).reshape(-1, 3)
-                s.t, s.xyz, s.n = ([t], [x], len(t)) if len(t) else ([], [], 0)
+                s.t, s.xyz, s.lo, s.hi = t, x, 0, len(t)
                 s.last_t = float(p["last_t"])
             self._done_t = float(state["done_t"])
             self.dropped = Counter(state["dropped"])
@@ -643,30 +645,6 @@ class HeadingPipeline:
         except (KeyError, TypeError) as exc:
             raise ValueError(f"state: malformed ({exc!r})") from exc
         self._out, self._events, self._magcal = [], [], []
-
-
-def _up_of(q: np.ndarray) -> np.ndarray:
-    """Device-frame up vectors (third row of rot_wd) of w-first quaternions (N, 4)."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.column_stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-
-
-def _latest(tm: np.ndarray, ts: np.ndarray, vs: np.ndarray, prev: np.ndarray, fn) -> np.ndarray:
-    """``fn`` of the row of ``vs`` with the latest ``ts`` at or before each ``tm``, else ``prev``."""
-    if not len(ts):
-        return np.tile(prev, (len(tm), 1))
-    j = np.searchsorted(ts, tm, side="right") - 1
-    out = fn(vs[np.maximum(j, 0)])
-    out[j < 0] = prev
-    return out
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
-
-
-def _norm(v: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(v, axis=1)[:, None]
 
 
 def _head(batch: EstimateBatch, n: int) -> EstimateBatch:

@@ -167,6 +167,50 @@ def _feed(cal: OnlineCalibrator, d, chunk=0.25):
     return events
 
 
+def test_refits_fit_only_on_new_samples():
+    """Once calibrated, a refit attempt fits only after ``max(refit_min_new, refit_new_frac·n)`` new buffer
+    samples (more while the buffer only renews: ``refit_backoff``): far fewer fits than fitting whenever the
+    buffer changed, and the same offset within the fit's σ."""
+    d = synth_walk(duration=240.0, seed=11)
+    fits, cals = {}, {}
+    every = OnlineSettings(refit_min_new=0.0, refit_new_frac=0.0, refit_backoff=1.0)
+    for name, s in (("every", every), ("gated", OnlineSettings())):
+        oc = OnlineCalibrator(s, strength=F, sin_dip=np.sin(INC))
+        count = [0]
+
+        def counted(n, fit=oc._candidates, count=count):
+            count[0] += 1
+            return fit(n)
+
+        oc._candidates = counted
+        _feed(oc, d)
+        fits[name], cals[name] = count[0], oc.calibration
+    assert fits["gated"] < 0.5 * fits["every"], fits
+    std = np.asarray(cals["every"].offset_std_uT)
+    diff = cals["gated"].offset_array - cals["every"].offset_array
+    assert np.all(np.abs(diff) < 3 * std), (diff, std)
+
+
+def test_full_fit_only_when_the_core_could_accept_its_coverage():
+    """The core's ellipsoid fit is judged on its equal-area coverage (128 cells, ≥ 50 %): 50 samples spread
+    over the sphere pass the online trigger (30° caps) but can fill at most 39 % of the cells, so the fit
+    is not attempted (``ellipsoid_precheck_frac``); 300 are enough."""
+    rng = np.random.default_rng(3)
+
+    def methods(n):
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+        oc._buf[:n, 0] = np.arange(n)
+        oc._buf[:n, 1:4] = F * d + B_TRUE + rng.normal(0, 0.3, (n, 3))
+        oc._buf[:n, 4:7] = [0.0, 0.0, 1.0]
+        oc._nbuf = n
+        return {c.method for c in oc._candidates(n)}
+
+    assert methods(50) <= {"gravity", "sphere"}
+    assert methods(300) - {"gravity", "sphere"}
+
+
 def test_online_converges_on_a_walk_and_buffer_stays_bounded():
     d = synth_walk(duration=90.0, seed=4)
     s = OnlineSettings(buffer_size=60)

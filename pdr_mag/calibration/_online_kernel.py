@@ -34,9 +34,12 @@ K_COV = 10
 K_STALE_ON = 11  # a stale test may run (calibrated, not recalibrating)
 K_IN_BLOCK = 12  # 1 while a block is open (its start parameters and buffer copy are set)
 K_NBUF0 = 13  # buffer size at the block start
-K_MIN_T0 = 14  # oldest time in the buffer at the block start
+K_NOLD0 = 14  # block-start buffer samples that may be older than refresh_s within the block (in ``old0``)
 K_HINT = 15  # index of the last buffer sample found close (where the redundancy scan starts)
-N_KS = 16
+K_FIT_NEW = 16  # samples taken into the buffer since the last refit (inf: a refit is due whatever the count)
+K_FIT_SCALE = 17  # back-off factor of the samples the next refit needs (OnlineSettings.refit_backoff)
+K_FIT_N = 18  # buffer size at the last refit
+N_KS = 19
 
 # ---- block-start parameters bp
 B_CHECK = 0  # 1: test strength (and dip) against the calibration; 0: every sample is consistent
@@ -68,7 +71,7 @@ EV_EPISODE_START = 1
 EV_EPISODE_END = 2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _consistent(m, u, bp):
     if bp[B_CHECK] == 0.0:
         return True
@@ -91,37 +94,48 @@ def _consistent(m, u, bp):
     return True
 
 
-@njit(cache=True)
-def _redundant(t, m, u, buf0, ks, bp, refresh_s):
-    """Close (raw µT and gravity direction) to a sample of the block-start buffer too young to refresh."""
+@njit(cache=True, error_model="numpy")
+def _close(j, m, u, buf0, sep2, cos_up):
+    d0 = buf0[j, 1] - m[0]
+    d1 = buf0[j, 2] - m[1]
+    d2 = buf0[j, 3] - m[2]
+    if not d0 * d0 + d1 * d1 + d2 * d2 < sep2:
+        return False
+    return buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up
+
+
+@njit(cache=True, error_model="numpy")
+def _redundant(t, m, u, buf0, old0, ks, bp, refresh_s):
+    """Close (raw µT and gravity direction) to a sample of the block-start buffer, and none of the close
+    ones old enough to refresh (older than ``refresh_s``).
+
+    The samples that may be that old within the block are listed in ``old0`` (``K_NOLD0`` of them, see
+    :func:`scan`): those are checked first, then any close sample will do — from ``K_HINT``, where the last
+    one was found.
+    """
     n = int(ks[K_NBUF0])
     if n == 0:
         return False
     sep2 = bp[B_SEP2]
     cos_up = bp[B_COS_UP]
-    all_young = t - ks[K_MIN_T0] <= refresh_s
+    for k in range(int(ks[K_NOLD0])):
+        j = old0[k]
+        if not t - buf0[j, 0] <= refresh_s and _close(j, m, u, buf0, sep2, cos_up):
+            return False
     start = int(ks[K_HINT])
     if start >= n:
         start = 0
-    oldest = np.inf
     for k in range(n):
         j = start + k
         if j >= n:
             j -= n
-        d0 = buf0[j, 1] - m[0]
-        d1 = buf0[j, 2] - m[1]
-        d2 = buf0[j, 3] - m[2]
-        if d0 * d0 + d1 * d1 + d2 * d2 < sep2:
-            if buf0[j, 4] * u[0] + buf0[j, 5] * u[1] + buf0[j, 6] * u[2] > cos_up:
-                ks[K_HINT] = j
-                if all_young:
-                    return True
-                if buf0[j, 0] < oldest:
-                    oldest = buf0[j, 0]
-    return oldest < np.inf and t - oldest <= refresh_s
+        if _close(j, m, u, buf0, sep2, cos_up):
+            ks[K_HINT] = j
+            return True
+    return False
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _put(buf, j, t, m, u):
     buf[j, 0] = t
     buf[j, 1] = m[0]
@@ -132,7 +146,7 @@ def _put(buf, j, t, m, u):
     buf[j, 6] = u[2]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
     """Offer one sample to the diversity buffer (see ``OnlineCalibrator`` in ``online.py``)."""
     n = int(ks[K_NBUF])
@@ -152,11 +166,13 @@ def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
             if t - tj > refresh_s:
                 _put(buf, j, t, m, u)
                 ks[K_VERSION] += 1.0
+                ks[K_FIT_NEW] += 1.0
             return
     if n < size:
         _put(buf, n, t, m, u)
         ks[K_NBUF] = n + 1
         ks[K_VERSION] += 1.0
+        ks[K_FIT_NEW] += 1.0
         return
     # full: evict the sample closest to another one
     best = np.inf
@@ -176,9 +192,10 @@ def add(t, m, u, buf, ks, sep2, cos_up, refresh_s, size):
             jb = a
     _put(buf, jb, t, m, u)
     ks[K_VERSION] += 1.0
+    ks[K_FIT_NEW] += 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def coverage(m, n, centre, dirs, cos_lim):
     """Share of the directions ``dirs`` with a sample direction of ``m[:n] − centre`` within the angle whose
     cosine is ``cos_lim``."""
@@ -204,7 +221,7 @@ def coverage(m, n, centre, dirs, cos_lim):
     return c / nd
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def cached_coverage(buf, ks, centre, dirs, cos_lim):
     """:func:`coverage` of the buffer, recomputed only when it changed since the last call (the caller sets
     ``ks[K_COV_VERSION] = -1`` when ``centre`` changes)."""
@@ -225,7 +242,7 @@ def cached_coverage(buf, ks, centre, dirs, cos_lim):
     return ks[K_COV]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def scan(
     t,
     mag,
@@ -238,6 +255,7 @@ def scan(
     cp,
     buf,
     buf0,
+    old0,
     rec,
     sep2_add,
     centre,
@@ -270,17 +288,26 @@ def scan(
             nb = int(ks[K_NBUF])
             buf0[:nb] = buf[:nb]
             ks[K_NBUF0] = nb
-            mt = np.inf
+            # the block's last time (unknown: +inf when the block goes on after these samples) bounds which
+            # block-start samples can be older than refresh_s at any sample of the block
+            t_last = np.inf
+            for k in range(i, n):
+                if blk_end[k]:
+                    t_last = t[k]
+                    break
+            n_old = 0
             for k in range(nb):
-                if buf[k, 0] < mt:
-                    mt = buf[k, 0]
-            ks[K_MIN_T0] = mt
+                if t_last - buf[k, 0] > refresh_s:
+                    old0[n_old] = k
+                    n_old += 1
+            ks[K_NOLD0] = n_old
             ks[K_IN_BLOCK] = 1.0
         # rotation-rich episode (smoothed gyro rate)
         ks[K_RATE_EMA] += 0.02 * (rate[i] - ks[K_RATE_EMA])
         if ks[K_EPISODE] == 0.0 and ks[K_RATE_EMA] > ep_rate:
             ks[K_EPISODE] = 1.0
             ks[K_EPISODE_SEEN] = 1.0
+            ks[K_FIT_NEW] = np.inf
             ev_i[n_ev] = i
             ev_k[n_ev] = EV_EPISODE_START
             n_ev += 1
@@ -290,13 +317,14 @@ def scan(
             ev_k[n_ev] = EV_EPISODE_END
             n_ev += 1
             ks[K_NEXT_REFIT_T] = ti
+            ks[K_FIT_NEW] = np.inf
         # decimated ring of recent samples
         if ti - ks[K_LAST_REC_T] >= rec_dt:
             r = int(ks[K_REC_I]) % nrec
             _put(rec, r, ti, m, u)
             ks[K_REC_I] += 1.0
             ks[K_LAST_REC_T] = ti
-        if _consistent(m, u, bp) and not _redundant(ti, m, u, buf0, ks, bp, refresh_s):
+        if _consistent(m, u, bp) and not _redundant(ti, m, u, buf0, old0, ks, bp, refresh_s):
             add(ti, m, u, buf, ks, sep2_add, bp[B_COS_UP], refresh_s, size)
         if blk_end[i]:
             ks[K_IN_BLOCK] = 0.0
@@ -317,13 +345,13 @@ FIT_BAD_INPUT = 2
 _HUBER = 2.5
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _huber(r):
     a = abs(r)
     return 1.0 if a <= _HUBER else _HUBER / max(a, 1e-12)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations, prior, sig_f, sig_s):
     """The numbers of :func:`pdr_mag.calibration.online.gravity_aided_offset` (see its docstring and the
     module docstring of ``online.py``): raw samples ``m`` (N, 3), up vectors ``up`` (N, 3).
@@ -505,13 +533,56 @@ def gravity_fit(m, up, f_guess, strength, s_ref, free, sigma_s, sig2, iterations
     return FIT_OK, b + centre, f, s, cov, est, rms, np.sqrt(se2 / n)
 
 
+@njit(cache=True, error_model="numpy")
+def contiguous_rows(t, mag, up, rate):
+    """``(ok, t, mag, up, rate)``: contiguous copies, ``ok`` when every time, field and up value is finite,
+    non-finite rates set to 0 (the rows :func:`scan` takes)."""
+    n = len(t)
+    ok = True
+    tc = np.empty(n)
+    mc = np.empty((n, 3))
+    uc = np.empty((n, 3))
+    rc = np.empty(n)
+    for i in range(n):
+        tc[i] = t[i]
+        ok = ok and np.isfinite(t[i])
+        for c in range(3):
+            mc[i, c] = mag[i, c]
+            uc[i, c] = up[i, c]
+            ok = ok and np.isfinite(mag[i, c]) and np.isfinite(up[i, c])
+        rc[i] = rate[i] if np.isfinite(rate[i]) else 0.0
+    return ok, tc, mc, uc, rc
+
+
+@njit(cache=True, error_model="numpy")
+def recent(rec, rec_i, t_min):
+    """Rows of the ring ``rec`` (written cyclically, the next at ``rec_i % len(rec)``: the oldest first)
+    with a finite time after ``t_min``, in time order."""
+    nrec = rec.shape[0]
+    start = int(rec_i) % nrec
+    n = 0
+    for k in range(nrec):
+        tk = rec[(start + k) % nrec, 0]
+        if np.isfinite(tk) and tk > t_min:
+            n += 1
+    out = np.empty((n, rec.shape[1]))
+    j = 0
+    for k in range(nrec):
+        i = (start + k) % nrec
+        tk = rec[i, 0]
+        if np.isfinite(tk) and tk > t_min:
+            out[j] = rec[i]
+            j += 1
+    return out
+
+
 # ---- return codes of stale_precheck
 STALE_SKIP = 0  # too few recent samples: nothing to do
 STALE_CLEAR = 1  # the strength does not deviate: no candidate
 STALE_TEST = 2  # deviating: run the fits
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def stale_precheck(rec, t, window, bp, f, tol, min_frac):
     """The cheap first part of the stale test on the ring ``rec``: samples newer than ``t − window``, at
     least 40 of them over ``0.6 · window``; share of samples with ``| |M (m − b)| − F | > tol`` overall and

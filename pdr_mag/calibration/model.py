@@ -80,14 +80,14 @@ class MagCalibration:
         a = 0.5 * (a + a.T)
         for key in ("offset_std_uT",):
             if key in kwargs and kwargs[key] is not None:
-                kwargs[key] = tuple(float(v) for v in np.asarray(kwargs[key], dtype=float).ravel())
+                kwargs[key] = tuple(np.asarray(kwargs[key], dtype=float).ravel().tolist())
         if kwargs.get("covariance") is not None:
             kwargs["covariance"] = _tuplify(np.asarray(kwargs["covariance"], dtype=float))
         if kwargs.get("mag_to_imu") is not None:
             kwargs["mag_to_imu"] = _tuplify(np.asarray(kwargs["mag_to_imu"], dtype=float))
         if "reasons" in kwargs:
             kwargs["reasons"] = tuple(kwargs["reasons"])
-        return cls(offset=tuple(float(v) for v in b), soft_iron=_tuplify(a), **kwargs)
+        return cls(offset=tuple(b.tolist()), soft_iron=_tuplify(a), **kwargs)
 
     def with_acceptance(self, accepted: bool, reasons) -> MagCalibration:
         """A copy with the acceptance verdict replaced."""
@@ -186,7 +186,7 @@ class MagCalibration:
 
 
 def _tuplify(a: np.ndarray) -> tuple:
-    return tuple(tuple(float(v) for v in row) for row in a)
+    return tuple(map(tuple, np.asarray(a, dtype=float).tolist()))
 
 
 def _num(v: float):

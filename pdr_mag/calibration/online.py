@@ -64,7 +64,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pdr_mag.calibration import _online_kernel as K
+from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
+from pdr_mag.calibration.coverage import coverage as core_coverage
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
@@ -89,6 +91,18 @@ class OnlineSettings:
         A redundant new sample replaces its kept neighbour when that one is older than this.
     refit_period_s : float
         Stream time between refit attempts (before the first acceptance: ``refit_period_s / 2``).
+    refit_min_new, refit_new_frac : float
+        Once calibrated (and not recalibrating), a refit attempt fits only when the buffer took in at least
+        ``max(refit_min_new, refit_new_frac · n)`` samples since the last fit (n: samples in the buffer);
+        otherwise the last fit's verdict stands.  The fitted offset's covariance scales as 1/n, so k new
+        samples shrink its σ by ≈ k/(2n) and move it by ≈ σ·√(k/n): far less than the 20 % shrink or
+        2 σ shift a new fit needs to replace the calibration (see ``_accept``).  A change of the
+        calibration, a rotation episode's start or end and a cleared buffer make the next attempt fit.
+    refit_backoff : float
+        A buffer that stopped growing changes only by replacement (an old sample refreshed by a close new
+        one, the most redundant one evicted when full): while it does not grow, each fit that leaves the
+        calibration as it was multiplies the number of new samples the next fit needs by this, up to n (the
+        whole buffer renewed); growth, a change of calibration or any of the events above starts over.
     min_samples : int
         Fewer samples in the buffer: no refit.
     sigma_strength_uT : float
@@ -115,6 +129,11 @@ class OnlineSettings:
         its dip within ``add_dip_tol_deg`` of the reference (no disturbed samples in the fits).
     ellipsoid_coverage : float
         Coverage from which the core's full (ellipsoid) fit is attempted.
+    ellipsoid_precheck_frac : float
+        The full fit is attempted only when, besides, the buffer's coverage by the core's own measure (the
+        equal-area grid of :func:`pdr_mag.calibration.coverage.coverage`, on which the fit is judged) about
+        the current offset estimate reaches this share of the core's ``min_coverage``: the fit is judged about
+        its own centre, a few µT away, which moves a direction by a few degrees against cells of 22° × 45°.
     sphere_coverage : float
         Coverage from which the sphere LLS fit is attempted.
     stale_window_s, stale_check_s, stale_min_frac, stale_min_shift_uT : float
@@ -137,6 +156,9 @@ class OnlineSettings:
     min_sep_up_deg: float = 6.0
     refresh_s: float = 120.0
     refit_period_s: float = 2.0
+    refit_min_new: float = 2.0
+    refit_new_frac: float = 0.1
+    refit_backoff: float = 2.0
     min_samples: int = 8
     sigma_strength_uT: float = 1.0
     sigma_tilt_deg: float = 3.0
@@ -150,6 +172,7 @@ class OnlineSettings:
     add_tol_frac: float = 0.06
     add_dip_tol_deg: float = 4.0
     ellipsoid_coverage: float = 0.6
+    ellipsoid_precheck_frac: float = 0.8
     sphere_coverage: float = 0.4
     stale_window_s: float = 30.0
     stale_check_s: float = 2.0
@@ -379,6 +402,7 @@ class OnlineCalibrator:
         self._ks[K.K_NEXT_REFIT_T] = -np.inf
         self._ks[K.K_NEXT_STALE_T] = -np.inf
         self._ks[K.K_COV_VERSION] = -1.0
+        self._ks[K.K_FIT_SCALE] = 1.0
         self._cp = np.zeros(K.N_CP)
         self._cp[K.C_REFRESH_S] = s.refresh_s
         self._cp[K.C_REC_DT] = 1.0 / s.stale_rate_hz
@@ -392,6 +416,7 @@ class OnlineCalibrator:
         self.provided = calibration is not None
         self._buf = np.full((s.buffer_size, 7), np.nan)  # t, m(3), u(3)
         self._buf0 = np.empty_like(self._buf)  # the buffer at the start of the open block
+        self._old0 = np.zeros(s.buffer_size, dtype=np.int64)  # its samples that may be old enough to refresh
         nrec = int(s.stale_window_s * s.stale_rate_hz) + 1
         self._rec = np.full((nrec, 7), np.nan)  # ring of recent samples
         self._recal_t = np.nan
@@ -399,6 +424,7 @@ class OnlineCalibrator:
         self._n_refits = 0
         self._last_reject_t = -np.inf
         self._refit_memo: tuple | None = None
+        self._bp_memo: tuple | None = None
 
     # scalar state kept in the compiled loop's vector
     _rate_ema = _ks_prop(K.K_RATE_EMA, float)
@@ -419,6 +445,7 @@ class OnlineCalibrator:
     def calibration(self, cal: MagCalibration | None) -> None:
         self._cal = cal
         self._ks[K.K_COV_VERSION] = -1.0  # the coverage is taken about the calibration's offset
+        self._ks[K.K_FIT_NEW] = np.inf  # the next refit attempt fits
 
     # ------------------------------------------------------------------ reference field
     @property
@@ -466,7 +493,16 @@ class OnlineCalibrator:
         return c
 
     def _block_params(self) -> np.ndarray:
-        """Admission-test parameters for a block starting now (the calibration in use)."""
+        """Admission-test parameters for a block starting now (the calibration in use; the same array until
+        the calibration or its state changes — read-only)."""
+        memo = self._bp_memo
+        if memo is not None and memo[0] is self._cal and memo[1] == self.cal_state:
+            return memo[2]
+        bp = self._new_block_params()
+        self._bp_memo = (self._cal, self.cal_state, bp)
+        return bp
+
+    def _new_block_params(self) -> np.ndarray:
         s = self.settings
         bp = np.zeros(K.N_BP)
         f = self.field_ref
@@ -523,16 +559,19 @@ class OnlineCalibrator:
         events: list = []
         t = np.asarray(t, dtype=float).reshape(-1)
         n_all = len(t)
-        cov = np.full(n_all, np.nan)
         if not n_all:
-            return events, 0, cov
+            return events, 0, np.empty(0)
         mag = np.asarray(mag, dtype=float)
         up = np.asarray(up, dtype=float)
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
-        good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
         rows = None
-        if not np.all(good):
+        ok, t_c, mag_c, up_c, rate_c = K.contiguous_rows(t, mag, up, rate)
+        if ok:
+            t, mag, up, rate = t_c, mag_c, up_c, rate_c
+        else:
+            cov = np.full(n_all, np.nan)
+            good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
             # a block whose last sample is dropped ends at its last good one
             blk = np.cumsum(np.r_[False, block_end[:-1]])
             rows = np.flatnonzero(good)
@@ -540,10 +579,10 @@ class OnlineCalibrator:
             block_end = np.r_[blk[1:] != blk[:-1], True] if len(rows) else block_end[:0]
             if not len(rows):
                 return events, n_all, cov
-        rate = np.where(np.isfinite(rate), rate, 0.0)
-        t = np.ascontiguousarray(t)
-        mag = np.ascontiguousarray(mag)
-        up = np.ascontiguousarray(up)
+            rate = np.where(np.isfinite(rate), rate, 0.0)
+            t = np.ascontiguousarray(t)
+            mag = np.ascontiguousarray(mag)
+            up = np.ascontiguousarray(up)
         cov_g = np.full(len(t), np.nan)
         ev_i = np.zeros(len(t) * 2 + 2, dtype=np.int64)
         ev_k = np.zeros(len(t) * 2 + 2, dtype=np.int64)
@@ -552,12 +591,16 @@ class OnlineCalibrator:
         i = 0
         changed = False
         stop_at = len(t)
+        cal_of = False  # the calibration the separation and the coverage centre below were taken from
         while i < len(t):
+            if self._cal is not cal_of:
+                cal_of = self._cal
+                sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
+                centre = self._centre()
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
-            sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
             code, j, n_ev = K.scan(
-                t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._rec,
-                sep2, self._centre(), _DIRS, cov_g, changed, ev_i, ev_k,
+                t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._old0,
+                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
             )  # fmt: skip
             for e in range(n_ev):
                 ie = int(ev_i[e])
@@ -610,6 +653,7 @@ class OnlineCalibrator:
         self._buf[:] = np.nan
         self._nbuf = 0
         self._ks[K.K_VERSION] += 1.0
+        self._ks[K.K_FIT_NEW] = np.inf
 
     # ------------------------------------------------------------------ refits
     def _refit(self, t: float, events: list) -> None:
@@ -617,6 +661,15 @@ class OnlineCalibrator:
         n = self._nbuf
         if n < s.min_samples:
             return
+        ks = self._ks
+        if ks[K.K_FIT_NEW] == np.inf or n > ks[K.K_FIT_N]:
+            ks[K.K_FIT_SCALE] = 1.0  # an event, or the buffer grew since the last fit: no back-off
+        need = min(max(s.refit_min_new, s.refit_new_frac * n) * ks[K.K_FIT_SCALE], n)
+        if self._cal is not None and self.cal_state != "recalibrating" and ks[K.K_FIT_NEW] < need:
+            return  # too few new samples since the last fit to change its verdict (refit_min_new)
+        ks[K.K_FIT_NEW] = 0.0
+        ks[K.K_FIT_N] = n
+        ks[K.K_FIT_SCALE] *= s.refit_backoff  # reset above by the change of calibration, if this makes one
         # the candidates and their verdicts depend on the buffer, the calibration in use and the episode
         # flag only: when none of them changed since the last refit, they are the same
         key = (float(self._ks[K.K_VERSION]), self._episode_seen, self.cal_state)
@@ -658,15 +711,19 @@ class OnlineCalibrator:
         if cov >= s.sphere_coverage:
             try:
                 sp = fit_sphere(m)
-                sp = replace(sp, coverage=cov, extra={**sp.extra, "sin_dip": _mean_sin_dip(m, u, sp)})
+                sp = replace(sp, coverage=cov)
                 cands.append(sp)
             except (ValueError, ArithmeticError):
                 pass
-        if cov >= s.ellipsoid_coverage and (self._episode_seen or self.cal_state == "none"):
+        if (
+            cov >= s.ellipsoid_coverage
+            and (self._episode_seen or self.cal_state == "none")
+            and core_coverage(m - (centre if centre is not None else m.mean(axis=0)))
+            >= s.ellipsoid_precheck_frac * AcceptanceSettings().min_coverage
+        ):
             try:
                 full = _full_fit(m, f_ref)
                 full = replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
-                full = replace(full, extra={**full.extra, "sin_dip": _mean_sin_dip(m, u, full)})
                 cands.append(full)
             except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
@@ -719,10 +776,20 @@ class OnlineCalibrator:
             extra={**g.extra, "shape_from": cur.method},
         )
 
+    def _with_dip(self, cal: MagCalibration) -> MagCalibration:
+        """A sphere or full refit taken into use gets ``extra["sin_dip"]``: the median dip of the buffer's
+        samples under it (the buffer the refit was made on; computed only for the refit taken)."""
+        if cal.method == "gravity":
+            return cal
+        n = self._nbuf
+        sin_dip = _mean_sin_dip(self._buf[:n, 1:4], self._buf[:n, 4:7], cal)
+        return replace(cal, extra={**cal.extra, "sin_dip": sin_dip})
+
     def _accept(self, t: float, cal: MagCalibration, events: list) -> None:
         s = self.settings
         old = self.calibration
         if self.cal_state == "recalibrating":
+            cal = self._with_dip(cal)
             rich = cal.method != "gravity" and self._episode_seen
             waited = np.isfinite(self._recal_t) and t - self._recal_t > s.recal_fallback_s
             if not (rich or waited):
@@ -749,6 +816,7 @@ class OnlineCalibrator:
                 return  # the buffer got worse (disturbed samples): keep the calibration
             if not upgrade and shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old:
                 return
+        cal = self._with_dip(cal)
         self.calibration = cal
         self.cal_state = _state_of(cal)
         self._n_refits += 1
@@ -756,9 +824,8 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ stale test
     def _recent(self, t: float) -> np.ndarray:
-        r = self._rec[np.isfinite(self._rec[:, 0])]
-        r = r[r[:, 0] > t - self.settings.stale_window_s]
-        return r[np.argsort(r[:, 0])]
+        """The ring's samples of the last ``stale_window_s``, oldest first."""
+        return K.recent(self._rec, self._ks[K.K_REC_I], t - self.settings.stale_window_s)
 
     def _stale_check(self, t: float, events: list) -> None:
         s = self.settings
@@ -780,13 +847,9 @@ class OnlineCalibrator:
         if pre == K.STALE_CLEAR:
             self._stale_cand = None
             return
+        # deviating (the precheck's share test passed): fit a device-fixed offset shift on the window
         r = self._recent(t)
         mc = cal.apply(r[:, 1:4])
-        dev = np.abs(np.linalg.norm(mc, axis=1) - f) > s.strength_tol_frac * f * 0.5
-        last = r[:, 0] > t - s.stale_window_s / 3
-        if np.mean(dev[last]) < s.stale_min_frac or np.mean(dev) < 0.5 * s.stale_min_frac:
-            self._stale_cand = None
-            return
         half = len(r) // 2
         fits = []
         for lo, hi in ((0, len(r)), (0, half), (half, len(r))):
@@ -915,6 +978,9 @@ class OnlineCalibrator:
             "stale_cand": self._stale_cand,
             "n_refits": self._n_refits,
             "last_reject_t": _f(self._last_reject_t),
+            "fit_new": _f(self._ks[K.K_FIT_NEW]),
+            "fit_scale": _f(self._ks[K.K_FIT_SCALE]),
+            "fit_n": int(self._ks[K.K_FIT_N]),
         }
 
     def set_state(self, st: dict) -> None:
@@ -937,9 +1003,13 @@ class OnlineCalibrator:
         self._stale_cand = None if st.get("stale_cand") is None else [float(v) for v in st["stale_cand"]]
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = _uf(st["last_reject_t"])
+        self._ks[K.K_FIT_NEW] = _uf(st.get("fit_new", "inf"))
+        self._ks[K.K_FIT_SCALE] = _uf(st.get("fit_scale", 1.0))
+        self._ks[K.K_FIT_N] = int(st.get("fit_n", 0))
         self._ks[K.K_IN_BLOCK] = 0.0
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
+        self._bp_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
