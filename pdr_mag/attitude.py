@@ -356,39 +356,28 @@ class FusionCore:
             if allowed.shape != (n,):
                 raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
         m = int(np.count_nonzero(kind == 1))
+        cuts = np.empty(0, dtype=np.intp) if snapshot_at is None else np.asarray(snapshot_at, dtype=np.intp)
         out_t = np.empty(m)
         out_q = np.empty((m, 4))
         out_std = np.empty(m)
         out_mag = np.empty(m, dtype=np.bool_)
         out_int = np.empty(m, dtype=np.bool_)
         out_diag = np.empty((K.N_DIAG, m)).T  # each diagnostic a contiguous column: no copies below
-        k = 0
-        a = 0
-        self.snapshots = []
-        for b in (*(snapshot_at if snapshot_at is not None else ()), n):
-            if b > a or snapshot_at is None:
-                k += K.run(
-                    kind[a:b],
-                    t[a:b],
-                    xyz[a:b],
-                    allowed[a:b],
-                    self._st,
-                    self._p,
-                    self._ip,
-                    out_t[k:],
-                    out_q[k:],
-                    out_std[k:],
-                    out_mag[k:],
-                    out_int[k:],
-                    out_diag[k:],
-                )
-            if b < n:
-                self.snapshots.append(self._snapshot())
-            a = b
+        h_y = np.empty(m)
+        h_x = np.empty(m)
+        snaps = np.empty((len(cuts), K.N_STATE))
+        # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
+        # arguments in one compiled call
+        k = K.run_cut(
+            kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps,
+            out_t, out_q, out_std, out_mag, out_int, out_diag, h_y, h_x,
+        )  # fmt: skip
+        ref = self._ref_strength
+        self.snapshots = [(s, ref) for s in snaps]
         q = out_q[:k]
-        q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
-        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        heading = np.mod(np.degrees(np.arctan2(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z))), 360.0)
+        heading = np.arctan2(h_y[:k], h_x[:k])
+        np.degrees(heading, out=heading)
+        np.mod(heading, 360.0, out=heading)
         diag = {name: out_diag[:k, i] for i, name in enumerate(_DIAG_NAMES)}
         return EstimateBatch(
             t=out_t[:k],
