@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -270,12 +271,11 @@ def _gravity_numbers(
     free = strength is None or sin_dip is None
     f_guess = float(strength) if strength is not None else 50.0
     s_ref = 0.0 if free else float(strength) * float(sin_dip)
-    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
     prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
-    sig_f = sig_s = 1.0
-    if prior:
-        sig_f = float(prior_strength_std_uT)
-        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    sig2, sig_f, sig_s = _gravity_scales(
+        f_guess, float(sigma_tilt_deg), prior, float(prior_strength_std_uT), float(sin_dip or 0.0),
+        float(prior_dip_std_deg),
+    )  # fmt: skip
     try:
         code, b, f, s, cov, est, rms, dip_rms = K.gravity_fit(
             np.ascontiguousarray(m, dtype=float), np.ascontiguousarray(u, dtype=float), f_guess,
@@ -285,6 +285,17 @@ def _gravity_numbers(
     except np.linalg.LinAlgError as exc:
         raise ValueError("mag, up: singular normal equations") from exc
     return code, b, float(f), float(s), cov[:3, :3].copy(), bool(est), float(rms), float(dip_rms)
+
+
+@lru_cache(maxsize=64)
+def _gravity_scales(f_guess, sigma_tilt_deg, prior, prior_strength_std_uT, sin_dip, prior_dip_std_deg):
+    """``(σ_dip, σ_F, σ_{F sin I})`` of :func:`_gravity_numbers` (memoised: the same settings each fit)."""
+    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
+    sig_f = sig_s = 1.0
+    if prior:
+        sig_f = float(prior_strength_std_uT)
+        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    return sig2, sig_f, sig_s
 
 
 # ---------------------------------------------------------------------------------------------- coverage
@@ -318,7 +329,11 @@ def direction_coverage(mag_cal: np.ndarray) -> float:
 
 
 def judge(
-    cal: MagCalibration, settings: OnlineSettings, field_ref: float | None, first: bool = False
+    cal: MagCalibration,
+    settings: OnlineSettings,
+    field_ref: float | None,
+    first: bool = False,
+    coverage: float | None = None,
 ) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
@@ -326,7 +341,8 @@ def judge(
     the reference, residual, offset σ and range, soft-iron spread, conditioning — the coverage rules apply
     where the fit recorded its coverage) are applied to every refit but the gravity-aided one, whose
     geometry they do not describe; the online rules below are applied in any case: offset σ, residual RMS
-    relative to F, offset magnitude, radius against the reference strength.
+    relative to F, offset magnitude, radius against the reference strength.  ``coverage`` given: the copy
+    also gets it (for the gravity-aided refit, whose rules do not read it).
     """
     reasons: list[str] = []
     if cal.method != "gravity":
@@ -348,6 +364,8 @@ def judge(
         reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
     if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > 0.25:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
+    if coverage is not None:
+        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
 
 
@@ -728,8 +746,10 @@ class OnlineCalibrator:
             except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
         first = self.calibration is None
+        # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
         return [
-            judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref, first) for c in cands
+            judge(c, s, f_ref, first, coverage=cov) if c.method == "gravity" else judge(c, s, f_ref, first)
+            for c in cands
         ]
 
     def _gravity_fit(self, m: np.ndarray, u: np.ndarray, f_ref: float | None) -> MagCalibration:
