@@ -114,8 +114,8 @@ class PipelineSettings:
 
 class _Stream:
     """Pending samples of one input stream: rows ``[lo, hi)`` of one buffer that grows (doubling) when a
-    push does not fit after moving the pending rows to its start — so a push is one copy, and taking the
-    samples before a time is a slice (valid until the next append)."""
+    push does not fit after moving the pending rows to its start — so a push is one copy, and the samples
+    before a time are taken (and merged with the other streams') by :func:`_pipeline_kernel.take_merge3`."""
 
     __slots__ = ("t", "xyz", "lo", "hi", "last_t")
 
@@ -146,12 +146,6 @@ class _Stream:
         self.xyz[self.hi : self.hi + k] = xyz
         self.hi += k
         self.last_t = float(t[-1])
-
-    def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-        lo = self.lo
-        k = lo + int(np.searchsorted(self.t[lo : self.hi], t_end, side="left"))
-        self.lo = k
-        return self.t[lo:k], self.xyz[lo:k]
 
     def pending(self) -> tuple[np.ndarray, np.ndarray]:
         return self.t[self.lo : self.hi].copy(), self.xyz[self.lo : self.hi].copy()
@@ -210,6 +204,7 @@ class HeadingPipeline:
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
         )
         self._streams = {k: _Stream() for k in KINDS}
+        self._stream_list = tuple(self._streams.values())  # in kind order
         self._done_t = -np.inf  # everything before this time has been processed
         self._cur_blk: float | None = None  # index of the block the last fused piece belonged to
         self._span = (
@@ -288,7 +283,7 @@ class HeadingPipeline:
         if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
             # the common case: finite, strictly increasing, after everything pushed and processed
             s.append(t, xyz)
-            if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+            if self._n_pending() > self.settings.max_pending:
                 self._process(self._safe_horizon())
             return
         good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
@@ -308,8 +303,12 @@ class HeadingPipeline:
             t, xyz = t[keep], xyz[keep]
         if len(t):
             s.append(t, xyz)
-        if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+        if self._n_pending() > self.settings.max_pending:
             self._process(self._safe_horizon())
+
+    def _n_pending(self) -> int:
+        a, g, m = self._stream_list
+        return a.hi - a.lo + g.hi - g.lo + m.hi - m.lo
 
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
@@ -380,12 +379,14 @@ class HeadingPipeline:
             if not np.isfinite(horizon) or horizon <= self._done_t:
                 return
             t_end = horizon
-        (ta, xa), (tg, xg), (tm, xm) = (s.take_before(t_end) for s in self._streams.values())
+        # each stream's samples before t_end, merged in time order, ties in kind order: accel < gyro < mag
+        sa, sg, sm = self._stream_list
+        sa.lo, sg.lo, sm.lo, kind, t, xyz, blk = PK.take_merge3(
+            sa.t, sa.xyz, sa.lo, sa.hi, sg.t, sg.xyz, sg.lo, sg.hi, sm.t, sm.xyz, sm.lo, sm.hi, t_end, b
+        )
         if not final:
             self._done_t = t_end
-        if len(ta) + len(tg) + len(tm):
-            # time-ordered merge, ties in kind order: accel < gyro < mag
-            kind, t, xyz, blk = PK.merge3(ta, xa, tg, xg, tm, xm, b)
+        if len(t):
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
             i, n = 0, len(t)
@@ -418,7 +419,7 @@ class HeadingPipeline:
         )
         snaps = self.fusion.snapshots if len(snap_at) else []
         # rows (one per output gyro sample) of each block-piece
-        row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
+        row_hi = PK.rows_before(batch.t, t, hi)
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
@@ -432,11 +433,16 @@ class HeadingPipeline:
             pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
             self._pend = []
             n_rows_c, last, has, ends, piece_of_row = PK.close_layout(len(pre), mag_lo, mag_hi)
-            rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
             before = self.online.calibration
-            events, n_done, cov = self.online.update_blocks(
-                rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
-            )
+            ok, r_t, r_mag, r_up, r_rate = PK.close_rows(pre, ctx, mag_hi[-2])
+            if ok:  # the common case: contiguous and finite, as update_blocks would make them
+                events, n_done, cov = self.online._update_rows(r_t, r_mag, r_up, r_rate, ends)
+            else:
+                rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
+                r_t = rows[:, 0]
+                events, n_done, cov = self.online.update_blocks(
+                    rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
+                )
             if n_rows_c:
                 for r, (te, k, d) in events:
                     piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
@@ -447,7 +453,7 @@ class HeadingPipeline:
                     n_pieces = q + 1
                     self._coverage = float(covs[q + 1])
                     if self.online.calibration is not None:
-                        self._calibrations.append((float(rows[n_done - 1, 0]), self.online.calibration))
+                        self._calibrations.append((float(r_t[n_done - 1]), self.online.calibration))
                 else:
                     self._coverage = float(covs[-1])
             self._cur_blk = float(blk[lo[n_pieces]] if n_pieces < n_p else blk[lo[-1]])
@@ -477,12 +483,7 @@ class HeadingPipeline:
                 batch = _head(batch, n_rows)
             # the calibration (hence cal_state) is the span start's in every piece kept
             batch.cal_state = np.full(n_rows, state, dtype="<U13")
-            if n_pieces == 1:
-                batch.diag["coverage"] = np.full(n_rows, covs[0])
-            else:
-                per_piece = row_hi[:n_pieces].copy()  # rows in each piece
-                per_piece[1:] -= row_hi[: n_pieces - 1]
-                batch.diag["coverage"] = np.repeat(covs[:n_pieces], per_piece)
+            batch.diag["coverage"] = PK.rows_coverage(covs, row_hi, n_pieces)
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows
@@ -537,7 +538,7 @@ class HeadingPipeline:
         """Flag changes in these rows, as (row, event)."""
         out = []
         flags = np.asarray(batch.interference, dtype=bool)
-        if flags.any() == self._interf and flags.all() == self._interf:
+        if PK.all_equal(flags, self._interf):
             return out  # no change (the common case)
         prev = np.empty_like(flags)
         prev[0] = self._interf

@@ -443,6 +443,7 @@ class OnlineCalibrator:
         self._last_reject_t = -np.inf
         self._refit_memo: tuple | None = None
         self._bp_memo: tuple | None = None
+        self._centre_memo: tuple | None = None
 
     # scalar state kept in the compiled loop's vector
     _rate_ema = _ks_prop(K.K_RATE_EMA, float)
@@ -504,10 +505,16 @@ class OnlineCalibrator:
         return float(K.cached_coverage(self._buf, self._ks, self._centre(), _DIRS, _COS30))
 
     def _centre(self) -> np.ndarray:
+        """``(flag, offset)`` of the calibration in use for the coverage (the same array while it stays the
+        same — read-only)."""
+        memo = self._centre_memo
+        if memo is not None and memo[0] is self._cal:
+            return memo[1]
         c = np.zeros(4)
         if self._cal is not None:
             c[0] = 1.0
             c[1:4] = self._cal.offset_array
+        self._centre_memo = (self._cal, c)
         return c
 
     def _block_params(self) -> np.ndarray:
@@ -601,6 +608,28 @@ class OnlineCalibrator:
             t = np.ascontiguousarray(t)
             mag = np.ascontiguousarray(mag)
             up = np.ascontiguousarray(up)
+        events, stop_at, cov_g = self._update_rows(t, mag, up, rate, block_end, stop_on_change)
+        if rows is None:
+            cov = cov_g
+            n_done = stop_at if stop_at < len(t) else n_all
+        else:
+            cov[rows] = cov_g
+            events = [(int(rows[r]), e) for r, e in events]
+            n_done = int(rows[stop_at - 1]) + 1 if stop_at < len(t) else n_all
+        return events, n_done, cov
+
+    def _update_rows(
+        self,
+        t: np.ndarray,
+        mag: np.ndarray,
+        up: np.ndarray,
+        rate: np.ndarray,
+        block_end: np.ndarray,
+        stop_on_change: bool = True,
+    ) -> tuple[list, int, np.ndarray]:
+        """:meth:`update_blocks` on rows already contiguous and finite (non-finite rates set to 0): returns
+        ``(events, n, coverage)`` as it does, ``n`` the rows taken in."""
+        events: list = []
         cov_g = np.full(len(t), np.nan)
         ev_i = np.zeros(len(t) * 2 + 2, dtype=np.int64)
         ev_k = np.zeros(len(t) * 2 + 2, dtype=np.int64)
@@ -650,14 +679,7 @@ class OnlineCalibrator:
                 changed = False
                 bp = self._block_params()
             i = j + 1
-        if rows is None:
-            cov = cov_g
-            n_done = stop_at if stop_at < len(t) else n_all
-        else:
-            cov[rows] = cov_g
-            events = [(int(rows[r]), e) for r, e in events]
-            n_done = int(rows[stop_at - 1]) + 1 if stop_at < len(t) else n_all
-        return events, n_done, cov
+        return events, stop_at, cov_g
 
     # ------------------------------------------------------------------ diversity buffer
     def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
@@ -1030,6 +1052,7 @@ class OnlineCalibrator:
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
         self._bp_memo = None
+        self._centre_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
