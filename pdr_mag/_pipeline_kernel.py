@@ -364,3 +364,46 @@ def all_equal(flags, v):
         if flags[i] != v:
             return False
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def append_in_order(bt, bx, hi, t, xyz, after, done_t):
+    """A push's common case: when ``t[0] ≥ done_t`` and :func:`in_order`, copy the rows to ``bt[hi:]``,
+    ``bx[hi:]`` if they fit (returns 1) or leave that to the caller (2); 0 when they need checking."""
+    n = len(t)
+    if not (t[0] >= done_t) or not in_order(t, xyz, after):
+        return 0
+    if hi + n > len(bt):
+        return 2
+    for i in range(n):
+        bt[hi + i] = t[i]
+        bx[hi + i, 0] = xyz[i, 0]
+        bx[hi + i, 1] = xyz[i, 1]
+        bx[hi + i, 2] = xyz[i, 2]
+    return 1
+
+
+@njit(cache=True, error_model="numpy")
+def span_start(blk, kind, xyz, span, off, calibrated):
+    """:func:`span_pieces` and the span's samples as the filter takes them: with ``calibrated``, the
+    magnetometer's less ``off`` (:func:`minus_offset`), else NaN; and the ``mag_allowed`` flags.
+    Returns ``(e, lo, hi, mag_lo, mag_hi, data, allowed)``."""
+    e, lo, hi, mag_lo, mag_hi = span_pieces(blk, kind, span)
+    data = np.empty((e, 3))
+    allowed = np.empty(e, dtype=np.bool_)
+    for i in range(e):
+        allowed[i] = calibrated
+        if kind[i] == 2:
+            if calibrated:
+                data[i, 0] = xyz[i, 0] - off[0]
+                data[i, 1] = xyz[i, 1] - off[1]
+                data[i, 2] = xyz[i, 2] - off[2]
+            else:
+                data[i, 0] = np.nan
+                data[i, 1] = np.nan
+                data[i, 2] = np.nan
+        else:
+            data[i, 0] = xyz[i, 0]
+            data[i, 1] = xyz[i, 1]
+            data[i, 2] = xyz[i, 2]
+    return e, lo, hi, mag_lo, mag_hi, data, allowed

@@ -64,6 +64,7 @@ _SPAN_MIN = 8
 _SPAN_MAX = 32
 #: Blocks between the filter snapshots taken inside a span (a change re-runs the filter from the latest one).
 _SNAP_EVERY = 4
+_NO_OFFSET = np.zeros(3)
 
 
 def _default_fusion_settings():
@@ -280,9 +281,15 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
-        if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
-            # the common case: finite, strictly increasing, after everything pushed and processed
-            s.append(t, xyz)
+        # the common case: finite, strictly increasing, after everything pushed and processed (copied in
+        # place when the buffer has room)
+        code = PK.append_in_order(s.t, s.xyz, s.hi, t, xyz, s.last_t, self._done_t)
+        if code:
+            if code == 1:
+                s.hi += len(t)
+                s.last_t = float(t[-1])
+            else:
+                s.append(t, xyz)
             if self._n_pending() > self.settings.max_pending:
                 self._process(self._safe_horizon())
             return
@@ -401,17 +408,20 @@ class HeadingPipeline:
     def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
         """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
         inside it; returns the number of samples fused for good."""
-        e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
+        cal = self.online.calibration
+        state = self.online.cal_state
+        off = self._offset_only(cal)
+        e, lo, hi, mag_lo, mag_hi, data, allowed = PK.span_start(
+            blk, kind, xyz, self._span, off if off is not None else _NO_OFFSET, cal is not None
+        )
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
+        if cal is not None and off is None:
+            data = self._calibrated(cal, kind, xyz)
         n_p = len(lo)
         # filter snapshots at the span's start and (long spans) every _SNAP_EVERY pieces: what a calibration
         # change inside the span puts back before re-running the filter up to the change
         snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
         snap = self.fusion._snapshot() if n_p > 1 else None
-        cal = self.online.calibration
-        state = self.online.cal_state
-        data = self._calibrated(cal, kind, xyz)
-        allowed = np.full(e, cal is not None)
         batch = (
             self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
             if len(snap_at)
@@ -520,19 +530,30 @@ class HeadingPipeline:
             data = xyz.copy()
             data[kind == 2] = np.nan
             return data
-        if self._cal_mats[0] is not cal:
-            a = cal.soft_iron_array
-            if cal.mag_to_imu is not None:
-                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
-            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
-            self._cal_mats = (cal, cal.offset_array, a.T, eye)
-        _, off, a_t, eye = self._cal_mats
+        _, off, a_t, eye = self._cal_matrices(cal)
         if eye:
             return PK.minus_offset(kind, xyz, off)
         data = xyz.copy()
         is_mag = kind == 2
         data[is_mag] = (xyz[is_mag] - off) @ a_t
         return data
+
+    def _cal_matrices(self, cal: MagCalibration) -> tuple:
+        """``(cal, offset, matrix transposed, whether it is the identity)``, kept while ``cal`` stays."""
+        if self._cal_mats[0] is not cal:
+            a = cal.soft_iron_array
+            if cal.mag_to_imu is not None:
+                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
+            self._cal_mats = (cal, cal.offset_array, a.T, eye)
+        return self._cal_mats
+
+    def _offset_only(self, cal: MagCalibration | None) -> np.ndarray | None:
+        """The offset of an offset-only calibration (None without one or with a matrix)."""
+        if cal is None:
+            return None
+        _, off, _, eye = self._cal_matrices(cal)
+        return off if eye else None
 
     def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
         """Flag changes in these rows, as (row, event)."""
