@@ -362,7 +362,8 @@ class FusionCore:
         out_std = np.empty(m)
         out_mag = np.empty(m, dtype=np.bool_)
         out_int = np.empty(m, dtype=np.bool_)
-        out_diag = np.empty((K.N_DIAG, m)).T  # each diagnostic a contiguous column: no copies below
+        diag_rows = np.empty((K.N_DIAG, m))  # each diagnostic a contiguous row: no copies below
+        out_diag = diag_rows.T
         h_y = np.empty(m)
         h_x = np.empty(m)
         snaps = np.empty((len(cuts), K.N_STATE))
@@ -378,7 +379,7 @@ class FusionCore:
         heading = np.arctan2(h_y[:k], h_x[:k])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
-        diag = {name: out_diag[:k, i] for i, name in enumerate(_DIAG_NAMES)}
+        diag = dict(zip(_DIAG_NAMES, diag_rows[:, :k], strict=True))
         return EstimateBatch(
             t=out_t[:k],
             q_wd=q,

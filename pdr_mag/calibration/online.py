@@ -68,7 +68,7 @@ from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.coverage import coverage as core_coverage
-from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.model import _EYE, MagCalibration
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
 
@@ -243,7 +243,7 @@ def gravity_aided_offset(
         field_uT=f,
         method="gravity",
         residual_rms_uT=float(rms),
-        offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+        offset_std_uT=np.sqrt(np.maximum(np.diag(cov_b), 0)),
         n_samples=n,
         covariance=cov_b,
         extra={
@@ -730,7 +730,7 @@ class OnlineCalibrator:
             return
         # prefer the richest model that passed: ellipsoid/ml > sphere > gravity
         rank = {"gravity": 0, "sphere": 1}
-        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
+        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(max(c.offset_std_uT))))  # finite σ
         self._accept(t, copy.copy(best), events)
 
     def _candidates(self, n: int) -> list[MagCalibration]:
@@ -811,7 +811,7 @@ class OnlineCalibrator:
             field_uT=g.field_uT,
             method="gravity",
             residual_rms_uT=g.residual_rms_uT,
-            offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+            offset_std_uT=np.sqrt(np.maximum(np.diag(cov_b), 0)),
             n_samples=g.n_samples,
             covariance=cov_b,
             mag_to_imu=cur.mag_to_imu,
@@ -904,7 +904,7 @@ class OnlineCalibrator:
                 return
             if code != K.FIT_OK:
                 return
-            fits.append((off, np.sqrt(np.clip(np.diag(cov_b), 0, None)), rms))
+            fits.append((off, np.sqrt(np.maximum(np.diag(cov_b), 0)), rms))
             if lo == 0 and hi == len(r) and self._stale_cand is None:
                 # speed only: with no candidate pending, a whole-window fit that fails the tests below
                 # ends the check as the halves would (a failed half returns, leaving the candidate None)
@@ -1056,6 +1056,8 @@ class OnlineCalibrator:
 
 
 def _state_of(cal: MagCalibration) -> str:
+    if cal.soft_iron is _EYE:
+        return "offset"  # the identity of from_arrays(soft_iron=None)
     return "offset" if _is_identity(cal.soft_iron, 1e-9) else "ellipsoid"
 
 
