@@ -407,3 +407,18 @@ def span_start(blk, kind, xyz, span, off, calibrated):
             data[i, 1] = xyz[i, 1]
             data[i, 2] = xyz[i, 2]
     return e, lo, hi, mag_lo, mag_hi, data, allowed
+
+
+@njit(cache=True, error_model="numpy")
+def span_context(kind, t, xyz, hi, row_t, row_q, up, up_acc, rate):
+    """:func:`rows_before` and :func:`mag_context` of a span in one call: ``(row_hi, ctx)``."""
+    return rows_before(row_t, t, hi), mag_context(kind, t, xyz, row_t, row_q, up, up_acc, rate)
+
+
+@njit(cache=True, error_model="numpy")
+def close_span(pre, ctx, mag_lo, mag_hi):
+    """:func:`close_layout` and :func:`close_rows` of a span's closed pieces in one call: ``(n_rows, last,
+    has, ends, piece_of_row, ok, t, raw, up, rate)``."""
+    n_rows, last, has, ends, piece_of_row = close_layout(pre.shape[0], mag_lo, mag_hi)
+    ok, tc, mc, uc, rc = close_rows(pre, ctx, mag_hi[len(mag_hi) - 2])
+    return n_rows, last, has, ends, piece_of_row, ok, tc, mc, uc, rc

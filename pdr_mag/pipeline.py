@@ -39,6 +39,7 @@ NaN row, a repeated or backward timestamp is dropped and counted in :attr:`Headi
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -429,22 +430,23 @@ class HeadingPipeline:
         )
         snaps = self.fusion.snapshots if len(snap_at) else []
         # rows (one per output gyro sample) of each block-piece
-        row_hi = PK.rows_before(batch.t, t, hi)
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
-        ctx = (
-            PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._up, self._up_acc, self._rate)
-            if self.settings.online
-            else None
-        )
+        if self.settings.online:
+            row_hi, ctx = PK.span_context(
+                kind, t, xyz, hi, batch.t, batch.q_wd, self._up, self._up_acc, self._rate
+            )
+        else:
+            row_hi, ctx = PK.rows_before(batch.t, t, hi), None
         if ctx is not None and n_p > 1:
             # close every block but the last: the open block's earlier samples, then the span's
             pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
             self._pend = []
-            n_rows_c, last, has, ends, piece_of_row = PK.close_layout(len(pre), mag_lo, mag_hi)
+            n_rows_c, last, has, ends, piece_of_row, ok, r_t, r_mag, r_up, r_rate = PK.close_span(
+                pre, ctx, mag_lo, mag_hi
+            )
             before = self.online.calibration
-            ok, r_t, r_mag, r_up, r_rate = PK.close_rows(pre, ctx, mag_hi[-2])
             if ok:  # the common case: contiguous and finite, as update_blocks would make them
                 events, n_done, cov = self.online._update_rows(r_t, r_mag, r_up, r_rate, ends)
             else:
@@ -501,7 +503,7 @@ class HeadingPipeline:
         if piece_ev:
             piece_ev.sort(key=lambda x: (x[0], x[1]))
             self._events += [ev for _, _, ev in piece_ev]
-        if not np.isfinite(self._t_first):
+        if not math.isfinite(self._t_first):
             self._t_first = float(t[0])
         self._t_last = float(t[end - 1])
         if self.settings.keep_mag_calibrated and cal is not None:

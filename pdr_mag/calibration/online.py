@@ -59,6 +59,7 @@ the refit and stale-test instants (every ``refit_period_s`` / ``stale_check_s``)
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
@@ -347,14 +348,14 @@ def judge(
     reasons: list[str] = []
     if cal.method != "gravity":
         reasons += list(core_accept(cal, field=field_ref).reasons)
-    std = np.asarray(cal.offset_std_uT, dtype=float)
     f = cal.field_uT
     bound = (
         settings.max_offset_std_uT
         if not first
         else max(settings.first_offset_std_uT, settings.max_offset_std_uT)
     )
-    if not np.all(np.isfinite(std)) or np.max(std) > bound:
+    if not all(map(math.isfinite, cal.offset_std_uT)) or max(cal.offset_std_uT) > bound:
+        std = np.asarray(cal.offset_std_uT, dtype=float)
         reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
     if not np.isfinite(f) or f <= 0:
         reasons.append("no finite field radius")
@@ -850,8 +851,8 @@ class OnlineCalibrator:
             if self.provided and cal.method in ("gravity", "sphere"):
                 return
             shift = np.linalg.norm(cal.offset_array - old.offset_array)
-            std_new = float(np.max(cal.offset_std_uT))
-            std_old = float(np.max(old.offset_std_uT)) if np.all(np.isfinite(old.offset_std_uT)) else np.inf
+            std_new = float(max(cal.offset_std_uT))  # finite: an accepted refit
+            std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
             upgrade = _state_of(cal) == "ellipsoid" and _state_of(old) != "ellipsoid"
             rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
             if not upgrade and cal.residual_rms_uT > 1.5 * rms_old + 0.3:
