@@ -386,13 +386,16 @@ def append_in_order(bt, bx, hi, t, xyz, after, done_t):
 @njit(cache=True, error_model="numpy")
 def span_start(blk, kind, xyz, span, off, calibrated):
     """:func:`span_pieces` and the span's samples as the filter takes them: with ``calibrated``, the
-    magnetometer's less ``off`` (:func:`minus_offset`), else NaN; and the ``mag_allowed`` flags.
-    Returns ``(e, lo, hi, mag_lo, mag_hi, data, allowed)``."""
+    magnetometer's less ``off`` (:func:`minus_offset`), else NaN; the ``mag_allowed`` flags; the number of
+    gyro samples.  Returns ``(e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro)``."""
     e, lo, hi, mag_lo, mag_hi = span_pieces(blk, kind, span)
     data = np.empty((e, 3))
     allowed = np.empty(e, dtype=np.bool_)
+    n_gyro = 0
     for i in range(e):
         allowed[i] = calibrated
+        if kind[i] == 1:
+            n_gyro += 1
         if kind[i] == 2:
             if calibrated:
                 data[i, 0] = xyz[i, 0] - off[0]
@@ -406,7 +409,7 @@ def span_start(blk, kind, xyz, span, off, calibrated):
             data[i, 0] = xyz[i, 0]
             data[i, 1] = xyz[i, 1]
             data[i, 2] = xyz[i, 2]
-    return e, lo, hi, mag_lo, mag_hi, data, allowed
+    return e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro
 
 
 @njit(cache=True, error_model="numpy")

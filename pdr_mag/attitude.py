@@ -75,6 +75,7 @@ from pdr_mag.field import EarthField
 from pdr_mag.interference import DET_FLAG, InterferenceSettings
 
 STATE_VERSION = 3
+_NO_CUTS = np.empty(0, dtype=np.intp)
 
 #: diag columns of the kernel output, in order
 _DIAG_NAMES = (
@@ -356,7 +357,13 @@ class FusionCore:
             if allowed.shape != (n,):
                 raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
         m = int(np.count_nonzero(kind == 1))
-        cuts = np.empty(0, dtype=np.intp) if snapshot_at is None else np.asarray(snapshot_at, dtype=np.intp)
+        cuts = _NO_CUTS if snapshot_at is None else np.asarray(snapshot_at, dtype=np.intp)
+        return self._run(kind, t, xyz, allowed, cuts, m)
+
+    def _run(self, kind, t, xyz, allowed, cuts, m, cal_state: str = "none") -> EstimateBatch:
+        """:meth:`process` on checked input: contiguous ``kind`` (int8), ``t``, ``xyz`` (float64),
+        ``allowed`` (bool), ``cuts`` (intp, the ``snapshot_at``), ``m`` ≥ the number of gyro samples; the
+        rows' ``cal_state`` is ``cal_state``."""
         out_t = np.empty(m)
         out_q = np.empty((m, 4))
         out_std = np.empty(m)
@@ -387,7 +394,7 @@ class FusionCore:
             heading_std_deg=out_std[:k],
             mag_used=out_mag[:k],
             interference=out_int[:k],
-            cal_state=np.full(k, "none", dtype="<U13"),
+            cal_state=np.full(k, cal_state, dtype="<U13"),
             diag=diag,
         )
 

@@ -193,11 +193,13 @@ class HeadingPipeline:
             self.field: EarthField | None = earth_field_from_meta(self.meta)
         except ValueError as exc:
             raise ValueError(f"meta: {exc}") from exc
-        if fusion is None:
-            from pdr_mag.attitude import FusionCore
+        from pdr_mag.attitude import FusionCore
 
+        if fusion is None:
             fusion = FusionCore(self.settings.fusion or _default_fusion_settings(), self.field)
         self.fusion = fusion
+        # a FusionCore's entry for checked input (the rows get the calibration state too); else process()
+        self._fusion_run = fusion._run if type(fusion) is FusionCore else None
         f = self.field
         self.online = OnlineCalibrator(
             self.settings.online_settings,
@@ -412,7 +414,7 @@ class HeadingPipeline:
         cal = self.online.calibration
         state = self.online.cal_state
         off = self._offset_only(cal)
-        e, lo, hi, mag_lo, mag_hi, data, allowed = PK.span_start(
+        e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro = PK.span_start(
             blk, kind, xyz, self._span, off if off is not None else _NO_OFFSET, cal is not None
         )
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
@@ -423,11 +425,14 @@ class HeadingPipeline:
         # change inside the span puts back before re-running the filter up to the change
         snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
         snap = self.fusion._snapshot() if n_p > 1 else None
-        batch = (
-            self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
-            if len(snap_at)
-            else self.fusion.process(kind, t, data, allowed)
-        )
+        if self._fusion_run is not None:  # FusionCore: the input is checked, the rows get the state
+            batch = self._fusion_run(kind, t, data, allowed, snap_at, n_gyro, state)
+        else:
+            batch = (
+                self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
+                if len(snap_at)
+                else self.fusion.process(kind, t, data, allowed)
+            )
         snaps = self.fusion.snapshots if len(snap_at) else []
         # rows (one per output gyro sample) of each block-piece
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
@@ -494,7 +499,8 @@ class HeadingPipeline:
             if n_rows < len(batch):
                 batch = _head(batch, n_rows)
             # the calibration (hence cal_state) is the span start's in every piece kept
-            batch.cal_state = np.full(n_rows, state, dtype="<U13")
+            if self._fusion_run is None:
+                batch.cal_state = np.full(n_rows, state, dtype="<U13")
             batch.diag["coverage"] = PK.rows_coverage(covs, row_hi, n_pieces)
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
