@@ -640,15 +640,18 @@ class OnlineCalibrator:
         changed = False
         stop_at = len(t)
         cal_of = False  # the calibration the separation and the coverage centre below were taken from
+        dp = np.empty(K.N_DP)
         while i < len(t):
             if self._cal is not cal_of:
                 cal_of = self._cal
                 sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
                 centre = self._centre()
+                self._decide_params(dp)
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
+            dp[K.D_CAND_NONE] = self._stale_cand is None
             code, j, n_ev = K.scan(
                 t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._old0,
-                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
+                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k, dp,
             )  # fmt: skip
             for e in range(n_ev):
                 ie = int(ev_i[e])
@@ -681,6 +684,24 @@ class OnlineCalibrator:
                 bp = self._block_params()
             i = j + 1
         return events, stop_at, cov_g
+
+    def _decide_params(self, dp: np.ndarray) -> None:
+        """Fill ``dp`` of :func:`_online_kernel.scan` for the calibration in use (the caller sets the
+        candidate flag before each call)."""
+        s = self.settings
+        f = self.field_ref
+        dp[:] = 0.0
+        dp[K.D_PERIOD] = s.refit_period_s if self._cal is not None else 0.5 * s.refit_period_s
+        dp[K.D_MIN_SAMPLES] = s.min_samples
+        dp[K.D_MIN_NEW] = s.refit_min_new
+        dp[K.D_NEW_FRAC] = s.refit_new_frac
+        dp[K.D_STALE_DT] = s.stale_check_s
+        dp[K.D_STALE_OK] = f is not None and self.sin_dip_ref is not None
+        dp[K.D_WINDOW] = s.stale_window_s
+        if f is not None:
+            dp[K.D_F] = f
+            dp[K.D_TOL] = s.strength_tol_frac * f * 0.5
+        dp[K.D_MIN_FRAC] = s.stale_min_frac
 
     # ------------------------------------------------------------------ diversity buffer
     def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
