@@ -381,7 +381,7 @@ class FusionCore:
             out_t, out_q, out_std, out_mag, out_int, out_diag, h_y, h_x,
         )  # fmt: skip
         ref = self._ref_strength
-        self.snapshots = [(s, ref) for s in snaps]
+        self.snapshots = [(s, ref) for s in snaps] if len(cuts) else []
         q = out_q[:k]
         heading = np.arctan2(h_y[:k], h_x[:k])
         np.degrees(heading, out=heading)

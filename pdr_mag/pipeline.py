@@ -327,9 +327,10 @@ class HeadingPipeline:
         return self._take_out()
 
     def _poll_horizon(self) -> float:
-        h = self._safe_horizon()
-        newest = max(s.last_t for s in self._streams.values())
-        if np.isfinite(newest):
+        a, g, m = self._stream_list
+        h = min(a.last_t, g.last_t, m.last_t)
+        newest = max(a.last_t, g.last_t, m.last_t)
+        if math.isfinite(newest):
             h = max(h, newest - self.settings.max_lag_s)
         return h
 

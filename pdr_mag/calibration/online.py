@@ -445,6 +445,7 @@ class OnlineCalibrator:
         self._refit_memo: tuple | None = None
         self._bp_memo: tuple | None = None
         self._centre_memo: tuple | None = None
+        self._dp_memo: tuple | None = None
 
     # scalar state kept in the compiled loop's vector
     _rate_ema = _ks_prop(K.K_RATE_EMA, float)
@@ -640,13 +641,12 @@ class OnlineCalibrator:
         changed = False
         stop_at = len(t)
         cal_of = False  # the calibration the separation and the coverage centre below were taken from
-        dp = np.empty(K.N_DP)
         while i < len(t):
             if self._cal is not cal_of:
                 cal_of = self._cal
                 sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
                 centre = self._centre()
-                self._decide_params(dp)
+                dp = self._decide_params()
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
             dp[K.D_CAND_NONE] = self._stale_cand is None
             code, j, n_ev = K.scan(
@@ -685,12 +685,15 @@ class OnlineCalibrator:
             i = j + 1
         return events, stop_at, cov_g
 
-    def _decide_params(self, dp: np.ndarray) -> None:
-        """Fill ``dp`` of :func:`_online_kernel.scan` for the calibration in use (the caller sets the
-        candidate flag before each call)."""
+    def _decide_params(self) -> np.ndarray:
+        """``dp`` of :func:`_online_kernel.scan` for the calibration in use (the same array while it stays
+        the same; the caller sets the candidate flag before each call)."""
+        memo = self._dp_memo
+        if memo is not None and memo[0] is self._cal:
+            return memo[1]
         s = self.settings
         f = self.field_ref
-        dp[:] = 0.0
+        dp = np.zeros(K.N_DP)
         dp[K.D_PERIOD] = s.refit_period_s if self._cal is not None else 0.5 * s.refit_period_s
         dp[K.D_MIN_SAMPLES] = s.min_samples
         dp[K.D_MIN_NEW] = s.refit_min_new
@@ -702,6 +705,8 @@ class OnlineCalibrator:
             dp[K.D_F] = f
             dp[K.D_TOL] = s.strength_tol_frac * f * 0.5
         dp[K.D_MIN_FRAC] = s.stale_min_frac
+        self._dp_memo = (self._cal, dp)
+        return dp
 
     # ------------------------------------------------------------------ diversity buffer
     def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
@@ -1075,6 +1080,7 @@ class OnlineCalibrator:
         self._refit_memo = None
         self._bp_memo = None
         self._centre_memo = None
+        self._dp_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
