@@ -276,7 +276,7 @@ class HeadingPipeline:
 
         Rows with NaN, and times not after the stream's previous sample, are dropped and counted.
         """
-        name = _kind_name(kind)
+        name = kind if type(kind) is str and kind in KINDS else _kind_name(kind)
         t = np.asarray(t, dtype=float).reshape(-1)
         xyz = np.asarray(xyz, dtype=float)
         if xyz.ndim != 2 or xyz.shape != (len(t), 3):
