@@ -813,3 +813,36 @@ def run(kind, t, xyz, allowed, st, p, ip, out_t, out_q, out_std, out_mag, out_in
             out_diag[n_out, D_CONS] = st[S_CONS]
             n_out += 1
     return n_out
+
+
+@njit(cache=True, error_model="numpy")
+def run_cut(kind, t, xyz, allowed, st, p, ip, cuts, snaps, out_t, out_q, out_std, out_mag, out_int, out_diag,
+            h_y, h_x):  # fmt: skip
+    """:func:`run` over the whole chunk with a copy of ``st`` put in ``snaps[j]`` before sample ``cuts[j]``
+    (increasing); then each row's quaternion sign made non-negative in w (``q * ±1``) and the arguments
+    ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of its heading's ``arctan2`` written.  Returns the
+    number of output rows (the result of one :func:`run` call per piece: the same rows, a cut or not)."""
+    n = len(t)
+    k = 0
+    a = 0
+    for j in range(len(cuts) + 1):
+        b = cuts[j] if j < len(cuts) else n
+        if b > a or j == len(cuts):
+            k += run(
+                kind[a:b], t[a:b], xyz[a:b], allowed[a:b], st, p, ip,
+                out_t[k:], out_q[k:], out_std[k:], out_mag[k:], out_int[k:], out_diag[k:],
+            )  # fmt: skip
+        if j < len(cuts):
+            snaps[j, :] = st
+        a = b
+    for i in range(k):
+        s = -1.0 if out_q[i, 0] < 0 else 1.0
+        for c in range(4):
+            out_q[i, c] = out_q[i, c] * s
+        w = out_q[i, 0]
+        x = out_q[i, 1]
+        y = out_q[i, 2]
+        z = out_q[i, 3]
+        h_y[i] = 2.0 * (x * y - w * z)
+        h_x[i] = 1.0 - 2.0 * (x * x + z * z)
+    return k

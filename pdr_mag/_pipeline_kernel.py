@@ -274,3 +274,154 @@ def minus_offset(kind, xyz, off):
             out[i, 1] = xyz[i, 1] - off[1]
             out[i, 2] = xyz[i, 2] - off[2]
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def _first_at_or_after(t, lo, hi, t_end):
+    """``lo + searchsorted(t[lo:hi], t_end, side="left")`` (increasing times)."""
+    a = lo
+    b = hi
+    while a < b:
+        mid = (a + b) // 2
+        if t[mid] < t_end:
+            a = mid + 1
+        else:
+            b = mid
+    return a
+
+
+@njit(cache=True, error_model="numpy")
+def take_merge3(t0, x0, lo0, hi0, t1, x1, lo1, hi1, t2, x2, lo2, hi2, t_end, block_s):
+    """Take each stream's pending rows ``[lo, hi)`` before ``t_end`` and :func:`merge3` them: returns the
+    new ``lo`` of each stream and the merged ``(kind, t, xyz, blk)``."""
+    k0 = _first_at_or_after(t0, lo0, hi0, t_end)
+    k1 = _first_at_or_after(t1, lo1, hi1, t_end)
+    k2 = _first_at_or_after(t2, lo2, hi2, t_end)
+    kind, t, xyz, blk = merge3(
+        t0[lo0:k0], x0[lo0:k0], t1[lo1:k1], x1[lo1:k1], t2[lo2:k2], x2[lo2:k2], block_s
+    )  # fmt: skip
+    return k0, k1, k2, kind, t, xyz, blk
+
+
+@njit(cache=True, error_model="numpy")
+def rows_before(row_t, t, hi):
+    """Output rows with time ≤ ``t[hi[j] − 1]`` for each piece end ``hi[j]`` (``searchsorted(row_t,
+    t[hi − 1], side="right")`` on increasing row times)."""
+    out = np.empty(len(hi), dtype=np.intp)
+    r = 0
+    n = len(row_t)
+    for j in range(len(hi)):
+        tj = t[hi[j] - 1]
+        while r < n and row_t[r] <= tj:
+            r += 1
+        out[j] = r
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def close_rows(pre, ctx, n_ctx):
+    """The rows handed to the calibrator (``pre``, then ``ctx[:n_ctx]``) as contiguous columns ``(ok, t,
+    raw, up, rate)``, non-finite rates set to 0; ``ok`` when every time, field and up value is finite (else
+    the caller hands the rows as they are)."""
+    n_pre = pre.shape[0]
+    n = n_pre + n_ctx
+    tc = np.empty(n)
+    mc = np.empty((n, 3))
+    uc = np.empty((n, 3))
+    rc = np.empty(n)
+    ok = True
+    for r in range(n):
+        src = pre if r < n_pre else ctx
+        i = r if r < n_pre else r - n_pre
+        tc[r] = src[i, 0]
+        ok = ok and np.isfinite(tc[r])
+        for c in range(3):
+            mc[r, c] = src[i, 1 + c]
+            uc[r, c] = src[i, 4 + c]
+            ok = ok and np.isfinite(mc[r, c]) and np.isfinite(uc[r, c])
+        v = src[i, 7]
+        rc[r] = v if np.isfinite(v) else 0.0
+    return ok, tc, mc, uc, rc
+
+
+@njit(cache=True, error_model="numpy")
+def rows_coverage(covs, row_hi, n_pieces):
+    """Each output row's coverage: ``covs[j]`` for the rows of piece ``j`` (``np.repeat`` of the first
+    ``n_pieces`` by their row counts)."""
+    out = np.empty(row_hi[n_pieces - 1])
+    r = 0
+    for j in range(n_pieces):
+        while r < row_hi[j]:
+            out[r] = covs[j]
+            r += 1
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def all_equal(flags, v):
+    """Whether every flag equals ``v``."""
+    for i in range(len(flags)):
+        if flags[i] != v:
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def append_in_order(bt, bx, hi, t, xyz, after, done_t):
+    """A push's common case: when ``t[0] ≥ done_t`` and :func:`in_order`, copy the rows to ``bt[hi:]``,
+    ``bx[hi:]`` if they fit (returns 1) or leave that to the caller (2); 0 when they need checking."""
+    n = len(t)
+    if not (t[0] >= done_t) or not in_order(t, xyz, after):
+        return 0
+    if hi + n > len(bt):
+        return 2
+    for i in range(n):
+        bt[hi + i] = t[i]
+        bx[hi + i, 0] = xyz[i, 0]
+        bx[hi + i, 1] = xyz[i, 1]
+        bx[hi + i, 2] = xyz[i, 2]
+    return 1
+
+
+@njit(cache=True, error_model="numpy")
+def span_start(blk, kind, xyz, span, off, calibrated):
+    """:func:`span_pieces` and the span's samples as the filter takes them: with ``calibrated``, the
+    magnetometer's less ``off`` (:func:`minus_offset`), else NaN; the ``mag_allowed`` flags; the number of
+    gyro samples.  Returns ``(e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro)``."""
+    e, lo, hi, mag_lo, mag_hi = span_pieces(blk, kind, span)
+    data = np.empty((e, 3))
+    allowed = np.empty(e, dtype=np.bool_)
+    n_gyro = 0
+    for i in range(e):
+        allowed[i] = calibrated
+        if kind[i] == 1:
+            n_gyro += 1
+        if kind[i] == 2:
+            if calibrated:
+                data[i, 0] = xyz[i, 0] - off[0]
+                data[i, 1] = xyz[i, 1] - off[1]
+                data[i, 2] = xyz[i, 2] - off[2]
+            else:
+                data[i, 0] = np.nan
+                data[i, 1] = np.nan
+                data[i, 2] = np.nan
+        else:
+            data[i, 0] = xyz[i, 0]
+            data[i, 1] = xyz[i, 1]
+            data[i, 2] = xyz[i, 2]
+    return e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro
+
+
+@njit(cache=True, error_model="numpy")
+def span_context(kind, t, xyz, hi, row_t, row_q, up, up_acc, rate):
+    """:func:`rows_before` and :func:`mag_context` of a span in one call: ``(row_hi, ctx)``."""
+    return rows_before(row_t, t, hi), mag_context(kind, t, xyz, row_t, row_q, up, up_acc, rate)
+
+
+@njit(cache=True, error_model="numpy")
+def close_span(pre, ctx, mag_lo, mag_hi):
+    """:func:`close_layout` and :func:`close_rows` of a span's closed pieces in one call: ``(n_rows, last,
+    has, ends, piece_of_row, ok, t, raw, up, rate)``."""
+    n_rows, last, has, ends, piece_of_row = close_layout(pre.shape[0], mag_lo, mag_hi)
+    ok, tc, mc, uc, rc = close_rows(pre, ctx, mag_hi[len(mag_hi) - 2])
+    return n_rows, last, has, ends, piece_of_row, ok, tc, mc, uc, rc

@@ -75,6 +75,7 @@ from pdr_mag.field import EarthField
 from pdr_mag.interference import DET_FLAG, InterferenceSettings
 
 STATE_VERSION = 3
+_NO_CUTS = np.empty(0, dtype=np.intp)
 
 #: diag columns of the kernel output, in order
 _DIAG_NAMES = (
@@ -356,40 +357,36 @@ class FusionCore:
             if allowed.shape != (n,):
                 raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
         m = int(np.count_nonzero(kind == 1))
+        cuts = _NO_CUTS if snapshot_at is None else np.asarray(snapshot_at, dtype=np.intp)
+        return self._run(kind, t, xyz, allowed, cuts, m)
+
+    def _run(self, kind, t, xyz, allowed, cuts, m, cal_state: str = "none") -> EstimateBatch:
+        """:meth:`process` on checked input: contiguous ``kind`` (int8), ``t``, ``xyz`` (float64),
+        ``allowed`` (bool), ``cuts`` (intp, the ``snapshot_at``), ``m`` ≥ the number of gyro samples; the
+        rows' ``cal_state`` is ``cal_state``."""
         out_t = np.empty(m)
         out_q = np.empty((m, 4))
         out_std = np.empty(m)
         out_mag = np.empty(m, dtype=np.bool_)
         out_int = np.empty(m, dtype=np.bool_)
-        out_diag = np.empty((K.N_DIAG, m)).T  # each diagnostic a contiguous column: no copies below
-        k = 0
-        a = 0
-        self.snapshots = []
-        for b in (*(snapshot_at if snapshot_at is not None else ()), n):
-            if b > a or snapshot_at is None:
-                k += K.run(
-                    kind[a:b],
-                    t[a:b],
-                    xyz[a:b],
-                    allowed[a:b],
-                    self._st,
-                    self._p,
-                    self._ip,
-                    out_t[k:],
-                    out_q[k:],
-                    out_std[k:],
-                    out_mag[k:],
-                    out_int[k:],
-                    out_diag[k:],
-                )
-            if b < n:
-                self.snapshots.append(self._snapshot())
-            a = b
+        diag_rows = np.empty((K.N_DIAG, m))  # each diagnostic a contiguous row: no copies below
+        out_diag = diag_rows.T
+        h_y = np.empty(m)
+        h_x = np.empty(m)
+        snaps = np.empty((len(cuts), K.N_STATE))
+        # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
+        # arguments in one compiled call
+        k = K.run_cut(
+            kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps,
+            out_t, out_q, out_std, out_mag, out_int, out_diag, h_y, h_x,
+        )  # fmt: skip
+        ref = self._ref_strength
+        self.snapshots = [(s, ref) for s in snaps] if len(cuts) else []
         q = out_q[:k]
-        q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
-        w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        heading = np.mod(np.degrees(np.arctan2(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z))), 360.0)
-        diag = {name: out_diag[:k, i] for i, name in enumerate(_DIAG_NAMES)}
+        heading = np.arctan2(h_y[:k], h_x[:k])
+        np.degrees(heading, out=heading)
+        np.mod(heading, 360.0, out=heading)
+        diag = dict(zip(_DIAG_NAMES, diag_rows[:, :k], strict=True))
         return EstimateBatch(
             t=out_t[:k],
             q_wd=q,
@@ -397,7 +394,7 @@ class FusionCore:
             heading_std_deg=out_std[:k],
             mag_used=out_mag[:k],
             interference=out_int[:k],
-            cal_state=np.full(k, "none", dtype="<U13"),
+            cal_state=np.full(k, cal_state, dtype="<U13"),
             diag=diag,
         )
 

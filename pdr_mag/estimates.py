@@ -119,7 +119,8 @@ class EstimateBatch:
             return cls.empty()
         keys = set().union(*(b.diag.keys() for b in batches))
         diag = {
-            k: np.concatenate([b.diag.get(k, np.full(len(b), np.nan)) for b in batches]) for k in sorted(keys)
+            k: np.concatenate([b.diag[k] if k in b.diag else np.full(len(b), np.nan) for b in batches])
+            for k in sorted(keys)
         }
         return cls(
             t=np.concatenate([b.t for b in batches]),

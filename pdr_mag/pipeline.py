@@ -39,6 +39,7 @@ NaN row, a repeated or backward timestamp is dropped and counted in :attr:`Headi
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -64,6 +65,7 @@ _SPAN_MIN = 8
 _SPAN_MAX = 32
 #: Blocks between the filter snapshots taken inside a span (a change re-runs the filter from the latest one).
 _SNAP_EVERY = 4
+_NO_OFFSET = np.zeros(3)
 
 
 def _default_fusion_settings():
@@ -114,8 +116,8 @@ class PipelineSettings:
 
 class _Stream:
     """Pending samples of one input stream: rows ``[lo, hi)`` of one buffer that grows (doubling) when a
-    push does not fit after moving the pending rows to its start — so a push is one copy, and taking the
-    samples before a time is a slice (valid until the next append)."""
+    push does not fit after moving the pending rows to its start — so a push is one copy, and the samples
+    before a time are taken (and merged with the other streams') by :func:`_pipeline_kernel.take_merge3`."""
 
     __slots__ = ("t", "xyz", "lo", "hi", "last_t")
 
@@ -146,12 +148,6 @@ class _Stream:
         self.xyz[self.hi : self.hi + k] = xyz
         self.hi += k
         self.last_t = float(t[-1])
-
-    def take_before(self, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-        lo = self.lo
-        k = lo + int(np.searchsorted(self.t[lo : self.hi], t_end, side="left"))
-        self.lo = k
-        return self.t[lo:k], self.xyz[lo:k]
 
     def pending(self) -> tuple[np.ndarray, np.ndarray]:
         return self.t[self.lo : self.hi].copy(), self.xyz[self.lo : self.hi].copy()
@@ -197,11 +193,13 @@ class HeadingPipeline:
             self.field: EarthField | None = earth_field_from_meta(self.meta)
         except ValueError as exc:
             raise ValueError(f"meta: {exc}") from exc
-        if fusion is None:
-            from pdr_mag.attitude import FusionCore
+        from pdr_mag.attitude import FusionCore
 
+        if fusion is None:
             fusion = FusionCore(self.settings.fusion or _default_fusion_settings(), self.field)
         self.fusion = fusion
+        # a FusionCore's entry for checked input (the rows get the calibration state too); else process()
+        self._fusion_run = fusion._run if type(fusion) is FusionCore else None
         f = self.field
         self.online = OnlineCalibrator(
             self.settings.online_settings,
@@ -210,6 +208,7 @@ class HeadingPipeline:
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
         )
         self._streams = {k: _Stream() for k in KINDS}
+        self._stream_list = tuple(self._streams.values())  # in kind order
         self._done_t = -np.inf  # everything before this time has been processed
         self._cur_blk: float | None = None  # index of the block the last fused piece belonged to
         self._span = (
@@ -277,7 +276,7 @@ class HeadingPipeline:
 
         Rows with NaN, and times not after the stream's previous sample, are dropped and counted.
         """
-        name = _kind_name(kind)
+        name = kind if type(kind) is str and kind in KINDS else _kind_name(kind)
         t = np.asarray(t, dtype=float).reshape(-1)
         xyz = np.asarray(xyz, dtype=float)
         if xyz.ndim != 2 or xyz.shape != (len(t), 3):
@@ -285,10 +284,16 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
-        if t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t):
-            # the common case: finite, strictly increasing, after everything pushed and processed
-            s.append(t, xyz)
-            if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+        # the common case: finite, strictly increasing, after everything pushed and processed (copied in
+        # place when the buffer has room)
+        code = PK.append_in_order(s.t, s.xyz, s.hi, t, xyz, s.last_t, self._done_t)
+        if code:
+            if code == 1:
+                s.hi += len(t)
+                s.last_t = float(t[-1])
+            else:
+                s.append(t, xyz)
+            if self._n_pending() > self.settings.max_pending:
                 self._process(self._safe_horizon())
             return
         good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
@@ -308,8 +313,12 @@ class HeadingPipeline:
             t, xyz = t[keep], xyz[keep]
         if len(t):
             s.append(t, xyz)
-        if sum(v.n for v in self._streams.values()) > self.settings.max_pending:
+        if self._n_pending() > self.settings.max_pending:
             self._process(self._safe_horizon())
+
+    def _n_pending(self) -> int:
+        a, g, m = self._stream_list
+        return a.hi - a.lo + g.hi - g.lo + m.hi - m.lo
 
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
@@ -318,9 +327,10 @@ class HeadingPipeline:
         return self._take_out()
 
     def _poll_horizon(self) -> float:
-        h = self._safe_horizon()
-        newest = max(s.last_t for s in self._streams.values())
-        if np.isfinite(newest):
+        a, g, m = self._stream_list
+        h = min(a.last_t, g.last_t, m.last_t)
+        newest = max(a.last_t, g.last_t, m.last_t)
+        if math.isfinite(newest):
             h = max(h, newest - self.settings.max_lag_s)
         return h
 
@@ -380,12 +390,14 @@ class HeadingPipeline:
             if not np.isfinite(horizon) or horizon <= self._done_t:
                 return
             t_end = horizon
-        (ta, xa), (tg, xg), (tm, xm) = (s.take_before(t_end) for s in self._streams.values())
+        # each stream's samples before t_end, merged in time order, ties in kind order: accel < gyro < mag
+        sa, sg, sm = self._stream_list
+        sa.lo, sg.lo, sm.lo, kind, t, xyz, blk = PK.take_merge3(
+            sa.t, sa.xyz, sa.lo, sa.hi, sg.t, sg.xyz, sg.lo, sg.hi, sm.t, sm.xyz, sm.lo, sm.hi, t_end, b
+        )
         if not final:
             self._done_t = t_end
-        if len(ta) + len(tg) + len(tm):
-            # time-ordered merge, ties in kind order: accel < gyro < mag
-            kind, t, xyz, blk = PK.merge3(ta, xa, tg, xg, tm, xm, b)
+        if len(t):
             if final:
                 self._done_t = max(self._done_t, float(t[-1]))
             i, n = 0, len(t)
@@ -400,43 +412,55 @@ class HeadingPipeline:
     def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
         """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
         inside it; returns the number of samples fused for good."""
-        e, lo, hi, mag_lo, mag_hi = PK.span_pieces(blk, kind, self._span)
+        cal = self.online.calibration
+        state = self.online.cal_state
+        off = self._offset_only(cal)
+        e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro = PK.span_start(
+            blk, kind, xyz, self._span, off if off is not None else _NO_OFFSET, cal is not None
+        )
         kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
+        if cal is not None and off is None:
+            data = self._calibrated(cal, kind, xyz)
         n_p = len(lo)
         # filter snapshots at the span's start and (long spans) every _SNAP_EVERY pieces: what a calibration
         # change inside the span puts back before re-running the filter up to the change
         snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
         snap = self.fusion._snapshot() if n_p > 1 else None
-        cal = self.online.calibration
-        state = self.online.cal_state
-        data = self._calibrated(cal, kind, xyz)
-        allowed = np.full(e, cal is not None)
-        batch = (
-            self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
-            if len(snap_at)
-            else self.fusion.process(kind, t, data, allowed)
-        )
+        if self._fusion_run is not None:  # FusionCore: the input is checked, the rows get the state
+            batch = self._fusion_run(kind, t, data, allowed, snap_at, n_gyro, state)
+        else:
+            batch = (
+                self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
+                if len(snap_at)
+                else self.fusion.process(kind, t, data, allowed)
+            )
         snaps = self.fusion.snapshots if len(snap_at) else []
         # rows (one per output gyro sample) of each block-piece
-        row_hi = np.searchsorted(batch.t, t[hi - 1], side="right") if len(batch) else np.zeros(n_p, int)
         piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
         covs = np.full(n_p, self._coverage)
         n_pieces = n_p
-        ctx = (
-            PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._up, self._up_acc, self._rate)
-            if self.settings.online
-            else None
-        )
+        if self.settings.online:
+            row_hi, ctx = PK.span_context(
+                kind, t, xyz, hi, batch.t, batch.q_wd, self._up, self._up_acc, self._rate
+            )
+        else:
+            row_hi, ctx = PK.rows_before(batch.t, t, hi), None
         if ctx is not None and n_p > 1:
             # close every block but the last: the open block's earlier samples, then the span's
             pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
             self._pend = []
-            n_rows_c, last, has, ends, piece_of_row = PK.close_layout(len(pre), mag_lo, mag_hi)
-            rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
-            before = self.online.calibration
-            events, n_done, cov = self.online.update_blocks(
-                rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
+            n_rows_c, last, has, ends, piece_of_row, ok, r_t, r_mag, r_up, r_rate = PK.close_span(
+                pre, ctx, mag_lo, mag_hi
             )
+            before = self.online.calibration
+            if ok:  # the common case: contiguous and finite, as update_blocks would make them
+                events, n_done, cov = self.online._update_rows(r_t, r_mag, r_up, r_rate, ends)
+            else:
+                rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
+                r_t = rows[:, 0]
+                events, n_done, cov = self.online.update_blocks(
+                    rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
+                )
             if n_rows_c:
                 for r, (te, k, d) in events:
                     piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
@@ -447,7 +471,7 @@ class HeadingPipeline:
                     n_pieces = q + 1
                     self._coverage = float(covs[q + 1])
                     if self.online.calibration is not None:
-                        self._calibrations.append((float(rows[n_done - 1, 0]), self.online.calibration))
+                        self._calibrations.append((float(r_t[n_done - 1]), self.online.calibration))
                 else:
                     self._coverage = float(covs[-1])
             self._cur_blk = float(blk[lo[n_pieces]] if n_pieces < n_p else blk[lo[-1]])
@@ -476,13 +500,9 @@ class HeadingPipeline:
             if n_rows < len(batch):
                 batch = _head(batch, n_rows)
             # the calibration (hence cal_state) is the span start's in every piece kept
-            batch.cal_state = np.full(n_rows, state, dtype="<U13")
-            if n_pieces == 1:
-                batch.diag["coverage"] = np.full(n_rows, covs[0])
-            else:
-                per_piece = row_hi[:n_pieces].copy()  # rows in each piece
-                per_piece[1:] -= row_hi[: n_pieces - 1]
-                batch.diag["coverage"] = np.repeat(covs[:n_pieces], per_piece)
+            if self._fusion_run is None:
+                batch.cal_state = np.full(n_rows, state, dtype="<U13")
+            batch.diag["coverage"] = PK.rows_coverage(covs, row_hi, n_pieces)
             for r, ev in self._interference_events(batch):
                 piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
             self._n_out += n_rows
@@ -490,7 +510,7 @@ class HeadingPipeline:
         if piece_ev:
             piece_ev.sort(key=lambda x: (x[0], x[1]))
             self._events += [ev for _, _, ev in piece_ev]
-        if not np.isfinite(self._t_first):
+        if not math.isfinite(self._t_first):
             self._t_first = float(t[0])
         self._t_last = float(t[end - 1])
         if self.settings.keep_mag_calibrated and cal is not None:
@@ -519,13 +539,7 @@ class HeadingPipeline:
             data = xyz.copy()
             data[kind == 2] = np.nan
             return data
-        if self._cal_mats[0] is not cal:
-            a = cal.soft_iron_array
-            if cal.mag_to_imu is not None:
-                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
-            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
-            self._cal_mats = (cal, cal.offset_array, a.T, eye)
-        _, off, a_t, eye = self._cal_mats
+        _, off, a_t, eye = self._cal_matrices(cal)
         if eye:
             return PK.minus_offset(kind, xyz, off)
         data = xyz.copy()
@@ -533,11 +547,28 @@ class HeadingPipeline:
         data[is_mag] = (xyz[is_mag] - off) @ a_t
         return data
 
+    def _cal_matrices(self, cal: MagCalibration) -> tuple:
+        """``(cal, offset, matrix transposed, whether it is the identity)``, kept while ``cal`` stays."""
+        if self._cal_mats[0] is not cal:
+            a = cal.soft_iron_array
+            if cal.mag_to_imu is not None:
+                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
+            self._cal_mats = (cal, cal.offset_array, a.T, eye)
+        return self._cal_mats
+
+    def _offset_only(self, cal: MagCalibration | None) -> np.ndarray | None:
+        """The offset of an offset-only calibration (None without one or with a matrix)."""
+        if cal is None:
+            return None
+        _, off, _, eye = self._cal_matrices(cal)
+        return off if eye else None
+
     def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
         """Flag changes in these rows, as (row, event)."""
         out = []
         flags = np.asarray(batch.interference, dtype=bool)
-        if flags.any() == self._interf and flags.all() == self._interf:
+        if PK.all_equal(flags, self._interf):
             return out  # no change (the common case)
         prev = np.empty_like(flags)
         prev[0] = self._interf

@@ -63,6 +63,20 @@ C_COS_COV = 4
 N_CP = 5
 
 # ---- return codes of scan
+# ---- dp: what scan needs to take a due refit / stale test that would change nothing without returning
+D_PERIOD = 0  # the refit period now (OnlineSettings.refit_period_s, halved while uncalibrated)
+D_MIN_SAMPLES = 1
+D_MIN_NEW = 2  # refit_min_new
+D_NEW_FRAC = 3  # refit_new_frac
+D_STALE_DT = 4  # stale_check_s
+D_STALE_OK = 5  # 1: a field reference and its dip are known (else the stale test returns at once)
+D_CAND_NONE = 6  # 1: no stale candidate pending (a "no deviation" verdict then changes nothing)
+D_WINDOW = 7  # stale_window_s
+D_F = 8  # the reference strength
+D_TOL = 9  # the stale test's strength tolerance
+D_MIN_FRAC = 10  # stale_min_frac
+N_DP = 11
+
 DONE = 0
 DECIDE = 1  # a refit or a stale test is due at the returned index (after the sample was taken in)
 BLOCK_END = 2  # stopped at a block end (the caller asked for it)
@@ -264,6 +278,7 @@ def scan(
     stop_at_block_end,
     ev_i,
     ev_k,
+    dp,
 ):
     """Take samples ``i, i+1, …`` in; return ``(code, index, n_events)``.
 
@@ -271,7 +286,9 @@ def scan(
     coverage about ``centre`` (``centre[0]`` = 1: ``centre[1:4]``, else the buffer mean), recomputed only
     when the buffer changed (``K_COV_VERSION``).  ``DECIDE``: a refit or stale test is due at ``index``
     (the sample itself has been taken in).  ``BLOCK_END``: ``stop_at_block_end`` and ``index`` closed a
-    block.  ``DONE``: every sample taken in.  Episode events go to ``ev_i`` / ``ev_k``.
+    block.  ``DONE``: every sample taken in.  Episode events go to ``ev_i`` / ``ev_k``.  A due refit that
+    too few new samples would skip and a due stale test whose first part ends it without a change are
+    taken here (:func:`_quiet_decide`, ``dp``), not returned.
     """
     n = len(t)
     refresh_s = cp[C_REFRESH_S]
@@ -330,11 +347,43 @@ def scan(
             ks[K_IN_BLOCK] = 0.0
             cov_out[i] = cached_coverage(buf, ks, centre, dirs, cp[C_COS_COV])
         if ti >= ks[K_NEXT_REFIT_T] or (ks[K_STALE_ON] != 0.0 and ti >= ks[K_NEXT_STALE_T]):
-            return DECIDE, i, n_ev
+            # (while the calibration changed in this block, bp is the block start's: the caller decides)
+            if stop_at_block_end or not _quiet_decide(ti, ks, bp, rec, dp):
+                return DECIDE, i, n_ev
         if blk_end[i] and stop_at_block_end:
             return BLOCK_END, i, n_ev
         i += 1
     return DONE, i, n_ev
+
+
+@njit(cache=True, error_model="numpy")
+def _quiet_decide(ti, ks, bp, rec, dp):
+    """What ``OnlineCalibrator``'s refit and stale test would do at ``ti`` when neither can change anything:
+    the refit skipped (fewer than ``min_samples``, or too few new samples while calibrated), the stale test
+    ended by its first part (:func:`stale_precheck`: too few samples, or no deviation with no candidate
+    pending).  Then their times (and the refit's back-off reset) are advanced as they would be and True is
+    returned; else nothing is touched and False returned (the caller runs them)."""
+    due_refit = ti >= ks[K_NEXT_REFIT_T]
+    due_stale = ks[K_STALE_ON] != 0.0 and ti >= ks[K_NEXT_STALE_T]
+    scale = ks[K_FIT_SCALE]
+    if due_refit:
+        n = int(ks[K_NBUF])
+        if n >= dp[D_MIN_SAMPLES]:
+            if ks[K_FIT_NEW] == np.inf or n > ks[K_FIT_N]:
+                scale = 1.0
+            need = min(max(dp[D_MIN_NEW], dp[D_NEW_FRAC] * n) * scale, n)
+            if not (ks[K_STALE_ON] != 0.0 and ks[K_FIT_NEW] < need):
+                return False  # a refit
+    if due_stale and dp[D_STALE_OK] != 0.0:
+        pre = stale_precheck(rec, ti, dp[D_WINDOW], bp, dp[D_F], dp[D_TOL], dp[D_MIN_FRAC])
+        if pre == STALE_TEST or (pre == STALE_CLEAR and dp[D_CAND_NONE] == 0.0):
+            return False
+    if due_refit:
+        ks[K_NEXT_REFIT_T] = ti + dp[D_PERIOD]
+        ks[K_FIT_SCALE] = scale
+    if due_stale:
+        ks[K_NEXT_STALE_T] = ti + dp[D_STALE_DT]
+    return True
 
 
 # ---- return codes of gravity_fit

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 FORMAT_VERSION = 1
+_EYE = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -74,10 +75,13 @@ class MagCalibration:
         b = np.asarray(offset, dtype=float)
         if b.shape != (3,) or not np.all(np.isfinite(b)):
             raise ValueError(f"offset: expected 3 finite values in µT, got {offset!r}")
-        a = np.eye(3) if soft_iron is None else np.asarray(soft_iron, dtype=float)
-        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
-            raise ValueError(f"soft_iron: expected a finite 3×3 matrix, got shape {a.shape}")
-        a = 0.5 * (a + a.T)
+        if soft_iron is None:
+            soft = _EYE  # 0.5 (I + Iᵀ) = I
+        else:
+            a = np.asarray(soft_iron, dtype=float)
+            if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+                raise ValueError(f"soft_iron: expected a finite 3×3 matrix, got shape {a.shape}")
+            soft = _tuplify(0.5 * (a + a.T))
         for key in ("offset_std_uT",):
             if key in kwargs and kwargs[key] is not None:
                 kwargs[key] = tuple(np.asarray(kwargs[key], dtype=float).ravel().tolist())
@@ -87,7 +91,7 @@ class MagCalibration:
             kwargs["mag_to_imu"] = _tuplify(np.asarray(kwargs["mag_to_imu"], dtype=float))
         if "reasons" in kwargs:
             kwargs["reasons"] = tuple(kwargs["reasons"])
-        return cls(offset=tuple(b.tolist()), soft_iron=_tuplify(a), **kwargs)
+        return cls(offset=tuple(b.tolist()), soft_iron=soft, **kwargs)
 
     def with_acceptance(self, accepted: bool, reasons) -> MagCalibration:
         """A copy with the acceptance verdict replaced."""

@@ -59,7 +59,9 @@ the refit and stale-test instants (every ``refit_period_s`` / ``stale_check_s``)
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -67,7 +69,7 @@ from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.coverage import coverage as core_coverage
-from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.model import _EYE, MagCalibration
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
 
@@ -242,7 +244,7 @@ def gravity_aided_offset(
         field_uT=f,
         method="gravity",
         residual_rms_uT=float(rms),
-        offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+        offset_std_uT=np.sqrt(np.maximum(np.diag(cov_b), 0)),
         n_samples=n,
         covariance=cov_b,
         extra={
@@ -270,12 +272,11 @@ def _gravity_numbers(
     free = strength is None or sin_dip is None
     f_guess = float(strength) if strength is not None else 50.0
     s_ref = 0.0 if free else float(strength) * float(sin_dip)
-    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
     prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
-    sig_f = sig_s = 1.0
-    if prior:
-        sig_f = float(prior_strength_std_uT)
-        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    sig2, sig_f, sig_s = _gravity_scales(
+        f_guess, float(sigma_tilt_deg), prior, float(prior_strength_std_uT), float(sin_dip or 0.0),
+        float(prior_dip_std_deg),
+    )  # fmt: skip
     try:
         code, b, f, s, cov, est, rms, dip_rms = K.gravity_fit(
             np.ascontiguousarray(m, dtype=float), np.ascontiguousarray(u, dtype=float), f_guess,
@@ -285,6 +286,17 @@ def _gravity_numbers(
     except np.linalg.LinAlgError as exc:
         raise ValueError("mag, up: singular normal equations") from exc
     return code, b, float(f), float(s), cov[:3, :3].copy(), bool(est), float(rms), float(dip_rms)
+
+
+@lru_cache(maxsize=64)
+def _gravity_scales(f_guess, sigma_tilt_deg, prior, prior_strength_std_uT, sin_dip, prior_dip_std_deg):
+    """``(σ_dip, σ_F, σ_{F sin I})`` of :func:`_gravity_numbers` (memoised: the same settings each fit)."""
+    sig2 = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
+    sig_f = sig_s = 1.0
+    if prior:
+        sig_f = float(prior_strength_std_uT)
+        sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    return sig2, sig_f, sig_s
 
 
 # ---------------------------------------------------------------------------------------------- coverage
@@ -318,7 +330,11 @@ def direction_coverage(mag_cal: np.ndarray) -> float:
 
 
 def judge(
-    cal: MagCalibration, settings: OnlineSettings, field_ref: float | None, first: bool = False
+    cal: MagCalibration,
+    settings: OnlineSettings,
+    field_ref: float | None,
+    first: bool = False,
+    coverage: float | None = None,
 ) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
@@ -326,19 +342,20 @@ def judge(
     the reference, residual, offset σ and range, soft-iron spread, conditioning — the coverage rules apply
     where the fit recorded its coverage) are applied to every refit but the gravity-aided one, whose
     geometry they do not describe; the online rules below are applied in any case: offset σ, residual RMS
-    relative to F, offset magnitude, radius against the reference strength.
+    relative to F, offset magnitude, radius against the reference strength.  ``coverage`` given: the copy
+    also gets it (for the gravity-aided refit, whose rules do not read it).
     """
     reasons: list[str] = []
     if cal.method != "gravity":
         reasons += list(core_accept(cal, field=field_ref).reasons)
-    std = np.asarray(cal.offset_std_uT, dtype=float)
     f = cal.field_uT
     bound = (
         settings.max_offset_std_uT
         if not first
         else max(settings.first_offset_std_uT, settings.max_offset_std_uT)
     )
-    if not np.all(np.isfinite(std)) or np.max(std) > bound:
+    if not all(map(math.isfinite, cal.offset_std_uT)) or max(cal.offset_std_uT) > bound:
+        std = np.asarray(cal.offset_std_uT, dtype=float)
         reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
     if not np.isfinite(f) or f <= 0:
         reasons.append("no finite field radius")
@@ -348,6 +365,8 @@ def judge(
         reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
     if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > 0.25:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
+    if coverage is not None:
+        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
 
 
@@ -425,6 +444,8 @@ class OnlineCalibrator:
         self._last_reject_t = -np.inf
         self._refit_memo: tuple | None = None
         self._bp_memo: tuple | None = None
+        self._centre_memo: tuple | None = None
+        self._dp_memo: tuple | None = None
 
     # scalar state kept in the compiled loop's vector
     _rate_ema = _ks_prop(K.K_RATE_EMA, float)
@@ -486,10 +507,16 @@ class OnlineCalibrator:
         return float(K.cached_coverage(self._buf, self._ks, self._centre(), _DIRS, _COS30))
 
     def _centre(self) -> np.ndarray:
+        """``(flag, offset)`` of the calibration in use for the coverage (the same array while it stays the
+        same — read-only)."""
+        memo = self._centre_memo
+        if memo is not None and memo[0] is self._cal:
+            return memo[1]
         c = np.zeros(4)
         if self._cal is not None:
             c[0] = 1.0
             c[1:4] = self._cal.offset_array
+        self._centre_memo = (self._cal, c)
         return c
 
     def _block_params(self) -> np.ndarray:
@@ -583,6 +610,28 @@ class OnlineCalibrator:
             t = np.ascontiguousarray(t)
             mag = np.ascontiguousarray(mag)
             up = np.ascontiguousarray(up)
+        events, stop_at, cov_g = self._update_rows(t, mag, up, rate, block_end, stop_on_change)
+        if rows is None:
+            cov = cov_g
+            n_done = stop_at if stop_at < len(t) else n_all
+        else:
+            cov[rows] = cov_g
+            events = [(int(rows[r]), e) for r, e in events]
+            n_done = int(rows[stop_at - 1]) + 1 if stop_at < len(t) else n_all
+        return events, n_done, cov
+
+    def _update_rows(
+        self,
+        t: np.ndarray,
+        mag: np.ndarray,
+        up: np.ndarray,
+        rate: np.ndarray,
+        block_end: np.ndarray,
+        stop_on_change: bool = True,
+    ) -> tuple[list, int, np.ndarray]:
+        """:meth:`update_blocks` on rows already contiguous and finite (non-finite rates set to 0): returns
+        ``(events, n, coverage)`` as it does, ``n`` the rows taken in."""
+        events: list = []
         cov_g = np.full(len(t), np.nan)
         ev_i = np.zeros(len(t) * 2 + 2, dtype=np.int64)
         ev_k = np.zeros(len(t) * 2 + 2, dtype=np.int64)
@@ -597,10 +646,12 @@ class OnlineCalibrator:
                 cal_of = self._cal
                 sep2 = (s.min_sep_frac * (self.field_ref or 50.0)) ** 2
                 centre = self._centre()
+                dp = self._decide_params()
             self._ks[K.K_STALE_ON] = self._cal is not None and self.cal_state != "recalibrating"
+            dp[K.D_CAND_NONE] = self._stale_cand is None
             code, j, n_ev = K.scan(
                 t, mag, up, rate, block_end, i, self._ks, bp, self._cp, self._buf, self._buf0, self._old0,
-                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k,
+                self._rec, sep2, centre, _DIRS, cov_g, changed, ev_i, ev_k, dp,
             )  # fmt: skip
             for e in range(n_ev):
                 ie = int(ev_i[e])
@@ -632,14 +683,30 @@ class OnlineCalibrator:
                 changed = False
                 bp = self._block_params()
             i = j + 1
-        if rows is None:
-            cov = cov_g
-            n_done = stop_at if stop_at < len(t) else n_all
-        else:
-            cov[rows] = cov_g
-            events = [(int(rows[r]), e) for r, e in events]
-            n_done = int(rows[stop_at - 1]) + 1 if stop_at < len(t) else n_all
-        return events, n_done, cov
+        return events, stop_at, cov_g
+
+    def _decide_params(self) -> np.ndarray:
+        """``dp`` of :func:`_online_kernel.scan` for the calibration in use (the same array while it stays
+        the same; the caller sets the candidate flag before each call)."""
+        memo = self._dp_memo
+        if memo is not None and memo[0] is self._cal:
+            return memo[1]
+        s = self.settings
+        f = self.field_ref
+        dp = np.zeros(K.N_DP)
+        dp[K.D_PERIOD] = s.refit_period_s if self._cal is not None else 0.5 * s.refit_period_s
+        dp[K.D_MIN_SAMPLES] = s.min_samples
+        dp[K.D_MIN_NEW] = s.refit_min_new
+        dp[K.D_NEW_FRAC] = s.refit_new_frac
+        dp[K.D_STALE_DT] = s.stale_check_s
+        dp[K.D_STALE_OK] = f is not None and self.sin_dip_ref is not None
+        dp[K.D_WINDOW] = s.stale_window_s
+        if f is not None:
+            dp[K.D_F] = f
+            dp[K.D_TOL] = s.strength_tol_frac * f * 0.5
+        dp[K.D_MIN_FRAC] = s.stale_min_frac
+        self._dp_memo = (self._cal, dp)
+        return dp
 
     # ------------------------------------------------------------------ diversity buffer
     def _add(self, t: float, m: np.ndarray, u: np.ndarray) -> None:
@@ -690,7 +757,7 @@ class OnlineCalibrator:
             return
         # prefer the richest model that passed: ellipsoid/ml > sphere > gravity
         rank = {"gravity": 0, "sphere": 1}
-        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(np.max(c.offset_std_uT))))
+        best = max(good, key=lambda c: (rank.get(c.method, 2), -float(max(c.offset_std_uT))))  # finite σ
         self._accept(t, copy.copy(best), events)
 
     def _candidates(self, n: int) -> list[MagCalibration]:
@@ -728,8 +795,10 @@ class OnlineCalibrator:
             except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
                 pass
         first = self.calibration is None
+        # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
         return [
-            judge(replace(c, coverage=cov) if c.method == "gravity" else c, s, f_ref, first) for c in cands
+            judge(c, s, f_ref, first, coverage=cov) if c.method == "gravity" else judge(c, s, f_ref, first)
+            for c in cands
         ]
 
     def _gravity_fit(self, m: np.ndarray, u: np.ndarray, f_ref: float | None) -> MagCalibration:
@@ -769,7 +838,7 @@ class OnlineCalibrator:
             field_uT=g.field_uT,
             method="gravity",
             residual_rms_uT=g.residual_rms_uT,
-            offset_std_uT=np.sqrt(np.clip(np.diag(cov_b), 0, None)),
+            offset_std_uT=np.sqrt(np.maximum(np.diag(cov_b), 0)),
             n_samples=g.n_samples,
             covariance=cov_b,
             mag_to_imu=cur.mag_to_imu,
@@ -808,8 +877,8 @@ class OnlineCalibrator:
             if self.provided and cal.method in ("gravity", "sphere"):
                 return
             shift = np.linalg.norm(cal.offset_array - old.offset_array)
-            std_new = float(np.max(cal.offset_std_uT))
-            std_old = float(np.max(old.offset_std_uT)) if np.all(np.isfinite(old.offset_std_uT)) else np.inf
+            std_new = float(max(cal.offset_std_uT))  # finite: an accepted refit
+            std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
             upgrade = _state_of(cal) == "ellipsoid" and _state_of(old) != "ellipsoid"
             rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
             if not upgrade and cal.residual_rms_uT > 1.5 * rms_old + 0.3:
@@ -862,7 +931,7 @@ class OnlineCalibrator:
                 return
             if code != K.FIT_OK:
                 return
-            fits.append((off, np.sqrt(np.clip(np.diag(cov_b), 0, None)), rms))
+            fits.append((off, np.sqrt(np.maximum(np.diag(cov_b), 0)), rms))
             if lo == 0 and hi == len(r) and self._stale_cand is None:
                 # speed only: with no candidate pending, a whole-window fit that fails the tests below
                 # ends the check as the halves would (a failed half returns, leaving the candidate None)
@@ -1010,9 +1079,13 @@ class OnlineCalibrator:
         self._ks[K.K_VERSION] += 1.0
         self._refit_memo = None
         self._bp_memo = None
+        self._centre_memo = None
+        self._dp_memo = None
 
 
 def _state_of(cal: MagCalibration) -> str:
+    if cal.soft_iron is _EYE:
+        return "offset"  # the identity of from_arrays(soft_iron=None)
     return "offset" if _is_identity(cal.soft_iron, 1e-9) else "ellipsoid"
 
 
