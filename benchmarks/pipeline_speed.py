@@ -7,7 +7,11 @@ same recording, best of ``--repeats`` (interleaved), the numba kernels loaded be
     ``HeadingPipeline(meta=rec.meta).run(streams)`` — mode (b), no calibration given: merge, blocks,
     fusion, online calibration (diversity buffer, refits, stale test), events; every estimate returned.
 ``pipeline_sliced``
-    the same pushed in 2-s slices of stream time with a poll after each (as ``replay`` does).
+    the same pushed in 2-s slices of stream time with a poll after each (as a phone app might deliver).
+``replay``
+    ``replay.run.replay(rec)`` — what ``pdr-mag replay REC`` runs once the recording is read: the merge of
+    the recording's streams into slices of :data:`replay.run.SLICE_S` (10 s), the pipeline polled after
+    each, events and the run summary; no sink.
 ``imufusion``
     ``imufusion.Ahrs`` exactly as ``benchmarks/heading.py`` runs it: the accelerometer interpolated and
     the latest magnetometer sample (calibrated with the day's calibration) on the gyroscope's grid, one
@@ -89,9 +93,12 @@ def recording(trial: str, repeats: int) -> dict:
     def imu():
         hb.run_imufusion(*hb.on_gyro_grid(rec, mag_cal))
 
+    from replay.run import replay
+
     runs = {
         "pipeline": lambda: _pipeline(rec, streams),
         "pipeline_sliced": lambda: _pipeline_sliced(rec, streams),
+        "replay": lambda: replay(rec, progress=False),
     }
     runs["imufusion"] = imu
     for f in runs.values():  # load the kernels (numba cache) and warm up
@@ -108,6 +115,7 @@ def recording(trial: str, repeats: int) -> dict:
         out[f"{name}_per_s"] = n / b
     out["ratio"] = best["imufusion"] / best["pipeline"]
     out["ratio_sliced"] = best["imufusion"] / best["pipeline_sliced"]
+    out["ratio_replay"] = best["imufusion"] / best["replay"]
     return out
 
 
@@ -190,7 +198,7 @@ def main(argv=None) -> int:
             f"{trial:34s} {r['samples']:7d} samples  pipeline {r['pipeline_s'] * 1e3:6.1f} ms "
             f"({r['pipeline_per_s'] / 1e6:.2f} M/s; 2-s slices {r['pipeline_sliced_s'] * 1e3:6.1f} ms)  "
             f"imufusion {r['imufusion_s'] * 1e3:6.1f} ms ({r['imufusion_per_s'] / 1e6:.2f} M/s)  "
-            f"ratio {r['ratio']:.2f} (sliced {r['ratio_sliced']:.2f})",
+            f"ratio {r['ratio']:.2f} (sliced {r['ratio_sliced']:.2f}, replay {r['ratio_replay']:.2f})",
             file=sys.stderr,
         )
     if args.hour:

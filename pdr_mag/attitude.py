@@ -65,7 +65,7 @@ any chunks gives identical results (everything lives in one float vector).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -230,9 +230,10 @@ class FusionSettings:
     interference: InterferenceSettings = field(default_factory=InterferenceSettings)
 
     def __post_init__(self):
-        for name, v in asdict(self).items():
-            if name == "interference":
+        for f in fields(self):  # not asdict(): it deep-copies the nested settings at every construction
+            if f.name == "interference":
                 continue
+            name, v = f.name, getattr(self, f.name)
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
         for name in (

@@ -7,7 +7,7 @@ calibration file that ``replay --calibration`` reads.  Keys beyond the contract 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +122,6 @@ class MagCalibration:
     # ------------------------------------------------------------------ JSON
     def to_dict(self) -> dict:
         """The ``calibrate --json`` object (INTERFACE.md), plus extra keys."""
-        d = asdict(self)
         out = {
             "format_version": FORMAT_VERSION,
             "method": self.method,
@@ -137,9 +136,9 @@ class MagCalibration:
             "reasons": list(self.reasons),
         }
         if self.covariance is not None:
-            out["covariance"] = [list(r) for r in d["covariance"]]
+            out["covariance"] = [list(r) for r in self.covariance]
         if self.mag_to_imu is not None:
-            out["mag_to_imu"] = [list(r) for r in d["mag_to_imu"]]
+            out["mag_to_imu"] = [list(r) for r in self.mag_to_imu]
         if self.extra:
             out["extra"] = _jsonable(self.extra)
         return out
