@@ -382,7 +382,8 @@ def test_heading_std_is_not_overconfident_on_simulated_walks():
 
 @pytest.mark.xfail(
     strict=True,
-    reason="open (issue 4): on clean simulated fields the std is conservative (truth within 1σ in ~100 %);"
+    reason="known limitation (left after issue 4, see RESULTS): on clean simulated fields the std is"
+    " conservative (truth within 1σ in ~100 %);"
     " two floors: the magnetometer error state c (σ_c 6°, sized for indoor fields: P_cc^½ ≈ 5° ≈ the"
     " heading std of 4.6–4.9° here, against errors of 0.5–1°) and, once c is scaled to the observed field"
     " (σ_c → 1.4°), the tilt variance (≈ 1.1° per axis) × tan I through the consider-tilt term (std ≈ 2°);"
