@@ -301,7 +301,11 @@ def summary_table(summary: dict) -> str:
     rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
     if summary.get("samples_per_s"):
         rows.append(
-            ("throughput", f"{summary['samples_per_s']:.0f} samples/s ({summary['elapsed_s']:.2f} s)")
+            (
+                "throughput",
+                f"{summary['samples_per_s']:.0f} samples/s "
+                f"({summary['elapsed_s']:.2f} s: reading, pipeline, sinks)",
+            )
         )
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
