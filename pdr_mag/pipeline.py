@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pdr_mag import _pipeline_kernel as PK
+from pdr_mag._json import state_float
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
@@ -623,23 +624,25 @@ class HeadingPipeline:
         pend = {}
         for name, s in self._streams.items():
             t, x = s.pending()
-            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": _f(s.last_t)}
+            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": state_float(s.last_t)}
         st = {
             "version": STATE_VERSION,
             "pending": pend,
-            "done_t": _f(self._done_t),
+            "done_t": state_float(self._done_t),
             "dropped": dict(self.dropped),
             "interf": self._interf,
-            "up": [_f(v) for v in self._up],
-            "up_acc": [_f(v) for v in self._up_acc],
-            "rate": _f(self._rate[0]),
+            "up": [state_float(v) for v in self._up],
+            "up_acc": [state_float(v) for v in self._up_acc],
+            "rate": state_float(self._rate[0]),
             "cur_blk": None if self._cur_blk is None else self._cur_blk,
-            "pend": [[_f(v) for v in row] for row in (np.concatenate(self._pend) if self._pend else [])],
+            "pend": [
+                [state_float(v) for v in row] for row in (np.concatenate(self._pend) if self._pend else [])
+            ],
             "coverage": self._coverage,
             "n_out": self._n_out,
-            "t_first": _f(self._t_first),
-            "t_last": _f(self._t_last),
-            "calibrations": [[_f(t), c.to_dict()] for t, c in self._calibrations],
+            "t_first": state_float(self._t_first),
+            "t_last": state_float(self._t_last),
+            "calibrations": [[state_float(t), c.to_dict()] for t, c in self._calibrations],
             "fusion": self.fusion.get_state(),
             "online": self.online.get_state(),
         }
@@ -703,10 +706,3 @@ def _kind_name(kind) -> str:
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
 
 
-def _f(v: float):
-    v = float(v)
-    if np.isnan(v):
-        return "nan"
-    if np.isinf(v):
-        return "inf" if v > 0 else "-inf"
-    return v

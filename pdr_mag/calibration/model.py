@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag._json import jsonable
+
 FORMAT_VERSION = 1
 _EYE = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
@@ -140,7 +142,7 @@ class MagCalibration:
         if self.mag_to_imu is not None:
             out["mag_to_imu"] = [list(r) for r in self.mag_to_imu]
         if self.extra:
-            out["extra"] = _jsonable(self.extra)
+            out["extra"] = jsonable(self.extra)
         return out
 
     def to_json(self, path: str | Path | None = None) -> str:
@@ -199,17 +201,3 @@ def _num(v: float):
 
 def _float(v) -> float:
     return float("nan") if v is None else float(v)
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return _num(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    return obj

@@ -65,6 +65,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from pdr_mag._json import state_float
 from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
@@ -1037,18 +1038,18 @@ class OnlineCalibrator:
             "buf": _arr(self._buf[: self._nbuf]),
             "rec": _arr(self._rec),
             "rec_i": self._rec_i,
-            "last_rec_t": _f(self._last_rec_t),
-            "next_refit_t": _f(self._next_refit_t),
-            "next_stale_t": _f(self._next_stale_t),
+            "last_rec_t": state_float(self._last_rec_t),
+            "next_refit_t": state_float(self._next_refit_t),
+            "next_stale_t": state_float(self._next_stale_t),
             "rate_ema": self._rate_ema,
             "episode": self._episode,
             "episode_seen": self._episode_seen,
-            "recal_t": _f(self._recal_t),
+            "recal_t": state_float(self._recal_t),
             "stale_cand": self._stale_cand,
             "n_refits": self._n_refits,
-            "last_reject_t": _f(self._last_reject_t),
-            "fit_new": _f(self._ks[K.K_FIT_NEW]),
-            "fit_scale": _f(self._ks[K.K_FIT_SCALE]),
+            "last_reject_t": state_float(self._last_reject_t),
+            "fit_new": state_float(self._ks[K.K_FIT_NEW]),
+            "fit_scale": state_float(self._ks[K.K_FIT_SCALE]),
             "fit_n": int(self._ks[K.K_FIT_N]),
         }
 
@@ -1118,21 +1119,12 @@ def _cal_summary(cal: MagCalibration) -> dict:
     }
 
 
-def _f(v: float):
-    v = float(v)
-    if np.isnan(v):
-        return "nan"
-    if np.isinf(v):
-        return "inf" if v > 0 else "-inf"
-    return v
-
-
 def _uf(v) -> float:
     return float(v)
 
 
 def _arr(a: np.ndarray) -> list:
-    return [[_f(x) for x in row] for row in np.asarray(a, dtype=float)]
+    return [[state_float(x) for x in row] for row in np.asarray(a, dtype=float)]
 
 
 def _unarr(rows: list, ncol: int) -> np.ndarray:

@@ -73,6 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag._json import jsonable
 from pdr_mag.estimates import DIAG_KEYS
 from pdr_mag.sinks import _mcap_schemas as S
 from pdr_mag.sinks._mcap_chunks import (
@@ -230,7 +231,7 @@ class McapSink:
         d = ev.to_dict()
         ns = int(self._log_times(np.array([float(ev.t)]))[0])
         details = {k: v for k, v in d.items() if k not in ("t", "kind")}
-        text = ev.kind + (" " + json.dumps(_jsonable(details), sort_keys=True) if details else "")
+        text = ev.kind + (" " + json.dumps(jsonable(details), sort_keys=True) if details else "")
         msg = {
             "timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000},
             "level": _LOG_WARNING if ev.kind in WARNING_EVENTS else _LOG_INFO,
@@ -244,7 +245,7 @@ class McapSink:
     def calibration(self, t: float, cal) -> None:
         if self._forward("calibration", float(t), cal):
             return
-        d_cal = _jsonable(cal.to_dict())
+        d_cal = jsonable(cal.to_dict())
         ns = int(self._log_times(np.array([float(t)]))[0])
         self._add_one("/pdr/calibration", "calibration", ns, json.dumps({"t": float(t), **d_cal}).encode())
         self._writer.add_metadata("calibration", {"t": repr(float(t)), "json": json.dumps(d_cal)})
@@ -382,24 +383,6 @@ def _slice_batch(batch, sl: slice):
     return replace(batch, **cols, diag={k: v[sl] for k, v in batch.diag.items()})
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if obj is None or isinstance(obj, (int, str)):
-        return obj
-    return str(obj)
-
-
 def _str_dict(d: dict) -> dict[str, str]:
     """MCAP metadata values are strings: every value JSON-encoded (strings too, so types survive)."""
-    return {str(k): json.dumps(_jsonable(v)) for k, v in d.items()}
+    return {str(k): json.dumps(jsonable(v)) for k, v in d.items()}
