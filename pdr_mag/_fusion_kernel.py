@@ -492,19 +492,27 @@ def _init_tilt(st, ax, ay, az, p):
 
 
 @njit(cache=True, error_model="numpy")
+def _still_stats(st, i_mean, i_var, first, dt, x, y, z, tau):
+    """Exponentially weighted mean (``st[i_mean:i_mean+3]``) and mean square deviation (``st[i_var]``) of a
+    vector stream, for the still detector; ``first``: start them at this sample."""
+    if first:
+        st[i_mean], st[i_mean + 1], st[i_mean + 2] = x, y, z
+        st[i_var] = 1.0
+        return
+    a = ew_alpha(dt, tau)
+    dx, dy, dz = x - st[i_mean], y - st[i_mean + 1], z - st[i_mean + 2]
+    st[i_var] += a * (dx * dx + dy * dy + dz * dz - st[i_var])
+    st[i_mean] += a * dx
+    st[i_mean + 1] += a * dy
+    st[i_mean + 2] += a * dz
+
+
+@njit(cache=True, error_model="numpy")
 def _accel(st, R, ax, ay, az, t, p):
     st[S_ACC], st[S_ACC + 1], st[S_ACC + 2] = ax, ay, az
     # still detection statistics
-    if st[S_HAVEA] > 0 and np.isfinite(st[S_TA]):
-        a = ew_alpha(t - st[S_TA], p[P_STILL_TAU])
-        dx, dy, dz = ax - st[S_AMEAN], ay - st[S_AMEAN + 1], az - st[S_AMEAN + 2]
-        st[S_AVAR] += a * (dx * dx + dy * dy + dz * dz - st[S_AVAR])
-        st[S_AMEAN] += a * dx
-        st[S_AMEAN + 1] += a * dy
-        st[S_AMEAN + 2] += a * dz
-    else:
-        st[S_AMEAN], st[S_AMEAN + 1], st[S_AMEAN + 2] = ax, ay, az
-        st[S_AVAR] = 1.0
+    first = not (st[S_HAVEA] > 0 and np.isfinite(st[S_TA]))
+    _still_stats(st, S_AMEAN, S_AVAR, first, t - st[S_TA], ax, ay, az, p[P_STILL_TAU])
     st[S_TA_PREV] = st[S_TA]
     st[S_TA] = t
     st[S_HAVEA] = 1.0
@@ -591,16 +599,8 @@ def _accel(st, R, ax, ay, az, t, p):
 @njit(cache=True, error_model="numpy")
 def _gyro(st, R, wx, wy, wz, t, p):
     # still detection statistics
-    if st[S_HAVEG] > 0 and np.isfinite(st[S_TG]):
-        a = ew_alpha(t - st[S_TG], p[P_STILL_TAU])
-        dx, dy, dz = wx - st[S_GMEAN], wy - st[S_GMEAN + 1], wz - st[S_GMEAN + 2]
-        st[S_GVAR] += a * (dx * dx + dy * dy + dz * dz - st[S_GVAR])
-        st[S_GMEAN] += a * dx
-        st[S_GMEAN + 1] += a * dy
-        st[S_GMEAN + 2] += a * dz
-    else:
-        st[S_GMEAN], st[S_GMEAN + 1], st[S_GMEAN + 2] = wx, wy, wz
-        st[S_GVAR] = 1.0
+    first = not (st[S_HAVEG] > 0 and np.isfinite(st[S_TG]))
+    _still_stats(st, S_GMEAN, S_GVAR, first, t - st[S_TG], wx, wy, wz, p[P_STILL_TAU])
     if st[S_INIT] > 0 and st[S_HAVEG] > 0:
         dt = t - st[S_TG]
         if dt > 0.0:
