@@ -182,7 +182,7 @@ def test_bad_settings(kw, name):
 TIGHT = EpisodeSettings(error_deg=4.0, error_onset_deg=2.0, std_deg=7.0, no_reference_s=2.0)
 
 
-def _replay_sim(anomaly_uT):
+def _replay_sim(anomaly_uT, sinks=()):
     from pdr_mag.sim import simulate
     from replay.recording import Recording, Stream
     from replay.run import replay
@@ -191,21 +191,37 @@ def _replay_sim(anomaly_uT):
     rec = Recording(
         mag=Stream(*res.mag), accel=Stream(*res.accel), gyro=Stream(*res.gyro), meta=res.meta, truth=res.truth
     )
-    summary = replay(rec, episode_settings=TIGHT)
+    summary = replay(rec, sinks=sinks, episode_settings=TIGHT)
     return res.meta["simulation"], summary
 
 
-@pytest.mark.parametrize("anomaly_uT", [None, 120.0])
-def test_simulated_steel_area_is_the_only_episode_after_calibration(anomaly_uT):
+@pytest.fixture(scope="module")
+def steel(tmp_path_factory):
+    """The mixed walk with a 120 µT steel area, replayed into an MCAP and an .rrd too."""
+    from pdr_mag.sinks.mcap import McapSink
+    from pdr_mag.sinks.rerun import RerunSink
+
+    d = tmp_path_factory.mktemp("steel")
+    sim, summary = _replay_sim(120.0, sinks=[McapSink(d / "s.mcap"), RerunSink(d / "s.rrd")])
+    return sim, summary, d
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return _replay_sim(None)
+
+
+@pytest.mark.parametrize("which", ["clean", "steel"])
+def test_simulated_steel_area_is_the_only_episode_after_calibration(which, request):
     """The mixed walk: a figure-8 calibration (the first 25 s, where the filter converges: episodes there
     are expected), then a clean texting walk with a steel area in a known window.  After the calibration,
     episodes exist only with the steel area, overlap its window, and name the interference detector inside
     it; without it there are none."""
-    sim, summary = _replay_sim(anomaly_uT)
+    sim, summary = request.getfixturevalue(which)[:2]
     assert summary["episode_settings"]["truth"] is True
     t_cal = next(s["t1"] for s in sim["segments"] if s["mode"] == "figure8")
     late = [e for e in summary["episodes"] if e["t_start"] > t_cal + TIGHT.lookback_s]
-    if anomaly_uT is None:
+    if which == "clean":
         assert late == []
         return
     (win,) = sim["anomaly_windows"]
@@ -215,6 +231,30 @@ def test_simulated_steel_area_is_the_only_episode_after_calibration(anomaly_uT):
         assert e["t_start"] <= win["t1"] and e["t_end"] >= win["t0"], e
         flagged = {d["detector"]: d["t"] for d in e["detectors"]}
         assert win["t0"] <= flagged["interference"] <= win["t1"], e
+
+
+def test_episodes_reach_the_mcap_and_the_rrd_as_events(steel):
+    """Every episode is one drift_episode message in /pdr/events (warning level, at its start, with its
+    details) and one line of the rerun event log at its start."""
+    from mcap.reader import make_reader
+
+    from tests.test_sinks_rerun import _read, _series
+
+    _, summary, d = steel
+    eps = summary["episodes"]
+    with (d / "s.mcap").open("rb") as fh:
+        logs = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=["/pdr/events"])]
+    drift = [x for x in logs if x["message"].startswith("drift_episode ")]
+    assert len(drift) == len(eps) > 0 and all(x["level"] == 3 for x in drift)
+    got = sorted(
+        (x["timestamp"]["sec"] + 1e-9 * x["timestamp"]["nsec"], json.loads(x["message"][14:])) for x in drift
+    )
+    for e, (t, details) in zip(sorted(eps, key=lambda e: e["t_start"]), got, strict=True):
+        assert t == pytest.approx(e["t_start"], abs=1e-6)
+        assert details["episode"] == e["kind"] and details["t_end"] == pytest.approx(e["t_end"])
+    t_ns, texts = _series(_read(d / "s.rrd"), "/events", "TextLog:text")
+    lines = sorted(t for t, x in zip(t_ns, texts, strict=True) if x.startswith("drift episode"))
+    np.testing.assert_allclose(np.array(lines) / 1e9, sorted(e["t_start"] for e in eps), atol=1e-6)
 
 
 # ------------------------------------------------------------------------------------ real walk, mocap truth

@@ -150,13 +150,11 @@ def drift_blueprint(ranges: PlotRanges | None = None):
         )
 
     err = None if r.error is None else (-r.error, r.error)
+    bars = "bars: drift episodes (top), interference, no magnetometer (bottom)"
     error_title = (
-        "Heading error vs truth, deg: ours (blue) within ±σ / ±2σ (grey), gyro only (orange), phone (green)"
+        f"Heading error vs truth, deg: ours (blue) in ±σ, ±2σ (grey); {bars}"
         if r.truth
-        else "Heading uncertainty, deg: ±σ / ±2σ around our heading (no truth in this recording)"
-    ) + (
-        " · top: drift episodes (red: error, orange: σ, yellow: no reference)"
-        " · bottom: interference flag (red), magnetometer not used (orange)"
+        else f"Heading uncertainty (no truth here), deg: ±σ, ±2σ (grey); {bars}"
     )
     lanes = rrb.StateTimelineView(
         origin="/state",
