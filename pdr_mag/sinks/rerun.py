@@ -92,12 +92,12 @@ _DRIFT_ORDER = ("error", "sigma", "no_reference")
 #: strips drawn inside the error plot (exactly on its time axis): (lane, its state, strip entity, height as a
 #: fraction of the plot's half-height).
 _STRIPS = (
-    ("state/interference", "interference", "heading_error/strip_interference", -0.96),
-    ("state/magnetometer", "not used", "heading_error/strip_no_magnetometer", -0.89),
+    ("state/interference", "interference", "heading_error/strip_interference", -0.93),
+    ("state/magnetometer", "not used", "heading_error/strip_no_magnetometer", -0.86),
 )
 _STRIP_LANES = tuple(x[0] for x in _STRIPS)
 #: drift strips, one row each at the top: error, σ, no reference.
-_DRIFT_STRIP_Y = (0.96, 0.89, 0.82)
+_DRIFT_STRIP_Y = (0.93, 0.86, 0.79)
 #: σ histogram for the error plot's range: 0.25° bins up to 180°.
 _STD_BIN_DEG = 0.25
 
