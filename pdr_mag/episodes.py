@@ -42,6 +42,7 @@ before the flag rises shows as a positive latency with a large ``error_at_flag_d
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -215,9 +216,29 @@ class _Run:
     std: float = np.nan
 
 
+class _Change(NamedTuple):
+    """A transition of a binary signal: when, to which state, and the error then (deg, NaN if unknown)."""
+
+    t: float
+    up: bool
+    err: float
+
+
+class _Closed(NamedTuple):
+    """A closed stretch waiting to become an :class:`Episode`."""
+
+    kind: str
+    t_start: float
+    t_end: float
+    peak: float
+    t_peak: float
+    err: float
+    std: float
+
+
 @dataclass
 class _Signal:
-    """A binary signal's transitions ``(t, up, value)``, pruned to the finder's horizon."""
+    """A binary signal's transitions (:class:`_Change`), pruned to the finder's horizon."""
 
     state: bool = False
     trans: list = field(default_factory=list)
@@ -256,7 +277,7 @@ class EpisodeFinder:
         self._gap_peak_err = np.nan
         self._gap_peak_std = np.nan
         self._signals = {name: _Signal() for name in (*DETECTORS, "field_out")}
-        self._pending: list[tuple] = []  # closed: (kind, t_start, t_end, peak, t_peak, err, std)
+        self._pending: list[_Closed] = []
         self._done: list[Episode] = []
 
     @property
@@ -283,7 +304,7 @@ class EpisodeFinder:
         for ev in events:
             d = ev if isinstance(ev, dict) else ev.to_dict()
             if d["kind"] in ("recalibration_requested", "calibration_rejected"):
-                self._signals[d["kind"]].trans.append((float(d["t"]), True, np.nan))
+                self._signals[d["kind"]].trans.append(_Change(float(d["t"]), True, np.nan))
         if n == 0:
             return self._release()
         t = np.asarray(batch.t, dtype=float)
@@ -352,7 +373,9 @@ class EpisodeFinder:
         run = self._runs[kind]
         self._runs[kind] = None
         if run is not None and run.reached and run.t_last - run.t_start >= self.settings.min_duration_s:
-            self._pending.append((kind, run.t_start, run.t_last, run.peak, run.t_peak, run.err, run.std))
+            self._pending.append(
+                _Closed(kind, run.t_start, run.t_last, run.peak, run.t_peak, run.err, run.std)
+            )
 
     def _no_reference(self, t, used, err, std) -> None:
         """Gaps between magnetometer corrections longer than ``no_reference_s``."""
@@ -375,7 +398,7 @@ class EpisodeFinder:
 
     def _gap(self, start: float, end: float) -> None:
         self._pending.append(
-            ("no_reference", start, end, end - start, end, self._gap_peak_err, self._gap_peak_std)
+            _Closed("no_reference", start, end, end - start, end, self._gap_peak_err, self._gap_peak_std)
         )
 
     # ------------------------------------------------------------------ detectors
@@ -396,12 +419,12 @@ class EpisodeFinder:
             sig = self._signals[name]
             prev = np.r_[sig.state, flags[:-1]]
             for i in np.flatnonzero(flags != prev):
-                sig.trans.append((float(t[i]), bool(flags[i]), float(err[i])))
+                sig.trans.append(_Change(float(t[i]), bool(flags[i]), float(err[i])))
             sig.state = bool(flags[-1])
 
     def _release(self) -> list[Episode]:
         """The episodes closed since the last call (their windows end at their ends, all seen); prune."""
-        out = [self._episode(*p) for p in self._pending]
+        out = [self._episode(p) for p in self._pending]
         self._pending = []
         # transitions older than any window still to come are not needed (keep the last one for the state)
         starts = [r.t_start for r in self._runs.values() if r is not None]
@@ -410,7 +433,7 @@ class EpisodeFinder:
         if np.isfinite(horizon):
             for sig in self._signals.values():
                 k = 0
-                while k + 1 < len(sig.trans) and sig.trans[k + 1][0] < horizon:
+                while k + 1 < len(sig.trans) and sig.trans[k + 1].t < horizon:
                     k += 1
                 if k:
                     del sig.trans[:k]
@@ -418,22 +441,23 @@ class EpisodeFinder:
         self._done += out
         return out
 
-    def _episode(self, kind, t_start, t_end, peak, t_peak, err, std) -> Episode:
+    def _episode(self, c: _Closed) -> Episode:
         s = self.settings
+        kind, t_start, t_end = c.kind, c.t_start, c.t_end
         interference = self._signals["interference"].trans
-        lo = max([t_start - s.lookback_s] + [t for t, up, _ in interference if not up and t <= t_start])
+        lo = max([t_start - s.lookback_s] + [c.t for c in interference if not c.up and c.t <= t_start])
         found = []
         for name in DETECTORS:
-            t_first = _first_rise(self._signals[name].trans, lo, t_end)
-            if t_first is not None:
-                found.append((name, t_first[0]))
+            first = _first_rise(self._signals[name].trans, lo, t_end)
+            if first is not None:
+                found.append((name, first.t))
         found.sort(key=lambda x: x[1])
         flag = _first_rise(interference, lo, t_end)
         t_flag = err_flag = t_out = latency = None
         if flag is not None:
-            t_flag = flag[0]
-            err_flag = None if not np.isfinite(flag[1]) else flag[1]
-            since = max([lo] + [t for t, up, _ in interference if not up and t < t_flag])
+            t_flag = flag.t
+            err_flag = None if not np.isfinite(flag.err) else flag.err
+            since = max([lo] + [c.t for c in interference if not c.up and c.t < t_flag])
             t_out = _first_up(self._signals["field_out"].trans, since, t_flag)
             if t_out is not None:
                 latency = t_flag - t_out
@@ -444,10 +468,10 @@ class EpisodeFinder:
             t_start=float(t_start),
             t_end=float(t_end),
             threshold=s.threshold(kind),
-            peak=float(peak),
-            t_peak=float(t_peak),
-            peak_error_deg=None if not np.isfinite(err) else float(err),
-            peak_std_deg=float(std),
+            peak=float(c.peak),
+            t_peak=float(c.t_peak),
+            peak_error_deg=None if not np.isfinite(c.err) else float(c.err),
+            peak_std_deg=float(c.std),
             detectors=tuple(found),
             t_flag=t_flag,
             t_field_out=t_out,
@@ -476,27 +500,27 @@ def _deviation(d: dict, value: str, ref: str, tol: str, n: int) -> np.ndarray:
     return np.where(np.isfinite(dev), dev, 0.0)
 
 
-def _first_rise(trans: list, lo: float, hi: float):
-    """``(t, value)`` of the first rise in ``[lo, hi]``, or None."""
-    for t, up, v in trans:
-        if t > hi:
+def _first_rise(trans: list, lo: float, hi: float) -> _Change | None:
+    """The first rise in ``[lo, hi]``, or None."""
+    for c in trans:
+        if c.t > hi:
             break
-        if up and t >= lo:
-            return t, v
+        if c.up and c.t >= lo:
+            return c
     return None
 
 
 def _first_up(trans: list, lo: float, hi: float) -> float | None:
     """When the signal is first up in ``[lo, hi]``: ``lo`` itself if it was up then, else its first rise."""
     state = False
-    for t, up, _ in trans:
-        if t > lo:
+    for c in trans:
+        if c.t > lo:
             break
-        state = up
+        state = c.up
     if state:
         return lo
     hit = _first_rise(trans, lo, hi)
-    return None if hit is None else hit[0]
+    return None if hit is None else hit.t
 
 
 def _signed_max(current: float, values: np.ndarray) -> float:

@@ -57,6 +57,7 @@ up to ``chunk_rows`` rows (bounded memory, few large sends); nothing is logged r
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,17 @@ _STRIP_LANES = tuple(x[0] for x in _STRIPS)
 _DRIFT_STRIP_Y = (0.93, 0.86, 0.79)
 #: σ histogram for the error plot's range: 0.25° bins up to 180°.
 _STD_BIN_DEG = 0.25
+
+
+@dataclass
+class _Second:
+    """The rows of one second of the recording clock, for the magnetometer's share of it."""
+
+    second: float
+    t_first: float
+    t_last: float = np.nan
+    rows: int = 0
+    used: int = 0
 
 
 class RerunSink:
@@ -150,7 +162,7 @@ class RerunSink:
         self._mag_interval = np.nan  # the fusion's mag_interval_s (meta), else inferred
         self._min_used_gap = np.inf
         self._last_used_t = np.nan
-        self._share_bin: list = []  # [second, n rows, n used, first t, last t] of the open second
+        self._second: _Second | None = None  # the second whose magnetometer share is being counted
         self._pending_cal_event = None
         self._episodes: list[tuple[float, float, str]] = []
         # what the blueprint's axes are fitted to
@@ -453,7 +465,7 @@ class RerunSink:
             start = k
         if len(sec):
             self._share_add(sec[start], t[start:], used[start:], out_t, out_share, keep_open=True)
-        if final and self._share_bin:
+        if final and self._second is not None:
             self._share_close(out_t, out_share)
         if out_t:
             ts, share = np.array(out_t), np.array(out_share)
@@ -462,27 +474,27 @@ class RerunSink:
             self._push_states("state/magnetometer", ts, labels)
 
     def _share_add(self, second, t, used, out_t, out_share, keep_open=False) -> None:
-        b = self._share_bin
-        if b and b[0] != second:
+        b = self._second
+        if b is not None and b.second != second:
             self._share_close(out_t, out_share)
-            b = self._share_bin
-        if not b:
-            b.extend([float(second), 0, 0, float(t[0]), float(t[0])])
-        b[1] += len(t)
-        b[2] += int(np.count_nonzero(used))
-        b[4] = float(t[-1])
+            b = None
+        if b is None:
+            b = self._second = _Second(float(second), t_first=float(t[0]))
+        b.rows += len(t)
+        b.used += int(np.count_nonzero(used))
+        b.t_last = float(t[-1])
         if not keep_open:
             self._share_close(out_t, out_share)
 
     def _share_close(self, out_t, out_share) -> None:
-        second, n, n_used, t0, t1 = self._share_bin
-        self._share_bin.clear()
+        b, self._second = self._second, None
         interval = self._mag_interval if np.isfinite(self._mag_interval) else self._min_used_gap
         if not np.isfinite(interval):
             interval = 0.0
-        covered = (t1 - t0) * n / (n - 1) if n > 1 else 1.0  # the rows' span plus one row period
-        out_t.append(second)
-        out_share.append(min(1.0, n_used * interval / max(covered, interval, 1e-9)))
+        n = b.rows
+        covered = (b.t_last - b.t_first) * n / (n - 1) if n > 1 else 1.0  # rows' span plus one row period
+        out_t.append(b.second)
+        out_share.append(min(1.0, b.used * interval / max(covered, interval, 1e-9)))
 
     def _drift_lane(self) -> None:
         """``state/drift`` from the episodes seen: at each time the worst kind of those open, else none."""
