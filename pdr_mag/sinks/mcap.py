@@ -95,7 +95,7 @@ INPUT_UNITS = {"accel": "m/s^2", "gyro": "rad/s", "mag": "uT"}
 SCHEMAS = S.SCHEMAS
 
 #: Event kinds logged as warnings in ``/pdr/events`` (all others are INFO).
-WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested")
+WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested", "drift_episode")
 _LOG_INFO, _LOG_WARNING = 2, 3
 
 _COMPRESSION = ("zstd", "lz4", "none")
