@@ -193,3 +193,33 @@ def phone_recording(kind: str, seed: int, duration_s: float, noise_uT: float, of
     L = fld.strength * np.linalg.inv(s)
     return {"mag": mag, "points": points, "offset": b, "L": 0.5 * (L + L.T), "soft_iron": s,
             "sigma": float(np.sqrt(noise_uT**2 + phone.mag_step**2 / 12.0)), "field": fld, "t": t}
+
+
+def truth_heading_bound(rec: dict):
+    """The Cramér–Rao bound of a :func:`phone_recording` (full model at the true ellipsoid, true noise)
+    as the worst-case heading error it allows: a :class:`pdr_mag.calibration.heading_error.HeadingBound`,
+    and the offset bound ``sqrt(tr CRLB_bb)`` in µT."""
+    from pdr_mag.calibration import crlb
+    from pdr_mag.calibration.geometry import calibration_from_ellipsoid, param_names
+    from pdr_mag.calibration.heading_error import heading_bound
+    from pdr_mag.calibration.model import MagCalibration
+
+    cov = crlb(rec["points"], rec["offset"], rec["L"], rec["sigma"], "full")
+    soft, f = calibration_from_ellipsoid(rec["L"])
+    cal = MagCalibration.from_arrays(rec["offset"], soft, field_uT=f, covariance=cov,
+                                     extra={"covariance_params": param_names("full")})
+    return heading_bound(cal, rec["field"].inclination_deg), float(np.sqrt(np.trace(cov[:3, :3])))
+
+
+def true_heading_error_deg(rec: dict, cal, n_dirs: int = 4000) -> float:
+    """The largest heading error, degrees, that calibration ``cal`` makes on the recording's true phone,
+    over all field directions and headings: ``max_u |P_u (û − u)| / cos I`` (linearised in the angle)."""
+    from pdr_mag.calibration.heading_error import fibonacci_directions
+
+    u = fibonacci_directions(n_dirs)
+    v = cal.apply(rec["offset"] + u @ rec["L"].T)
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    e = v - u
+    e -= np.sum(e * u, axis=1)[:, None] * u
+    cos_i = np.cos(np.radians(rec["field"].inclination_deg))
+    return float(np.degrees(np.linalg.norm(e, axis=1).max() / cos_i))

@@ -54,8 +54,9 @@ class AcceptanceSettings:
         Inclination of the field when only its strength is known, degrees [60, mid-latitudes]; the
         horizontal share ``cos I`` of the field converts field errors into heading errors.
     residual_lag : int
-        Samples over which residuals are taken as correlated in the parameter covariance (Newey–West lag,
-        ≈ 1–2.5 s at 50–20 Hz) [50].
+        Samples over which residuals are taken as correlated in the parameter covariance (Newey–West lag)
+        [100: 2–5 s at 50–20 Hz, a stroke of the hand in a figure-8, so that a field that follows the
+        motion is seen as correlated].
     noise_lag : int
         Samples over which the noise part of the residual is measured; what varies more slowly is a field
         that was not constant [10] (a phone's filtered noise decorrelates within a few samples).
@@ -66,9 +67,10 @@ class AcceptanceSettings:
     max_axis_ratio : float
         Largest plausible ratio of soft-iron eigenvalues [2.5]: seed 000's own simulated sensor (gains
         1 : 0.9 : 1.2 and its soft-iron matrix) has 2.33; a phone's own iron distorts far less.
-    max_residual_frac : float
-        Residual RMS above this share of the field: the samples lie on no ellipsoid, the field was not
-        constant [0.05].
+    max_residual_frac, max_noise_uT : float
+        Residual RMS above this share of the (reference, else fitted) field [0.05] and above the noise of
+        the noisiest phone magnetometers [2.0 µT; 1–1.5 µT RMS per axis, iPhone 4S 1.2 µT]: the samples
+        lie on no ellipsoid, the field was not constant.
     min_coverage, min_cap_coverage, min_out_of_plane_deg : float
         Hints only: a refusal mentions a coverage below ``min_coverage`` [0.5], an emptiest 60° cap
         covered below ``min_cap_coverage`` [0.15] (one side missing) and directions leaving their best
@@ -78,12 +80,13 @@ class AcceptanceSettings:
     min_samples: int = 50
     max_heading_std_deg: float = 2.0
     default_inclination_deg: float = 60.0
-    residual_lag: int = 50
+    residual_lag: int = 100
     noise_lag: int = 10
     max_radius_error: float = 0.2
     max_offset_uT: float = 1500.0
     max_axis_ratio: float = 2.5
     max_residual_frac: float = 0.05
+    max_noise_uT: float = 2.0
     min_coverage: float = 0.5
     min_cap_coverage: float = 0.15
     min_out_of_plane_deg: float = 8.0
@@ -176,65 +179,80 @@ def _heading_figures(cal: MagCalibration, field, s: AcceptanceSettings) -> dict:
         cal = replace(cal, covariance=tuple(map(tuple, np.diag(std**2).tolist())),
                       extra={"covariance_params": ["offset_x", "offset_y", "offset_z"]})
     hb = heading_bound(cal, inclination_of(field, s.default_inclination_deg))
-    return {**hb.to_dict(), "white_std_deg": hb.std_deg, "slow_std_deg": hb.std_deg}
+    return {**hb.to_dict(), "white_std_deg": hb.std_deg}
 
 
 def _heading_reasons(cal: MagCalibration, fig: dict, s: AcceptanceSettings) -> list[str]:
-    """Refusal reasons from the heading figures (:func:`heading_error.fit_figures`): a field that was not
-    constant (its slowly varying residual), and a heading the samples do not determine (the direction
-    left undetermined, the motion that determines it and what the samples lacked)."""
+    """Refusal reasons when the heading error ``fig["std_deg"]`` exceeds the tolerance.
+
+    ``std_deg² = max(white, correlated)² + field² + shift²`` (:func:`heading_error.fit_figures`); the
+    reasons are its largest part and any other part beyond the tolerance on its own: the heading the
+    samples leave undetermined (the direction, the motion that determines it and what the motion lacked),
+    residuals correlated in time, a field that was not constant, soft iron a simpler model leaves out.
+    """
     tol = s.max_heading_std_deg
+    std = float(fig["std_deg"])
+    if not std > tol:
+        return []
+    white = float(fig.get("white_std_deg", std))
+    corr = float(np.sqrt(max(float(fig.get("correlated_std_deg", 0.0)) ** 2 - white**2, 0.0)))
+    parts = {"undetermined": white, "correlated": corr, "field": float(fig.get("field_error_deg", 0.0)),
+             "model": float(fig.get("model_shift_deg", 0.0))}
+    largest = max(parts, key=parts.get)
+    # the largest part, and any other that is beyond the tolerance and at least half the whole; the
+    # correlation and a simpler model's shift only where the samples determine the full model (else
+    # they are the noise of an undetermined fit)
+    said = {k for k, v in parts.items() if k == largest or (v > tol and v >= 0.5 * std)}
+    if white > tol:
+        said -= {"correlated", "model"}
+        said.add("undetermined")
     worst = f"1-σ, worst heading and pose; tolerance {tol:g}°"
     out = []
-    field_err = float(fig.get("field_error_deg", 0.0))
-    if field_err > tol:
+    if "field" in said:
         out.append(f"the field was not constant while calibrating (steel or a magnet nearby?): "
                    f"{fig['residual_slow_uT']:.2f} µT RMS of the residual vary slowly, beyond the "
-                   f"{fig['residual_noise_uT']:.2f} µT noise — a field error that turns the heading by "
-                   f"{field_err:.1f}° or more (tolerance {tol:g}°)")
-    std = float(fig["std_deg"])
-    white = float(fig.get("white_std_deg", std))
-    shift = float(fig.get("model_shift_deg", 0.0))
-    if shift > tol and white <= tol:  # where the samples determine the full model, its step is a bias
+                   f"{fig['residual_noise_uT']:.2f} µT noise — a field change that turns a heading by "
+                   f"{parts['field']:.1f}°, and the part of it that followed the motion the fit took for "
+                   f"calibration (heading uncertain by up to {std:.1f}°, {worst})")
+    if "model" in said:
         ex = cal.extra if isinstance(cal.extra, dict) else {}
         model = ex.get("model") or cal.method
         out.append(f"the {model} model leaves out soft iron that the samples show, which turns the heading "
-                   f"by up to {shift:.1f}° (tolerance {tol:g}°): fit the full model (method auto or ml)"
-                   if model != "full" else
-                   f"the fit stopped short of its optimum by a heading change of up to {shift:.1f}° "
+                   f"by up to {parts['model']:.1f}° (tolerance {tol:g}°): fit the full model (method auto "
+                   f"or ml)" if model != "full" else
+                   f"the fit stopped short of its optimum by a heading change of up to {parts['model']:.1f}° "
                    f"(tolerance {tol:g}°)")
-    if std <= tol:
-        return out
-    if white <= tol:
-        if field_err > tol:  # the field's slow change is what correlates the residuals: said above
-            return out
+    if "correlated" in said and "field" not in said:
         out.append(f"the residuals are correlated over time (a filtered sensor, or a field that changed), "
-                   f"so the samples determine the heading only to {std:.1f}° ({worst}): calibrate longer, "
+                   f"which leaves the heading uncertain by up to {std:.1f}° ({worst}): calibrate longer, "
                    f"away from steel")
-        return out
-    size = "not at all" if std > 90.0 else f"only to {std:.1f}°"
-    text = f"the samples determine the heading {size} ({worst})"
-    d = fig.get("direction")
-    if d is not None:
-        name = axis_name(d)
-        where = f"device {name} axis" if len(name) == 1 else f"device direction {name}"
-        text += (f": the offset along the {where} is known to ±{fig['direction_std_uT']:.2f} µT only — "
-                 f"{motion_hint(d)}")
-    out.append(text + _hints(cal, s))
+    if "undetermined" in said:
+        size = "not at all" if white > 90.0 else f"only to {white:.1f}°"
+        text = f"the samples determine the heading {size} ({worst})"
+        d = fig.get("direction")
+        if d is not None:
+            name = axis_name(d)
+            where = f"device {name} axis" if len(name) == 1 else f"device direction {name}"
+            text += (f": the offset along the {where} is known to ±{fig['direction_std_uT']:.2f} µT only — "
+                     f"{motion_hint(d)}")
+        out.append(text + _hints(cal, s))
     return out
 
 
 def accept(cal: MagCalibration, field=None, settings: AcceptanceSettings | None = None) -> MagCalibration:
     """The verdict: a copy of ``cal`` with ``accepted`` and human-readable ``reasons``.
 
-    Refused when: too few samples; no finite radius; the radius differs from the reference field by more
-    than ``max_radius_error``; the residual RMS exceeds ``max_residual_frac`` of the field (the field was
-    not constant); the offset or the soft-iron eigenvalue ratio is beyond plausibility; or the heading
-    error the calibration's uncertainty can cause exceeds ``max_heading_std_deg``
-    (:mod:`.heading_error`).  The heading figures are ``cal.extra["heading"]`` as :func:`assess` computes
-    them from the samples (full model, slowly varying residuals) or, without them, those of
-    ``cal.covariance``.  Coverage, a missing side and a planar rotation (``cal.coverage``,
-    ``extra["worst_cap_coverage"]``, ``extra["out_of_plane_deg"]``) only explain a heading refusal.
+    Refused when: too few samples; no finite radius; the residual RMS exceeds ``max_residual_frac`` of
+    the field and ``max_noise_uT`` (the samples lie on no ellipsoid: the field was not constant); the
+    heading error the calibration leaves exceeds ``max_heading_std_deg`` (:mod:`.heading_error`); the
+    offset is beyond plausibility; and — where the samples determine them (heading within the
+    tolerance; radius farther than 3 σ from the reference) — the soft-iron eigenvalue spread is beyond
+    plausibility or the radius differs from the reference field by more than ``max_radius_error``.
+    The heading figures are ``cal.extra["heading"]`` as :func:`assess` computes them from the samples
+    (full model, correlated residuals, a changing field, the soft iron a simpler model leaves out) or,
+    without them, those of ``cal.covariance`` (or of ``offset_std_uT``).  Coverage, a missing side and a
+    planar rotation (``cal.coverage``, ``extra["worst_cap_coverage"]``, ``extra["out_of_plane_deg"]``)
+    only explain a heading refusal.
 
     ``field`` is the reference field: a strength in µT, or an ``EarthField`` (the WMM field for the
     recording's position and date), whose inclination then converts field errors into heading errors.
@@ -243,39 +261,43 @@ def accept(cal: MagCalibration, field=None, settings: AcceptanceSettings | None 
     reasons: list[str] = []
     f = cal.field_uT
     ref = _strength(field)
+    ev = np.linalg.eigvalsh(cal.soft_iron_array)
     if cal.n_samples < s.min_samples:
         reasons.append(f"too few samples: {cal.n_samples} < {s.min_samples}")
-    broken = not (np.isfinite(f) and f > 0) or np.linalg.eigvalsh(cal.soft_iron_array)[0] <= 0
-    not_constant = False
     if not (np.isfinite(f) and f > 0):
         reasons.append("no finite field radius")
-    else:
-        if ref is not None and abs(f / ref - 1.0) > s.max_radius_error:
-            reasons.append(f"radius {f:.1f} µT differs from the reference field {ref:.1f} µT by "
-                           f"{abs(f / ref - 1.0):.0%} (> {s.max_radius_error:.0%})")
-        if np.isfinite(cal.residual_rms_uT) and cal.residual_rms_uT > s.max_residual_frac * f:
-            rms = cal.residual_rms_uT
-            ex = cal.extra if isinstance(cal.extra, dict) else {}
-            model = ex.get("model")
-            tried_full = "model_selection" in ex or model == "full"
-            cause = ("the field was not constant (interference?)" if tried_full
-                     else f"the field was not constant, or the {model or cal.method} model lacks the soft "
-                          f"iron (method auto fits it)")
-            not_constant = True
-            reasons.append(f"residual RMS {rms:.2f} µT is {rms / f:.1%} of the field "
-                           f"(> {s.max_residual_frac:.0%}): {cause}")
+    if ev[0] <= 0:
+        reasons.append("soft-iron matrix not positive definite")
+    if reasons and (ev[0] <= 0 or not (np.isfinite(f) and f > 0)):
+        return cal.with_acceptance(False, reasons)
+    rms = cal.residual_rms_uT
+    gross = bool(np.isfinite(rms) and rms > max(s.max_residual_frac * (ref or f), s.max_noise_uT))
+    if gross:
+        ex = cal.extra if isinstance(cal.extra, dict) else {}
+        model = ex.get("model")
+        tried_full = "model_selection" in ex or model == "full"
+        cause = ("the field was not constant (interference?)" if tried_full
+                 else f"the field was not constant, or the {model or cal.method} model lacks the soft "
+                      f"iron (method auto fits it)")
+        reasons.append(f"residual RMS {rms:.2f} µT is {rms / (ref or f):.1%} of the field "
+                       f"(> {s.max_residual_frac:.0%}) and beyond a magnetometer's noise "
+                       f"(> {s.max_noise_uT:g} µT): {cause}")
+    fig = _heading_figures(cal, field, s)
+    if not gross:  # otherwise the heading figures of a fit to no ellipsoid say nothing more
+        reasons += _heading_reasons(cal, fig, s)
     off = float(np.linalg.norm(cal.offset_array))
     if off > s.max_offset_uT:
         reasons.append(f"offset {off:.0f} µT outside the plausible range (≤ {s.max_offset_uT:g} µT)")
-    ev = np.linalg.eigvalsh(cal.soft_iron_array)
-    if ev[0] <= 0:
-        reasons.append("soft-iron matrix not positive definite")
-    elif ev[-1] / ev[0] > s.max_axis_ratio:
+    determined = float(fig.get("white_std_deg", fig["std_deg"])) <= s.max_heading_std_deg
+    if determined and ev[-1] / ev[0] > s.max_axis_ratio:
         reasons.append(f"soft-iron eigenvalue spread {ev[-1] / ev[0]:.2f} (largest / smallest) is beyond the "
                        f"plausible {s.max_axis_ratio:g}: an ellipsoid this elongated is not a "
                        f"magnetometer's own distortion")
-    if not (broken or not_constant):  # otherwise the heading figures say nothing more
-        reasons += _heading_reasons(cal, _heading_figures(cal, field, s), s)
+    if ref is not None and abs(f / ref - 1.0) > s.max_radius_error:
+        r_std = float(fig.get("radius_std_uT", 0.0))
+        if abs(f - ref) > 3.0 * r_std:
+            reasons.append(f"radius {f:.1f} µT differs from the reference field {ref:.1f} µT by "
+                           f"{abs(f / ref - 1.0):.0%} (> {s.max_radius_error:.0%})")
     return cal.with_acceptance(not reasons, reasons)
 
 

@@ -194,57 +194,64 @@ def axis_name(direction) -> str:
 _MOTION = {
     "x": "rotate the phone about its y axis (roll it onto its side and over) and about its z axis "
          "(turn it flat), so that its x axis (right edge) points along the field and against it",
-    "y": "rotate the phone about its x axis (tip the top edge down and up, over) and about its z axis "
+    "y": "rotate the phone about its x axis (tip the top edge down and over) and about its z axis "
          "(turn it flat), so that its y axis (top edge) points along the field and against it",
     "z": "rotate the phone about its x and y axes (turn it screen down and back up), so that its "
          "z axis (screen normal) points along the field and against it",
 }
+_ABOUT = {"x": "its x axis (tip the top edge down and over)",
+          "y": "its y axis (roll it onto its side and over)",
+          "z": "its z axis (turn it flat, all round)"}
 
 
 def motion_hint(direction) -> str:
-    """The motion that determines the offset along ``direction`` (device axes), in words."""
+    """The motion that determines the offset along ``direction`` (device axes), in words: a rotation
+    about an axis perpendicular to it (module docstring) — the two other device axes for a direction
+    along one, else the device axis most nearly perpendicular to it."""
     name = axis_name(direction)
     if name in _MOTION:
         return _MOTION[name]
-    return (f"rotate the phone about axes perpendicular to {name} (device axes), so that this direction "
-            "points along the field and against it")
+    k = _AXES[int(np.argmin(np.abs(np.asarray(direction, dtype=float))))]
+    return (f"rotate the phone about {_ABOUT[k]}, so that the direction {name} points along the field and "
+            "against it")
 
 
 def fit_figures(mag: np.ndarray, cal: MagCalibration, inclination_deg: float = DEFAULT_INCLINATION_DEG,
-                lag: int = 50, noise_lag: int = 10) -> dict:
+                lag: int = 100, noise_lag: int = 10) -> dict:
     """What the samples ``mag`` (raw µT, in time order) determine about the heading, at the fit ``cal``.
 
     The information is that of the full model (offset and full soft iron, :mod:`.crlb`) at the fitted
     ellipsoid, whatever model the fit chose: every phone has some soft iron, and a simpler model only
-    says that the samples do not show it, not that they would show it in the poses they miss.  Two
-    covariances of θ, with ``J`` the Jacobian of the orthogonal distances ``d_i`` (``geometry``) and
-    ``H = JᵀJ``:
+    says that the samples do not show it, not that they would show it in the poses they miss.  With
+    ``J`` the Jacobian of the orthogonal distances ``d_i`` (``geometry``), ``H = JᵀJ`` and the full
+    model's Gauss–Newton step from the fit ``δθ = −H⁻¹Jᵀd`` (zero at a full-model optimum), the residuals
+    are ``r = d + J δθ``, and the heading error (1-σ, worst heading and pose) has four parts:
 
-    * white residuals: ``Σ_w = σ̂² H⁻¹``, ``σ̂² = Σ d_i² / (N − p)``;
-    * slowly varying residuals (a field that changes while the phone moves, a sensor whose noise is
-      filtered): the Newey–West (Bartlett kernel) long-run covariance of the scores ``s_i = J_iᵀ d_i``,
-      ``Σ_hac = H⁻¹ (Σ_{|l| ≤ lag} (1 − |l|/(lag + 1)) Σ_i s_i s_{i+l}ᵀ) H⁻¹ · N/(N − p)``.
+    * ``white_std_deg``: the covariance ``Σ_w = σ_noise² H⁻¹ · N/(N − p)`` with the noise ``σ_noise`` below
+      (:func:`heading_bound`) — what the motion and the sensor's noise leave undetermined;
+    * ``correlated_std_deg``: the same from the Newey–West (Bartlett kernel, ``lag`` samples) long-run
+      covariance of the scores ``s_i = J_iᵀ r_i``, ``Σ_hac = H⁻¹ (Σ_{|l| ≤ lag} (1 − |l|/(lag + 1))
+      Σ_i s_i s_{i+l}ᵀ) H⁻¹ · N/(N − p)``: residuals correlated in time (a filtered sensor, a field that
+      changes as the phone moves) carry less information than white ones;
+    * ``field_error_deg``: a field that changes while the phone turns.  Where it follows the motion (a
+      hand near steel) the fit absorbs it into the parameters, a bias no covariance shows; what it cannot
+      absorb stays in the residual as a slowly varying part.  With the noise measured over ``noise_lag``
+      samples, ``σ_noise² = mean((r_{i+k} − r_i)²)/2`` (k longer than the few samples over which a
+      phone's filtered noise is correlated, shorter than a turn of the hand), the slow part is
+      ``δ_slow = sqrt(max(RMS² − σ_noise², 0))``, a change of the field that turns a heading by
+      ``δ_slow / (F cos I)`` radians — the scale of the bias it leaves;
+    * ``model_shift_deg``: what the full model's step ``δθ`` would still change (:func:`heading_shift`):
+      the soft iron a simpler model (offset only, axis scales) leaves out.
 
-    The bound is ``max`` of the two heading errors (:func:`heading_bound`).  Both are evaluated on the
-    residuals ``d + J δθ`` of the full model's Gauss–Newton step ``δθ = −H⁻¹Jᵀd`` from the fit: when the
-    fit is a simpler model (offset only, axis scales), what the full model would still change is a
-    systematic shift of the heading, ``model_shift_deg`` (:func:`heading_shift`), not noise.
-
-    A field that changes while the phone turns is another matter: where it follows the motion (a hand
-    near steel), the fit absorbs most of it into the parameters — a bias no covariance shows.  What it
-    cannot absorb stays in the residual as a slowly varying part: with the noise measured over
-    ``noise_lag`` samples, ``σ_noise² = mean((d_{i+k} − d_i)²)/2`` (k = ``noise_lag``: longer than the
-    few samples over which a phone's filtered noise is correlated, shorter than a turn of the hand), the
-    slow part is ``δ_slow = sqrt(max(RMS² − σ_noise², 0))``, a field error of at least that size, hence a
-    heading error of at least ``field_error_deg = δ_slow / (F cos I)`` radians.
+    ``std_deg = sqrt(max(white, correlated)² + field² + shift²)`` is the figure the tolerance applies to.
 
     Returns
     -------
     dict
-        ``std_deg`` (the covariance bound), ``white_std_deg``, ``correlated_std_deg`` (from Σ_w and
-        Σ_hac), ``offset_std_deg``, ``direction``, ``direction_std_uT`` (of the bound's covariance),
-        ``field_error_deg``, ``model_shift_deg``, ``residual_noise_uT`` (σ_noise), ``residual_slow_uT``
-        (δ_slow), ``inclination_deg``, ``lag``, ``noise_lag``.
+        ``std_deg``, ``white_std_deg``, ``correlated_std_deg``, ``field_error_deg``, ``model_shift_deg``;
+        ``offset_std_deg``, ``direction``, ``direction_std_uT`` (of the larger covariance);
+        ``radius_std_uT`` (1-σ of ``field_uT = det(L)^{1/3}``); ``residual_noise_uT`` (σ_noise),
+        ``residual_slow_uT`` (δ_slow), ``inclination_deg``, ``lag``, ``noise_lag``.
     """
     from dataclasses import replace
 
@@ -259,41 +266,45 @@ def fit_figures(mag: np.ndarray, cal: MagCalibration, inclination_deg: float = D
     m = np.asarray(mag, dtype=float)
     n = len(m)
     p = 9
+    basis = sym_basis("full")
     L = ellipsoid_from_calibration(cal.soft_iron_array, cal.field_uT)
     proj = Projection(m, cal.offset_array, L)
-    jac = geometric_jacobian(proj, sym_basis("full"))
+    jac = geometric_jacobian(proj, basis)
     h = jac.T @ jac
     w, v = np.linalg.eigh(0.5 * (h + h.T))
     w = np.maximum(w, max(w[-1], 1e-300) * 1e-15)  # a direction the data do not see: huge, not inf
     h_inv = (v / w) @ v.T
-    # the full model's Gauss–Newton step from the fit, and the residuals it leaves: a simpler model's
-    # misfit (soft iron it leaves out) is a shift, not noise, nor a field that changed
     seen = w >= w[-1] * 1e-10  # the step only along directions the samples determine
     delta = -(v[:, seen] / w[seen]) @ (v[:, seen].T @ (jac.T @ proj.d))
-    d = proj.d + jac @ delta
+    r = proj.d + jac @ delta
     dof = max(n - p, 1)
-    cov_w = h_inv * float(d @ d) / dof
-    s = jac * d[:, None]
-    meat = s.T @ s
+    k = int(min(max(noise_lag, 1), max(n - 1, 1)))
+    noise = float(np.sqrt(np.mean((r[k:] - r[:-k]) ** 2) / 2.0)) if n > k else float("nan")
+    rms = float(np.sqrt(np.mean(r**2)))
+    slow = float(np.sqrt(max(rms**2 - noise**2, 0.0))) if np.isfinite(noise) else 0.0
+    cov_w = h_inv * (min(noise, rms) if np.isfinite(noise) else rms) ** 2 * n / dof
+    sc = jac * r[:, None]
+    meat = sc.T @ sc
     for k in range(1, min(int(lag), n - 1) + 1):
-        c = s[k:].T @ s[:-k]
+        c = sc[k:].T @ sc[:-k]
         meat += (1.0 - k / (lag + 1.0)) * (c + c.T)
     cov_h = h_inv @ meat @ h_inv * n / dof
-    shift = heading_shift(cal, delta, inclination_deg)
     names = {"covariance_params": param_names("full")}
     b_w = heading_bound(replace(cal, covariance=_tup(cov_w), extra=names), inclination_deg)
     b_h = heading_bound(replace(cal, covariance=_tup(cov_h), extra=names), inclination_deg)
-    worst = b_h if b_h.std_deg > b_w.std_deg else b_w
-    k = int(min(max(noise_lag, 1), max(n - 1, 1)))
-    noise = float(np.sqrt(np.mean((d[k:] - d[:-k]) ** 2) / 2.0)) if n > k else float("nan")
-    rms = float(np.sqrt(np.mean(d**2)))
-    slow = float(np.sqrt(max(rms**2 - noise**2, 0.0))) if np.isfinite(noise) else 0.0
-    horizontal = cal.field_uT * np.cos(np.radians(inclination_deg))
-    return {"std_deg": worst.std_deg, "white_std_deg": b_w.std_deg, "correlated_std_deg": b_h.std_deg,
+    worst, cov = (b_h, cov_h) if b_h.std_deg > b_w.std_deg else (b_w, cov_w)
+    field_err = float(np.degrees(slow / (cal.field_uT * np.cos(np.radians(inclination_deg)))))
+    shift = heading_shift(cal, delta, inclination_deg)
+    # F̄ = det(L)^(1/3): ∂F̄/∂l_k = F̄/3 · tr(L⁻¹ B_k)
+    grad_f = np.zeros(p)
+    grad_f[3:] = cal.field_uT / 3.0 * np.einsum("ij,kji->k", np.linalg.inv(L), basis)
+    return {"std_deg": float(np.sqrt(worst.std_deg**2 + field_err**2 + shift**2)),
+            "white_std_deg": b_w.std_deg, "correlated_std_deg": b_h.std_deg,
+            "field_error_deg": field_err, "model_shift_deg": shift,
             "offset_std_deg": worst.offset_std_deg,
             "direction": None if worst.direction is None else list(worst.direction),
             "direction_std_uT": worst.direction_std_uT,
-            "field_error_deg": float(np.degrees(slow / horizontal)), "model_shift_deg": shift,
+            "radius_std_uT": float(np.sqrt(max(grad_f @ cov @ grad_f, 0.0))),
             "residual_noise_uT": noise, "residual_slow_uT": slow,
             "inclination_deg": float(inclination_deg), "lag": int(lag), "noise_lag": k}
 
