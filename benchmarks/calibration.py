@@ -150,7 +150,8 @@ def timing(sizes=(100, 1000, 10000, 100000), scipy_max=10000, budget_s=1.0):
     out = {}
     for n in sizes:
         m, _ = sample(rng, n, b, L, 0.02 * F_UT)
-        for name, fit in list(METHODS.items()) + [("calibrate(auto) incl. coverage", lambda x: calibrate(x))]:
+        entries = list(METHODS.items()) + [("calibrate(auto) incl. acceptance", lambda x: calibrate(x))]
+        for name, fit in entries:
             if "scipy" in name and n > scipy_max:
                 out[(name, n)] = None
                 continue
@@ -166,6 +167,7 @@ def timing(sizes=(100, 1000, 10000, 100000), scipy_max=10000, budget_s=1.0):
 
 
 def real_data():
+    """``calibrate`` (auto, WMM from meta.json) on every tyrex-pdrcsv ``calib_mag_*`` recording."""
     from pdr_mag.field import earth_field_from_meta
     from replay.formats import read_recording
 
@@ -174,13 +176,14 @@ def real_data():
     for d in sorted(base.glob("calib_mag_*")):
         rec = read_recording(d)
         wmm = earth_field_from_meta(rec.meta)
-        for method in ("auto", "sphere", "als"):
-            cal = calibrate(rec.mag.xyz, method=method, field=wmm)
-            rows.append({"rec": d.name, "method": method, "model": cal.extra.get("model", "-"),
-                         "n": cal.n_samples, "field": cal.field_uT, "wmm": wmm.strength,
-                         "rms": cal.residual_rms_uT,
-                         "coverage": cal.coverage, "accepted": cal.accepted,
-                         "std": float(np.max(cal.offset_std_uT))})
+        cal = calibrate(rec.mag.xyz, field=wmm)
+        fig = cal.extra["heading"]
+        rows.append({"rec": d.name, "model": cal.extra.get("model", "-"), "n": cal.n_samples,
+                     "field": cal.field_uT, "wmm": wmm.strength, "rms": cal.residual_rms_uT,
+                     "coverage": cal.coverage, "accepted": cal.accepted,
+                     "std": float(np.max(cal.offset_std_uT)),
+                     "heading": fig["std_deg"], "white": fig["white_std_deg"],
+                     "correlated": fig["correlated_std_deg"], "field_err": fig["field_error_deg"]})
     return rows
 
 
@@ -315,51 +318,45 @@ def _deg(v: float) -> str:
     return "∞" if not np.isfinite(v) else f"{v:.0f}" if v >= 100 else f"{v:.2f}"
 
 
-def render(acc, hemi, tim, real, trials, suite) -> str:
-    lines = [SECTION, ""] + render_suite(suite, AcceptanceSettings()) + [
-             f"Measured by `python benchmarks/calibration.py --write` ({time.strftime('%Y-%m-%d')}, "
+def render(acc, hemi, tim, real, trials, suite, seed_sets) -> str:
+    s = AcceptanceSettings()
+    lines = [SECTION, "",
+             f"`python benchmarks/calibration.py --write` ({time.strftime('%Y-%m-%d')}, "
              f"{platform.processor() or platform.machine()}, Python {platform.python_version()}, "
-             f"numpy {np.__version__}).  Synthetic: offset ±100 µT, soft iron I + 0.15·N(0,1) (semi-axes "
-             f"≈ 40–60 µT), F = {F_UT:g} µT, isotropic Gaussian noise, {trials} trials of N = 300 "
-             "samples per row (same data for every method).  CRLB = sqrt(tr of the offset block of the "
-             "bound, crlb.py); shape = soft_iron (det 1) minus the truth, Frobenius; "
-             "bias = |mean error vector|; `se` its standard error.", ""]
-    for title, rows in (("Full sphere", acc), ("Hemisphere only (z ≥ 0), σ/F = 3 %", hemi)):
-        lines += [f"### {title}", "",
-                  "| σ/F | method | offset RMSE / CRLB | median /CRLB | offset bias µT (se) | shape RMS | "
-                  "shape bias | failed |",
-                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-        for r in rows:
-            lines.append(f"| {r['sigma']:.0%} | {r['method']} | {r['rmse_crlb']:.3f} | "
-                         f"{r['median_crlb']:.3f} | {r['bias']:.3f} ({r['bias_se']:.3f}) | "
-                         f"{r['shape_rms']:.4f} | {r['shape_bias']:.4f} | {r['fails']} |")
-        lines.append("")
+             f"numpy {np.__version__}).", ""]
+    lines += render_suite(suite, s)
+    tot = {k: sum(sm[k] for sm in seed_sets) for k in seed_sets[0]}
+    lines += [f"Same suite, seeds 1000, 2000, …, {1000 * len(seed_sets)} ({tot['n']} recordings): "
+              f"{tot['wrong_accepts']} wrong accepts, {tot['wrong_refusals']} wrong refusals of "
+              f"{tot['determined']}, {tot['untrue_reasons']} untrue reasons.", ""]
+    lines += ["### Real calibration recordings (tyrex-pdrcsv `calib_mag_*`, method auto, WMM from "
+              "meta.json)", "",
+              "| recording | model | N | radius / WMM − 1 | residual RMS µT | coverage | heading ° (white / "
+              "correlated / field) | accepted |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in real:
+        lines.append(f"| {r['rec']} | {r['model']} | {r['n']} | {r['field'] / r['wmm'] - 1:+.1%} | "
+                     f"{r['rms']:.2f} | {r['coverage']:.0%} | {r['heading']:.2f} ({r['white']:.2f} / "
+                     f"{r['correlated']:.2f} / {r['field_err']:.2f}) | {'yes' if r['accepted'] else 'no'} |")
+    lines += ["", f"### Accuracy against the Cramér–Rao bound (offset RMSE / CRLB, {trials} trials of "
+              "N = 300; offset ±100 µT, soft iron I + 0.15·N(0,1), F = 50 µT)", "",
+              "| method | σ/F 1 % | 3 % | 5 % | hemisphere 3 % | offset bias at hemisphere µT (se) |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for name in dict.fromkeys(r["method"] for r in acc):
+        cells = [next(r for r in acc if r["method"] == name and r["sigma"] == sf)
+                 for sf in (0.01, 0.03, 0.05)]
+        h = next(r for r in hemi if r["method"] == name)
+        lines.append(f"| {name} | " + " | ".join(f"{c['rmse_crlb']:.3f}" for c in cells)
+                     + f" | {h['rmse_crlb']:.3f} | {h['bias']:.3f} ({h['bias_se']:.3f}) |")
     sizes = sorted({n for (_, n) in tim})
-    lines += ["### Time per fit (median, ms; full sphere, σ/F = 2 %)", "",
+    lines += ["", "### Time per fit (median ms, full sphere, σ/F = 2 %, shared 2-core machine)", "",
               "| method | " + " | ".join(f"N = {n}" for n in sizes) + " |",
               "| --- | " + " | ".join("---" for _ in sizes) + " |"]
-    names = list(dict.fromkeys(k for (k, _) in tim))
-    for name in names:
-        cells = []
-        for n in sizes:
-            v = tim.get((name, n))
-            cells.append("—" if v is None else f"{1e3 * v:.2f}")
+    for name in ("ml (geometric)", "als (seed 004 ALS)", "calibrate(auto) incl. acceptance",
+                 "scipy least_squares geometric (ref)"):
+        cells = ["—" if tim.get((name, n)) is None else f"{1e3 * tim[(name, n)]:.2f}" for n in sizes]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    ref = "scipy least_squares geometric (ref)"
-    ratios = [f"N = {n}: {tim[(ref, n)] / tim[('ml (geometric)', n)]:.0f}×" for n in sizes
-              if tim.get((ref, n)) is not None]
-    lines += ["", "Speed of `ml` relative to the scipy reference (same data, same result to the solver "
-              "tolerance): " + ", ".join(ratios) + " faster.  (scipy is not run at N = 100 000: "
-              "200 009 unknowns.)",
-              ""]
-    lines += ["### Real recordings (tyrex-pdrcsv `calib_mag_*`, WMM from meta.json)", "",
-              "| recording | method | model | N | radius µT | WMM µT | radius/WMM − 1 | residual RMS µT | "
-              "offset 1-σ max µT | coverage | accepted |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in real:
-        lines.append(f"| {r['rec']} | {r['method']} | {r['model']} | {r['n']} | {r['field']:.2f} | "
-                     f"{r['wmm']:.2f} | {r['field'] / r['wmm'] - 1:+.1%} | {r['rms']:.2f} | {r['std']:.3f} | "
-                     f"{r['coverage']:.0%} | {'yes' if r['accepted'] else 'no'} |")
+    lines.append("")
     return "\n".join(lines) + "\n"
 
 
@@ -375,6 +372,7 @@ def main() -> None:
     ap.add_argument("--write", action="store_true", help="update benchmarks/RESULTS.md")
     ap.add_argument("--suite", action="store_true", help="run and print the acceptance suite only")
     ap.add_argument("--seed-base", type=int, default=1000, help="seed of the suite's first recording")
+    ap.add_argument("--seed-sets", type=int, default=4, help="seed sets summed in the suite's summary line")
     args = ap.parse_args()
     suite = acceptance_suite(seed_base=args.seed_base)
     if args.suite:
@@ -383,11 +381,13 @@ def main() -> None:
             if r["got"] == "refuse":
                 print(f"- {r['name']} ({r['should']}): " + " | ".join(r["reasons"]))
         return
+    seed_sets = [suite_summary(suite)] + [suite_summary(acceptance_suite(seed_base=1000 * k))
+                                          for k in range(2, args.seed_sets + 1)]
     acc = accuracy(args.trials)
     hemi = accuracy(args.trials, cover="hemi", sig_fracs=(0.03,))
     tim = timing()
     real = real_data()
-    text = render(acc, hemi, tim, real, args.trials, suite)
+    text = render(acc, hemi, tim, real, args.trials, suite, seed_sets)
     print(text)
     if args.write:
         write_section(text)

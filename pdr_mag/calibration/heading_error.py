@@ -35,6 +35,7 @@ axis perpendicular to ``a`` sweeps ``a`` through the field, which is the motion 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -120,13 +121,26 @@ def inclination_of(field, default_deg: float = DEFAULT_INCLINATION_DEG) -> float
     return float(default_deg if inc is None or not np.isfinite(inc) else inc)
 
 
-def _sensitivity(linv: np.ndarray, basis: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """``K(u) = L⁻¹ [I, B_k u]`` (n, 3, 3 + K) at the unit field directions ``u`` (n, 3)."""
-    g = np.empty((len(u), 3, 3 + len(basis)))
-    g[:, :, :3] = np.eye(3)
-    if len(basis):
-        g[:, :, 3:] = np.einsum("kij,nj->nik", basis, u)
-    return np.einsum("ij,njp->nip", linv, g)
+@lru_cache(maxsize=4)
+def _grid(n: int = 600) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Field directions ``u`` (n, 3) and an orthonormal basis ``e1, e2`` of the plane ⊥ each (read-only)."""
+    u = fibonacci_directions(n)
+    ref = np.where(np.abs(u[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(u, ref)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(u, e1)
+    for a in (u, e1, e2):
+        a.flags.writeable = False
+    return u, e1, e2
+
+
+def _tangent_sensitivity(linv: np.ndarray, basis: np.ndarray, u: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``eᵀ K(u)`` (n, 3 + K), ``K(u) = L⁻¹ [I, B_k u]``: the heading-plane component ``e`` (⊥ u) of the
+    direction error per unit parameter change, at the field directions ``u`` (n, 3)."""
+    v = e @ linv.T  # (L⁻ᵀ e)ᵀ = eᵀ L⁻¹
+    if not len(basis):
+        return v
+    return np.hstack([v, np.einsum("ni,kij,nj->nk", v, basis, u)])
 
 
 def heading_shift(cal: MagCalibration, delta, inclination_deg: float = DEFAULT_INCLINATION_DEG) -> float:
@@ -134,17 +148,18 @@ def heading_shift(cal: MagCalibration, delta, inclination_deg: float = DEFAULT_I
     ``delta`` = (δb, δl) (9,) at ``cal``: ``max_u |P_u K(u) δθ| / cos I`` (module docstring)."""
     from pdr_mag.calibration.geometry import sym_basis
 
-    u = fibonacci_directions()
-    e = np.einsum("nip,p->ni", _sensitivity(cal.soft_iron_array / cal.field_uT, sym_basis("full"), u),
-                  np.asarray(delta, dtype=float))
-    e -= np.sum(e * u, axis=1)[:, None] * u
-    return float(np.degrees(np.max(np.linalg.norm(e, axis=1)) / np.cos(np.radians(inclination_deg))))
+    u, e1, e2 = _grid()
+    linv, basis, d = cal.soft_iron_array / cal.field_uT, sym_basis("full"), np.asarray(delta, dtype=float)
+    x1, x2 = _tangent_sensitivity(linv, basis, u, e1) @ d, _tangent_sensitivity(linv, basis, u, e2) @ d
+    return float(np.degrees(np.sqrt(np.max(x1 * x1 + x2 * x2)) / np.cos(np.radians(inclination_deg))))
 
 
-def heading_bound(cal: MagCalibration, inclination_deg: float = DEFAULT_INCLINATION_DEG,
-                  directions: np.ndarray | None = None) -> HeadingBound:
+def heading_bound(cal: MagCalibration, inclination_deg: float = DEFAULT_INCLINATION_DEG) -> HeadingBound:
     """The worst-case 1-σ heading error that ``cal.covariance`` allows (module docstring).
 
+    With ``Σ = C Cᵀ`` and ``z_j = e_jᵀ K(u) C`` for the basis ``e1, e2`` of the plane ⊥ u, the 2 × 2
+    matrix ``[z_j · z_k]`` is ``P_u K Σ Kᵀ P_u`` in that plane; its largest eigenvalue
+    ``(a + c)/2 + sqrt(((a − c)/2)² + b²)`` is maximised over the grid of 600 directions.
     ``std_deg`` is ``inf`` (and ``direction`` None) when the covariance is missing or not finite, or the
     field radius or soft iron cannot be inverted.
     """
@@ -164,12 +179,13 @@ def heading_bound(cal: MagCalibration, inclination_deg: float = DEFAULT_INCLINAT
     except (ValueError, np.linalg.LinAlgError):
         return nothing
     cos_i = np.cos(np.radians(inclination_deg))
-    u = fibonacci_directions() if directions is None else np.asarray(directions, dtype=float)
-    kmat = _sensitivity(linv, basis, u)
-    m = np.einsum("nip,pq,njq->nij", kmat, cov, kmat)
-    proj = np.eye(3) - u[:, :, None] * u[:, None, :]
-    mp = np.einsum("nij,njk,nkl->nil", proj, m, proj)
-    lam = np.linalg.eigvalsh(0.5 * (mp + np.transpose(mp, (0, 2, 1))))[:, -1]
+    w, v = np.linalg.eigh(cov)
+    c = v * np.sqrt(np.maximum(w, 0.0))
+    u, e1, e2 = _grid()
+    z1 = _tangent_sensitivity(linv, basis, u, e1) @ c
+    z2 = _tangent_sensitivity(linv, basis, u, e2) @ c
+    a11, a22, a12 = np.sum(z1 * z1, axis=1), np.sum(z2 * z2, axis=1), np.sum(z1 * z2, axis=1)
+    lam = 0.5 * (a11 + a22) + np.sqrt(0.25 * (a11 - a22) ** 2 + a12**2)
     std = float(np.sqrt(max(lam.max(), 0.0)) / cos_i)
     cb = linv @ cov[:3, :3] @ linv.T
     off = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cb + cb.T))[-1], 0.0)) / cos_i)
@@ -285,9 +301,9 @@ def fit_figures(mag: np.ndarray, cal: MagCalibration, inclination_deg: float = D
     cov_w = h_inv * (min(noise, rms) if np.isfinite(noise) else rms) ** 2 * n / dof
     sc = jac * r[:, None]
     meat = sc.T @ sc
-    for k in range(1, min(int(lag), n - 1) + 1):
-        c = sc[k:].T @ sc[:-k]
-        meat += (1.0 - k / (lag + 1.0)) * (c + c.T)
+    for j in range(1, min(int(lag), n - 1) + 1):
+        c = sc[j:].T @ sc[:-j]
+        meat += (1.0 - j / (lag + 1.0)) * (c + c.T)
     cov_h = h_inv @ meat @ h_inv * n / dof
     names = {"covariance_params": param_names("full")}
     b_w = heading_bound(replace(cal, covariance=_tup(cov_w), extra=names), inclination_deg)
