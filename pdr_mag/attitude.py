@@ -76,6 +76,8 @@ from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.state import (
     DIAG_NAMES,
+    FLAG_COLS,
+    FLOAT_COLS,
     PARAMS,
     STATE,
     new_rows,
@@ -88,6 +90,7 @@ from pdr_mag.interference import InterferenceSettings
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 4
 _NO_CUTS = np.empty(0, dtype=np.intp)
+_NO_SNAPS = np.empty(0, dtype=STATE)
 
 
 @dataclass(frozen=True)
@@ -277,6 +280,7 @@ class FusionCore:
         self._p = self.settings.as_params()
         self._ip = self.settings.interference.as_params()
         self._st = new_state()
+        self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
         self._ref_strength: float | None = None
         self.snapshots: list = []  # kept by process(snapshot_at=…)
         self.field: EarthField | None = None
@@ -339,25 +343,30 @@ class FusionCore:
         """:meth:`process` on checked input: contiguous ``kind`` (int8), ``t``, ``xyz`` (float64),
         ``allowed`` (bool), ``cuts`` (intp, the ``snapshot_at``), ``m`` ≥ the number of gyro samples; the
         rows' ``cal_state`` is ``cal_state``."""
-        out = new_rows(m)
-        snaps = np.empty(len(cuts), dtype=STATE)
+        floats, q, flags = new_rows(m)
+        snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
-        k = kernel.run_cut(kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps, out)
+        k = kernel.run_cut(kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps, floats, q, flags)
         ref = self._ref_strength
-        self.snapshots = [(snaps[j : j + 1], ref) for j in range(len(cuts))]
-        heading = np.arctan2(out.h_y[:k], out.h_x[:k])
+        self.snapshots = (
+            [(raw, ref) for raw in snaps.view(np.uint8).reshape(len(cuts), -1)] if len(cuts) else []
+        )
+        col = dict(zip(FLOAT_COLS, floats[:, :k], strict=True)) | dict(
+            zip(FLAG_COLS, flags[:, :k], strict=True)
+        )
+        heading = np.arctan2(col["h_y"], col["h_x"])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
         return EstimateBatch(
-            t=out.t[:k],
-            q_wd=out.q[:k],
+            t=col["t"],
+            q_wd=q[:k],
             heading_deg=heading,
-            heading_std_deg=out.heading_std_deg[:k],
-            mag_used=out.mag_used[:k],
-            interference=out.interference[:k],
+            heading_std_deg=col["heading_std_deg"],
+            mag_used=col["mag_used"],
+            interference=col["interference"],
             cal_state=np.full(k, cal_state, dtype="<U13"),
-            diag={name: getattr(out, name)[:k] for name in DIAG_NAMES},
+            diag={name: col[name] for name in DIAG_NAMES},
         )
 
     # ------------------------------------------------------------------ state
@@ -379,14 +388,14 @@ class FusionCore:
         }
 
     def _snapshot(self) -> tuple:
-        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state record; not serialisable)."""
-        return self._st.copy(), self._ref_strength
+        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state's bytes; not serialisable)."""
+        return self._raw.copy(), self._ref_strength
 
     def _restore(self, snap: tuple) -> None:
         """Put back a :meth:`_snapshot` (as :meth:`set_state` does for a :meth:`get_state` dict: the
         reference field of this object wins)."""
-        st, self._ref_strength = snap
-        self._st = st.copy()
+        raw, self._ref_strength = snap
+        self._raw[:] = raw
         self.set_field(self.field)
 
     def set_state(self, state: dict) -> None:
@@ -394,7 +403,7 @@ class FusionCore:
         except the strength reference, which is restored)."""
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
             raise ValueError(f"state: expected a FusionCore state dict of version {STATE_VERSION}")
-        self._st = state_from_json(STATE, state.get("state"), "state['state']")
+        self._st[:] = state_from_json(STATE, state.get("state"), "state['state']")
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)

@@ -229,6 +229,24 @@ def test_state_round_trip_through_json(walk):
         second.set_state(broken)
 
 
+def test_output_columns_are_named_in_order():
+    """The kernel's named output columns are the rows of the blocks that FusionCore reads by name."""
+    from pdr_mag.fusion.kernel import named_rows
+    from pdr_mag.fusion.state import FLAG_COLS, FLOAT_COLS, Rows, new_rows
+
+    floats, q, flags = new_rows(3)
+    floats[:] = np.arange(len(FLOAT_COLS))[:, None]
+    q[:] = -1.0
+    for i, name in enumerate(FLAG_COLS):
+        flags[:] = False
+        flags[i] = True
+        rows = named_rows(floats, q, flags)
+        assert isinstance(rows, Rows) and np.all(getattr(rows, name))
+        assert not any(np.any(getattr(rows, other)) for other in FLAG_COLS if other != name)
+    assert all(np.all(getattr(rows, name) == i) for i, name in enumerate(FLOAT_COLS))
+    assert np.all(rows.q == -1.0)
+
+
 def test_every_setting_reaches_the_kernel():
     """Each FusionSettings attribute fills one PARAMS field (``*_deg`` in rad, the rate as a period) and
     each PARAMS field comes from one setting."""

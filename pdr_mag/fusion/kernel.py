@@ -25,6 +25,7 @@ from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_deg
 from pdr_mag.fusion.gyro import gyro_step
 from pdr_mag.fusion.mag import mag_step
+from pdr_mag.fusion.state import Rows
 
 
 @njit(cache=True, error_model="numpy")
@@ -91,16 +92,29 @@ def _write_row(st, ti, out, n):
 
 
 @njit(cache=True, error_model="numpy")
-def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, out):
+def named_rows(floats, q, flags):
+    """The :class:`~pdr_mag.fusion.state.Rows` of the blocks of :func:`~pdr_mag.fusion.state.new_rows`:
+    row i of ``floats`` is column ``FLOAT_COLS[i]``, row i of ``flags`` column ``FLAG_COLS[i]``."""
+    return Rows(
+        floats[0], floats[1], floats[2], floats[3], floats[4], floats[5], floats[6], floats[7], floats[8],
+        floats[9], floats[10], floats[11], floats[12], floats[13], floats[14], floats[15], floats[16],
+        q, flags[0], flags[1],
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, floats, q, flags):
     """:func:`run` over the whole chunk with a copy of the state put in ``snaps[j]`` before sample
     ``cuts[j]`` (increasing); then each row's quaternion sign made non-negative in w and its heading's
-    ``arctan2`` arguments written (``out.h_y``, ``out.h_x``).  ``state``, ``params`` and ``iparams`` are
+    ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state``, ``params`` and ``iparams`` are
     one-element arrays of :data:`~pdr_mag.fusion.state.STATE`, :data:`~pdr_mag.fusion.state.PARAMS` and
-    :data:`pdr_mag.interference.PARAMS`.  Returns the number of rows (the rows of one :func:`run` call per
-    piece: the same rows, cut or not)."""
+    :data:`pdr_mag.interference.PARAMS`; ``floats``, ``q``, ``flags`` the output blocks of
+    :func:`~pdr_mag.fusion.state.new_rows`.  Returns the number of rows (the rows of one :func:`run` call
+    per piece: the same rows, cut or not)."""
     st = state[0]
     p = params[0]
     ip = iparams[0]
+    out = named_rows(floats, q, flags)
     n = len(t)
     k = 0
     a = 0
@@ -111,7 +125,6 @@ def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, out):
         if j < len(cuts):
             snaps[j] = st
         a = b
-    q = out.q
     for i in range(k):
         s = -1.0 if q[i, 0] < 0 else 1.0
         for c in range(4):

@@ -2,9 +2,9 @@
 
 The compiled kernels (:mod:`pdr_mag.fusion.kernel` and the modules it calls) read and write one record of
 :data:`STATE`, read one record of :data:`PARAMS` (the :class:`pdr_mag.attitude.FusionSettings` in the
-kernel's units) and one of :data:`pdr_mag.interference.PARAMS`, and write their output into the columns
-of an :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its fields
-are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
+kernel's units) and one of :data:`pdr_mag.interference.PARAMS`, and write their output into the named
+columns of a :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its
+fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
 Error state (the rows and columns of ``P``): ``δθ`` (3, world frame; ``δθ_z`` is the heading error),
@@ -128,21 +128,22 @@ DIAG_NAMES = (
     "consistency_deg",
 )
 
-#: output columns the kernel writes, one row per output gyroscope sample: time, attitude (w ≥ 0), heading
-#: std (deg), the two flags, the arguments ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the
-#: heading's ``arctan2``, and the diagnostics
-Rows = namedtuple(
-    "Rows", ("t", "q", "heading_std_deg", "mag_used", "interference", "h_y", "h_x", *DIAG_NAMES)
-)
+#: float columns of the output, one row per output gyroscope sample: time, heading std (deg), the arguments
+#: ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, and the diagnostics;
+#: in the order of the rows of the float block of :func:`new_rows`
+FLOAT_COLS = ("t", "heading_std_deg", "h_y", "h_x", *DIAG_NAMES)
+#: flag columns: the magnetometer corrected the heading / the interference flag was up, since the last row
+FLAG_COLS = ("mag_used", "interference")
+#: the output columns by name, as the kernel writes them (:func:`pdr_mag.fusion.kernel.named_rows`);
+#: ``q`` the attitude (m, 4), w ≥ 0
+Rows = namedtuple("Rows", (*FLOAT_COLS, "q", *FLAG_COLS))
 
 
-def new_rows(m: int) -> Rows:
-    """Room for ``m`` output rows."""
-    cols = {name: np.empty(m) for name in Rows._fields}
-    cols["q"] = np.empty((m, 4))
-    cols["mag_used"] = np.empty(m, dtype=np.bool_)
-    cols["interference"] = np.empty(m, dtype=np.bool_)
-    return Rows(**cols)
+def new_rows(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Room for ``m`` output rows: the float block (``FLOAT_COLS`` × m), the attitudes (m × 4) and the flag
+    block (``FLAG_COLS`` × m); each column contiguous.  (Three arrays: what crosses into the compiled code
+    cheaply; :func:`pdr_mag.fusion.kernel.named_rows` names their rows.)"""
+    return np.empty((len(FLOAT_COLS), m)), np.empty((m, 4)), np.empty((len(FLAG_COLS), m), dtype=np.bool_)
 
 
 def new_state() -> np.ndarray:
