@@ -38,7 +38,7 @@ from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotation_matrix, update, update_h
 from pdr_mag.fusion.gyro import ew_stats_step
-from pdr_mag.fusion.state import NX
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import ew_alpha
 
 
@@ -84,13 +84,13 @@ def init_tilt(s, ax, ay, az, p):
         for m in range(NX):
             P[i, m] = 0.0
     t0 = p.tilt0_std**2
-    P[0, 0] = t0
-    P[1, 1] = t0
-    P[2, 2] = np.pi**2
+    P[TH_X, TH_X] = t0
+    P[TH_Y, TH_Y] = t0
+    P[TH_Z, TH_Z] = np.pi**2
     b0 = p.bias0_std**2
-    for i in range(3, 6):
+    for i in range(BIAS, BIAS + 3):
         P[i, i] = b0
-    P[6, 6] = p.mag_error_std_rad**2
+    P[C_ERR, C_ERR] = p.mag_error_std_rad**2
     s.c = 0.0
     s.init = 1
 
@@ -132,8 +132,8 @@ def accel_step(s, R, ax, ay, az, t, p):
     uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
     uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
     dx = np.zeros(NX)
-    update(s.P, dx, 1, -1.0, uxw, rv)
-    update(s.P, dx, 0, 1.0, uyw, rv)
+    update(s.P, dx, TH_Y, -1.0, uxw, rv)
+    update(s.P, dx, TH_X, 1.0, uyw, rv)
     inject(s, dx)
 
 
@@ -164,13 +164,13 @@ def _averaged_update(s, R, ax, ay, az, t, p):
     tau = p.acc_tau_s
     hx = np.zeros(NX)
     hy = np.zeros(NX)
-    hx[1] = -1.0
-    hy[0] = 1.0
-    for m in range(3):
-        hx[3 + m] = -tau * R[1, m]
-        hy[3 + m] = tau * R[0, m]
+    hx[TH_Y] = -1.0
+    hy[TH_X] = 1.0
+    for m in range(3):  # the tilt error of τ ago: δθ(t − τ) = δθ(t) + τ R δb
+        hx[BIAS + m] = -tau * R[1, m]
+        hy[BIAS + m] = tau * R[0, m]
     dx = np.zeros(NX)
-    unknown = s.init < 2
+    unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
     update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)
     update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown)
     inject(s, dx)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.state import NX
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
 
 # ------------------------------------------------------------------------------------------ quaternions
@@ -140,11 +140,11 @@ def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False):
     for i in range(NX):
         k[i] = col[i] / S
     if consider_tilt:
-        k[0] = 0.0
-        k[1] = 0.0
+        k[TH_X] = 0.0
+        k[TH_Y] = 0.0
     if consider_heading:
-        k[2] = 0.0
-        k[6] = 0.0
+        k[TH_Z] = 0.0
+        k[C_ERR] = 0.0
     for i in range(NX):
         dx[i] += k[i] * r
     for i in range(NX):
@@ -161,14 +161,15 @@ def inject(s, dx):
     corrected frame (the consistency check then measures the field's motion against the gyro-propagated
     frame, whatever the filter concluded from it).
     """
-    rotate_world(s.q, dx[0], dx[1], dx[2])
+    ex, ey, ez = dx[TH_X], dx[TH_Y], dx[TH_Z]
+    rotate_world(s.q, ex, ey, ez)
     if np.isfinite(s.acc_w[0]):
-        rotate_vector(s.acc_w, dx[0], dx[1], dx[2])
+        rotate_vector(s.acc_w, ex, ey, ez)
     if np.isfinite(s.det.mw[0]):
-        rotate_vector(s.det.mw, dx[0], dx[1], dx[2])
+        rotate_vector(s.det.mw, ex, ey, ez)
     for i in range(3):
-        s.b[i] += dx[3 + i]
-    s.c += dx[6]
+        s.b[i] += dx[BIAS + i]
+    s.c += dx[C_ERR]
     for i in range(NX):
         dx[i] = 0.0
     P = s.P

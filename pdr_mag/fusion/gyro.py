@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_body, rotation_matrix, update
-from pdr_mag.fusion.state import NX
+from pdr_mag.fusion.state import BIAS, NX, TH_Z
 from pdr_mag.interference import ew_alpha
 
 #: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
@@ -52,7 +52,7 @@ def predict(s, R, wx, wy, wz, dt, p):
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
     P = s.P
-    # blocks A (attitude), B (attitude–bias), C (bias) of P; G = −R Δt
+    # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
     A = np.empty((3, 3))
     B = np.empty((3, 3))
     C = np.empty((3, 3))
@@ -103,18 +103,18 @@ def predict(s, R, wx, wy, wz, dt, p):
             P[3 + m, i] = bb
             if i == m:
                 P[3 + i, 3 + m] = C[i, m] + qb
-    if P[2, 2] > np.pi**2:
-        fs = np.pi / np.sqrt(P[2, 2])
+    if P[TH_Z, TH_Z] > np.pi**2:  # an unknown heading is uniform
+        fs = np.pi / np.sqrt(P[TH_Z, TH_Z])
         for i in range(NX):
-            P[2, i] *= fs
-            P[i, 2] *= fs
+            P[TH_Z, i] *= fs
+            P[i, TH_Z] *= fs
 
 
 @njit(cache=True, error_model="numpy")
 def inflate_attitude(P, v):
     """Add v (rad²) to the variance of each attitude error; tilt capped at TILT_VAR_MAX, heading at π²."""
     for j in range(3):
-        cap = np.pi**2 if j == 2 else TILT_VAR_MAX
+        cap = np.pi**2 if j == TH_Z else TILT_VAR_MAX
         vj = min(v, max(cap - P[j, j], 0.0))
         P[j, j] += vj
 
@@ -149,9 +149,9 @@ def gyro_step(s, R, wx, wy, wz, t, p):
             oz = 0.5 * (wz + s.w_gyro[2]) - s.b[2]
             if dt <= p.max_dt:
                 predict(s, R, ox, oy, oz, dt, p)
-                if dt > GAP_DT:
+                if dt > GAP_DT:  # a gap: the rate in between is known to the recent motion level only
                     inflate_attitude(s.P, s.gyro_stats.var * (dt - GAP_DT) ** 2)
-            else:
+            else:  # too long to integrate: P only, and the unknown rotation meanwhile
                 predict(s, R, 0.0, 0.0, 0.0, dt, p)
                 inflate_attitude(s.P, (ox * ox + oy * oy + oz * oz + s.gyro_stats.var) * dt * dt)
         still = (s.gyro_stats.var < p.still_gyro**2) and (s.acc_stats.var < p.still_acc**2)
@@ -161,10 +161,10 @@ def gyro_step(s, R, wx, wy, wz, t, p):
             if t - s.still_since >= p.still_min_s:
                 dx = np.zeros(NX)
                 dtg = min(max(t - s.t_gyro, 1e-4), 0.1) if np.isfinite(s.t_gyro) else 0.01
-                rv = p.zupt_noise**2 / dtg
-                update(s.P, dx, 3, 1.0, wx - s.b[0], rv)
-                update(s.P, dx, 4, 1.0, wy - s.b[1], rv)
-                update(s.P, dx, 5, 1.0, wz - s.b[2], rv)
+                rv = p.zupt_noise**2 / dtg  # a noise density: the same information per second at any rate
+                update(s.P, dx, BIAS, 1.0, wx - s.b[0], rv)
+                update(s.P, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
+                update(s.P, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
                 inject(s, dx)
         else:
             s.still_since = np.nan

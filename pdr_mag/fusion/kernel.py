@@ -25,7 +25,7 @@ from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_deg
 from pdr_mag.fusion.gyro import gyro_step
 from pdr_mag.fusion.mag import mag_step
-from pdr_mag.fusion.state import Rows
+from pdr_mag.fusion.state import TH_Z, Rows
 
 
 @njit(cache=True, error_model="numpy")
@@ -70,7 +70,7 @@ def _write_row(st, ti, out, n):
     out.t[n] = ti
     for c in range(4):
         out.q[n, c] = st.q[c]
-    out.heading_std_deg[n] = np.degrees(np.sqrt(max(st.P[2, 2], 0.0)))
+    out.heading_std_deg[n] = np.degrees(np.sqrt(max(st.P[TH_Z, TH_Z], 0.0)))
     out.mag_used[n] = st.mag_used
     out.interference[n] = st.det.flag or st.interference_seen
     st.mag_used = False

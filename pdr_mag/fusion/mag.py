@@ -51,7 +51,7 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
-from pdr_mag.fusion.state import NX
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of
 
 
@@ -72,7 +72,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     mwy = (R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz) / f
     mwz = (R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz) / f
     P = s.P
-    sb = np.sqrt(max(P[3, 3] + P[4, 4] + P[5, 5], 0.0))
+    sb = np.sqrt(max(P[BIAS, BIAS] + P[BIAS + 1, BIAS + 1] + P[BIAS + 2, BIAS + 2], 0.0))  # σ_b
     det = s.det
     flag = detect_step(det, f, dip, mwx, mwy, mwz, t, s.f_ref, s.dip_ref, np.degrees(sb), ip)
     if flag:
@@ -105,21 +105,23 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     # --- measurement row: tilt (consider states), heading, c
     bh2 = mwx * mwx + mwy * mwy
     h = np.zeros(NX)
-    h[0] = -p.mag_tilt_k * mwx * mwz / bh2
-    h[1] = -p.mag_tilt_k * mwy * mwz / bh2
-    h[2] = 1.0
-    h[6] = 1.0
+    h[TH_X] = -p.mag_tilt_k * mwx * mwz / bh2
+    h[TH_Y] = -p.mag_tilt_k * mwy * mwz / bh2
+    h[TH_Z] = 1.0
+    h[C_ERR] = 1.0
     if s.init < 2:
         _first_fix(s, h, r, rv, t)
         return
     r = wrap(r - s.c)
+    # χ² gate with the undisturbed noise
     S = rv_clean
     for i in range(NX):
         for m in range(NX):
             S += h[i] * P[i, m] * h[m]
     if r * r > p.mag_gate**2 * S:
+        # a clean-looking field that keeps disagreeing: let the heading's variance grow
         if np.isfinite(s.t_reject):
-            P[2, 2] += p.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
+            P[TH_Z, TH_Z] += p.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
         s.t_reject = t
         return
     s.t_reject = np.nan
@@ -141,15 +143,18 @@ def _first_fix(s, h, r, rv, t):
         x0, y0 = aw[0], aw[1]
         aw[0], aw[1] = c * x0 - sn * y0, sn * x0 + c * y0
     P = s.P
+    x, y, z = TH_X, TH_Y, TH_Z
     for i in range(NX):
-        P[2, i] = 0.0
-        P[i, 2] = 0.0
-    rt = h[0] * h[0] * P[0, 0] + 2.0 * h[0] * h[1] * P[0, 1] + h[1] * h[1] * P[1, 1]
-    P[2, 2] = rv + P[6, 6] + rt + 2.0 * (h[0] * P[0, 6] + h[1] * P[1, 6])
-    for j in (0, 1, 3, 4, 5, 6):
-        v = -P[6, j] - h[0] * P[0, j] - h[1] * P[1, j]
-        P[2, j] = v
-        P[j, 2] = v
+        P[z, i] = 0.0
+        P[i, z] = 0.0
+    # δθ_z = −(δc + h_t·δθ_xy + n)
+    rt = h[x] * h[x] * P[x, x] + 2.0 * h[x] * h[y] * P[x, y] + h[y] * h[y] * P[y, y]
+    P[z, z] = rv + P[C_ERR, C_ERR] + rt + 2.0 * (h[x] * P[x, C_ERR] + h[y] * P[y, C_ERR])
+    for j in range(NX):
+        if j != z:
+            v = -P[C_ERR, j] - h[x] * P[x, j] - h[y] * P[y, j]
+            P[z, j] = v
+            P[j, z] = v
     s.init = 2
     s.t_mag_update = t
     s.mag_used = True

@@ -22,8 +22,9 @@ from pdr_mag.interference import DETECTOR_STATE, new_detector_state
 
 #: size of the error state (δθ, δb, δc)
 NX = 7
-#: error-state indices: attitude error about east, north, up (world frame); first gyro-bias error; c
-TH_X, TH_Y, TH_Z, B_X, C = 0, 1, 2, 3, 6
+#: rows of ``P``: attitude error about east, north, up (world frame), the first of the three gyro-bias errors
+#: (device x, y, z), the magnetometer heading error c
+TH_X, TH_Y, TH_Z, BIAS, C_ERR = 0, 1, 2, 3, 6
 
 #: exponentially weighted mean and mean square deviation of a 3-vector stream (the still detector)
 EW_STATS = np.dtype([("mean", np.float64, (3,)), ("var", np.float64)], align=True)
