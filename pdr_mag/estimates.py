@@ -12,16 +12,7 @@ import numpy as np
 
 #: ``replay --out-csv`` columns (INTERFACE.md); more may follow, none renamed.
 CSV_COLUMNS = (
-    "t",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "heading_deg",
-    "heading_std_deg",
-    "mag_used",
-    "interference",
-    "cal_state",
+    "t", "qw", "qx", "qy", "qz", "heading_deg", "heading_std_deg", "mag_used", "interference", "cal_state",
 )
 
 #: Calibration states written in ``cal_state``.

@@ -704,3 +704,5 @@ def _kind_name(kind) -> str:
         return _NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
+
+

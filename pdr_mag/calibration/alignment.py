@@ -64,17 +64,10 @@ class Alignment:
     reason: str = ""
 
     def to_dict(self) -> dict:
-        return {
-            "angle_deg": self.angle_deg,
-            "angle_std_deg": self.angle_std_deg,
-            "significant": self.significant,
-            "sin_dip": self.sin_dip,
-            "dip_rms": self.dip_rms,
-            "n_used": self.n_used,
-            "spread_deg": self.spread_deg,
-            "reason": self.reason,
-            "rotation": self.rotation.tolist(),
-        }
+        return {"angle_deg": self.angle_deg, "angle_std_deg": self.angle_std_deg,
+                "significant": self.significant, "sin_dip": self.sin_dip, "dip_rms": self.dip_rms,
+                "n_used": self.n_used, "spread_deg": self.spread_deg, "reason": self.reason,
+                "rotation": self.rotation.tolist()}
 
 
 def _hat(v: np.ndarray) -> np.ndarray:
@@ -119,14 +112,8 @@ def resample(t_src: np.ndarray, xyz_src: np.ndarray, t_dst: np.ndarray, window_s
     return out
 
 
-def quasi_static_accel(
-    t_acc: np.ndarray,
-    accel: np.ndarray,
-    t_dst: np.ndarray,
-    window_s: float = 0.5,
-    max_std: float = 0.3,
-    max_norm_dev: float = 0.5,
-) -> np.ndarray:
+def quasi_static_accel(t_acc: np.ndarray, accel: np.ndarray, t_dst: np.ndarray, window_s: float = 0.5,
+                       max_std: float = 0.3, max_norm_dev: float = 0.5) -> np.ndarray:
     """Low-passed specific force at ``t_dst`` where the device is quasi-static, NaN elsewhere.
 
     Quasi-static: over a window of ``window_s`` seconds the accelerometer's standard deviation (norm of the
@@ -154,17 +141,10 @@ def quasi_static_accel(
     return out
 
 
-def fit_alignment(
-    mag_cal: np.ndarray,
-    accel: np.ndarray,
-    static_tol: float = 0.5,
-    min_angle_deg: float = 1.0,
-    min_samples: int = 30,
-    max_iter: int = 20,
-    sin_dip: float | None = None,
-    min_spread_deg: float = 15.0,
-    max_dip_error: float = 0.05,
-) -> Alignment | None:
+def fit_alignment(mag_cal: np.ndarray, accel: np.ndarray, static_tol: float = 0.5,
+                  min_angle_deg: float = 1.0, min_samples: int = 30, max_iter: int = 20,
+                  sin_dip: float | None = None, min_spread_deg: float = 15.0,
+                  max_dip_error: float = 0.05) -> Alignment | None:
     """Magnetometer → IMU rotation from the constancy of the dip angle (module docstring).
 
     Parameters
@@ -243,8 +223,7 @@ def fit_alignment(
         reason = f"static samples in too few poses (gravity spread {spread:.1f}° < {min_spread_deg:g}°)"
     elif not consistent:
         reason = f"fitted dip constant {c:+.3f} inconsistent" + (
-            f" with the WMM ({sin_dip:+.3f})" if sin_dip is not None else " (degenerate)"
-        )
+            f" with the WMM ({sin_dip:+.3f})" if sin_dip is not None else " (degenerate)")
     elif np.degrees(angle) <= min_angle_deg:
         reason = f"angle below {min_angle_deg:g}°"
     elif not stat > CHI2_3_999:
@@ -252,17 +231,10 @@ def fit_alignment(
     else:
         reason = ""
     significant = not reason
-    return Alignment(
-        rotation=r,
-        angle_deg=float(np.degrees(angle)),
-        angle_std_deg=float(np.degrees(angle_std)),
-        significant=significant,
-        sin_dip=float(c),
-        dip_rms=float(np.sqrt(np.mean(res**2))),
-        n_used=int(n),
-        spread_deg=spread,
-        reason=reason,
-    )
+    return Alignment(rotation=r, angle_deg=float(np.degrees(angle)),
+                     angle_std_deg=float(np.degrees(angle_std)), significant=significant,
+                     sin_dip=float(c), dip_rms=float(np.sqrt(np.mean(res**2))),
+                     n_used=int(n), spread_deg=spread, reason=reason)
 
 
 def fit_reference_rotation(mag_cal: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -116,9 +116,8 @@ def direction_stats(mag_cal: np.ndarray, n_bands: int = 8, n_sectors: int = 16) 
     }
 
 
-def accept(
-    cal: MagCalibration, field: float | None = None, settings: AcceptanceSettings | None = None
-) -> MagCalibration:
+def accept(cal: MagCalibration, field: float | None = None,
+           settings: AcceptanceSettings | None = None) -> MagCalibration:
     """The verdict: a copy of ``cal`` with ``accepted`` and human-readable ``reasons``.
 
     Uses ``cal.n_samples``, ``cal.coverage``, ``cal.extra`` (``worst_cap_coverage``, ``out_of_plane_deg``,
@@ -134,44 +133,31 @@ def accept(
         reasons.append(f"too few samples: {cal.n_samples} < {s.min_samples}")
     plane = ex.get("out_of_plane_deg")
     if plane is not None and plane < s.min_out_of_plane_deg:
-        reasons.append(
-            f"nearly planar rotation: field directions leave their plane by only {plane:.1f}° "
-            f"(< {s.min_out_of_plane_deg:g}°); turn the phone about all its axes"
-        )
+        reasons.append(f"nearly planar rotation: field directions leave their plane by only {plane:.1f}° "
+                       f"(< {s.min_out_of_plane_deg:g}°); turn the phone about all its axes")
     cap = ex.get("worst_cap_coverage")
-    if (
-        cap is not None
-        and cap < s.min_cap_coverage
-        and not few
-        and (plane is None or plane >= s.min_out_of_plane_deg)
-    ):
-        reasons.append(
-            f"one side of the sphere is missing (hemisphere only): the emptiest quarter of the "
-            f"sphere is {cap:.0%} covered (< {s.min_cap_coverage:.0%})"
-        )
+    if (cap is not None and cap < s.min_cap_coverage and not few
+            and (plane is None or plane >= s.min_out_of_plane_deg)):
+        reasons.append(f"one side of the sphere is missing (hemisphere only): the emptiest quarter of the "
+                       f"sphere is {cap:.0%} covered (< {s.min_cap_coverage:.0%})")
     if np.isfinite(cal.coverage) and cal.coverage < s.min_coverage:
         reasons.append(f"too little coverage: {cal.coverage:.0%} of orientations (< {s.min_coverage:.0%})")
     if not (np.isfinite(f) and f > 0):
         reasons.append("no finite field radius")
     else:
         if field is not None and np.isfinite(field) and abs(f / field - 1.0) > s.max_radius_error:
-            reasons.append(
-                f"radius {f:.1f} µT differs from the reference field {field:.1f} µT by "
-                f"{abs(f / field - 1.0):.0%} (> {s.max_radius_error:.0%})"
-            )
+            reasons.append(f"radius {f:.1f} µT differs from the reference field {field:.1f} µT by "
+                           f"{abs(f / field - 1.0):.0%} (> {s.max_radius_error:.0%})")
         if np.isfinite(cal.residual_rms_uT) and cal.residual_rms_uT > s.max_residual_frac * f:
             rms = cal.residual_rms_uT
-            reasons.append(
-                f"residual RMS {rms:.2f} µT is {rms / f:.1%} of the "
-                f"field (> {s.max_residual_frac:.0%}): the field was not constant (interference?)"
-            )
+            reasons.append(f"residual RMS {rms:.2f} µT is {rms / f:.1%} of the "
+                           f"field (> {s.max_residual_frac:.0%}): the field was not constant (interference?)")
         std = np.asarray(cal.offset_std_uT, dtype=float)
         if not np.all(np.isfinite(std)):
             reasons.append("offset uncertainty unknown (singular fit)")
         elif std.max() > s.max_offset_std_frac * f:
-            reasons.append(
-                f"offset poorly determined: 1-σ {std.max():.2f} µT > {s.max_offset_std_frac:.0%} of the field"
-            )
+            reasons.append(f"offset poorly determined: 1-σ {std.max():.2f} µT > {s.max_offset_std_frac:.0%} "
+                           f"of the field")
     off = float(np.linalg.norm(cal.offset_array))
     if off > s.max_offset_uT:
         reasons.append(f"offset {off:.0f} µT outside the plausible range (≤ {s.max_offset_uT:g} µT)")
@@ -179,10 +165,8 @@ def accept(
     if ev[0] <= 0:
         reasons.append("soft-iron matrix not positive definite")
     elif ev[-1] / ev[0] > s.max_axis_ratio:
-        reasons.append(
-            f"soft-iron eigenvalue spread {ev[-1] / ev[0]:.2f} > {s.max_axis_ratio:g} "
-            f"(implausible distortion)"
-        )
+        reasons.append(f"soft-iron eigenvalue spread {ev[-1] / ev[0]:.2f} > {s.max_axis_ratio:g} "
+                       f"(implausible distortion)")
     if cal.covariance is not None:
         cov = np.asarray(cal.covariance, dtype=float)
         d = np.sqrt(np.abs(np.diag(cov)))
@@ -193,12 +177,8 @@ def accept(
     return cal.with_acceptance(not reasons, reasons)
 
 
-def assess(
-    mag: np.ndarray,
-    cal: MagCalibration,
-    field: float | None = None,
-    settings: AcceptanceSettings | None = None,
-) -> MagCalibration:
+def assess(mag: np.ndarray, cal: MagCalibration, field: float | None = None,
+           settings: AcceptanceSettings | None = None) -> MagCalibration:
     """Coverage figures of ``cal`` on its samples ``mag`` (raw, µT), then :func:`accept`."""
     from dataclasses import replace
 

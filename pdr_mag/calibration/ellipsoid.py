@@ -39,20 +39,8 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.sphere import _check_mag
 
 # exponents (per coordinate) and scale of each entry of z(x)
-_EXP = np.array(
-    [
-        [2, 0, 0],
-        [0, 2, 0],
-        [0, 0, 2],
-        [0, 1, 1],
-        [1, 0, 1],
-        [1, 1, 0],
-        [1, 0, 0],
-        [0, 1, 0],
-        [0, 0, 1],
-        [0, 0, 0],
-    ]
-)
+_EXP = np.array([[2, 0, 0], [0, 2, 0], [0, 0, 2], [0, 1, 1], [1, 0, 1], [1, 1, 0],
+                 [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]])
 _SCALE = np.array([1, 1, 1, 2, 2, 2, 2, 2, 2, 1], dtype=float)
 _C1 = np.zeros((6, 6))
 _C1[:3, :3] = np.array([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0]])
@@ -118,7 +106,6 @@ def _unbiased_moment_polys(x: np.ndarray, w2: np.ndarray) -> np.ndarray:
 
 def estimate_noise_variance(polys: np.ndarray) -> float:
     """Smallest s > 0 with ``λ_min(Ψ₀ + sΨ₁ + s²Ψ₂) = 0`` (seed 004 step 2), in normalised units²."""
-
     def lam(s: float) -> float:
         return float(np.linalg.eigvalsh(polys[0] + s * polys[1] + s * s * polys[2])[0])
 

@@ -100,9 +100,8 @@ def monomials(x: np.ndarray) -> np.ndarray:
     """The design rows ``z(x)`` (N, 10) of the quadric (module docstring)."""
     x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
     one = np.ones(len(x))
-    return np.column_stack(
-        [x0 * x0, x1 * x1, x2 * x2, 2 * x1 * x2, 2 * x0 * x2, 2 * x0 * x1, 2 * x0, 2 * x1, 2 * x2, one]
-    )
+    return np.column_stack([x0 * x0, x1 * x1, x2 * x2, 2 * x1 * x2, 2 * x0 * x2, 2 * x0 * x1,
+                            2 * x0, 2 * x1, 2 * x2, one])
 
 
 def normalise_data(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -190,9 +189,8 @@ def geometric_jacobian(proj: Projection, basis: np.ndarray) -> np.ndarray:
     return np.hstack([jb, jl])
 
 
-def calibrated_residuals(
-    mag: np.ndarray, soft_iron: np.ndarray, offset: np.ndarray, field: float
-) -> np.ndarray:
+def calibrated_residuals(mag: np.ndarray, soft_iron: np.ndarray, offset: np.ndarray,
+                         field: float) -> np.ndarray:
     """``|soft_iron (m − b)| − field`` per sample, µT."""
     w = (mag - offset) @ np.asarray(soft_iron).T
     return np.sqrt(np.einsum("ij,ij->i", w, w)) - field
@@ -200,23 +198,13 @@ def calibrated_residuals(
 
 def param_names(model: str = "full") -> list[str]:
     """Names of θ = (b, l) in the order of :func:`geometric_jacobian` (``covariance_params``)."""
-    k = {
-        "sphere": ["radius"],
-        "diagonal": [f"L_{n}" for n in SYM_NAMES[:3]],
-        "full": [f"L_{n}" for n in SYM_NAMES],
-    }[model]
+    k = {"sphere": ["radius"], "diagonal": [f"L_{n}" for n in SYM_NAMES[:3]],
+         "full": [f"L_{n}" for n in SYM_NAMES]}[model]
     return ["offset_x", "offset_y", "offset_z", *k]
 
 
-def build_calibration(
-    mag: np.ndarray,
-    b: np.ndarray,
-    L: np.ndarray,
-    method: str,
-    model: str = "full",
-    extra: dict | None = None,
-    cov: np.ndarray | None = None,
-) -> MagCalibration:
+def build_calibration(mag: np.ndarray, b: np.ndarray, L: np.ndarray, method: str, model: str = "full",
+                      extra: dict | None = None, cov: np.ndarray | None = None) -> MagCalibration:
     """A :class:`MagCalibration` from the ellipsoid (b, L), with residual RMS and parameter covariance.
 
     When ``cov`` is not given it is the first-order (Gauss–Newton) covariance of the geometric fit at
@@ -237,8 +225,7 @@ def build_calibration(
     ex = {"covariance_params": names, "model": model}
     ex.update(extra or {})
     return MagCalibration.from_arrays(
-        b,
-        soft_iron,
+        b, soft_iron,
         field_uT=field,
         method=method,
         residual_rms_uT=float(np.sqrt(np.mean(res**2))),

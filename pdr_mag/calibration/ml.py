@@ -71,15 +71,8 @@ def _theta_from(b: np.ndarray, L: np.ndarray, model: str) -> np.ndarray:
     return np.concatenate([b, l])
 
 
-def geometric_solve(
-    mag: np.ndarray,
-    b0: np.ndarray,
-    L0: np.ndarray,
-    model: str = "full",
-    bias_correction: bool = True,
-    max_iter: int = 50,
-    tol: float = 1e-8,
-) -> dict:
+def geometric_solve(mag: np.ndarray, b0: np.ndarray, L0: np.ndarray, model: str = "full",
+                    bias_correction: bool = True, max_iter: int = 50, tol: float = 1e-8) -> dict:
     """Levenberg–Marquardt on the reduced geometric problem (module docstring).
 
     Returns a dict with ``b``, ``L``, ``cov`` (σ̂²(JᵀJ)⁻¹ or None), ``sigma`` (σ̂, µT), ``iterations``,
@@ -145,8 +138,7 @@ def geometric_solve(
         # (Mahalanobis length δᵀJᵀJδ/σ̂² below tol) or tiny in absolute terms
         s2_now = max(float(proj.d @ proj.d) / dof, 1e-300)
         if float(delta @ h @ delta) / s2_now < tol or np.max(np.abs(delta)) <= 1e-13 * (
-            1.0 + np.max(np.abs(theta))
-        ):
+                1.0 + np.max(np.abs(theta))):
             converged = True
             break
     h = jac.T @ jac
@@ -155,25 +147,12 @@ def geometric_solve(
     except np.linalg.LinAlgError:
         cov = None
     L = np.tensordot(theta[3:], basis, axes=1)
-    return {
-        "b": theta[:3].copy(),
-        "L": L,
-        "cov": cov,
-        "sigma": float(np.sqrt(proj.d @ proj.d / dof)),
-        "iterations": it,
-        "converged": converged,
-        "rss": float(proj.d @ proj.d),
-        "jtj": h,
-    }
+    return {"b": theta[:3].copy(), "L": L, "cov": cov, "sigma": float(np.sqrt(proj.d @ proj.d / dof)),
+            "iterations": it, "converged": converged, "rss": float(proj.d @ proj.d), "jtj": h}
 
 
-def fit_ml(
-    mag: np.ndarray,
-    model: str = "full",
-    init: tuple | None = None,
-    bias_correction: bool = True,
-    max_iter: int = 50,
-) -> MagCalibration:
+def fit_ml(mag: np.ndarray, model: str = "full", init: tuple | None = None,
+           bias_correction: bool = True, max_iter: int = 50) -> MagCalibration:
     """Geometric (orthogonal-distance) maximum-likelihood calibration (module docstring).
 
     Parameters
@@ -201,22 +180,15 @@ def fit_ml(
     else:
         b0, L0 = init
     res = geometric_solve(m, b0, L0, model, bias_correction, max_iter)
-    extra = {
-        "noise_std_uT": res["sigma"],
-        "iterations": res["iterations"],
-        "converged": res["converged"],
-        "rss_uT2": res["rss"],
-        "n_params": _N_PARAMS[model],
-        "objective": "geometric",
-        "bias_correction": bool(bias_correction),
-    }
+    extra = {"noise_std_uT": res["sigma"], "iterations": res["iterations"], "converged": res["converged"],
+             "rss_uT2": res["rss"], "n_params": _N_PARAMS[model], "objective": "geometric",
+             "bias_correction": bool(bias_correction)}
     return build_calibration(m, res["b"], res["L"], "ml", model, extra, cov=res["cov"])
 
 
 # ---------------------------------------------------------------------------------------------- seed 000
-def fit_radial_newton(
-    mag: np.ndarray, field: float | None = None, max_iter: int = 50, tol: float = 1e-10
-) -> MagCalibration:
+def fit_radial_newton(mag: np.ndarray, field: float | None = None, max_iter: int = 50,
+                      tol: float = 1e-10) -> MagCalibration:
     """Seed 000: ``min Σ (|T(m_i − b)| − C)²`` by Newton's method, T = U₁S₁V₁ᵀ (module docstring).
 
     Parameters
@@ -293,28 +265,17 @@ def fit_radial_newton(
     t = np.tensordot(theta[3:], basis, axes=1)
     u1, s1, v1t = np.linalg.svd(t)
     L = c * np.linalg.inv(spd_part(t))
-    extra = {
-        "T": t,
-        "R_L": v1t.T,
-        "S_L": np.diag(1.0 / s1),
-        "C": c,
-        "iterations": it,
-        "converged": converged,
-        "objective": "radial",
-    }
+    extra = {"T": t, "R_L": v1t.T, "S_L": np.diag(1.0 / s1), "C": c, "iterations": it,
+             "converged": converged, "objective": "radial"}
     return build_calibration(m, theta[:3], L, "radial", "full", extra)
 
 
 # ---------------------------------------------------------------------------------------------- seed 001
 def _lm9_matrix(beta: np.ndarray) -> np.ndarray:
     e1, e2, e3, kx, ky = beta[:5]
-    nmat = np.array(
-        [
-            [1.0, 0.0, 0.0],
-            [np.sin(e1), np.cos(e1), 0.0],
-            [np.sin(e2), np.cos(e2) * np.sin(e3), np.cos(e2) * np.cos(e3)],
-        ]
-    )
+    nmat = np.array([[1.0, 0.0, 0.0],
+                     [np.sin(e1), np.cos(e1), 0.0],
+                     [np.sin(e2), np.cos(e2) * np.sin(e3), np.cos(e2) * np.cos(e3)]])
     return np.diag([kx, ky, 1.0]) @ nmat
 
 
@@ -385,11 +346,6 @@ def fit_lm9(mag: np.ndarray, max_iter: int = 100, tol: float = 1e-12) -> MagCali
         beta_std = np.sqrt(np.clip(np.diag(beta_cov), 0, None))
     except np.linalg.LinAlgError:
         beta_std = np.full(9, np.nan)
-    extra = {
-        "beta": beta,
-        "beta_std": beta_std,
-        "iterations": it,
-        "converged": converged,
-        "objective": "radial-9",
-    }
+    extra = {"beta": beta, "beta_std": beta_std, "iterations": it, "converged": converged,
+             "objective": "radial-9"}
     return build_calibration(m, beta[5:8], L, "lm9", "full", extra)

@@ -31,19 +31,13 @@ def _admissible(cal: MagCalibration, s: AcceptanceSettings) -> bool:
     """A fit the data can support: finite offset σ within the rule, plausible soft-iron spread."""
     std = np.asarray(cal.offset_std_uT, dtype=float)
     ev = np.linalg.eigvalsh(cal.soft_iron_array)
-    return bool(
-        np.all(np.isfinite(std))
-        and np.isfinite(cal.field_uT)
-        and cal.field_uT > 0
-        and std.max() <= s.max_offset_std_frac * cal.field_uT
-        and ev[0] > 0
-        and ev[-1] / ev[0] <= s.max_axis_ratio
-    )
+    return bool(np.all(np.isfinite(std)) and np.isfinite(cal.field_uT) and cal.field_uT > 0
+                and std.max() <= s.max_offset_std_frac * cal.field_uT
+                and ev[0] > 0 and ev[-1] / ev[0] <= s.max_axis_ratio)
 
 
-def select_model(
-    mag: np.ndarray, models=("sphere", "diagonal", "full"), settings: AcceptanceSettings | None = None
-) -> MagCalibration:
+def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
+                 settings: AcceptanceSettings | None = None) -> MagCalibration:
     """Geometric ML fits of the nested models; the one with the smallest BIC (module docstring).
 
     Only *admissible* fits compete (offset 1-σ and soft-iron eigenvalue spread within the acceptance
@@ -71,12 +65,8 @@ def select_model(
         cal = fit_ml(m, model=model, init=(bi, Li))
         rss = float(cal.extra["rss_uT2"])
         k = _K[model]
-        table[model] = {
-            "rss_uT2": rss,
-            "k": k,
-            "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
-            "admissible": _admissible(cal, s),
-        }
+        table[model] = {"rss_uT2": rss, "k": k, "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
+                        "admissible": _admissible(cal, s)}
         fits[model] = cal
     ok = [key for key in table if table[key]["admissible"]] or [models[0]]
     best = min(ok, key=lambda key: table[key]["bic"])
@@ -88,13 +78,8 @@ def select_model(
     return replace(cal, extra=extra)
 
 
-def calibrate(
-    mag: np.ndarray,
-    method: str = "auto",
-    accel: np.ndarray | None = None,
-    field=None,
-    settings: AcceptanceSettings | None = None,
-) -> MagCalibration:
+def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = None, field=None,
+              settings: AcceptanceSettings | None = None) -> MagCalibration:
     """Batch magnetometer calibration ``m_cal = soft_iron @ (m_raw − offset)`` with its verdict.
 
     Parameters
@@ -143,29 +128,15 @@ def calibrate(
         elif method == "auto":
             cal = select_model(m, settings=settings)
         else:
-            fn = {
-                "sphere": fit_sphere,
-                "ellipsoid": fit_ellipsoid,
-                "als": fit_als,
-                "ml": fit_ml,
-                "radial": fit_radial_newton,
-                "lm9": fit_lm9,
-                "twostep": fit_twostep,
-            }[method]
+            fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
+                  "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
             cal = fn(m)
     except (ValueError, np.linalg.LinAlgError) as exc:
         # well-formed samples whose geometry supports no fit (all equal, on a line or a plane): an honest
         # refusal, not an error — the placeholder (mean as offset, identity, no radius) is never accepted
         return MagCalibration.from_arrays(
-            m.mean(axis=0),
-            None,
-            method=method,
-            n_samples=len(m),
-            coverage=0.0,
-            accepted=False,
-            reasons=[f"no calibration possible: {exc}"],
-            extra={"failed": True},
-        )
+            m.mean(axis=0), None, method=method, n_samples=len(m), coverage=0.0, accepted=False,
+            reasons=[f"no calibration possible: {exc}"], extra={"failed": True})
     if accel is not None:
         from dataclasses import replace
 

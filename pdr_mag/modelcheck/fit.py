@@ -132,16 +132,8 @@ def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot
     span = t[-1] - t[0]
     nk = max(2, int(np.ceil(span / anomaly_knot_s)) + 1)
     knots = np.linspace(t[0], t[-1], nk)
-    prob = Problem(
-        t=t,
-        mag=m,
-        track=track,
-        t_ref=float(np.mean(t)),
-        temperature=temp,
-        temp_ref=temp_ref,
-        knots=knots,
-        knot_free=np.ones(len(knots), dtype=bool),
-    )
+    prob = Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
+                   knots=knots, knot_free=np.ones(len(knots), dtype=bool))
     return with_track(prob, track)
 
 
@@ -254,19 +246,13 @@ def design(problem: Problem, mats: np.ndarray, tau: np.ndarray, layout: Layout) 
         add(rows3, s + np.arange(3)[None, :], np.repeat(((problem.t - problem.t_ref) / 60.0)[:, None], 3, 1))
     if "temperature_offset" in layout.blocks:
         s = layout.blocks["temperature_offset"].start
-        add(
-            rows3,
-            s + np.arange(3)[None, :],
-            np.repeat((problem.temperature - problem.temp_ref)[:, None], 3, 1),
-        )
+        add(rows3, s + np.arange(3)[None, :],
+            np.repeat((problem.temperature - problem.temp_ref)[:, None], 3, 1))
     if "hard_iron_change" in layout.blocks:
         s = layout.blocks["hard_iron_change"].start
         for kk, w, sel, idx in _hat_weights(problem.offset_knots, problem.offset_knot_free, problem.t):
-            add(
-                rows3[sel],
-                s + 3 * idx[kk[sel]][:, None] + np.arange(3)[None, :],
-                np.repeat(w[sel][:, None], 3, axis=1),
-            )
+            add(rows3[sel], s + 3 * idx[kk[sel]][:, None] + np.arange(3)[None, :],
+                np.repeat(w[sel][:, None], 3, axis=1))
     if "local_anomaly" in layout.blocks:
         s = layout.blocks["local_anomaly"].start
         kn = problem.knots
@@ -277,11 +263,8 @@ def design(problem: Problem, mats: np.ndarray, tau: np.ndarray, layout: Layout) 
         cols = np.arange(3)[None, None, :]
         for kk, w in ((k, 1.0 - u), (k + 1, u)):
             sel = free[kk]
-            add(
-                rows3[sel][:, :, None],
-                s + 3 * idx[kk[sel]][:, None, None] + cols,
-                mats[sel] * w[sel][:, None, None],
-            )
+            add(rows3[sel][:, :, None], s + 3 * idx[kk[sel]][:, None, None] + cols,
+                mats[sel] * w[sel][:, None, None])
     rows = np.concatenate(r_parts)
     cols = np.concatenate(c_parts)
     vals = np.concatenate(v_parts)
@@ -395,17 +378,8 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
     if nl_names:
         # Levenberg–Marquardt (MINPACK, QR): the priors keep the parameters sane, no bounds needed;
         # max_nfev counts Jacobian evaluations too, so it is per iteration × (n + 1)
-        sol = least_squares(
-            resid,
-            p0,
-            x_scale=np.asarray(scale),
-            method="lm",
-            diff_step=1e-6,
-            xtol=1e-8,
-            ftol=1e-10,
-            gtol=1e-10,
-            max_nfev=max_nfev * (len(p0) + 1) // 4,
-        )
+        sol = least_squares(resid, p0, x_scale=np.asarray(scale), method="lm", diff_step=1e-6,
+                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
         p = sol.x
         nfev = int(sol.nfev)
         jac = sol.jac
@@ -439,9 +413,8 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         cov_nl = np.linalg.pinv(jac.T @ jac)
         std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))
         std["_cov_nonlinear"] = cov_nl * s2
-    return FitResult(
-        effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r), k=k, nfev=nfev, std=std
-    )
+    return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
+                     k=k, nfev=nfev, std=std)
 
 
 def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:

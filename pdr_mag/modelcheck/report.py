@@ -106,10 +106,8 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
     for rnd in d["rounds"]:
         for c in rnd:
             est = ", ".join(f"{k}={v}" for k, v in c["estimate"].items() if k != "windows_s")
-            lines.append(
-                f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | "
-                f"{'yes' if c['significant'] else 'no'} | {est} |"
-            )
+            lines.append(f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | "
+                         f"{'yes' if c['significant'] else 'no'} | {est} |")
     lines += ["", "## Final estimates", ""]
     for name, est in d["final"]["estimate"].items():
         lines.append(f"- `{name}`: {est}")

@@ -104,14 +104,8 @@ class Candidate:
     significant: bool
 
     def to_dict(self) -> dict:
-        return {
-            "effect": self.effect,
-            "gap": _r(self.gap),
-            "score": _r(self.score, 2),
-            "estimate": self.estimate,
-            "round": self.round,
-            "significant": self.significant,
-        }
+        return {"effect": self.effect, "gap": _r(self.gap), "score": _r(self.score, 2),
+                "estimate": self.estimate, "round": self.round, "significant": self.significant}
 
 
 @dataclass(frozen=True)
@@ -178,22 +172,16 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
     nl, lin, sd = fit.nonlinear, fit.linear, fit.std
     for e in effects:
         if e == "hard_iron":
-            out[e] = {
-                "uT": _vec(lin["hard_iron"], 3),
-                "std": _vec(sd["hard_iron"], 3),
-                "t_ref": _r(problem.t_ref, 3),
-            }
+            out[e] = {"uT": _vec(lin["hard_iron"], 3), "std": _vec(sd["hard_iron"], 3),
+                      "t_ref": _r(problem.t_ref, 3)}
         elif e == "noise":
             out[e] = {"uT": _vec(np.sqrt(np.mean(fit.residual**2, axis=0)), 4)}
         elif e == "time_offset":
             out[e] = {"seconds": _r(nl[e][0], 5), "std": _r(sd[e][0], 5)}
         elif e == "mag_imu_misalignment":
             deg = np.degrees(nl[e])
-            out[e] = {
-                "degrees": _r(np.linalg.norm(deg), 3),
-                "rotvec_deg": _vec(deg, 3),
-                "std_deg": _vec(np.degrees(sd[e]), 3),
-            }
+            out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3),
+                      "std_deg": _vec(np.degrees(sd[e]), 3)}
         elif e == "soft_iron":
             from pdr_mag.modelcheck.fit import soft_iron_distortion
 
@@ -201,36 +189,24 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             s = 0.5 * (s + s.T)
             s = s / np.cbrt(np.linalg.det(s))
             ev = np.linalg.eigvalsh(s)
-            out[e] = {
-                "matrix": [_vec(row, 5) for row in s],
-                "axis_ratio": _r(ev[-1] / ev[0], 5),
-                "std": _r(float(np.max(sd[e])), 5),
-            }
+            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": _r(ev[-1] / ev[0], 5),
+                      "std": _r(float(np.max(sd[e])), 5)}
         elif e == "bias_drift":
             out[e] = {"uT_per_min": _vec(lin[e], 4), "std": _vec(sd[e], 4)}
         elif e == "temperature_offset":
-            out[e] = {
-                "uT_per_degC": _vec(lin[e], 4),
-                "std": _vec(sd[e], 4),
-                "t_ref_degC": _r(problem.temp_ref, 2),
-            }
+            out[e] = {"uT_per_degC": _vec(lin[e], 4), "std": _vec(sd[e], 4),
+                      "t_ref_degC": _r(problem.temp_ref, 2)}
         elif e == "gyro_bias":
             total = problem.track.gyro_bias + nl[e]
             up = np.mean(problem.r_dw0[:, :, 2], axis=0)  # mean up direction in device axes
             up /= np.linalg.norm(up)
             cov = fit.std.get("_cov_nonlinear")
             i0 = 1 if "time_offset" in nl else 0
-            up_std = (
-                float(np.sqrt(up @ cov[i0 : i0 + 3, i0 : i0 + 3] @ up)) if cov is not None else float("nan")
-            )
-            out[e] = {
-                "rad_per_s": _vec(total, 5),
-                "residual_rad_per_s": _vec(nl[e], 5),
-                "std": _vec(sd[e], 5),
-                "mean_up_d": _vec(up, 4),
-                "along_up_rad_per_s": _r(up @ total, 5),
-                "along_up_std": _r(up_std, 5),
-            }
+            up_std = float(np.sqrt(up @ cov[i0:i0 + 3, i0:i0 + 3] @ up)) if cov is not None else float("nan")
+            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(nl[e], 5),
+                      "std": _vec(sd[e], 5), "mean_up_d": _vec(up, 4),
+                      "along_up_rad_per_s": _r(up @ total, 5),
+                      "along_up_std": _r(up_std, 5)}
         elif e == "hard_iron_change":
             from pdr_mag.modelcheck.predict import offset_change
 
@@ -241,29 +217,19 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
             win = [[_r(kn[a], 2), _r(kn[b - 1], 2)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
             share = float(np.mean(np.interp(problem.t, kn, free.astype(float)) > 0))
-            out[e] = {
-                "uT": _r(mags[i], 3),
-                "t_peak": _r(problem.t[i], 2),
-                "windows_s": win,
-                "share": _r(share, 3),
-            }
+            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(problem.t[i], 2), "windows_s": win,
+                      "share": _r(share, 3)}
         elif e == "local_anomaly":
             fld = anomaly_field(problem, fit)
             mags = np.linalg.norm(fld.values_w, axis=1)
             i = int(np.argmax(mags))
             free = problem.knot_free
             edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
-            win = [
-                [_r(problem.knots[a], 2), _r(problem.knots[b - 1], 2)]
-                for a, b in zip(edges[::2], edges[1::2], strict=True)
-            ]
+            win = [[_r(problem.knots[a], 2), _r(problem.knots[b - 1], 2)] for a, b in
+                   zip(edges[::2], edges[1::2], strict=True)]
             share = float(np.mean(np.interp(problem.t, problem.knots, free.astype(float)) > 0))
-            out[e] = {
-                "uT": _r(mags[i], 3),
-                "t_peak": _r(problem.knots[i], 2),
-                "windows_s": win,
-                "share": _r(share, 3),
-            }
+            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(problem.knots[i], 2), "windows_s": win,
+                      "share": _r(share, 3)}
     return out
 
 
@@ -363,9 +329,8 @@ def diagnose(
         source = "gyro+accel"
     temp = None
     if temperature is not None:
-        temp = np.interp(
-            np.asarray(t_mag, float), np.asarray(temperature[0], float), np.asarray(temperature[1], float)
-        )
+        temp = np.interp(np.asarray(t_mag, float), np.asarray(temperature[0], float),
+                         np.asarray(temperature[1], float))
     problem = make_problem(t_mag, mag, track, temp, settings.anomaly_knot_s)
     n = problem.n
 
@@ -398,14 +363,8 @@ def diagnose(
             p = cur_problem
             if eff in ("local_anomaly", "hard_iron_change"):
                 frame = "world" if eff == "local_anomaly" else "device"
-                p = anomaly_support(
-                    cur_problem,
-                    current,
-                    settings.anomaly_knot_s,
-                    settings.anomaly_min_uT,
-                    max_share=settings.anomaly_max_share,
-                    frame=frame,
-                )
+                p = anomaly_support(cur_problem, current, settings.anomaly_knot_s, settings.anomaly_min_uT,
+                                    max_share=settings.anomaly_max_share, frame=frame)
                 if not (p.knot_free if frame == "world" else p.offset_knot_free).any():
                     continue
             effects = (*added, eff)
@@ -434,9 +393,8 @@ def diagnose(
                 o = other[0]
                 notes[best[0].effect] = {
                     "alternative": {"effect": o.effect, "gap": _r(o.gap), "score": _r(o.score, 2)},
-                    "ambiguous": bool(
-                        abs(o.gap - best[0].gap) < best[0].gap * settings.min_gap_reduction / 2
-                    ),
+                    "ambiguous": bool(abs(o.gap - best[0].gap)
+                                      < best[0].gap * settings.min_gap_reduction / 2),
                 }
 
     final_effects = (*BASELINE, *added)

@@ -15,16 +15,9 @@ from pdr_mag.conventions import quat_slerp
 from pdr_mag.modelcheck.fit import FitResult, Problem, _quat_to_matrix
 
 
-def anomaly_support(
-    problem: Problem,
-    fit: FitResult,
-    knot_s: float = 1.0,
-    min_uT: float = 2.0,
-    n_sigma: float = 4.0,
-    max_share: float = 0.5,
-    smooth_s: float = 1.0,
-    frame: str = "world",
-) -> Problem:
+def anomaly_support(problem: Problem, fit: FitResult, knot_s: float = 1.0, min_uT: float = 2.0,
+                    n_sigma: float = 4.0, max_share: float = 0.5, smooth_s: float = 1.0,
+                    frame: str = "world") -> Problem:
     """Confine ``local_anomaly`` to where the residual of ``fit``, seen in the world frame, stands out.
 
     ``r_w = R_wd (m − m̂)`` is averaged over ``smooth_s``; samples where ``|r̄_w|`` exceeds
