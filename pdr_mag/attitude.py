@@ -135,6 +135,14 @@ class FusionSettings:
         Correlation time of that acceleration (the length of a turn), s.
     acc_dyn : float
         Noise added per unit of ``||a| − g| / g``.
+    acc_spread_k : float
+        Dynamics term of the averaged update's noise: the direction of ``ā_w`` is off by about
+        ``acc_spread_k · s`` rad per horizontal axis, ``s`` the RMS horizontal spread of the world-frame
+        specific force about its average, over g.  0.19 is the slope measured with motion-capture attitude
+        on 42 walks of three phones and eight ways of carrying them (texting: s ≈ 0.08, 1–2°; running in
+        the hand: s ≈ 1, 15°).  Successive updates ``acc_interval_s`` apart share the window τ, so this
+        variance counts ``τ / acc_interval_s`` times per update: the information per second is that of one
+        independent direction per window.
     acc_gyro : float
         Noise added per rad/s of bias-corrected angular rate (centripetal / tangential acceleration).
     acc_gate : float
@@ -162,6 +170,14 @@ class FusionSettings:
         the filter does not take correlated errors for gyro bias.
     mag_error_tau_s : float
         Correlation time of c, s.
+    mag_env_k : float
+        Where the recent field was disturbed, a field that looks clean may still be turned: steel that
+        changes strength and dip by ``|d|`` nearby turns the horizontal field by up to ``|d| / B_h``
+        elsewhere in the same place.  The stationary variance of c grows by ``(k · d_env / B_h)²``, with
+        ``d_env²`` the exponentially weighted mean of ``d_min²`` (see ``mag_dist_k``) over
+        ``mag_env_tau_s`` and ``B_h`` the reference horizontal strength (0 = off).
+    mag_env_tau_s : float
+        Memory of that environment level, s.
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
@@ -202,6 +218,7 @@ class FusionSettings:
     acc_noise: float = 0.05
     acc_corr_s: float = 0.1
     acc_dyn: float = 2.0
+    acc_spread_k: float = 0.19
     turn_speed: float = 0.0
     turn_corr_s: float = 1.0
     acc_gyro: float = 0.5
@@ -214,6 +231,8 @@ class FusionSettings:
     mag_tilt_k: float = 1.0
     mag_error_std_deg: float = 6.0
     mag_error_tau_s: float = 5.0
+    mag_env_k: float = 0.3
+    mag_env_tau_s: float = 30.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0
@@ -241,6 +260,7 @@ class FusionSettings:
             "acc_noise",
             "mag_gate",
             "still_tau_s",
+            "mag_env_tau_s",
             "gravity",
             "max_dt",
             "zupt_noise",

@@ -107,7 +107,8 @@ def accel_step(s, R, ax, ay, az, t, p):
     if n < 1e-6:
         return
     if s.init == 0:
-        init_tilt(s, ax, ay, az, p)
+        if s.have_gyro:  # before the gyroscope streams, nothing would carry the tilt forward
+            init_tilt(s, ax, ay, az, p)
         return
     g = p.gravity
     da = abs(n - g) / g
@@ -144,14 +145,24 @@ def _averaged_update(s, R, ax, ay, az, t, p):
     awx = R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az
     awy = R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az
     awz = R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az
+    Rb = s.R_bar
     if not np.isfinite(aw[0]) or not np.isfinite(s.t_acc_update) or t - s.t_acc_update > 10.0 * p.acc_tau_s:
         aw[0], aw[1], aw[2] = awx, awy, awz
+        s.acc_spread = 0.0
+        for i in range(3):
+            for m in range(3):
+                Rb[i, m] = R[i, m]
         s.t_acc_update = t
         return
     a = ew_alpha(t - s.t_acc_prev, p.acc_tau_s)
     aw[0] += a * (awx - aw[0])
     aw[1] += a * (awy - aw[1])
     aw[2] += a * (awz - aw[2])
+    ex, ey = awx - aw[0], awy - aw[1]
+    s.acc_spread += a * (ex * ex + ey * ey - s.acc_spread)
+    for i in range(3):
+        for m in range(3):
+            Rb[i, m] += a * (R[i, m] - Rb[i, m])
     if t - s.t_acc_update < p.acc_interval_s:
         return
     s.t_acc_update = t
@@ -160,15 +171,16 @@ def _averaged_update(s, R, ax, ay, az, t, p):
     dev = abs(na - g) / g
     if dev > p.acc_gate:
         return
-    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
     tau = p.acc_tau_s
+    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
+    rv += p.acc_spread_k**2 * s.acc_spread / (g * g) * tau / max(p.acc_interval_s, 1e-3)
     hx = np.zeros(NX)
     hy = np.zeros(NX)
     hx[TH_Y] = -1.0
     hy[TH_X] = 1.0
-    for m in range(3):  # the tilt error of τ ago: δθ(t − τ) = δθ(t) + τ R δb
-        hx[BIAS + m] = -tau * R[1, m]
-        hy[BIAS + m] = tau * R[0, m]
+    for m in range(3):  # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R)
+        hx[BIAS + m] = -tau * Rb[1, m]
+        hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
     unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
     update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)

@@ -52,7 +52,7 @@ from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
-from pdr_mag.interference import detect_step, dip_of
+from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
 
 @njit(cache=True, error_model="numpy")
@@ -97,6 +97,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
         dmin2 += (f * np.radians(dip - det.dip_loc)) ** 2
     cons_d = max(det.cons - np.degrees(sb) * ip.consistency_window_s, 0.0)
     dmin2 += p.mag_cons_k * (f * np.radians(cons_d)) ** 2
+    _environment_step(s, dmin2, t, det, p)
     rv_clean = p.mag_noise_rad**2 + p.mag_noise_uT**2 / (bh * bh)
     if p.mag_time_unc_s > 0.0:
         wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
@@ -130,6 +131,19 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _environment_step(s, dmin2, t, det, p):
+    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s``, and the local
+    reference's horizontal strength ``B_h = F_loc cos I_loc`` (they set the stationary variance of c)."""
+    if np.isfinite(s.t_env):
+        s.env_d2 += ew_alpha(t - s.t_env, p.mag_env_tau_s) * (dmin2 - s.env_d2)
+    else:
+        s.env_d2 = dmin2
+    s.t_env = t
+    if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
+        s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))
 
 
 @njit(cache=True, error_model="numpy")

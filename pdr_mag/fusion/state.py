@@ -52,6 +52,8 @@ STATE = np.dtype(
         ("t_acc", np.float64),  # time of the last accelerometer sample, s
         ("t_acc_prev", np.float64),  # time of the one before, s
         ("acc_w", np.float64, (3,)),  # EW mean ā_w of the world-frame specific force, m/s² (NaN: restart)
+        ("acc_spread", np.float64),  # EW mean of |a_w,h − ā_w,h|², the horizontal spread about ā_w, (m/s²)²
+        ("R_bar", np.float64, (3, 3)),  # EW mean of R (device → world) over the same window
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
         # magnetometer
         ("declination", np.float64),  # D, rad (0: magnetic north)
@@ -59,6 +61,9 @@ STATE = np.dtype(
         ("dip_ref", np.float64),  # reference inclination, deg (NaN: learnt)
         ("t_mag_update", np.float64),  # time of the last heading update, s
         ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
+        ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
+        ("t_env", np.float64),  # time of its last sample, s
+        ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
         ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.interference)
         # output rows
         ("t_next_out", np.float64),  # grid time of the next output row, s
@@ -85,6 +90,7 @@ PARAMS = np.dtype(
             "acc_noise",
             "acc_corr_s",
             "acc_dyn",
+            "acc_spread_k",
             "turn_speed",
             "turn_corr_s",
             "acc_gyro",
@@ -97,6 +103,8 @@ PARAMS = np.dtype(
             "mag_tilt_k",
             "mag_error_std_rad",
             "mag_error_tau_s",
+            "mag_env_k",
+            "mag_env_tau_s",
             "mag_interval_s",
             "mag_gate",
             "reject_inflate_rad",
@@ -162,6 +170,8 @@ def new_state() -> np.ndarray:
         "dip_ref",
         "t_mag_update",
         "t_reject",
+        "t_env",
+        "bh_ref",
         "t_next_out",
     ):
         st[name] = np.nan
