@@ -49,7 +49,8 @@ sample (the tilt is unknown).  Columns: ``t`` (gyro time), ``q_wd``, ``heading_d
 ``mag_used`` (the magnetometer corrected the heading since the previous row), ``interference`` (flag up
 at, or since, the previous row), ``cal_state`` (placeholder ``"none"``; the pipeline overwrites it), and
 ``diag`` with the :data:`pdr_mag.estimates.DIAG_KEYS` the core knows (all but ``coverage``) plus
-``consistency_deg``.  Before the first usable magnetometer sample the heading is arbitrary (device +y to
+``consistency_deg`` and ``heading_reset_deg`` (the jump of a heading re-acquisition at that row, deg; NaN
+at the other rows).  Before the first usable magnetometer sample the heading is arbitrary (device +y to
 north) with ``heading_std_deg = 180``.
 
 North: with a field that has a declination, the output is referenced to true north (the magnetometer
@@ -185,6 +186,14 @@ class FusionSettings:
     reject_inflate_deg : float
         While an undisturbed-looking field keeps failing the gate, the heading variance grows by this
         squared per second (deg/√s), so a wrong heading (a disturbed start) is not kept forever.
+    reacquire_s : float
+        Re-acquisition: when a field that the detectors find clean has failed the gate for this long
+        without a break, and the innovations agree among themselves (their circular spread, exponentially
+        weighted over this time, is below ``reacquire_spread_deg``), the filter is what is lost: the
+        heading is set to the magnetometer's (a ``heading_reset`` event carries the jump), uncorrelated
+        from the bias, whose variance about up grows to the drift rate the jump implies.  0 = off.
+    reacquire_spread_deg : float
+        Largest circular spread of those innovations, deg.
     still_gyro : float
         Still when the RMS deviation of the gyro from its running mean is below this, rad/s…
     still_acc : float
@@ -236,6 +245,8 @@ class FusionSettings:
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0
+    reacquire_s: float = 3.0
+    reacquire_spread_deg: float = 15.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
     still_tau_s: float = 0.3

@@ -61,6 +61,9 @@ STATE = np.dtype(
         ("dip_ref", np.float64),  # reference inclination, deg (NaN: learnt)
         ("t_mag_update", np.float64),  # time of the last heading update, s
         ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
+        ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
+        ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
+        ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
         ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
@@ -108,6 +111,8 @@ PARAMS = np.dtype(
             "mag_interval_s",
             "mag_gate",
             "reject_inflate_rad",
+            "reacquire_s",
+            "reacquire_spread_rad",
             "still_gyro",
             "still_acc",
             "still_tau_s",
@@ -135,6 +140,7 @@ DIAG_NAMES = (
     "gyro_bias_y",
     "gyro_bias_z",
     "consistency_deg",
+    "heading_reset_deg",
 )
 
 #: float columns of the output, one row per output gyroscope sample: time, heading std (deg), the arguments
@@ -170,6 +176,7 @@ def new_state() -> np.ndarray:
         "dip_ref",
         "t_mag_update",
         "t_reject",
+        "t_reject_start",
         "t_env",
         "bh_ref",
         "t_next_out",
