@@ -194,7 +194,8 @@ def run_mode(walk_dir: Path, cal, truth: Truth) -> tuple[dict, dict]:
     std = np.interp(tf, b.t, b.heading_std_deg)
     t_used = b.t[b.mag_used.astype(bool)]
     k = np.searchsorted(t_used, tf, side="right") - 1
-    age = np.where(k >= 0, tf - t_used[np.maximum(k, 0)], np.inf)  # s since the last magnetometer update
+    last = np.where(k >= 0, t_used[np.maximum(k, 0)], b.t[0])
+    age = tf - last  # s since the last magnetometer update (or since the start, before the first one)
     kinds: dict[str, int] = {}
     for ev in summary["events"]:
         kinds[ev["kind"]] = kinds.get(ev["kind"], 0) + 1
