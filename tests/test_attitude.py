@@ -250,8 +250,22 @@ def test_settings_validation():
     assert FusionCore(field=EarthField.from_vector([0.0, 20.0, -40.0])).north == "true"
 
 
-# ------------------------------------------------------------------------------------------ rates
-# (real walks: tests/test_real_walks.py, each walk bounded by the peers on the same walk)
+# ------------------------------------------------------------------------------------------ real walks
+# (their accuracy: tests/test_real_walks.py, each walk bounded by the peers on the same walk)
+
+
+def error_at_truth(batch, tt, qt):
+    """Signed heading error at the truth times, the estimate slerp-interpolated (the tyrex metric)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    q = batch.q_wd
+    sl = Slerp(batch.t, Rotation.from_quat(q[:, [1, 2, 3, 0]]))
+    ok = (tt >= batch.t[0]) & (tt <= batch.t[-1])
+    re = sl(tt[ok])
+    rt = Rotation.from_quat(qt[ok][:, [1, 2, 3, 0]])
+    e = (re * rt.inv()).as_quat()
+    h = np.degrees(2 * np.arctan2(e[:, 2], e[:, 3]))
+    return (h + 180.0) % 360.0 - 180.0
 
 
 @pytest.mark.parametrize("rates", [(100.0, 50.0), (200.0, 100.0), (400.0, 100.0)])

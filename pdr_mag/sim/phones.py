@@ -3,9 +3,10 @@
 A phone here is what differs between handsets of the tyrex recordings (``../shared/datasets``) beyond the
 scenario: sample rates, the accelerometer's full scale — ±2 g on the iPhone 4S and the Nexus 5, so a run
 clips it many times a second (``accel_range``: samples saturate at the limit,
-:func:`~pdr_mag.sensor_model.digitise`) — and a hard-iron offset of the size those phones have (the day's ``pdr-mag calibrate`` fits:
-iPhone 4S ≈ (85, 205, −550) µT, |b| ≈ 593 µT, twelve times the Earth's field; Nexus 5 ≈ (58, −74, 412)
-µT).  ``effects`` are the phone's defaults on top of the scenario's (an ``--effect`` still overrides them).
+:func:`~pdr_mag.sensor_model.digitise`) — and a hard-iron offset of the size those phones have (the day's
+``pdr-mag calibrate`` fits: iPhone 4S ≈ (85, 205, −550) µT, |b| ≈ 593 µT, twelve times the Earth's field;
+Nexus 5 ≈ (58, −74, 412) µT).  ``effects`` are the phone's defaults on top of the scenario's (an
+``--effect`` still overrides them).
 """
 
 from __future__ import annotations
