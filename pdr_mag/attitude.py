@@ -72,7 +72,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from pdr_mag.estimates import EstimateBatch
+from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.state import (
@@ -245,7 +245,7 @@ class FusionSettings:
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0
-    reacquire_s: float = 3.0
+    reacquire_s: float = 8.0
     reacquire_spread_deg: float = 15.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
@@ -438,3 +438,18 @@ class FusionCore:
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)
+
+
+def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
+    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``), as (row, event): a
+    ``heading_reset`` event with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise
+    positive) and the ``heading_std_deg`` it left."""
+    jumps = batch.diag.get("heading_reset_deg") if batch.diag else None
+    if jumps is None:
+        return []
+    out = []
+    for i in np.flatnonzero(np.isfinite(jumps)):
+        std = float(batch.heading_std_deg[i])
+        data = {"jump_deg": round(float(jumps[i]), 3), "heading_std_deg": round(std, 3)}
+        out.append((int(i), Event(float(batch.t[i]), "heading_reset", data)))
+    return out

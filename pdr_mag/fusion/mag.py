@@ -34,6 +34,16 @@ correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag_gate² · S`` 
 clean-looking field keeps failing the gate, the heading may be what is wrong: ``P[δθ_z, δθ_z]`` grows by
 ``reject_inflate_deg²`` per second (only the heading's, so the bias is not dragged when the gate opens).
 
+Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
+field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
+without a break for ``reacquire_s`` and its innovations agree among themselves (circular spread of their
+exponentially weighted mean below ``reacquire_spread_deg``: a lost heading is off by one angle whatever the
+device does, a turned field in a steel building changes as the walker moves), the heading is set to the
+magnetometer's, ``q ← Exp(r̄ e_z) ⊗ q`` with r̄ that mean, exactly as at the first fix (the covariance
+below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², bias0_std²)``, the drift rate
+that the jump implies over the time Δt since the last heading update.  The jump is reported in the
+``heading_reset_deg`` output column (a ``heading_reset`` event in the pipeline).
+
 First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
 specific force turned with it).  The residual is then zero, so ``δθ_z = −(δc + h_t·δθ_xy + n)``: the
 heading error *is* that sample's correlated field error, and
