@@ -104,13 +104,13 @@ def load_calibration(path) -> MagCalibration:
         raise InputError(p, f"cannot read ({exc})") from None
 
 
-def make_sink(kind: str, path, *, spawn: bool = False):
+def make_sink(kind: str, path, *, spawn: bool = False, rate_hz: float | None = None):
     """An MCAP or rerun sink (``spawn``: rerun also streams to a live viewer it starts; ``path`` may then be
-    None)."""
+    None; ``rate_hz``: the MCAP sink's rate limit)."""
     if kind == "mcap":
         from pdr_mag.sinks.mcap import McapSink
 
-        return McapSink(path)
+        return McapSink(path, rate_hz=rate_hz)
     from pdr_mag.sinks.rerun import RerunSink
 
     return RerunSink(path, spawn=spawn)

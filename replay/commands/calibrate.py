@@ -88,6 +88,10 @@ def summary(cal, rec, field) -> str:
     lines.append(fl)
     ev = np.linalg.eigvalsh(cal.soft_iron_array)
     lines.append("  soft iron  eigenvalues " + " ".join(f"{v:.3f}" for v in ev))
+    fig = ex.get("heading")
+    if isinstance(fig, dict) and fig.get("std_deg") is not None:
+        lines.append(f"  heading    ±{fig['std_deg']:.2f}° (1-σ, worst heading and pose) left by the "
+                     f"calibration")
     if "alignment" in ex:
         al = ex["alignment"]
         if al is None:
