@@ -12,12 +12,16 @@ ROOT = Path(__file__).resolve().parent.parent
 DATASETS = (ROOT / ".." / "shared" / "datasets").resolve()
 
 
+def absent(msg: str) -> None:
+    """Something of ../shared is missing: skip the test with ``msg``, or fail it under CI=true."""
+    if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
+        pytest.fail(msg + " — required under CI=true")
+    pytest.skip(msg)
+
+
 def dataset(*parts: str) -> Path:
     """Path to a file or folder under ../shared/datasets; skip (or fail under CI=true) if absent."""
     p = DATASETS.joinpath(*parts)
     if not p.exists():
-        msg = f"real recording {p} not found (../shared/datasets is not beside this checkout)"
-        if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
-            pytest.fail(msg + " — required under CI=true")
-        pytest.skip(msg)
+        absent(f"real recording {p} not found (../shared/datasets is not beside this checkout)")
     return p
