@@ -18,18 +18,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+ROOT = Path(__file__).resolve().parent.parent
 #: The console script installed beside this interpreter (``pip install -e .`` puts it there).
 SCRIPT = shutil.which("pdr-mag", path=str(Path(sys.executable).parent)) or shutil.which("pdr-mag")
 
 
+def _processes_run_this_checkout(cwd: Path) -> None:
+    """Fail unless ``pdr-mag`` and ``python -m pdr_mag``, started from ``cwd`` as the tests start them, run
+    the code of this checkout (not another install's)."""
+    if SCRIPT is None:
+        pytest.fail("the pdr-mag console script is not installed (pip install -e .)")
+    pythons = {"python -m pdr_mag": sys.executable}
+    first = Path(SCRIPT).read_text(errors="replace").splitlines()[0]
+    if first.startswith("#!") and "python" in first:  # else a launcher: its interpreter is not named
+        pythons[SCRIPT] = first[2:].strip()
+    code = "import replay, pathlib; print(pathlib.Path(replay.__file__).resolve().parent.parent)"
+    for what, python in pythons.items():
+        out = subprocess.run([python, "-c", code], capture_output=True, text=True, cwd=cwd)
+        where = out.stdout.strip()
+        assert where == str(ROOT), f"{what} runs the checkout at {where or out.stderr[-300:]}, not {ROOT}"
+
+
 def pdr_mag(*args, cwd: Path, module: bool = False) -> subprocess.CompletedProcess:
     """Run ``pdr-mag ARGS`` (or ``python -m pdr_mag ARGS``) as a process, capturing stdout and stderr."""
-    if module:
-        cmd = [sys.executable, "-m", "pdr_mag"]
-    else:
-        if SCRIPT is None:
-            pytest.fail("the pdr-mag console script is not installed (pip install -e .)")
-        cmd = [SCRIPT]
+    cmd = [sys.executable, "-m", "pdr_mag"] if module else [SCRIPT]
     env = {**os.environ, "PYTHONUTF8": "1"}  # the messages' units (µT, m/s²) whatever the locale
     return subprocess.run(cmd + [str(a) for a in args], capture_output=True, encoding="utf-8", cwd=cwd,
                           env=env, timeout=300)
@@ -69,6 +81,7 @@ def work(tmp_path_factory) -> Path:
     """A folder with ``rec`` (a 5 s figure-8 written by ``pdr-mag simulate`` as a process) and ``afile``
     (a plain file: a path under it cannot be written, for root too)."""
     d = tmp_path_factory.mktemp("proc")
+    _processes_run_this_checkout(d)
     res = pdr_mag("simulate", "--scenario", "figure8", "--seed", "3", "--duration", "5", "--out", d / "rec",
                   cwd=d)
     assert res.returncode == 0, res.stderr
