@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from _calibration_sim import F_UT, directions, sample, soft_iron_ellipsoid
@@ -163,6 +165,12 @@ def test_fit_returns_new_object_and_does_not_mutate_input():
     c = calibrate(m)
     assert "mark" not in c.extra
     assert c.offset == a.offset and c.soft_iron == a.soft_iron and c.reasons == a.reasons  # same run: bitwise
+    # the result is a value: frozen, and sharing no memory with the input
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.offset = (0.0, 0.0, 0.0)
+    before = a.to_dict()
+    m[:] = 0.0
+    assert a.to_dict() == before
 
 
 def test_bad_arguments_raise_value_error():

@@ -17,7 +17,7 @@ from pdr_mag.sim import SCENARIOS, simulate
 from replay.cli import main
 from replay.formats import pdrcsv
 
-ROOT = pytest.importorskip("pathlib").Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parent.parent
 FILES = ("mag.csv", "accel.csv", "gyro.csv", "truth.csv", "truth_position.csv", "meta.json")
 
 

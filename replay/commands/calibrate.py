@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from replay.commands._output import writable_file
 from replay.errors import InputError
 
 _METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
@@ -34,6 +35,8 @@ def command(rec: Path, method: str, json_path: Path | None) -> int:
     from replay.formats import read_recording
 
     recording = read_recording(rec)
+    if json_path is not None:
+        writable_file(json_path)
     mag_file = rec / "mag.csv" if rec.is_dir() else rec
     mag = np.asarray(recording.mag.xyz, dtype=float)
     if mag.ndim != 2 or mag.shape[1] != 3 or len(mag) < 4:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from replay.commands._output import writable_file
 from replay.errors import InputError
 
 
@@ -44,6 +45,9 @@ def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, 
         click.echo(msg, err=True)
     if mcap_rate is not None and mcap is None:
         raise click.UsageError("--mcap-rate needs --mcap FILE")
+    for path in (out_csv, json_path, mcap, rrd):
+        if path is not None:
+            writable_file(path)
     sinks = []
     if mcap is not None:
         sinks.append(make_sink("mcap", mcap, rate_hz=mcap_rate))
@@ -51,15 +55,12 @@ def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, 
         sinks.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
         sinks.append(CsvSink(out_csv))
-    for p in (out_csv, json_path, mcap, rrd):
-        if p is not None and p.parent and not p.parent.exists():
-            try:
-                p.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise InputError(p, f"cannot create the folder ({exc.strerror})") from None
     summary = replay(rec, calibration=cal, sinks=sinks, progress=progress)
     if json_path is not None:
-        json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
+        try:
+            json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise InputError(json_path, f"cannot write ({exc.strerror})") from None
     if not quiet:
         click.echo(summary_table(summary))
     return 0

@@ -22,6 +22,8 @@ import numpy as np
 from pdr_mag.field import EarthField, decimal_year
 from pdr_mag.sensor_model import EFFECTS, PhoneSpec, parse_effect_value
 from pdr_mag.sim import DEFAULT_EFFECTS, DEFAULT_SITE, PHONES, SCENARIOS, simulate
+from replay.commands._output import writable_dir
+from replay.errors import InputError
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
 
@@ -171,6 +173,7 @@ def command(
     if mag_rate is not None:
         spec = replace(spec, mag_rate_hz=mag_rate)
     phone = spec if phone_name is None else replace(PHONES[phone_name], spec=spec)
+    writable_dir(out)
     res = simulate(
         scenario, seed=seed, duration_s=duration, effects=overrides, phone=phone, site=site, field_w=field_w
     )
@@ -183,11 +186,14 @@ def command(
         source="pdr-mag simulate",
         format=pdrcsv.NAME,
     )
-    pdrcsv.write(rec, out, value_fmt=VALUE_FMT)
-    tp, pp = res.truth_position
-    with (out / "truth_position.csv").open("w", encoding="utf-8", newline="\n") as fh:
-        fh.write("t,x,y,z\n")
-        np.savetxt(fh, np.column_stack([tp, pp]), fmt=["%.6f", "%.3f", "%.3f", "%.3f"], delimiter=",")
+    try:
+        pdrcsv.write(rec, out, value_fmt=VALUE_FMT)
+        tp, pp = res.truth_position
+        with (out / "truth_position.csv").open("w", encoding="utf-8", newline="\n") as fh:
+            fh.write("t,x,y,z\n")
+            np.savetxt(fh, np.column_stack([tp, pp]), fmt=["%.6f", "%.3f", "%.3f", "%.3f"], delimiter=",")
+    except OSError as exc:
+        raise InputError(exc.filename or out, f"cannot write ({exc.strerror})") from None
     click.echo(
         f"{scenario} seed {seed}: {res.duration_s:g} s, mag {len(res.mag[0])}, accel {len(res.accel[0])}, "
         f"gyro {len(res.gyro[0])} samples; effects {', '.join(res.model.active) or 'none'} → {out}"
