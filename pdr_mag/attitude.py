@@ -144,6 +144,25 @@ class FusionSettings:
         the hand: s ≈ 1, 15°).  Successive updates ``acc_interval_s`` apart share the window τ, so this
         variance counts ``τ / acc_interval_s`` times per update: the information per second is that of one
         independent direction per window.
+    acc_range : float
+        Full scale of the accelerometer, m/s² per axis (0: found in the data).  A sample with an axis at the
+        range is clipped: its true value lies beyond, by an unknown amount.  Found in the data, the range is
+        the largest |a_i| seen once at least ``acc_clip_min_hits`` samples came within ``acc_clip_band`` of
+        it and it is above 1.5 g (phone ranges are 2, 4, 8 or 16 g): a sensor that clips piles its samples
+        up at the range (exactly, or spread over a few per cent by the phone's own axis calibration, as on
+        the iPhone 4S), one that does not reaches its largest value once.
+    acc_clip_band : float
+        Samples within this fraction of the range count as clipped.
+    acc_clip_min_hits : float
+        Samples near the largest value that make it a range.
+    acc_clip_k : float
+        Clipped samples stay in the average ``ā_w`` — dropping them would drop the peaks of every step and
+        tilt it far more (by 36° mean, 86° p95 on a real running walk) — but their missing excess, of the
+        order of a g each, is unknown: the direction of ``ā_w`` may be off by about ``share · excess / g``,
+        so the averaged update's noise grows by ``(acc_clip_k · share)²`` rad² (``acc_clip_k`` = 1: an
+        excess of one g), ``share`` the weight of clipped samples in the window,
+        counted ``τ / acc_interval_s`` times like the spread.  Single-sample updates (``acc_tau_s = 0``) skip
+        clipped samples.
     acc_gyro : float
         Noise added per rad/s of bias-corrected angular rate (centripetal / tangential acceleration).
     acc_gate : float
@@ -228,6 +247,10 @@ class FusionSettings:
     acc_corr_s: float = 0.1
     acc_dyn: float = 2.0
     acc_spread_k: float = 0.19
+    acc_range: float = 0.0
+    acc_clip_band: float = 0.05
+    acc_clip_min_hits: float = 5.0
+    acc_clip_k: float = 1.0
     turn_speed: float = 0.0
     turn_corr_s: float = 1.0
     acc_gyro: float = 0.5

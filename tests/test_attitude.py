@@ -481,3 +481,22 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     assert not heading_reset_events(off)
     _, err_off, _ = twist_error_deg(off, walk.truth)
     assert np.mean(np.abs(err_off[(t_err > ev.t) & (t_err < ev.t + 10.0)])) > 20.0
+
+
+def test_accelerometer_range_is_found_in_the_data():
+    """Running with a ±2-g accelerometer piles samples up at the range: the filter finds it (its peak within
+    the band of 2 g, many hits) and counts clipped samples in the average; a texting walk, which never comes
+    near a range, has no clipped share.  A range given in the settings is used as such."""
+    run = simulate("run", seed=1, phone="iphone4s", effects={"hard_iron": None, "soft_iron": None})
+    core = FusionCore(field=run.field)
+    core.process(*merge(run))
+    st = core._st[0]
+    g2 = 2.0 * 9.80665
+    assert abs(st["acc_peak"] - g2) <= 0.05 * g2 and st["acc_peak_hits"] >= 100
+    walk = simulate("walk", seed=1, effects={"hard_iron": None, "soft_iron": None})
+    core = FusionCore(field=walk.field)
+    core.process(*merge(walk))
+    assert core._st[0]["clip_share"] == 0.0 and core._st[0]["acc_peak"] < 1.5 * 9.80665
+    given = FusionCore(FusionSettings(acc_range=0.5 * 9.80665), field=walk.field)
+    given.process(*merge(walk))
+    assert given._st[0]["clip_share"] > 0.5  # every sample of a walk is above half a g on some axis

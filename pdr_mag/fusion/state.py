@@ -52,6 +52,9 @@ STATE = np.dtype(
         ("t_acc", np.float64),  # time of the last accelerometer sample, s
         ("t_acc_prev", np.float64),  # time of the one before, s
         ("acc_w", np.float64, (3,)),  # EW mean ā_w of the world-frame specific force, m/s² (NaN: restart)
+        ("acc_peak", np.float64),  # largest |a_i| of any axis seen, m/s² (the range, if it clips)
+        ("acc_peak_hits", np.int64),  # samples that reached within acc_clip_band of acc_peak
+        ("clip_share", np.float64),  # EW share of clipped samples in the window of ā_w
         ("acc_spread", np.float64),  # EW mean of |a_w,h − ā_w,h|², the horizontal spread about ā_w, (m/s²)²
         ("R_bar", np.float64, (3, 3)),  # EW mean of R (device → world) over the same window
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
@@ -94,6 +97,10 @@ PARAMS = np.dtype(
             "acc_corr_s",
             "acc_dyn",
             "acc_spread_k",
+            "acc_range",
+            "acc_clip_band",
+            "acc_clip_min_hits",
+            "acc_clip_k",
             "turn_speed",
             "turn_corr_s",
             "acc_gyro",
