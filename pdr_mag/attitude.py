@@ -210,7 +210,10 @@ class FusionSettings:
         without a break, and the innovations agree among themselves (their circular spread, exponentially
         weighted over this time, is below ``reacquire_spread_deg``), the filter is what is lost: the
         heading is set to the magnetometer's (a ``heading_reset`` event carries the jump), uncorrelated
-        from the bias, whose variance about up grows to the drift rate the jump implies.  0 = off.
+        from the bias, whose variance about up grows to the drift rate the jump implies.  0 = off.  A field
+        turned by steel is local: 20 s of walking (~25 m) leaves the reach of a building's structure, so a
+        field that still disagrees by the same angle is right and the heading wrong; a steel area passed in
+        less time is waited out.
     reacquire_spread_deg : float
         Largest circular spread of those innovations, deg.
     still_gyro : float
@@ -268,7 +271,7 @@ class FusionSettings:
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0
-    reacquire_s: float = 8.0
+    reacquire_s: float = 20.0
     reacquire_spread_deg: float = 15.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
