@@ -49,7 +49,8 @@ sample (the tilt is unknown).  Columns: ``t`` (gyro time), ``q_wd``, ``heading_d
 ``mag_used`` (the magnetometer corrected the heading since the previous row), ``interference`` (flag up
 at, or since, the previous row), ``cal_state`` (placeholder ``"none"``; the pipeline overwrites it), and
 ``diag`` with the :data:`pdr_mag.estimates.DIAG_KEYS` the core knows (all but ``coverage``) plus
-``consistency_deg``.  Before the first usable magnetometer sample the heading is arbitrary (device +y to
+``consistency_deg`` and ``heading_reset_deg`` (the jump of a heading re-acquisition at that row, deg; NaN
+at the other rows).  Before the first usable magnetometer sample the heading is arbitrary (device +y to
 north) with ``heading_std_deg = 180``.
 
 North: with a field that has a declination, the output is referenced to true north (the magnetometer
@@ -71,7 +72,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from pdr_mag.estimates import EstimateBatch
+from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.state import (
@@ -135,6 +136,33 @@ class FusionSettings:
         Correlation time of that acceleration (the length of a turn), s.
     acc_dyn : float
         Noise added per unit of ``||a| − g| / g``.
+    acc_spread_k : float
+        Dynamics term of the averaged update's noise: the direction of ``ā_w`` is off by about
+        ``acc_spread_k · s`` rad per horizontal axis, ``s`` the RMS horizontal spread of the world-frame
+        specific force about its average, over g.  0.19 is the slope measured with motion-capture attitude
+        on 42 walks of three phones and eight ways of carrying them (texting: s ≈ 0.08, 1–2°; running in
+        the hand: s ≈ 1, 15°).  Successive updates ``acc_interval_s`` apart share the window τ, so this
+        variance counts ``τ / acc_interval_s`` times per update: the information per second is that of one
+        independent direction per window.
+    acc_range : float
+        Full scale of the accelerometer, m/s² per axis (0: found in the data).  A sample with an axis at the
+        range is clipped: its true value lies beyond, by an unknown amount.  Found in the data, the range is
+        the largest |a_i| seen once at least ``acc_clip_min_hits`` samples came within ``acc_clip_band`` of
+        it and it is above 1.5 g (phone ranges are 2, 4, 8 or 16 g): a sensor that clips piles its samples
+        up at the range (exactly, or spread over a few per cent by the phone's own axis calibration, as on
+        the iPhone 4S), one that does not reaches its largest value once.
+    acc_clip_band : float
+        Samples within this fraction of the range count as clipped.
+    acc_clip_min_hits : float
+        Samples near the largest value that make it a range.
+    acc_clip_k : float
+        Clipped samples stay in the average ``ā_w`` — dropping them would drop the peaks of every step and
+        tilt it far more (by 36° mean, 86° p95 on a real running walk) — but their missing excess, of the
+        order of a g each, is unknown: the direction of ``ā_w`` may be off by about ``share · excess / g``,
+        so the averaged update's noise grows by ``(acc_clip_k · share)²`` rad² (``acc_clip_k`` = 1: an
+        excess of one g), ``share`` the weight of clipped samples in the window,
+        counted ``τ / acc_interval_s`` times like the spread.  Single-sample updates (``acc_tau_s = 0``) skip
+        clipped samples.
     acc_gyro : float
         Noise added per rad/s of bias-corrected angular rate (centripetal / tangential acceleration).
     acc_gate : float
@@ -162,6 +190,14 @@ class FusionSettings:
         the filter does not take correlated errors for gyro bias.
     mag_error_tau_s : float
         Correlation time of c, s.
+    mag_env_k : float
+        Where the recent field was disturbed, a field that looks clean may still be turned: steel that
+        changes strength and dip by ``|d|`` nearby turns the horizontal field by up to ``|d| / B_h``
+        elsewhere in the same place.  The stationary variance of c grows by ``(k · d_env / B_h)²``, with
+        ``d_env²`` the exponentially weighted mean of ``d_min²`` (see ``mag_dist_k``) over
+        ``mag_env_tau_s`` and ``B_h`` the reference horizontal strength (0 = off).
+    mag_env_tau_s : float
+        Memory of that environment level, s.
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
@@ -169,6 +205,17 @@ class FusionSettings:
     reject_inflate_deg : float
         While an undisturbed-looking field keeps failing the gate, the heading variance grows by this
         squared per second (deg/√s), so a wrong heading (a disturbed start) is not kept forever.
+    reacquire_s : float
+        Re-acquisition: when a field that the detectors find clean has failed the gate for this long
+        without a break, and the innovations agree among themselves (their circular spread, exponentially
+        weighted over this time, is below ``reacquire_spread_deg``), the filter is what is lost: the
+        heading is set to the magnetometer's (a ``heading_reset`` event carries the jump), uncorrelated
+        from the bias, whose variance about up grows to the drift rate the jump implies.  0 = off.  A field
+        turned by steel is local: 20 s of walking (~25 m) leaves the reach of a building's structure, so a
+        field that still disagrees by the same angle is right and the heading wrong; a steel area passed in
+        less time is waited out.
+    reacquire_spread_deg : float
+        Largest circular spread of those innovations, deg.
     still_gyro : float
         Still when the RMS deviation of the gyro from its running mean is below this, rad/s…
     still_acc : float
@@ -202,6 +249,11 @@ class FusionSettings:
     acc_noise: float = 0.05
     acc_corr_s: float = 0.1
     acc_dyn: float = 2.0
+    acc_spread_k: float = 0.19
+    acc_range: float = 0.0
+    acc_clip_band: float = 0.05
+    acc_clip_min_hits: float = 5.0
+    acc_clip_k: float = 1.0
     turn_speed: float = 0.0
     turn_corr_s: float = 1.0
     acc_gyro: float = 0.5
@@ -214,9 +266,13 @@ class FusionSettings:
     mag_tilt_k: float = 1.0
     mag_error_std_deg: float = 6.0
     mag_error_tau_s: float = 5.0
+    mag_env_k: float = 0.3
+    mag_env_tau_s: float = 30.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0
+    reacquire_s: float = 20.0
+    reacquire_spread_deg: float = 15.0
     still_gyro: float = 0.03
     still_acc: float = 0.3
     still_tau_s: float = 0.3
@@ -241,6 +297,7 @@ class FusionSettings:
             "acc_noise",
             "mag_gate",
             "still_tau_s",
+            "mag_env_tau_s",
             "gravity",
             "max_dt",
             "zupt_noise",
@@ -407,3 +464,18 @@ class FusionCore:
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)
+
+
+def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
+    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``), as (row, event): a
+    ``heading_reset`` event with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise
+    positive) and the ``heading_std_deg`` it left."""
+    jumps = batch.diag.get("heading_reset_deg") if batch.diag else None
+    if jumps is None:
+        return []
+    out = []
+    for i in np.flatnonzero(np.isfinite(jumps)):
+        std = float(batch.heading_std_deg[i])
+        data = {"jump_deg": round(float(jumps[i]), 3), "heading_std_deg": round(std, 3)}
+        out.append((int(i), Event(float(batch.t[i]), "heading_reset", data)))
+    return out

@@ -423,3 +423,80 @@ def test_unflagged_field_rotation_at_the_start_does_not_become_gyro_bias(walk):
         assert db < np.radians(amp_deg) / dur
         core.process(kind[~during], t[~during], xyz[~during])
         assert np.all(np.abs(core.bias - true_bias) < 0.2 * DEG)
+
+
+# ------------------------------------------------------------------------------------------ robustness
+def test_tilt_waits_for_the_gyroscope():
+    """A phone whose gyroscope starts 1 s after its accelerometer while the device turns (a real iPhone 4S
+    running walk: 0.7 s; a tilt set from the first accelerometer sample went stale by ~55° there and the
+    first tilt updates taught the bias −30 °/s).  The tilt starts with the gyroscope: on a figure-8 the first
+    rows' tilt is within the accelerometer's single-sample error of a turning hand (< 5°); set from the
+    first accelerometer sample it is 10–22° off on these seeds."""
+    from scipy.spatial.transform import Rotation
+
+    from pdr_mag.sensor_model import quat_slerp
+
+    for seed in (1, 2, 3):
+        res = simulate("figure8", seed=seed, effects={"hard_iron": None, "soft_iron": None}, duration_s=20)
+        kind, t, xyz = merge(res)
+        keep = ~((kind == 1) & (t < t[0] + 1.0))
+        b = FusionCore(field=res.field).process(kind[keep], t[keep], xyz[keep])
+        first = slice(0, 5)
+        q_est = Rotation.from_quat(b.q_wd[first][:, [1, 2, 3, 0]])
+        q_true = Rotation.from_quat(quat_slerp(*res.truth, b.t[first])[:, [1, 2, 3, 0]])
+        up_est, up_true = q_est.inv().apply([0.0, 0.0, 1.0]), q_true.inv().apply([0.0, 0.0, 1.0])
+        tilt = np.degrees(np.arccos(np.clip(np.sum(up_est * up_true, axis=1), -1.0, 1.0)))
+        assert b.t[0] >= t[0] + 1.0
+        assert np.all(tilt < 5.0)
+
+
+def test_lost_heading_is_reacquired_with_an_event(walk):
+    """For the first 40 s the field is turned by 90° about up — strength and dip unchanged, so nothing can
+    tell — and the filter takes that heading.  Then the true field returns: it is clean but fails the gate.
+    After ``reacquire_s`` of such rejections the heading is re-acquired (one ``heading_reset``
+    of about 90°, within 2 × reacquire_s), and then it is as accurate as the undisturbed walk (< 3°); without
+    re-acquisition it is still tens of degrees off at that time."""
+    from scipy.spatial.transform import Rotation
+
+    from pdr_mag.attitude import heading_reset_events
+    from pdr_mag.sensor_model import quat_slerp
+
+    tm, m = walk.mag
+    tt, qt = walk.truth
+    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    a = np.where(tm < tm[0] + 40.0, np.radians(90.0), 0.0)
+    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
+    kind, t, xyz = merge(walk, mag=(rt.inv() * turn * rt).apply(m))
+    settings = FusionSettings()
+    b = FusionCore(settings, field=walk.field).process(kind, t, xyz)
+    events = heading_reset_events(b)
+    assert len(events) == 1
+    ev = events[0][1]
+    assert tm[0] + 40.0 < ev.t < tm[0] + 40.0 + 2 * settings.reacquire_s
+    assert abs(abs(ev.data["jump_deg"]) - 90.0) < 10.0
+    t_err, err, _ = twist_error_deg(b, walk.truth)
+    after = t_err > ev.t + 5.0
+    assert np.mean(np.abs(err[after])) < 3.0
+    off = FusionCore(FusionSettings(reacquire_s=0.0), field=walk.field).process(kind, t, xyz)
+    assert not heading_reset_events(off)
+    _, err_off, _ = twist_error_deg(off, walk.truth)
+    assert np.mean(np.abs(err_off[(t_err > ev.t) & (t_err < ev.t + 10.0)])) > 20.0
+
+
+def test_accelerometer_range_is_found_in_the_data():
+    """Running with a ±2-g accelerometer piles samples up at the range: the filter finds it (its peak within
+    the band of 2 g, many hits) and counts clipped samples in the average; a texting walk, which never comes
+    near a range, has no clipped share.  A range given in the settings is used as such."""
+    run = simulate("run", seed=1, phone="iphone4s", effects={"hard_iron": None, "soft_iron": None})
+    core = FusionCore(field=run.field)
+    core.process(*merge(run))
+    st = core._st[0]
+    g2 = 2.0 * 9.80665
+    assert abs(st["acc_peak"] - g2) <= 0.05 * g2 and st["acc_peak_hits"] >= 100
+    walk = simulate("walk", seed=1, effects={"hard_iron": None, "soft_iron": None})
+    core = FusionCore(field=walk.field)
+    core.process(*merge(walk))
+    assert core._st[0]["clip_share"] == 0.0 and core._st[0]["acc_peak"] < 1.5 * 9.80665
+    given = FusionCore(FusionSettings(acc_range=0.5 * 9.80665), field=walk.field)
+    given.process(*merge(walk))
+    assert given._st[0]["clip_share"] > 0.5  # every sample of a walk is above half a g on some axis

@@ -25,8 +25,8 @@ Bounds (mean |heading error| per walk, degrees):
 * honesty, both modes: at most :data:`BEYOND_3SIGMA_MAX` of a walk's scored frames with |error| beyond
   3σ of ``heading_std_deg`` (a Gaussian gives 0.3 %; issue 10's target).
 
-Walks that fail a bound today are ``xfail(strict=True)`` naming issue 10: they flip (and the strict xfail
-fails) when the filter is fixed — then delete them from the lists below.
+Walks that fail a bound today are ``xfail`` naming issue 10 (strict unless within 15 % of the bound, see
+the lists below): a strict one flips (and fails) when the filter is fixed — then delete it from its list.
 """
 
 from __future__ import annotations
@@ -51,47 +51,57 @@ FLOOR_DEG = 3.0
 BEYOND_3SIGMA_MAX = 0.10
 ISSUE = "issue 10 (a heading that never fails): "
 
-#: walk → its mode-a figure against its bound today (benchmarks/heading.py; p95, the magnetometer's
-#: longest absence over the scored frames)
-XFAIL_A: dict[str, str] = {
-    "Thibaud_Nexus5_Dist_Phoning": "12.6° > 11.1° (madgwick_cal_gcal 9.1° + 2°); p95 83°, the field left"
-    " out for up to 19 s in the disturbed area",
-    "Thibaud_Nexus5_NoDist_BackPocket": "5.4° > 4.3° (imufusion_cal_gcal 2.3° + 2°); a steady offset,"
-    " median 5.0°",
-    "Thibaud_Nexus5_NoDist_RunningHand": "9.6° > 9.0° (vqf_cal_gcal 7.0° + 2°; vqf_cal 3.1°); running in"
-    " hand, the ±2-g accelerometer clipped on 23 % of the samples",
-    "Thibaud_iPhone4S_NoDist_Phoning": "8.7° > 5.4° (vqf_cal_gcal 3.4° + 2°); p95 23°, a recalibration"
-    " requested mid-walk",
-    "Thibaud_iPhone4S_NoDist_RunningHand": "91.1° > 3.9° (vqf_cal_gcal 1.9° + 2°); running in hand: the"
-    " field left out for up to 15 s, the heading 90° off and never re-acquired; the ±2-g accelerometer"
-    " clipped on 27 % of the samples",
-    "Thibaud_iPhone4S_NoDist_RunningPocket": "4.1° > 3.9° (vqf_cal_gcal 1.9° + 2°)",
-    "Thibaud_iPhone5_Dist_BackPocket": "6.9° > 6.1° (madgwick_cal_gcal 4.1° + 2°); the field left out for up"
-    " to 20 s in the disturbed area",
-    "Thibaud_iPhone5_Dist_Swinging": "10.9° > 10.4° (imufusion_cal_gcal 8.4° + 2°); the field left out for up"
-    " to 15 s in the disturbed area",
+#: Known failures: walk → (its figure against its bound today, strict).  Strict when the figure is clearly
+#: beyond its bound (≥ 15 % over, or ≥ 13 % of the frames beyond 3σ): such an xfail that starts passing
+#: means the filter changed, and the entry must go.  A figure within 15 % of its bound is a non-strict
+#: xfail: floating point differs across CPUs and may carry it either side of the bound.
+XFAIL_A: dict[str, tuple[str, bool]] = {
+    "Thibaud_Nexus5_Dist_Phoning": (
+        "11.7° > 11.1° (madgwick_cal_gcal 9.1° + 2°); p95 77°, the field left out"
+        " for up to 19 s in the disturbed area",
+        False,
+    ),
+    "Thibaud_Nexus5_Dist_Texting": ("8.5° > 8.4° (madgwick_cal_gcal 6.4° + 2°)", False),
+    "Thibaud_iPhone4S_Dist_BackPocket": (
+        "5.4° > 5.2° (vqf_cal_gcal 3.2° + 2°); 25° of gyro drift over a 17-s disturbance",
+        False,
+    ),
+    "Thibaud_iPhone4S_NoDist_FrontPocket": ("5.63° > 5.62° (vqf_cal_gcal 3.6° + 2°)", False),
+    "Thibaud_iPhone4S_NoDist_Phoning": (
+        "6.5° > 5.4° (vqf_cal_gcal 3.4° + 2°); a recalibration requested mid-walk",
+        True,
+    ),
+    "Thibaud_iPhone5_Dist_BackPocket": (
+        "7.8° > 6.1° (madgwick_cal_gcal 4.1° + 2°); the field left out for up to 20 s in the disturbed area",
+        True,
+    ),
 }
-#: walk → its mode-b figure against its bound today
-XFAIL_B: dict[str, str] = {
-    "Thibaud_Nexus5_NoDist_FrontPocket": "6.42° > 6.41° (os 4.4° + 2°), by 0.01°; median 2.2°: the error is"
-    " before and around the first online calibration",
-    "Thibaud_Nexus5_NoDist_RunningHand": "9.5° > 6.7° (os 4.7° + 2°); running in hand",
-    "Thibaud_Nexus5_NoDist_RunningPocket": "7.5° > 6.4° (os 4.4° + 2°); running, phone in a pocket",
-    "Thibaud_iPhone4S_NoDist_AR": "10.6° > 7.7° (os 5.7° + 2°); median 9.6°: a steady error of the online"
-    " calibration (hard iron 593 µT)",
-    "Thibaud_iPhone4S_NoDist_Texting": "97.5° > 6.4° (os 4.4° + 2°); the field left out for half of the walk"
-    " after the online calibration, the heading 100° off",
+#: walk → its mode-b figure against its bound today, strict
+XFAIL_B: dict[str, tuple[str, bool]] = {
+    "Thibaud_Nexus5_NoDist_FrontPocket": (
+        "7.2° > 6.4° (os 4.4° + 2°): the error is before and around the first online calibration",
+        False,
+    ),
+    "Thibaud_Nexus5_NoDist_RunningHand": ("7.7° > 6.7° (os 4.7° + 2°); running in hand", False),
+    "Thibaud_iPhone4S_NoDist_Texting": (
+        "14.8° > 6.4° (os 4.4° + 2°): the first online calibration of the 590-µT offset is 18 µT off",
+        True,
+    ),
+    "Thibaud_iPhone5_Dist_FrontPocket": ("21.2° > 21.1° (imufusion_cal 19.1° + 2°)", False),
 }
-#: (walk, mode) → the share of its frames beyond 3σ today
-XFAIL_STD: dict[tuple[str, str], str] = {
-    ("Thibaud_Nexus5_NoDist_RunningHand", "a"): "30 % of the frames beyond 3σ",
-    ("Thibaud_Nexus5_NoDist_RunningHand", "b"): "30 % of the frames beyond 3σ",
-    ("Thibaud_iPhone4S_NoDist_RunningHand", "a"): "77 % of the frames beyond 3σ (error 91°, median σ 14°)",
-    ("Thibaud_iPhone5_Dist_AR", "a"): "16 % of the frames beyond 3σ",
-    ("Thibaud_iPhone4S_Dist_AR", "b"): "23 % of the frames beyond 3σ",
-    ("Thibaud_iPhone4S_NoDist_AR", "b"): "17 % of the frames beyond 3σ",
-    ("Thibaud_iPhone4S_NoDist_Texting", "b"): "80 % of the frames beyond 3σ (error 97°, median σ 16°)",
-    ("Thibaud_iPhone5_Dist_AR", "b"): "53 % of the frames beyond 3σ",
+#: (walk, mode) → the share of its frames beyond 3σ today, strict
+XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {
+    ("Thibaud_Nexus5_Dist_AR", "a"): (
+        "14 % of the frames beyond 3σ: a turned field of normal strength and"
+        " dip before the first disturbance",
+        True,
+    ),
+    ("Thibaud_Nexus5_Dist_AR", "b"): ("11 % of the frames beyond 3σ", False),
+    ("Thibaud_iPhone5_Dist_AR", "b"): (
+        "50 % of the frames beyond 3σ: online calibration in the disturbed area",
+        True,
+    ),
+    ("Thibaud_iPhone5_Dist_FrontPocket", "b"): ("14 % of the frames beyond 3σ", True),
 }
 
 
@@ -109,13 +119,15 @@ def _walks() -> list[str]:
 WALKS = _walks()
 
 
-def _params(xfails: dict, key=lambda w: w):
-    return [
-        pytest.param(w, marks=pytest.mark.xfail(strict=True, reason=ISSUE + xfails[key(w)]))
-        if key(w) in xfails
-        else w
-        for w in WALKS
-    ]
+def _xfail(entry: tuple[str, bool]):
+    reason, strict = entry
+    return pytest.mark.xfail(
+        strict=strict, reason=ISSUE + reason + ("" if strict else " (within 15 % of its bound)")
+    )
+
+
+def _params(xfails: dict):
+    return [pytest.param(w, marks=_xfail(xfails[w])) if w in xfails else w for w in WALKS]
 
 
 # ------------------------------------------------------------------------------------------ machinery
@@ -228,6 +240,6 @@ def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run):
 @pytest.mark.parametrize("walk", WALKS)
 def test_heading_std_warns_when_the_heading_is_wrong(walk, mode, run, request):
     if (walk, mode) in XFAIL_STD:
-        request.applymarker(pytest.mark.xfail(strict=True, reason=ISSUE + XFAIL_STD[(walk, mode)]))
+        request.applymarker(_xfail(XFAIL_STD[(walk, mode)]))
     _, beyond = run(walk, mode)
     assert beyond <= BEYOND_3SIGMA_MAX, f"{walk} mode {mode}: {beyond:.0%} of the frames beyond 3σ"

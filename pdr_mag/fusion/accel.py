@@ -106,16 +106,18 @@ def accel_step(s, R, ax, ay, az, t, p):
     n = np.sqrt(ax * ax + ay * ay + az * az)
     if n < 1e-6:
         return
+    clipped = _clipped(s, ax, ay, az, p)
     if s.init == 0:
-        init_tilt(s, ax, ay, az, p)
+        if s.have_gyro:  # before the gyroscope streams, nothing would carry the tilt forward
+            init_tilt(s, ax, ay, az, p)
         return
     g = p.gravity
     da = abs(n - g) / g
     rotation_matrix(s.q, R)
     if p.acc_tau_s > 0.0:
-        _averaged_update(s, R, ax, ay, az, t, p)
+        _averaged_update(s, R, ax, ay, az, t, clipped, p)
         return
-    if da > p.acc_gate:
+    if da > p.acc_gate or clipped:
         return
     wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
     wn = np.sqrt(wx * wx + wy * wy + wz * wz)
@@ -138,20 +140,49 @@ def accel_step(s, R, ax, ay, az, t, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _averaged_update(s, R, ax, ay, az, t, p):
+def _clipped(s, ax, ay, az, p):
+    """Whether this sample has an axis at the accelerometer's range (given, or found in the data: the
+    settings' ``acc_range``); keeps the running peak and its hits."""
+    m = max(abs(ax), max(abs(ay), abs(az)))
+    if p.acc_range > 0.0:
+        return m >= (1.0 - p.acc_clip_band) * p.acc_range
+    if m > s.acc_peak:
+        if m > s.acc_peak * (1.0 + p.acc_clip_band):
+            s.acc_peak_hits = 0  # a new, higher level: the old one was no range
+        s.acc_peak = m
+    near = m >= (1.0 - p.acc_clip_band) * s.acc_peak
+    if near:
+        s.acc_peak_hits += 1
+    return near and s.acc_peak_hits >= p.acc_clip_min_hits and s.acc_peak > 1.5 * p.gravity
+
+
+@njit(cache=True, error_model="numpy")
+def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     """The world-frame average ``ā_w``; at most every ``acc_interval_s``, the update from its direction."""
     aw = s.acc_w
     awx = R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az
     awy = R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az
     awz = R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az
+    Rb = s.R_bar
     if not np.isfinite(aw[0]) or not np.isfinite(s.t_acc_update) or t - s.t_acc_update > 10.0 * p.acc_tau_s:
         aw[0], aw[1], aw[2] = awx, awy, awz
+        s.acc_spread = 0.0
+        s.clip_share = 1.0 if clipped else 0.0
+        for i in range(3):
+            for m in range(3):
+                Rb[i, m] = R[i, m]
         s.t_acc_update = t
         return
     a = ew_alpha(t - s.t_acc_prev, p.acc_tau_s)
     aw[0] += a * (awx - aw[0])
     aw[1] += a * (awy - aw[1])
     aw[2] += a * (awz - aw[2])
+    ex, ey = awx - aw[0], awy - aw[1]
+    s.acc_spread += a * (ex * ex + ey * ey - s.acc_spread)
+    s.clip_share += a * ((1.0 if clipped else 0.0) - s.clip_share)
+    for i in range(3):
+        for m in range(3):
+            Rb[i, m] += a * (R[i, m] - Rb[i, m])
     if t - s.t_acc_update < p.acc_interval_s:
         return
     s.t_acc_update = t
@@ -160,15 +191,17 @@ def _averaged_update(s, R, ax, ay, az, t, p):
     dev = abs(na - g) / g
     if dev > p.acc_gate:
         return
-    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
     tau = p.acc_tau_s
+    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
+    windows = tau / max(p.acc_interval_s, 1e-3)  # updates per independent window
+    rv += (p.acc_spread_k**2 * s.acc_spread / (g * g) + (p.acc_clip_k * s.clip_share) ** 2) * windows
     hx = np.zeros(NX)
     hy = np.zeros(NX)
     hx[TH_Y] = -1.0
     hy[TH_X] = 1.0
-    for m in range(3):  # the tilt error of τ ago: δθ(t − τ) = δθ(t) + τ R δb
-        hx[BIAS + m] = -tau * R[1, m]
-        hy[BIAS + m] = tau * R[0, m]
+    for m in range(3):  # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R)
+        hx[BIAS + m] = -tau * Rb[1, m]
+        hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
     unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
     update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)

@@ -87,7 +87,7 @@ def predict(s, R, wx, wy, wz, dt, p):
         P[6, 3 + i] = P[3 + i, 6]
         P[i, 6] = pac[i]
         P[6, i] = pac[i]
-    P[6, 6] = phi * phi * P[6, 6] + p.mag_error_std_rad**2 * (1.0 - phi * phi)
+    P[6, 6] = phi * phi * P[6, 6] + magerr_var(s, p) * (1.0 - phi * phi)
     s.c *= phi
     for i in range(3):
         for m in range(3):
@@ -108,6 +108,16 @@ def predict(s, R, wx, wy, wz, dt, p):
         for i in range(NX):
             P[TH_Z, i] *= fs
             P[i, TH_Z] *= fs
+
+
+@njit(cache=True, error_model="numpy")
+def magerr_var(s, p):
+    """Stationary variance of c, rad²: ``σ_c² + (mag_env_k · d_env / B_h)²`` (the environment's recent
+    disturbance level ``d_env``, see :mod:`pdr_mag.fusion.mag`)."""
+    v = p.mag_error_std_rad**2
+    if p.mag_env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
+        v += p.mag_env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
+    return v
 
 
 @njit(cache=True, error_model="numpy")

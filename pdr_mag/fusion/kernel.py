@@ -89,6 +89,8 @@ def _write_row(st, ti, out, n):
     out.gyro_bias_y[n] = st.b[1]
     out.gyro_bias_z[n] = st.b[2]
     out.consistency_deg[n] = det.cons
+    out.heading_reset_deg[n] = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
+    st.reset_jump = 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -98,7 +100,7 @@ def named_rows(floats, q, flags):
     return Rows(
         floats[0], floats[1], floats[2], floats[3], floats[4], floats[5], floats[6], floats[7], floats[8],
         floats[9], floats[10], floats[11], floats[12], floats[13], floats[14], floats[15], floats[16],
-        q, flags[0], flags[1],
+        floats[17], q, flags[0], flags[1],
     )  # fmt: skip
 
 

@@ -34,6 +34,16 @@ correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag_gate² · S`` 
 clean-looking field keeps failing the gate, the heading may be what is wrong: ``P[δθ_z, δθ_z]`` grows by
 ``reject_inflate_deg²`` per second (only the heading's, so the bias is not dragged when the gate opens).
 
+Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
+field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
+without a break for ``reacquire_s`` and its innovations agree among themselves (circular spread of their
+exponentially weighted mean below ``reacquire_spread_deg``: a lost heading is off by one angle whatever the
+device does, a turned field in a steel building changes as the walker moves), the heading is set to the
+magnetometer's, ``q ← Exp(r̄ e_z) ⊗ q`` with r̄ that mean, exactly as at the first fix (the covariance
+below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², bias0_std²)``, the drift rate
+that the jump implies over the time Δt since the last heading update.  The jump is reported in the
+``heading_reset_deg`` output column (a ``heading_reset`` event in the pipeline).
+
 First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
 specific force turned with it).  The residual is then zero, so ``δθ_z = −(δc + h_t·δθ_xy + n)``: the
 heading error *is* that sample's correlated field error, and
@@ -52,7 +62,7 @@ from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
-from pdr_mag.interference import detect_step, dip_of
+from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
 
 @njit(cache=True, error_model="numpy")
@@ -97,6 +107,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
         dmin2 += (f * np.radians(dip - det.dip_loc)) ** 2
     cons_d = max(det.cons - np.degrees(sb) * ip.consistency_window_s, 0.0)
     dmin2 += p.mag_cons_k * (f * np.radians(cons_d)) ** 2
+    _environment_step(s, dmin2, t, det, p)
     rv_clean = p.mag_noise_rad**2 + p.mag_noise_uT**2 / (bh * bh)
     if p.mag_time_unc_s > 0.0:
         wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
@@ -122,9 +133,10 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
         # a clean-looking field that keeps disagreeing: let the heading's variance grow
         if np.isfinite(s.t_reject):
             P[TH_Z, TH_Z] += p.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
-        s.t_reject = t
+        _rejected(s, R, h, r, rv, t, p)
         return
     s.t_reject = np.nan
+    s.t_reject_start = np.nan
     dx = np.zeros(NX)
     update_h(P, dx, h, r, rv, True)
     inject(s, dx)
@@ -133,21 +145,96 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
 
 
 @njit(cache=True, error_model="numpy")
+def _rejected(s, R, h, r, rv, t, p):
+    """A gate rejection of a clean-looking field (innovation r): the run's statistics; re-acquisition once
+    the run is ``reacquire_s`` long and its innovations agree."""
+    mean = s.reject_mean
+    if not np.isfinite(s.t_reject) or not np.isfinite(s.t_reject_start):
+        s.t_reject_start = t
+        mean[0], mean[1] = np.cos(r), np.sin(r)
+    else:
+        a = ew_alpha(t - s.t_reject, p.reacquire_s)
+        mean[0] += a * (np.cos(r) - mean[0])
+        mean[1] += a * (np.sin(r) - mean[1])
+    s.t_reject = t
+    if p.reacquire_s <= 0.0 or t - s.t_reject_start < p.reacquire_s:
+        return
+    rbar = np.sqrt(mean[0] * mean[0] + mean[1] * mean[1])
+    if rbar <= 0.0 or -2.0 * np.log(min(rbar, 1.0)) > p.reacquire_spread_rad**2:
+        return
+    _reacquire(s, R, np.arctan2(mean[1], mean[0]), h, rv, t, p)
+
+
+@njit(cache=True, error_model="numpy")
+def _reacquire(s, R, jump, h, rv, t, p):
+    """Turn the attitude about up by ``jump`` onto the magnetometer's heading (the module docstring)."""
+    dt_ref = t - s.t_mag_update if np.isfinite(s.t_mag_update) else 0.0
+    _turn_world_frame(s, jump)
+    P = s.P
+    # the drift the jump implies, ``jump / Δt`` about up (Δt ≥ 10 s: short runs say little about a rate)
+    vb = min((jump / max(dt_ref, 10.0)) ** 2, p.bias0_std**2)
+    rotation_matrix(s.q, R)
+    for i in range(3):
+        for m in range(3):
+            P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
+    _heading_from_field(s, h, rv)
+    s.t_reject = np.nan
+    s.t_reject_start = np.nan
+    s.reset_jump += jump
+    s.t_mag_update = t
+    s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _environment_step(s, dmin2, t, det, p):
+    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s``, and the local
+    reference's horizontal strength ``B_h = F_loc cos I_loc`` (they set the stationary variance of c)."""
+    if np.isfinite(s.t_env):
+        s.env_d2 += ew_alpha(t - s.t_env, p.mag_env_tau_s) * (dmin2 - s.env_d2)
+    else:
+        s.env_d2 = dmin2
+    s.t_env = t
+    if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
+        s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))
+
+
+@njit(cache=True, error_model="numpy")
 def _first_fix(s, h, r, rv, t):
     """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
-    rotate_world(s.q, 0.0, 0.0, r)
     rotate_world(s.q_gyro, 0.0, 0.0, r)
+    _turn_world_frame(s, r)
+    _heading_from_field(s, h, rv)
+    s.init = 2
+    s.t_mag_update = t
+    s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _turn_world_frame(s, angle):
+    """Turn the attitude about up by ``angle``; the world-frame quantities the filter carries turn with it
+    (the averaged specific force and its mean R) or restart (the detectors' mean field direction)."""
+    rotate_world(s.q, 0.0, 0.0, angle)
+    c, sn = np.cos(angle), np.sin(angle)
     aw = s.acc_w
-    if np.isfinite(aw[0]):  # the averaged specific force lives in the re-headed world frame
-        c, sn = np.cos(r), np.sin(r)
+    if np.isfinite(aw[0]):
         x0, y0 = aw[0], aw[1]
         aw[0], aw[1] = c * x0 - sn * y0, sn * x0 + c * y0
+    Rb = s.R_bar
+    for m in range(3):
+        x0, y0 = Rb[0, m], Rb[1, m]
+        Rb[0, m], Rb[1, m] = c * x0 - sn * y0, sn * x0 + c * y0
+    s.det.mw[0], s.det.mw[1], s.det.mw[2] = np.nan, 0.0, 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _heading_from_field(s, h, rv):
+    """Covariance after a heading taken from the field: the residual is then zero, so
+    ``δθ_z = −(δc + h_t·δθ_xy + n)``, uncorrelated with anything else (the module docstring)."""
     P = s.P
     x, y, z = TH_X, TH_Y, TH_Z
     for i in range(NX):
         P[z, i] = 0.0
         P[i, z] = 0.0
-    # δθ_z = −(δc + h_t·δθ_xy + n)
     rt = h[x] * h[x] * P[x, x] + 2.0 * h[x] * h[y] * P[x, y] + h[y] * h[y] * P[y, y]
     P[z, z] = rv + P[C_ERR, C_ERR] + rt + 2.0 * (h[x] * P[x, C_ERR] + h[y] * P[y, C_ERR])
     for j in range(NX):
@@ -155,7 +242,3 @@ def _first_fix(s, h, r, rv, t):
             v = -P[C_ERR, j] - h[x] * P[x, j] - h[y] * P[y, j]
             P[z, j] = v
             P[j, z] = v
-    s.init = 2
-    s.t_mag_update = t
-    s.mag_used = True
-    s.det.mw[0], s.det.mw[1], s.det.mw[2] = np.nan, 0.0, 0.0

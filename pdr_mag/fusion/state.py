@@ -52,6 +52,11 @@ STATE = np.dtype(
         ("t_acc", np.float64),  # time of the last accelerometer sample, s
         ("t_acc_prev", np.float64),  # time of the one before, s
         ("acc_w", np.float64, (3,)),  # EW mean ā_w of the world-frame specific force, m/s² (NaN: restart)
+        ("acc_peak", np.float64),  # largest |a_i| of any axis seen, m/s² (the range, if it clips)
+        ("acc_peak_hits", np.int64),  # samples that reached within acc_clip_band of acc_peak
+        ("clip_share", np.float64),  # EW share of clipped samples in the window of ā_w
+        ("acc_spread", np.float64),  # EW mean of |a_w,h − ā_w,h|², the horizontal spread about ā_w, (m/s²)²
+        ("R_bar", np.float64, (3, 3)),  # EW mean of R (device → world) over the same window
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
         # magnetometer
         ("declination", np.float64),  # D, rad (0: magnetic north)
@@ -59,6 +64,12 @@ STATE = np.dtype(
         ("dip_ref", np.float64),  # reference inclination, deg (NaN: learnt)
         ("t_mag_update", np.float64),  # time of the last heading update, s
         ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
+        ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
+        ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
+        ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
+        ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
+        ("t_env", np.float64),  # time of its last sample, s
+        ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
         ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.interference)
         # output rows
         ("t_next_out", np.float64),  # grid time of the next output row, s
@@ -85,6 +96,11 @@ PARAMS = np.dtype(
             "acc_noise",
             "acc_corr_s",
             "acc_dyn",
+            "acc_spread_k",
+            "acc_range",
+            "acc_clip_band",
+            "acc_clip_min_hits",
+            "acc_clip_k",
             "turn_speed",
             "turn_corr_s",
             "acc_gyro",
@@ -97,9 +113,13 @@ PARAMS = np.dtype(
             "mag_tilt_k",
             "mag_error_std_rad",
             "mag_error_tau_s",
+            "mag_env_k",
+            "mag_env_tau_s",
             "mag_interval_s",
             "mag_gate",
             "reject_inflate_rad",
+            "reacquire_s",
+            "reacquire_spread_rad",
             "still_gyro",
             "still_acc",
             "still_tau_s",
@@ -127,6 +147,7 @@ DIAG_NAMES = (
     "gyro_bias_y",
     "gyro_bias_z",
     "consistency_deg",
+    "heading_reset_deg",
 )
 
 #: float columns of the output, one row per output gyroscope sample: time, heading std (deg), the arguments
@@ -162,6 +183,9 @@ def new_state() -> np.ndarray:
         "dip_ref",
         "t_mag_update",
         "t_reject",
+        "t_reject_start",
+        "t_env",
+        "bh_ref",
         "t_next_out",
     ):
         st[name] = np.nan
