@@ -358,6 +358,19 @@ class FusionCore:
         self._ref_strength = None if strength_uT is None else float(strength_uT)
         self._apply_strength()
 
+    def set_calibration_covariance(self, cov_uT2) -> None:
+        """Covariance of the calibration's offset (3×3, device frame, µT²; None = exact).  The heading error
+        it causes, ``g Σ_b gᵀ`` at each sample's orientation, joins the stationary variance of the
+        magnetometer error state c: a coarse early calibration (σ of a few µT against a horizontal field of
+        ~20 µT: ~10°) then weighs as little as it deserves, and the std says so."""
+        if cov_uT2 is None:
+            self._st["cal_cov"] = 0.0
+            return
+        c = np.asarray(cov_uT2, dtype=float)
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+            raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
+        self._st["cal_cov"] = 0.5 * (c + c.T)
+
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:
             self._st["f_ref"] = self._ref_strength

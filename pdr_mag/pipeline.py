@@ -591,6 +591,7 @@ class HeadingPipeline:
             if not self._calibrations:
                 self._calibrations.append((-np.inf, cal))
             self.fusion.set_reference_strength(float(cal.field_uT))
+        self.fusion.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> dict:
