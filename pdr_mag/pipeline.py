@@ -455,7 +455,7 @@ class HeadingPipeline:
             )
             before = self.online.calibration
             if ok:  # the common case: contiguous and finite, as update_blocks would make them
-                events, n_done, cov = self.online._update_rows(r_t, r_mag, r_up, r_rate, ends)
+                events, n_done, cov = self.online.update_blocks(r_t, r_mag, r_up, r_rate, ends)
             else:
                 rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
                 r_t = rows[:, 0]
