@@ -351,3 +351,45 @@ def test_online_refits_are_judged_by_the_calibration_core_rules():
                                           n_samples=400, residual_rms_uT=0.5, offset_std_uT=[0.1] * 3),
                OnlineSettings(), field_ref=47.0)
     assert ok.accepted, ok.reasons
+
+
+def test_rows_with_nan_are_skipped():
+    """Rows with a NaN up vector (no attitude yet) or time are skipped: the same events, coverage and state
+    as without them, also when a block's last row is one."""
+    d = synth_walk(duration=30.0, seed=2)
+    t, q = d["truth"]
+    tm, mag = d["mag"]
+    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
+    up = rot.inv().apply([0.0, 0.0, 1.0])
+    rate = np.interp(tm, d["gyro"][0], np.linalg.norm(d["gyro"][1], axis=1))
+    blk = np.floor(tm / 0.5)
+    ends = np.r_[blk[1:] != blk[:-1], True]
+    bad = np.zeros(len(tm), dtype=bool)
+    bad[:30] = True  # whole blocks at the start
+    bad[np.flatnonzero(ends)[5::7]] = True  # some blocks' last rows
+    up_nan, t_nan = up.copy(), tm.copy()
+    up_nan[bad] = np.nan
+    t_nan[np.flatnonzero(bad)[::5]] = np.nan
+    rate_nan = rate.copy()
+    rate_nan[::11] = np.nan
+
+    def feed(*rows_and_ends):
+        oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+        ev, cov_blk, i = [], [], 0
+        t_, m_, u_, r_, e_ = rows_and_ends
+        while i < len(t_):
+            got, n, cov = oc.update_blocks(t_[i:], m_[i:], u_[i:], r_[i:], e_[i:])
+            ev += [e for _, e in got]
+            fin = np.isfinite(cov[:n])
+            cov_blk += list(zip(blk_of[i : i + n][fin], cov[:n][fin], strict=True))
+            i += n
+        return ev, cov_blk, oc.get_state()
+
+    blk_of = blk[~bad]
+    ends_good = np.r_[blk_of[1:] != blk_of[:-1], True]
+    rate_good = np.where(np.isfinite(rate_nan), rate_nan, 0.0)[~bad]
+    ref = feed(tm[~bad], mag[~bad], up[~bad], rate_good, ends_good)
+    blk_of = blk
+    got = feed(t_nan, mag, up_nan, rate_nan, ends)
+    assert ref[0] == got[0] and ref[1] == got[1] and ref[2] == got[2]
+    assert any(k == "calibration_accepted" for _, k, _ in ref[0])

@@ -112,7 +112,9 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
          ev_index, ev_kind):  # fmt: skip
     """Take samples ``i, i+1, …`` in (steps 1–6 of the module docstring); return ``(code, index, n_events)``.
 
-    ``block_end[k]`` marks the last sample of a block; there ``coverage[k]`` gets the buffer's coverage.
+    ``block_end[k]`` marks the last sample of a block; there ``coverage[k]`` gets the buffer's coverage (a
+    block of skipped samples only has none).  Samples with a NaN time, field or up vector are skipped; a
+    NaN rate counts as 0.
     ``resumed``: sample ``i`` was taken in and returned (``REFIT``/``STALE_TEST``) by the previous call; only
     its block end is left.  Episode events go to ``ev_index``/``ev_kind`` (``n_events`` of them).
     """
@@ -122,14 +124,15 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
     n_ev = 0
     while i < len(t):
         ti = t[i]
+        m = mag[i]
+        u = up[i]
         if resumed:
             resumed = False
-        else:
+        elif _finite(ti, m, u):
             if not st.in_block:
                 _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0)
-            m = mag[i]
-            u = up[i]
-            n_ev = _track_episode(i, ti, rate[i], st, p, ev_index, ev_kind, n_ev)
+            rate_i = rate[i] if np.isfinite(rate[i]) else 0.0
+            n_ev = _track_episode(i, ti, rate_i, st, p, ev_index, ev_kind, n_ev)
             if ti - st.ring_last_t >= p.ring_dt:
                 put(ring, st.ring_next % len(ring), ti, m, u)
                 st.ring_next += 1
@@ -149,7 +152,7 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
                 return REFIT, i, n_ev
             if stale_step(ti, st, c, p, ring) == STALE_TEST:
                 return STALE_TEST, i, n_ev
-        if block_end[i]:
+        if block_end[i] and st.in_block:
             st.in_block = False
             coverage[i] = current_coverage(st, c, buf)
             if st.cal_changed:
@@ -159,9 +162,24 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
 
 
 @njit(cache=True, error_model="numpy")
+def _finite(t, m, u):
+    """A sample with a finite time, field and up vector (others are skipped)."""
+    return (
+        np.isfinite(t)
+        and np.isfinite(m[0])
+        and np.isfinite(m[1])
+        and np.isfinite(m[2])
+        and np.isfinite(u[0])
+        and np.isfinite(u[1])
+        and np.isfinite(u[2])
+    )
+
+
+@njit(cache=True, error_model="numpy")
 def _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0):
     """Step 1: copy the calibration and the buffer; list the buffer samples that can be older than
-    ``refresh_s`` before the block's last time (unknown: +inf when the block goes on after these samples)."""
+    ``refresh_s`` before the block's last time (unknown — the block goes on after these samples, or its
+    last time is NaN —: +inf)."""
     cal0[0] = cal[0]
     n = st.n_buf
     for k in range(n):
@@ -170,7 +188,8 @@ def _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0):
     t_last = np.inf
     for k in range(i, len(t)):
         if block_end[k]:
-            t_last = t[k]
+            if np.isfinite(t[k]):
+                t_last = t[k]
             break
     n_old = 0
     for k in range(n):
@@ -318,6 +337,25 @@ def stale_precheck(ring, ti, c, p):
     if frac_last < p.stale_min_frac or dev / n < 0.5 * p.stale_min_frac:
         return STALE_CLEAR
     return STALE_TEST
+
+
+@njit(cache=True, error_model="numpy")
+def recent(ring, ring_next, t_min):
+    """The ring's samples after ``t_min``, oldest first (it is written cyclically, the next at ``ring_next %
+    len(ring)``: the oldest)."""
+    n = len(ring)
+    start = ring_next % n
+    keep = np.zeros(n, dtype=np.bool_)
+    for k in range(n):
+        tk = ring[(start + k) % n].t
+        keep[k] = np.isfinite(tk) and tk > t_min
+    out = np.empty(np.count_nonzero(keep), dtype=ring.dtype)
+    j = 0
+    for k in range(n):
+        if keep[k]:
+            out[j] = ring[(start + k) % n]
+            j += 1
+    return out
 
 
 @njit(cache=True, error_model="numpy")

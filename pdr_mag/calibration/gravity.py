@@ -108,10 +108,10 @@ def gravity_aided_offset(
         raise ValueError(f"mag, up: expected two (N, 3) arrays, got {m.shape} and {u.shape}")
     if len(m) < 5:
         raise ValueError(f"mag: need at least 5 samples, got {len(m)}")
-    fit = fit_offset(
-        m, u, strength, sin_dip, sigma_strength_uT, sigma_tilt_deg, prior_strength_std_uT, prior_dip_std_deg,
-        iterations,
-    )  # fmt: skip
+    model = fit_model(
+        strength, sin_dip, sigma_strength_uT, sigma_tilt_deg, prior_strength_std_uT, prior_dip_std_deg
+    )
+    fit = fit_offset(m, u, model, iterations)
     if not fit.ok:
         raise ValueError("mag, up: offset not observable from these samples (degenerate geometry)")
     f = fit.strength
@@ -133,36 +133,59 @@ def gravity_aided_offset(
     )
 
 
-def fit_offset(
-    m: np.ndarray,
-    u: np.ndarray,
+class FitModel(NamedTuple):
+    """What a fit assumes besides the samples: the references and the σ of each equation (µT)."""
+
+    strength: float | None  # F given (None: estimated, with sin I)
+    sin_dip: float | None  # sin I given
+    sig_str: float  # σ of the strength equation
+    sig_dip: float  # σ of the dip equation: F sin σ_tilt (F = 50 µT when not given)
+    prior: bool  # F and s = F sin I estimated around the given values
+    sig_f: float  # … with these σ: σ_F
+    sig_s: float  # … and σ_s = F cos I σ_I
+
+
+def fit_model(
     strength: float | None,
     sin_dip: float | None,
     sigma_strength_uT: float,
     sigma_tilt_deg: float,
-    prior_strength_std_uT: float,
-    prior_dip_std_deg: float,
-    iterations: int = 8,
-) -> GravityFit:
-    """:func:`gravity_aided_offset`'s numbers (``ok`` False: degenerate geometry).
-
-    Raises ValueError for NaN, infinite or zero vectors, and when the normal equations are singular.
-    """
+    prior_strength_std_uT: float = 0.0,
+    prior_dip_std_deg: float = 0.0,
+) -> FitModel:
+    """The :class:`FitModel` of these references and settings (as :func:`gravity_aided_offset` takes them)."""
     free = strength is None or sin_dip is None
-    f_guess = float(strength) if strength is not None else 50.0  # scales the strength rows only
-    s_given = 0.0 if free else float(strength) * float(sin_dip)
+    f_guess = float(strength) if strength is not None else 50.0
     prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0
     sig_dip = max(f_guess * np.sin(np.radians(sigma_tilt_deg)), 1e-3)
     sig_f = sig_s = 1.0
     if prior:
-        # σ of s = F sin I from σ of I: ds = F cos I dI
         sig_f = float(prior_strength_std_uT)
         sig_s = float(f_guess * np.cos(np.arcsin(np.clip(sin_dip, -1, 1))) * np.radians(prior_dip_std_deg))
+    return FitModel(
+        None if strength is None else float(strength),
+        None if sin_dip is None else float(sin_dip),
+        float(sigma_strength_uT),
+        float(sig_dip),
+        prior,
+        sig_f,
+        sig_s,
+    )
+
+
+def fit_offset(m: np.ndarray, u: np.ndarray, model: FitModel, iterations: int = 8) -> GravityFit:
+    """:func:`gravity_aided_offset`'s numbers (``ok`` False: degenerate geometry).
+
+    Raises ValueError for NaN, infinite or zero vectors, and when the normal equations are singular.
+    """
+    f, sd = model.strength, model.sin_dip
+    free = f is None or sd is None
+    f_guess = f if f is not None else 50.0  # scales the strength rows only
     try:
         outcome, b, f, s, cov, est, rms, dip_rms = _fit(
             np.ascontiguousarray(m, dtype=float), np.ascontiguousarray(u, dtype=float), f_guess,
-            0.0 if free else float(strength), s_given, free, float(sigma_strength_uT), sig_dip,
-            int(iterations), prior, sig_f, sig_s,
+            0.0 if free else f, 0.0 if free else f * sd, free, model.sig_str, model.sig_dip, int(iterations),
+            model.prior, model.sig_f, model.sig_s,
         )  # fmt: skip
     except np.linalg.LinAlgError as exc:
         raise ValueError("mag, up: singular normal equations") from exc
@@ -267,47 +290,90 @@ def _initial_value(x, u, f_guess, strength, s_given, free, sig_str, sig_dip):
 
 @njit(cache=True, error_model="numpy")
 def _normal_equations(x, u, b, f, s, npar, inv_str, inv_dip):
-    """Step 2's ``(JᵀWJ, JᵀWr)`` over the first ``npar`` of ``(b, F, s)``: for each sample the strength row
-    ``(−d/|d|, −1, 0)/σ_str`` with residual ``(|d| − F)/σ_str`` and the dip row ``(−u, 0, 1)/σ_dip`` with
-    residual ``(d·u + s)/σ_dip`` (``d = x − b``), Huber-weighted; the upper triangle is accumulated, then
-    mirrored."""
-    h = np.zeros((npar, npar))
-    g = np.zeros(npar)
-    row = np.zeros(5)
+    """Step 2's ``(H, g) = (JᵀWJ, JᵀWr)`` over the first ``npar`` of ``(b, F, s)``.
+
+    Per sample (``d = x − b``) two Huber-weighted residuals: the strength residual ``(|d| − F)/σ_str`` with
+    gradient ``(−d/|d|, −1, 0)/σ_str``, and the dip residual ``(d·u + s)/σ_dip`` with gradient
+    ``(−u, 0, 1)/σ_dip``.  The sums are kept in scalars (the hot loop of the online refits).
+    """
+    # H's upper triangle: hbb (b×b), hbf (b×F), hff, hbs (b×s), hss; H_fs = 0.  g: gb, gf, gs.
+    hbb00 = hbb01 = hbb02 = hbb11 = hbb12 = hbb22 = 0.0
+    hbf0 = hbf1 = hbf2 = hff = hbs0 = hbs1 = hbs2 = hss = 0.0
+    gb0 = gb1 = gb2 = gf = gs = 0.0
     for i in range(x.shape[0]):
         d0 = x[i, 0] - b[0]
         d1 = x[i, 1] - b[1]
         d2 = x[i, 2] - b[2]
         nd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        # strength
         r = (nd - f) * inv_str
-        row[0] = -d0 / nd * inv_str
-        row[1] = -d1 / nd * inv_str
-        row[2] = -d2 / nd * inv_str
-        row[3] = -inv_str
-        row[4] = 0.0
-        _accumulate(h, g, row, r, _huber(r))
+        w = _huber(r)
+        a0 = -d0 / nd * inv_str
+        a1 = -d1 / nd * inv_str
+        a2 = -d2 / nd * inv_str
+        wa0 = w * a0
+        wa1 = w * a1
+        wa2 = w * a2
+        hbb00 += wa0 * a0
+        hbb01 += wa0 * a1
+        hbb02 += wa0 * a2
+        hbb11 += wa1 * a1
+        hbb12 += wa1 * a2
+        hbb22 += wa2 * a2
+        gb0 += wa0 * r
+        gb1 += wa1 * r
+        gb2 += wa2 * r
+        hbf0 -= wa0 * inv_str
+        hbf1 -= wa1 * inv_str
+        hbf2 -= wa2 * inv_str
+        hff += w * inv_str * inv_str
+        gf -= w * inv_str * r
+        # dip
         r = (d0 * u[i, 0] + d1 * u[i, 1] + d2 * u[i, 2] + s) * inv_dip
-        row[0] = -u[i, 0] * inv_dip
-        row[1] = -u[i, 1] * inv_dip
-        row[2] = -u[i, 2] * inv_dip
-        row[3] = 0.0
-        row[4] = inv_dip
-        _accumulate(h, g, row, r, _huber(r))
-    for p in range(npar):
-        for q in range(p):
-            h[p, q] = h[q, p]
+        w = _huber(r)
+        c0 = -u[i, 0] * inv_dip
+        c1 = -u[i, 1] * inv_dip
+        c2 = -u[i, 2] * inv_dip
+        wc0 = w * c0
+        wc1 = w * c1
+        wc2 = w * c2
+        hbb00 += wc0 * c0
+        hbb01 += wc0 * c1
+        hbb02 += wc0 * c2
+        hbb11 += wc1 * c1
+        hbb12 += wc1 * c2
+        hbb22 += wc2 * c2
+        gb0 += wc0 * r
+        gb1 += wc1 * r
+        gb2 += wc2 * r
+        hbs0 += wc0 * inv_dip
+        hbs1 += wc1 * inv_dip
+        hbs2 += wc2 * inv_dip
+        hss += w * inv_dip * inv_dip
+        gs += w * inv_dip * r
+    h = np.zeros((npar, npar))
+    g = np.zeros(npar)
+    h[0, 0] = hbb00
+    h[0, 1] = h[1, 0] = hbb01
+    h[0, 2] = h[2, 0] = hbb02
+    h[1, 1] = hbb11
+    h[1, 2] = h[2, 1] = hbb12
+    h[2, 2] = hbb22
+    g[0] = gb0
+    g[1] = gb1
+    g[2] = gb2
+    if npar == 5:
+        h[0, 3] = h[3, 0] = hbf0
+        h[1, 3] = h[3, 1] = hbf1
+        h[2, 3] = h[3, 2] = hbf2
+        h[3, 3] = hff
+        h[0, 4] = h[4, 0] = hbs0
+        h[1, 4] = h[4, 1] = hbs1
+        h[2, 4] = h[4, 2] = hbs2
+        h[4, 4] = hss
+        g[3] = gf
+        g[4] = gs
     return h, g
-
-
-@njit(cache=True, error_model="numpy")
-def _accumulate(h, g, row, r, w):
-    """``h += w·rowᵀrow`` (upper triangle) and ``g += w·row·r`` for one residual."""
-    npar = len(g)
-    for p in range(npar):
-        wp = w * row[p]
-        for q in range(p, npar):
-            h[p, q] += wp * row[q]
-        g[p] += wp * r
 
 
 @njit(cache=True, error_model="numpy")

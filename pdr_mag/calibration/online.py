@@ -33,7 +33,7 @@ import numpy as np
 from pdr_mag._json import state_float
 from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration import diversity, refit, stale
-from pdr_mag.calibration.gravity import gravity_aided_offset
+from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
@@ -218,6 +218,8 @@ class OnlineCalibrator:
         self._buf0 = diversity.empty(s.buffer_size)  # the buffer at the start of the open block
         self._old0 = np.zeros(s.buffer_size, dtype=np.int64)
         self._ring = diversity.empty(int(s.stale_window_s * s.stale_rate_hz) + 1)  # recent samples
+        # the stale test's fits: F and sin I free, and (set by _use) the references in force with priors
+        self._free_model = fit_model(None, None, s.sigma_strength_uT, s.sigma_tilt_deg)
         self._use(calibration, "none" if calibration is None else refit.state_of(calibration))
 
     # ------------------------------------------------------------------ reading
@@ -282,37 +284,13 @@ class OnlineCalibrator:
 
         Returns ``(events, n, coverage)``: the events as ``(row, (t, kind, data))`` with the row that raised
         them, the number of rows taken in, and the buffer's coverage at each block end taken in (NaN
-        elsewhere).
+        elsewhere).  Rows with a NaN time, field or up vector are skipped (a NaN rate counts as 0).
         """
         t = np.asarray(t, dtype=float).reshape(-1)
-        n_all = len(t)
-        if not n_all:
-            return [], 0, np.empty(0)
         mag = np.asarray(mag, dtype=float)
         up = np.asarray(up, dtype=float)
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
-        good = np.isfinite(t) & np.all(np.isfinite(mag), axis=1) & np.all(np.isfinite(up), axis=1)
-        if np.all(good):
-            return self._scan(t, mag, up, rate, block_end)
-        # without the rows with NaN; a block whose last row is dropped ends at its last good one
-        rows = np.flatnonzero(good)
-        cov = np.full(n_all, np.nan)
-        if not len(rows):
-            return [], n_all, cov
-        blk = np.cumsum(np.r_[False, block_end[:-1]])[rows]
-        ends = np.r_[blk[1:] != blk[:-1], True]
-        events, n, cov_good = self._scan(t[rows], mag[rows], up[rows], rate[rows], ends)
-        cov[rows] = cov_good
-        n_done = int(rows[n - 1]) + 1 if n < len(rows) else n_all
-        return [(int(rows[r]), e) for r, e in events], n_done, cov
-
-    def _scan(self, t, mag, up, rate, block_end) -> tuple[list, int, np.ndarray]:
-        """:meth:`update_blocks` on finite rows: the compiled loop, and the decisions it returns for."""
-        t = np.ascontiguousarray(t)
-        mag = np.ascontiguousarray(mag)
-        up = np.ascontiguousarray(up)
-        rate = np.where(np.isfinite(rate), rate, 0.0)
         n = len(t)
         cov = np.full(n, np.nan)
         ev_index = np.empty(n, dtype=np.int64)  # at most one episode event per sample
@@ -370,6 +348,9 @@ class OnlineCalibrator:
         c["stale_ok"] = f is not None and sd is not None
         c["stale_tol"] = np.nan if f is None else s.strength_tol_frac * f * 0.5
         c["refit_period"] = s.refit_period_s if cal is not None else 0.5 * s.refit_period_s
+        self._stale_model = fit_model(
+            f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, s.prior_strength_std_uT, s.prior_dip_std_deg
+        )
         st = self._state[0]
         st["coverage_stale"] = True  # the coverage is taken about the offset
         st["fit_new"] = np.inf
@@ -420,7 +401,7 @@ class OnlineCalibrator:
         window = self._recent(t)
         mc = cal.apply(window["m"])
         pending = bool(st["has_candidate"])
-        found = stale.window_shift(mc, window["u"], self.field_ref, self.sin_dip_ref, s, pending)
+        found = stale.window_shift(mc, window["u"], self._stale_model, self._free_model, s, pending)
         if found is stale.INCONCLUSIVE:
             return
         if found is None:
@@ -487,8 +468,7 @@ class OnlineCalibrator:
 
     def _recent(self, t: float) -> np.ndarray:
         """The ring's samples of the last ``stale_window_s``, oldest first."""
-        ring = np.roll(self._ring, -(int(self._state[0]["ring_next"]) % len(self._ring)))
-        return ring[np.isfinite(ring["t"]) & (ring["t"] > t - self.settings.stale_window_s)]
+        return K.recent(self._ring, self._state[0]["ring_next"], t - self.settings.stale_window_s)
 
     # ------------------------------------------------------------------ state
     def get_state(self) -> dict:

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from pdr_mag.calibration.gravity import fit_offset
+from pdr_mag.calibration.gravity import FitModel, fit_offset
 
 if TYPE_CHECKING:
     from pdr_mag.calibration.online import OnlineSettings
@@ -44,12 +44,15 @@ INCONCLUSIVE = "inconclusive"
 def window_shift(
     mag_cal: np.ndarray,
     up: np.ndarray,
-    strength: float,
-    sin_dip: float,
+    model: FitModel,
+    free_model: FitModel,
     settings: OnlineSettings,
     candidate_pending: bool,
 ) -> Shift | None | str:
     """Fit a device-fixed shift ``δ`` of the calibrated field on the window (oldest first).
+
+    ``model``: the fit's references (F, sin I: the WMM's or the calibration's) with their priors;
+    ``free_model``: F and sin I free (for :func:`device_fixed`).
 
     Fits on the whole window and on each half; the shift counts when the halves agree (within 3 σ of their
     difference, at least 3 µT), the whole-window fit explains the deviation (RMS below half of
@@ -65,21 +68,18 @@ def window_shift(
     fits = []
     for lo, hi in ((0, n), (0, half), (half, n)):
         try:
-            fit = fit_offset(
-                mag_cal[lo:hi], up[lo:hi], strength, sin_dip, s.sigma_strength_uT, s.sigma_tilt_deg,
-                s.prior_strength_std_uT, s.prior_dip_std_deg,
-            )  # fmt: skip
+            fit = fit_offset(mag_cal[lo:hi], up[lo:hi], model)
         except ValueError:
             return INCONCLUSIVE
         if not fit.ok:
             return INCONCLUSIVE
         fits.append(Shift(fit.offset, np.sqrt(np.maximum(np.diag(fit.offset_cov), 0)), fit.rms))
-        if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], strength, s):
+        if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], model.strength, s):
             return None
     whole, a, b = fits
     sig_ab = np.sqrt(a.sigma**2 + b.sigma**2)
     consistent = bool(np.all(np.abs(a.delta - b.delta) < np.maximum(3 * sig_ab, 3.0)))
-    if not (consistent and _explains(whole, strength, s) and device_fixed(mag_cal, up, s)):
+    if not (consistent and _explains(whole, model.strength, s) and device_fixed(mag_cal, up, free_model, s)):
         return None
     return whole
 
@@ -95,7 +95,7 @@ def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
     )
 
 
-def device_fixed(mag_cal: np.ndarray, up: np.ndarray, settings: OnlineSettings) -> bool:
+def device_fixed(mag_cal: np.ndarray, up: np.ndarray, free_model: FitModel, settings: OnlineSettings) -> bool:
     """Whether the window's deviation needs a *device-fixed* offset shift, whatever the local field.
 
     The window fits hold the local field near the WMM (priors of a few µT / degrees), so a building whose
@@ -108,11 +108,10 @@ def device_fixed(mag_cal: np.ndarray, up: np.ndarray, settings: OnlineSettings) 
     unknowns): a shift counts only where the data determine it — its components along the covariance's
     eigen-directions that exceed 4 σ each must together exceed ``stale_min_shift_uT`` (a shift along an
     ill-determined direction, even at 3 σ, is what a few µT of local field error and the walk's tilt
-    errors make of the ambiguity).
+    errors make of the ambiguity).  ``free_model``: the fit's σ, F and sin I not given.
     """
-    s = settings
     try:
-        fit = fit_offset(mag_cal, up, None, None, s.sigma_strength_uT, s.sigma_tilt_deg, 0.0, 0.0)
+        fit = fit_offset(mag_cal, up, free_model)
     except ValueError:
         return False
     cov = fit.offset_cov
@@ -122,4 +121,4 @@ def device_fixed(mag_cal: np.ndarray, up: np.ndarray, settings: OnlineSettings) 
     c = v.T @ fit.offset  # the shift along the covariance's eigen-directions
     sig = np.sqrt(np.clip(w, 0.0, None))
     c = c[np.abs(c) > 4.0 * sig]  # the components the data determine
-    return bool(np.linalg.norm(c) > s.stale_min_shift_uT)
+    return bool(np.linalg.norm(c) > settings.stale_min_shift_uT)
