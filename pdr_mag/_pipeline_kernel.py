@@ -2,7 +2,7 @@
 
 * :func:`in_order` and :func:`take_merged`: a push's check, and the three input streams' pending samples
   before a time taken and merged in time order;
-* :func:`filter_input`: the merged samples as the fusion core takes them;
+* :func:`filter_input`: the merged samples as the fusion core takes them; :func:`rows_coverage`;
 * :func:`mag_context`: what the online calibrator is given with each magnetometer sample of the merged
   stream — the up vector of the filter's latest output row at or before it (the third row of ``rot_wd``
   from the row's quaternion), or, where the filter has none yet, the direction of the latest accelerometer
@@ -100,6 +100,22 @@ def filter_input(kind, xyz, offset, calibrated):
             else:
                 data[i, c] = np.nan
     return data, allowed, n_gyro
+
+
+@njit(cache=True, error_model="numpy")
+def rows_coverage(row_t, block_s, closed_blk, closed_cov, before):
+    """Each output row's buffer coverage: the one after the last of the closed blocks ``closed_blk``
+    (increasing) before the row's own block, ``before`` where there is none."""
+    out = np.empty(len(row_t))
+    k = 0
+    c = before
+    for r in range(len(row_t)):
+        b = np.floor(row_t[r] / block_s)
+        while k < len(closed_blk) and closed_blk[k] < b:
+            c = closed_cov[k]
+            k += 1
+        out[r] = c
+    return out
 
 
 @njit(cache=True, error_model="numpy")

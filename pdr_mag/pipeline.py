@@ -386,7 +386,7 @@ class HeadingPipeline:
         """Fuse the span of blocks that starts at sample ``i`` and close its finished blocks (see the module
         docstring); returns the index of the first sample not fused for good."""
         b = self.settings.block_s
-        e = int(np.searchsorted(blk, blk[i] + self._span))
+        e = int(blk.searchsorted(blk[i] + self._span))
         cal = self.online.calibration
         cal_state = self.online.cal_state
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
@@ -405,7 +405,7 @@ class HeadingPipeline:
             row_blk = np.floor(rows["t"] / b)
             # the span's last block has ended when a later sample is here or the horizon passed its end
             last_ended = e < len(t) or (blk[e - 1] + 1) * b <= t_end
-            n_ended = len(rows) if last_ended else int(np.searchsorted(row_blk, blk[e - 1]))
+            n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[e - 1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
             self._pend = rows[n_ended:]
             if self.online.calibration is not cal:
@@ -413,7 +413,7 @@ class HeadingPipeline:
                 self._pend = rows[:0]
                 # the blocks after the one whose close changed the calibration are to be fused with the new
                 # one: the filter goes back to the span's start and runs again up to that block's end
-                end = max(i, int(np.searchsorted(blk, row_blk[n_taken - 1], side="right")))
+                end = max(i, int(blk.searchsorted(row_blk[n_taken - 1], side="right")))
                 if end < e:
                     self.fusion._restore(snap)
                     batch = self.fusion._run(
@@ -431,12 +431,7 @@ class HeadingPipeline:
         if self.settings.online:
             PK.carry_over(kind[i:end], xyz[i:end], batch.q_wd, self._carry)
         if len(batch):
-            # each row's coverage: the one after the last block closed before its own
-            if len(closed_cov):
-                cov = np.concatenate([[self._coverage], closed_cov])
-                batch.diag["coverage"] = cov[np.searchsorted(closed_blk, np.floor(batch.t / b))]
-            else:
-                batch.diag["coverage"] = np.full(len(batch), self._coverage)
+            batch.diag["coverage"] = PK.rows_coverage(batch.t, b, closed_blk, closed_cov, self._coverage)
             events += [(math.floor(ev.t / b), 0, ev) for ev in self._interference_events(batch)]
             self._n_out += len(batch)
             self._out.append(batch)
