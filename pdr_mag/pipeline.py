@@ -383,53 +383,52 @@ class HeadingPipeline:
         return kind, t, xyz
 
     def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
-        """Fuse the span of blocks that starts at sample ``i`` and close its finished blocks (see the module
-        docstring); returns the index of the first sample not fused for good."""
-        b = self.settings.block_s
+        """Fuse the span of blocks that starts at sample ``i`` (see the module docstring); returns the index
+        of the first sample not fused for good."""
         e = int(blk.searchsorted(blk[i] + self._span))
+        # the span's last block has ended when a later sample is here or the horizon passed its end
+        last_ended = e < len(t) or (blk[e - 1] + 1) * self.settings.block_s <= t_end
+        n = self._fuse_and_close(kind[i:e], t[i:e], xyz[i:e], blk[i:e], last_ended)
+        if n == e - i and e < len(t):
+            self._span = min(2 * self._span, _SPAN_MAX)
+        return i + n
+
+    def _fuse_and_close(self, kind, t, xyz, blk, last_ended: bool) -> int:
+        """Fuse these samples with the calibration in force and close their ended blocks; returns how many
+        are fused for good: all, or those up to the end of the block whose close changed the calibration."""
+        b = self.settings.block_s
         cal = self.online.calibration
         cal_state = self.online.cal_state
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
-        data, allowed, n_gyro = PK.filter_input(kind[i:e], xyz[i:e], self._mag_offset, cal is not None)
+        data, allowed, n_gyro = PK.filter_input(kind, xyz, self._mag_offset, cal is not None)
         if cal is not None and self._mag_matrix_t is not None:
-            is_mag = kind[i:e] == 2
+            is_mag = kind == 2
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
         snap = self.fusion._snapshot()
-        batch = self.fusion._run(kind[i:e], t[i:e], data, allowed, _NO_CUTS, n_gyro, cal_state)
-        end = e
+        batch = self.fusion._run(kind, t, data, allowed, _NO_CUTS, n_gyro, cal_state)
+        end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
         if self.settings.online:
-            # the open block's rows, then the span's
-            rows = PK.mag_context(kind[i:e], t[i:e], xyz[i:e], batch.t, batch.q_wd, self._carry, self._pend)
+            # the open block's magnetometer rows, then these samples'
+            rows = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend)
             row_blk = np.floor(rows["t"] / b)
-            # the span's last block has ended when a later sample is here or the horizon passed its end
-            last_ended = e < len(t) or (blk[e - 1] + 1) * b <= t_end
-            n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[e - 1]))
+            n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
             self._pend = rows[n_ended:]
             if self.online.calibration is not cal:
-                self._span = _SPAN_MIN
-                self._pend = rows[:0]
                 # the blocks after the one whose close changed the calibration are to be fused with the new
                 # one: the filter goes back to the span's start and runs again up to that block's end
-                end = max(i, int(blk.searchsorted(row_blk[n_taken - 1], side="right")))
-                if end < e:
+                self._span = _SPAN_MIN
+                self._pend = rows[:0]
+                end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
+                if end < len(t):
                     self.fusion._restore(snap)
                     batch = self.fusion._run(
-                        kind[i:end],
-                        t[i:end],
-                        data[: end - i],
-                        allowed[: end - i],
-                        _NO_CUTS,
-                        n_gyro,
-                        cal_state,
+                        kind[:end], t[:end], data[:end], allowed[:end], _NO_CUTS, n_gyro, cal_state
                     )
                 self._use_calibration()  # after the filter's state (with its reference strength) is put back
-        if end == e and e < len(t):
-            self._span = min(2 * self._span, _SPAN_MAX)
-        if self.settings.online:
-            PK.carry_over(kind[i:end], xyz[i:end], batch.q_wd, self._carry)
+            PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
         if len(batch):
             batch.diag["coverage"] = PK.rows_coverage(batch.t, b, closed_blk, closed_cov, self._coverage)
             events += [(math.floor(ev.t / b), 0, ev) for ev in self._interference_events(batch)]
@@ -439,13 +438,13 @@ class HeadingPipeline:
             self._coverage = float(closed_cov[-1])
         events.sort(key=lambda x: x[:2])  # block by block: the filter's events, then the calibrator's
         self._events += [ev for _, _, ev in events]
-        if end > i:
+        if end:
             if not math.isfinite(self._t_first):
-                self._t_first = float(t[i])
+                self._t_first = float(t[0])
             self._t_last = float(t[end - 1])
             if self.settings.keep_mag_calibrated and cal is not None:
-                m = kind[i:end] == 2
-                self._magcal.append((t[i:end][m], data[: end - i][m]))
+                m = kind[:end] == 2
+                self._magcal.append((t[:end][m], data[:end][m]))
         return end
 
     def _close_blocks(

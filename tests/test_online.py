@@ -259,7 +259,7 @@ def test_local_vertical_field_is_not_taken_for_a_moved_offset():
     """A building whose vertical field is 8 µT weaker than the WMM's (|m_cal| 39.6 µT instead of 47 µT all
     along the walk): in the texting pose it looks like an offset shift along the mean up vector, but no
     device-fixed shift is needed once the local field is free — no recalibration, the given offset stays
-    (tyrex iPhone 5 NoDist had this and lost 1.3° of heading to a wrong recalibration)."""
+    (the tyrex iPhone 5 NoDist walk has such a field: read as a moved offset it costs 1.3° of heading)."""
     from pdr_mag.calibration.model import MagCalibration
 
     d = synth_walk(duration=120.0, seed=9, local_w=(0.0, 0.0, 8.0))

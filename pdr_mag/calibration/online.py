@@ -19,7 +19,7 @@ that instant, and works with bounded memory:
   disturbance.  A shift found again ``stale_confirm_s`` later requests a recalibration: the provisional
   offset ``b + M⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
   rotation-rich episode (a figure-8) with enough coverage gives the new calibration (``recalibrated``) —
-  or, without one, an accepted gravity-aided refit older than ``recal_fallback_s``.
+  or, without one, the first refit accepted ``recal_fallback_s`` after the request.
 
 Its state is JSON-serialisable (:meth:`OnlineCalibrator.get_state` / :meth:`~OnlineCalibrator.set_state`).
 """
@@ -61,8 +61,9 @@ class OnlineSettings:
         ``max(refit_min_new, refit_new_frac · n)`` samples since the last fit (n: samples in the buffer);
         otherwise the last fit's verdict stands.  The fitted offset's covariance scales as 1/n, so k new
         samples shrink its σ by ≈ k/(2n) and move it by ≈ σ·√(k/n): far less than the 20 % shrink or
-        2 σ shift a new fit needs to replace the calibration (see ``_accept``).  A change of the
-        calibration, a rotation episode's start or end and a cleared buffer make the next attempt fit.
+        2 σ shift a new fit needs to replace the calibration (:func:`pdr_mag.calibration.refit.replaces`).
+        A change of the calibration, a rotation episode's start or end and a cleared buffer make the next
+        attempt fit.
     refit_backoff : float
         A buffer that stopped growing changes only by replacement (an old sample refreshed by a close new
         one, the most redundant one evicted when full): while it does not grow, each fit that leaves the
