@@ -1,74 +1,117 @@
-"""Mode (a) heading accuracy and fusion speed on the tyrex walks: pdr_mag's fusion core against the peers.
+"""Heading accuracy on every tyrex walk: pdr_mag in modes (a) and (b) against the peers, in one run.
 
-Mode (a): each walk is processed with the day's magnetometer calibration —
-:func:`pdr_mag.calibration.calibrate` on that day's ``calib_mag_*`` recording, exactly as
-``pdr-mag calibrate`` makes it (``auto`` method, quasi-static accelerometer for the alignment, WMM
-field for the radius check) — and nothing else: raw gyroscope, raw accelerometer, the WMM field of
-``meta.json``.  ``trial.json`` is read here only to know which calibration recording belongs to the
-walk and (by the shared scorer) for the scoring window.
+Walks: every folder of ``../shared/datasets/tyrex-pdrcsv`` whose ``trial.json`` says ``"kind": "trial"``
+(found by listing).  ``trial.json`` is read here — never by the pipeline — for the day's calibration
+recordings (``calib``, ``calib_gyr``), the groups (device, Dist/NoDist, motion) and, by the shared scorer,
+the time alignment of the scoring window.
 
 Columns, all in the same run on the same inputs:
 
-``pdr_mag``
-    :class:`pdr_mag.attitude.FusionCore` with default settings, fed the merged raw streams with the
-    calibrated magnetometer, its strength reference set to the calibration radius (as the pipeline does).
-``pdr_mag_pipe``
-    the whole :class:`pdr_mag.pipeline.HeadingPipeline` through ``replay(REC, calibration=…)`` (the same
-    code as ``pdr-mag replay REC --calibration FILE``), when available.
-peers (as in ``../shared/benchmarks/PEERS.md``)
-    imufusion 1.3.3 (gain 0.5, acceleration rejection 10°, magnetic rejection 10°, recovery 5 s), vqf 2.1.2
-    (defaults), ahrs 0.4.0 Madgwick (gain 0.041) and Mahony (defaults); fed on the gyroscope's time grid
-    with the accelerometer interpolated and the latest magnetometer sample, calibrated with the same
-    calibration scaled to the WMM strength; declination from the WMM.  ``*_gcal``: also the day's gyro
-    offset removed (mean of the static ``calib_gyr_*`` recording) — the peers' best case.
+``a``
+    the whole :class:`~pdr_mag.pipeline.HeadingPipeline` through ``replay(REC, calibration=FILE)`` — the code
+    of ``pdr-mag replay REC --calibration FILE`` — with FILE written by ``pdr-mag calibrate`` (the command
+    itself, run in-process) on the day's ``calib_mag_*`` recording.  Each day's file is made once per run.
+``b``
+    the same pipeline with no calibration: online calibration only.
+``core``
+    :class:`~pdr_mag.attitude.FusionCore` alone with the same calibrated magnetometer (cheap; left out when
+    the core's interface is not the one this script knows).
+peers
+    :mod:`_peers` (the columns of ``../shared/benchmarks/PEERS.md``), magnetometer calibrated with the
+    same day's file scaled to the WMM strength; ``_gcal``: the day's gyro offset removed first.
 ``os``
     the phone's own fusion (``os.csv``).
 
-Metric: the shared scorer ``../shared/benchmarks/tyrex/score.py`` (imported, not reimplemented): mean
-|heading error| over 5–120 s of the mocap clock, per trial.  Also reported for pdr_mag: how often the truth
-lies within 1σ / 2σ of the reported ``heading_std_deg`` (Gaussian: 68 % / 95 %).
-
-Speed: replay throughput (sensor samples per second) of the fusion core against imufusion's ``Ahrs`` on the
-same recording in the same run; both timings include the preparation of their inputs (merge / resampling).
+Metric: the shared scorer ``../shared/benchmarks/tyrex/score.py`` (imported): mean |heading error| over
+5–120 s of the mocap clock.  Honesty of ``heading_std_deg`` (modes a, b): over the same scored frames,
+the share with |error| ≤ 2σ (a Gaussian gives 95 %) and the share with |error| > 3σ (Gaussian 0.3 %).
 
 Usage::
 
-    python benchmarks/heading.py [--write-results] [--speed-repeats N] [--commit HASH]
+    python benchmarks/heading.py [--walks PATTERN] [--jobs N] [--json FILE] [--series DIR]
+                                 [--peers-from FILE] [--no-core] [--check-peers] [--write-results]
+                                 [--write-fixture]
+
+``PATTERN``: comma-separated globs on the walk names (no wildcard: a substring).  ``--peers-from``: take the
+peer and ``os`` figures from an earlier ``--json`` (or the test fixture) instead of running them (the peers
+take most of the time: pure-Python ahrs filters).  ``--json FILE``: per walk and mode, the scorer's figures,
+the frames within 2σ / beyond 3σ, the median σ, the longest time since a magnetometer update over the
+scored frames (``mag_age_max_s``), events by kind, the final ``cal_state``, throughput; ``core``; the peers.
+``--series DIR``: ``DIR/WALK.npz`` with the scored truth times (``t``, ``t_b``), the signed heading error
+(``err_a``, ``err_b``), σ (``std_a``, ``std_b``) and the time since the last magnetometer update
+(``mag_age_a``, ``mag_age_b``), deg and s.  ``--write-fixture``: the peers' figures per walk into
+``tests/fixtures/tyrex_peers.json`` (the bounds of ``tests/test_real_walks.py``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fnmatch
+import io
 import json
+import os
+import re
+import resource
 import sys
+import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import DIST, NODIST, TRIALS, imufusion_ahrs, load_scorer  # noqa: E402
+from _common import ROOT, SHARED, TRIALS, load_scorer  # noqa: E402, F401  (TRIALS: other scripts)
 from _common import TYREX as DATA  # noqa: E402
 from _common import write_section as _write_section  # noqa: E402
+from _peers import PEER_COLUMNS, _to_true, on_gyro_grid, run_imufusion, run_madgwick, run_vqf  # noqa: E402, F401
 
-SECTION = "## Heading accuracy (issue 4)"
-#: best column of ../shared/benchmarks/PEERS.md (mean heading error, deg)
-PEERS_BEST = {"dist": 10.6, "nodist": 2.3}
-PEERS = (
-    "os",
-    "imufusion_cal",
-    "vqf_cal",
-    "madgwick_cal",
-    "mahony_cal",
-    "imufusion_cal_gcal",
-    "vqf_cal_gcal",
-    "madgwick_cal_gcal",
-)
+SECTION = "## Heading accuracy on the tyrex walks (issue 10)"
+OLD_SECTIONS = ("## Heading accuracy (issue 4)",)
+PEERS_MD = SHARED / "benchmarks" / "PEERS.md"
+FIXTURE = ROOT / "tests" / "fixtures" / "tyrex_peers.json"
+#: |heading error| limits counted as failures, deg (issue 10's targets: mode a none > 20°, mode b none > 45°)
+FAIL = (20.0, 45.0)
+#: a walk's std is dishonest when more than this share of its frames is beyond 3σ (issue 10)
+BEYOND_3SIGMA_MAX = 0.10
+
+
+# ---------------------------------------------------------------------------------------------- walks
+def discover_walks(pattern: str | None = None) -> list[str]:
+    """Names of the walks in ``DATA`` (``trial.json`` with ``kind == "trial"`` and a ``truth.csv``)."""
+    names = []
+    for d in sorted(DATA.iterdir()) if DATA.is_dir() else []:
+        tj = d / "trial.json"
+        if tj.is_file() and (d / "truth.csv").is_file() and json.loads(tj.read_text()).get("kind") == "trial":
+            names.append(d.name)
+    if pattern:
+        pats = [p if any(c in p for c in "*?[") else f"*{p}*" for p in pattern.split(",") if p]
+        names = [n for n in names if any(fnmatch.fnmatchcase(n, p) for p in pats)]
+    return names
+
+
+def trial_info(walk: str) -> dict:
+    return json.loads((DATA / walk / "trial.json").read_text())
+
+
+# ---------------------------------------------------------------------------------------------- day files
+def make_day_files(job: tuple[str, str, str]) -> tuple[str, str, list[float]]:
+    """``pdr-mag calibrate`` on a day's ``calib_mag_*`` (written to ``tmp``), and that day's gyro offset."""
+    calib, calib_gyr, tmp = job
+    from replay.cli import main
+    from replay.formats import read_recording
+
+    path = Path(tmp) / f"{calib}.json"
+    with contextlib.redirect_stdout(io.StringIO()):
+        if main(["calibrate", str(DATA / calib), "--json", str(path)]) != 0:
+            raise RuntimeError(f"pdr-mag calibrate {DATA / calib} failed")
+    goff = read_recording(DATA / calib_gyr).gyro.xyz.mean(axis=0)
+    return calib, str(path), [float(v) for v in goff]
 
 
 def day_calibration(name: str, field):
-    """The day's calibration, as ``pdr-mag calibrate`` makes it."""
+    """The day's calibration in memory, as ``pdr-mag calibrate`` fits it (for ``pipeline_speed.py``)."""
     from pdr_mag.calibration import calibrate
     from pdr_mag.calibration.alignment import quasi_static_accel
     from replay.formats import read_recording
@@ -78,293 +121,400 @@ def day_calibration(name: str, field):
     return calibrate(rec.mag.xyz, method="auto", accel=accel, field=field)
 
 
-def merged(rec, mag_cal):
-    kind = np.concatenate(
-        [np.zeros(len(rec.accel.t)), np.ones(len(rec.gyro.t)), np.full(len(rec.mag.t), 2)]
-    ).astype(np.int8)
-    t = np.concatenate([rec.accel.t, rec.gyro.t, rec.mag.t])
-    xyz = np.concatenate([rec.accel.xyz, rec.gyro.xyz, mag_cal])
-    order = np.argsort(t, kind="stable")
-    return kind[order], t[order], xyz[order]
-
-
-def run_core(rec, cal, field):
-    from pdr_mag.attitude import FusionCore
-
-    core = FusionCore(field=field)
-    core.set_reference_strength(cal.field_uT)
-    kind, t, xyz = merged(rec, cal.apply(rec.mag.xyz))
-    return core.process(kind, t, xyz)
-
-
-def on_gyro_grid(rec, mag_cal):
-    """Accelerometer interpolated and the latest magnetometer sample at the gyroscope's times."""
-    tg = rec.gyro.t
-    acc = np.column_stack([np.interp(tg, rec.accel.t, rec.accel.xyz[:, k]) for k in range(3)])
-    j = np.clip(np.searchsorted(rec.mag.t, tg, side="right") - 1, 0, len(rec.mag.t) - 1)
-    return tg, rec.gyro.xyz, acc, mag_cal[j]
-
-
-def _to_true(q_wxyz, declination_deg, pre_yaw_deg=0.0):
-    r = Rotation.from_quat(np.asarray(q_wxyz)[:, [1, 2, 3, 0]])
-    r = Rotation.from_euler("z", pre_yaw_deg - declination_deg, degrees=True) * r
-    q = r.as_quat()[:, [3, 0, 1, 2]]
-    return q
-
-
-def run_imufusion(tg, gyr, acc, mag):
-    ahrs = imufusion_ahrs((len(tg) - 1) / (tg[-1] - tg[0]))
-    gd = np.degrees(gyr)
-    ag = acc / 9.80665
-    q = np.empty((len(tg), 4))
-    for i in range(len(tg)):
-        ahrs.update(gd[i], ag[i], mag[i])
-        q[i] = ahrs.get_quaternion()
-    return q
-
-
-def run_vqf(tg, gyr, acc, mag):
-    from vqf import VQF
-
-    dt = (tg[-1] - tg[0]) / (len(tg) - 1)
-    v = VQF(dt)
-    out = v.updateBatch(np.ascontiguousarray(gyr), np.ascontiguousarray(acc), np.ascontiguousarray(mag))
-    return out["quat9D"]
-
-
-def run_madgwick(tg, gyr, acc, mag):
-    from ahrs.filters import Madgwick
-
-    fs = (len(tg) - 1) / (tg[-1] - tg[0])
-    return Madgwick(gyr=gyr, acc=acc, mag=mag, frequency=fs, gain=0.041).Q
-
-
-def run_mahony(tg, gyr, acc, mag):
-    from ahrs.filters import Mahony
-
-    fs = (len(tg) - 1) / (tg[-1] - tg[0])
-    return Mahony(gyr=gyr, acc=acc, mag=mag, frequency=fs).Q
-
-
-#: why pdr_mag_pipe once trailed pdr_mag (static record; the table is the current code)
-PIPE_NOTE = (
-    "Pipeline = core (after fa66245; before: Thibaud_iPhone5_NoDist_Texting 3.0° pipe vs 1.7° core,"
-    " NoDist 2.4° vs 2.0°). Cause: the stale-calibration test of the online calibrator requested a"
-    " recalibration at 40.5 s and replaced the given calibration by a gravity-aided refit (offset shift"
-    " (−2.5, −3.4, +7.1) µT, mostly along the walk's mean up vector). On that walk |m_cal| is 38.6 µT with"
-    " the file's calibration against the WMM's 47.1 µT (the file's radius 46.6 µT): the building's vertical"
-    " field is weaker. In a texting pose (device z ≈ up, yaw turns) a weaker local vertical field and an"
-    " offset shift along the mean up vector ū look the same, and the stale test's fit held the local field"
-    " within 3 µT / 3° of the WMM, so it read the building as a moved offset and put the shift's across-ū"
-    " part (4.2 µT) into the horizontal field. Now a shift counts only where the data determine it with F"
-    " and F sin I free (the alternative \"the local field differs\" gets its two unknowns): on this walk"
-    " the free fit finds F 37–43 µT, sin I 0.81–0.86 (WMM 0.875) and a determined shift of ≈ 4.3 µT, below"
-    " the 6-µT bound, so no request; a magnetised case (test: (15, −10, 8) µT) is still found."
-)
-
-
 # ---------------------------------------------------------------------------------------------- scoring
-def score_est(score, trial_dir, t_est, q_est):
-    from replay.formats import read_recording
+class Truth:
+    """A walk's mocap truth and the scorer's window (``score.truth_t0``: ``mocap_t0`` of trial.json)."""
 
-    rec = read_recording(trial_dir)
-    t_ref, q_ref = rec.truth
-    ok = np.all(np.isfinite(q_ref), axis=1)
-    t0, _ = score.truth_t0(str(trial_dir / "truth.csv"), t_ref)
-    return score.score_arrays(t_ref[ok], q_ref[ok], np.asarray(t_est, float), np.asarray(q_est, float), t0)
+    def __init__(self, score, walk_dir: Path):
+        self.score = score
+        t, q = score.C.read_quat_csv(str(walk_dir / "truth.csv"))
+        ok = np.all(np.isfinite(q), axis=1)
+        self.t, self.q = t[ok], q[ok]
+        self.t0, _ = score.truth_t0(str(walk_dir / "truth.csv"), self.t)
 
+    def figures(self, t_est, q_est) -> dict:
+        """The shared scorer's figures (``heading_err_mean`` etc.) of an estimate."""
+        t_est, q_est = np.asarray(t_est, float), np.asarray(q_est, float)
+        r = self.score.score_arrays(self.t, self.q, t_est, q_est, self.t0)
+        return {k: r[k] for k in ("heading_err_mean", "heading_err_median", "heading_err_p95",
+                                  "heading_err_max", "tilt_err_mean", "n_frames", "coverage") if k in r}
 
-def std_calibration(score, trial_dir, batch):
-    """Counts of scored truth frames with |heading error| < 1σ and < 2σ of the reported std."""
-    from replay.formats import read_recording
-
-    rec = read_recording(trial_dir)
-    t_ref, q_ref = rec.truth
-    ok = np.all(np.isfinite(q_ref), axis=1)
-    t_ref, q_ref = t_ref[ok], q_ref[ok]
-    t0, _ = score.truth_t0(str(trial_dir / "truth.csv"), t_ref)
-    w = (t_ref >= t0 + 5) & (t_ref <= t0 + 120) & (t_ref >= batch.t[0]) & (t_ref <= batch.t[-1])
-    qi, _ = score.C.slerp_at(batch.t, batch.q_wd, t_ref[w])
-    _, head, _ = score.error_angles(qi, q_ref[w])
-    sd = np.interp(t_ref[w], batch.t, batch.heading_std_deg)
-    a = np.abs(head)
-    return int(np.sum(a < sd)), int(np.sum(a < 2 * sd)), int(len(a))
-
-
-# ---------------------------------------------------------------------------------------------- run
-def accuracy(with_pipeline: bool = True, verbose: bool = True):
-    from pdr_mag.field import earth_field_from_meta
-    from replay.formats import read_recording
-
-    score = load_scorer()
-    table: dict[str, dict[str, float]] = {}
-    calib_counts = np.zeros(3, dtype=int)
-    cal_cache: dict[str, object] = {}
-    gyr_cache: dict[str, np.ndarray] = {}
-    for trial in TRIALS:
-        d = DATA / trial
-        info = json.loads((d / "trial.json").read_text())
-        rec = read_recording(d)
-        field = earth_field_from_meta(rec.meta)
-        if info["calib"] not in cal_cache:
-            cal_cache[info["calib"]] = day_calibration(info["calib"], field)
-        cal = cal_cache[info["calib"]]
-        if info["calib_gyr"] not in gyr_cache:
-            gyr_cache[info["calib_gyr"]] = read_recording(DATA / info["calib_gyr"]).gyro.xyz.mean(axis=0)
-        goff = gyr_cache[info["calib_gyr"]]
-        row: dict[str, float] = {}
-        batch = run_core(rec, cal, field)
-        row["pdr_mag"] = score_est(score, d, batch.t, batch.q_wd)["heading_err_mean"]
-        calib_counts += np.array(std_calibration(score, d, batch))
-        if with_pipeline:
-            row["pdr_mag_pipe"] = _pipeline(score, d, rec, cal)
-        # peers
-        mag_cal = cal.apply(rec.mag.xyz) * (field.strength / cal.field_uT)
-        tg, gyr, acc, mag = on_gyro_grid(rec, mag_cal)
-        decl = field.declination_deg
-        runners = {"imufusion": (run_imufusion, 0.0), "vqf": (run_vqf, 0.0), "madgwick": (run_madgwick, 90.0),
-                   "mahony": (run_mahony, 0.0)}
-        for name, (fn, pre_yaw) in runners.items():
-            for suffix, g in (("_cal", gyr), ("_cal_gcal", gyr - goff)):
-                col = name + suffix
-                if col not in PEERS:
-                    continue
-                q = _to_true(fn(tg, g, acc, mag), decl, pre_yaw)
-                row[col] = score_est(score, d, tg, q)["heading_err_mean"]
-        os_t, os_q = _read_quat_csv(d / "os.csv")
-        row["os"] = score_est(score, d, os_t, os_q)["heading_err_mean"]
-        table[trial] = row
-        if verbose:
-            print(trial, " ".join(f"{k}={v:.2f}" for k, v in row.items()), flush=True)
-    return table, calib_counts
+    def frames(self, t_est, q_est, max_gap: float = 1.0):
+        """Scored truth times and the signed heading error there (the frames ``score_arrays`` scores)."""
+        C = self.score.C
+        lo, hi = self.t0 + self.score.WINDOW[0], self.t0 + self.score.WINDOW[1]
+        w = (self.t >= lo) & (self.t <= hi)
+        tr, qr = self.t[w], self.q[w]
+        qi, valid = C.slerp_at(t_est, q_est, tr)
+        idx = np.clip(np.searchsorted(t_est, tr, side="right") - 1, 0, len(t_est) - 2)
+        valid &= (t_est[idx + 1] - t_est[idx]) <= max_gap
+        _, head, _ = self.score.error_angles(qi[valid], qr[valid])
+        return tr[valid], head
 
 
-def _pipeline(score, d, rec, cal) -> float:
+def honesty(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
+    """Counts of scored frames with |error| ≤ 2σ and > 3σ of the reported std."""
+    a = np.abs(err_deg)
+    return {"n": int(len(a)), "within_2sigma": int(np.sum(a <= 2.0 * std_deg)),
+            "beyond_3sigma": int(np.sum(a > 3.0 * std_deg)),
+            "std_median_deg": float(np.median(std_deg)) if len(a) else float("nan")}
+
+
+def _collector():
+    """A sink keeping the estimate batches — a :class:`replay.run.CsvSink` that writes nothing, so
+    ``replay`` runs with the settings of ``pdr-mag replay --out-csv``."""
+    from replay.run import CsvSink
+
+    class Collect(CsvSink):
+        def __init__(self):
+            self.batches = []
+
+        def open(self, meta):
+            pass
+
+        def estimates(self, batch):
+            self.batches.append(batch)
+
+        def close(self):
+            pass
+
+    return Collect()
+
+
+def run_mode(walk_dir: Path, cal, truth: Truth) -> tuple[dict, dict]:
+    """Replay one walk (``cal``: the calibration file, or None for mode b); figures and frame series."""
+    from pdr_mag.estimates import EstimateBatch
+    from replay.run import replay
+
+    sink = _collector()
+    summary = replay(walk_dir, calibration=cal, sinks=[sink], progress=False)
+    b = EstimateBatch.concat(sink.batches)
+    fig = truth.figures(b.t, b.q_wd)
+    tf, err = truth.frames(b.t, b.q_wd)
+    std = np.interp(tf, b.t, b.heading_std_deg)
+    t_used = b.t[b.mag_used.astype(bool)]
+    k = np.searchsorted(t_used, tf, side="right") - 1
+    last = np.where(k >= 0, t_used[np.maximum(k, 0)], b.t[0])
+    age = tf - last  # s since the last magnetometer update (or since the start, before the first one)
+    kinds: dict[str, int] = {}
+    for ev in summary["events"]:
+        kinds[ev["kind"]] = kinds.get(ev["kind"], 0) + 1
+    fig.update(honesty(err, std))
+    fig.update({"mag_age_max_s": float(np.max(age)) if len(age) else float("nan"),
+                "mag_age_over_5s_share": float(np.mean(age > 5.0)) if len(age) else float("nan"),
+                "events": kinds, "final_cal_state": str(b.cal_state[-1]) if len(b) else "",
+                "samples_per_s": summary.get("samples_per_s"),
+                "n_samples": int(sum(summary.get("n_samples", {}).values()))})
+    return fig, {"t": tf, "err": err, "std": std, "mag_age": age}
+
+
+def run_core(rec, cal, field, truth: Truth) -> dict | None:
+    """The fusion core alone on the merged raw streams with the calibrated magnetometer."""
     try:
-        import tempfile
+        from pdr_mag.attitude import FusionCore
 
-        from replay.run import CsvSink, replay
-    except ImportError:
-        return float("nan")
-    with tempfile.TemporaryDirectory() as tmp:
-        est = Path(tmp) / "est.csv"
-        try:
-            replay(rec, calibration=cal, sinks=[CsvSink(est)], progress=False)
-        except Exception as exc:  # noqa: BLE001 - a broken pipeline must not hide the core's figures
-            print(f"pipeline failed on {d.name}: {exc}", file=sys.stderr)
-            return float("nan")
-        t, q = _read_quat_csv(est)
-    return score_est(score, d, t, q)["heading_err_mean"]
-
-
-def _read_quat_csv(path):
-    arr = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
-    q = np.column_stack([arr[k] for k in ("qw", "qx", "qy", "qz")]).astype(float)
-    return arr["t"].astype(float), q
-
-
-def speed(trial: str = "Thibaud_Nexus5_NoDist_Texting", repeats: int = 3):
-    """Samples per second of the fusion core and of imufusion's Ahrs on the same recording."""
-    from pdr_mag.attitude import FusionCore
-    from pdr_mag.field import earth_field_from_meta
-    from replay.formats import read_recording
-
-    rec = read_recording(DATA / trial)
-    field = earth_field_from_meta(rec.meta)
-    info = json.loads((DATA / trial / "trial.json").read_text())
-    cal = day_calibration(info["calib"], field)
-    mag_cal = cal.apply(rec.mag.xyz)
-    n = len(rec.accel.t) + len(rec.gyro.t) + len(rec.mag.t)
-    FusionCore(field=field).process(*merged(rec, mag_cal)[:3])  # compile / load the cache
-    best_core = np.inf
-    best_imu = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
         core = FusionCore(field=field)
         core.set_reference_strength(cal.field_uT)
-        core.process(*merged(rec, mag_cal))
-        best_core = min(best_core, time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        tg, gyr, acc, mag = on_gyro_grid(rec, mag_cal)
-        run_imufusion(tg, gyr, acc, mag)
-        best_imu = min(best_imu, time.perf_counter() - t0)
-    return {"trial": trial, "samples": n, "core_per_s": n / best_core, "imufusion_per_s": n / best_imu,
-            "ratio": best_imu / best_core}
+        n_a, n_g, n_m = len(rec.accel.t), len(rec.gyro.t), len(rec.mag.t)
+        kind = np.concatenate([np.zeros(n_a), np.ones(n_g), np.full(n_m, 2)]).astype(np.int8)
+        t = np.concatenate([rec.accel.t, rec.gyro.t, rec.mag.t])
+        xyz = np.concatenate([rec.accel.xyz, rec.gyro.xyz, cal.apply(rec.mag.xyz)])
+        o = np.argsort(t, kind="stable")
+        b = core.process(kind[o], t[o], xyz[o])
+    except (ImportError, AttributeError, TypeError, ValueError) as exc:
+        print(f"core column left out: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return None
+    return truth.figures(b.t, b.q_wd)
+
+
+# ---------------------------------------------------------------------------------------------- one walk
+def run_walk(job: dict) -> dict:
+    """Every column on one walk (runs in a worker process)."""
+    from _peers import run_peers
+
+    from pdr_mag.field import earth_field_from_meta
+    from replay.formats import read_recording
+    from replay.run import load_calibration
+
+    walk = job["walk"]
+    d = DATA / walk
+    info = trial_info(walk)
+    score = load_scorer()
+    truth = Truth(score, d)
+    out = {"walk": walk, "device": info["device"], "dist": info["dist"], "motion": info["motion"],
+           "calib": info["calib"], "calib_gyr": info["calib_gyr"]}
+    t_start = time.perf_counter()
+    cal = load_calibration(job["cal_json"])
+    out["a"], ser_a = run_mode(d, cal, truth)
+    out["b"], ser_b = run_mode(d, None, truth)
+    out["time_replay_s"] = time.perf_counter() - t_start
+    rec = read_recording(d)
+    field = earth_field_from_meta(rec.meta)
+    if job["core"]:
+        out["core"] = run_core(rec, cal, field, truth)
+    t_peers = time.perf_counter()
+    if job["peers"]:
+        mag_wmm = cal.apply(rec.mag.xyz) * (field.strength / cal.field_uT)
+        times = {}
+        peers = {}
+        for col in PEER_COLUMNS:
+            t1 = time.perf_counter()
+            (tg, q), = run_peers(rec, mag_wmm, np.asarray(job["gyro_offset"]), field.declination_deg,
+                                 (col,)).values()
+            times[col] = time.perf_counter() - t1
+            peers[col] = truth.figures(tg, q)["heading_err_mean"]
+        t_os, q_os = score.C.read_quat_csv(str(d / "os.csv"))
+        peers["os"] = truth.figures(t_os, q_os)["heading_err_mean"]
+        out["peers"] = peers
+        n = len(rec.accel.t) + len(rec.gyro.t) + len(rec.mag.t)
+        out["imufusion_samples_per_s"] = n / times["imufusion_cal"]
+    out["time_peers_s"] = time.perf_counter() - t_peers
+    if job.get("series"):
+        sdir = Path(job["series"])
+        sdir.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(sdir / f"{walk}.npz", t=ser_a["t"], err_a=ser_a["err"], std_a=ser_a["std"],
+                            mag_age_a=ser_a["mag_age"], t_b=ser_b["t"], err_b=ser_b["err"],
+                            std_b=ser_b["std"], mag_age_b=ser_b["mag_age"])
+    return out
+
+
+def run_all(walks: list[str], jobs: int, core: bool = True, peers: bool = True, series=None) -> list[dict]:
+    """Day files first (each once), then every walk; ``jobs`` worker processes."""
+    infos = {w: trial_info(w) for w in walks}
+    days = sorted({(i["calib"], i["calib_gyr"]) for i in infos.values()})
+    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(max_workers=jobs) as pool:
+        made = {c: (p, g) for c, p, g in pool.map(make_day_files, [(c, g, tmp) for c, g in days])}
+        work = [{"walk": w, "cal_json": made[infos[w]["calib"]][0], "gyro_offset": made[infos[w]["calib"]][1],
+                 "core": core, "peers": peers, "series": str(series) if series else None} for w in walks]
+        results = []
+        for r in pool.map(run_walk, work):
+            a, b = r["a"]["heading_err_mean"], r["b"]["heading_err_mean"]
+            print(f"{r['walk']:<40} a {a:6.1f}  b {b:6.1f}  ({r['time_replay_s']:.1f} s + peers "
+                  f"{r['time_peers_s']:.1f} s)", flush=True)
+            results.append(r)
+    return results
+
+
+# ---------------------------------------------------------------------------------------------- peers
+def peers_md_table(path: Path = PEERS_MD) -> dict[str, dict[str, float]]:
+    """The per-trial table of PEERS.md: walk → column → mean heading error, deg."""
+    cols, rows = None, {}
+    for line in path.read_text().splitlines():
+        if line.startswith("| trial |") and cols is None:
+            cols = [c.strip() for c in line.strip().strip("|").split("|")][1:]
+        m = re.match(r"\| (\w+) \|(.*)\|\s*$", line)
+        if cols and m and m.group(1) != "trial" and not m.group(1).startswith("*"):
+            vals = [v.strip() for v in m.group(2).split("|")]
+            if len(vals) == len(cols):
+                rows[m.group(1)] = {c: float(v) for c, v in zip(cols, vals, strict=True)}
+    return rows
+
+
+def check_peers(results: list[dict], tol: float = 0.5) -> tuple[str, list[tuple]]:
+    """Our peer figures against PEERS.md: a one-line summary and the figures differing by more than tol."""
+    ref = peers_md_table()
+    diffs, off = [], []
+    for r in results:
+        for col, v in r.get("peers", {}).items():
+            if r["walk"] in ref and col in ref[r["walk"]]:
+                d = v - ref[r["walk"]][col]
+                diffs.append(abs(d))
+                if abs(d) > tol:
+                    off.append((r["walk"], col, v, ref[r["walk"]][col]))
+    if not diffs:
+        return "no peer figures to compare with PEERS.md", []
+    d = np.asarray(diffs)
+    line = (f"peers vs PEERS.md: {np.sum(d <= 0.1)} / {len(d)} walk×column figures within 0.1°, "
+            f"{np.sum(d <= tol)} within {tol}°, median |Δ| {np.median(d):.2f}°, max {d.max():.1f}°")
+    return line, off
+
+
+def load_peers(path: Path) -> dict[str, dict[str, float]]:
+    """Peer and os figures per walk from a ``--json`` dump or the fixture."""
+    obj = json.loads(Path(path).read_text())
+    if "walks" in obj:
+        return {r["walk"]: r["peers"] for r in obj["walks"] if "peers" in r}
+    return obj["peers"]
 
 
 # ---------------------------------------------------------------------------------------------- report
-def markdown(table, calib_counts, spd, commit: str = "") -> str:
-    pipe = ["pdr_mag_pipe"] if any("pdr_mag_pipe" in r for r in table.values()) else []
-    cols = ["pdr_mag", *pipe, *PEERS]
+def _groups(results):
+    out = [("all", results), ("Dist", [r for r in results if r["dist"] == "Dist"]),
+           ("NoDist", [r for r in results if r["dist"] == "NoDist"])]
+    for key in ("device", "motion"):
+        for v in sorted({r[key] for r in results}):
+            out.append((v, [r for r in results if r[key] == v]))
+    return [(g, rs) for g, rs in out if rs]
+
+
+def best_peer_column(results) -> str | None:
+    cols = [c for c in PEER_COLUMNS if all(c in r.get("peers", {}) for r in results)]
+    if not cols:
+        return None
+    return min(cols, key=lambda c: np.mean([r["peers"][c] for r in results]))
+
+
+def _stats(vals) -> str:
+    v = np.asarray(vals, float)
+    return f"{v.mean():.1f} / {np.median(v):.1f} | {np.sum(v > FAIL[0])} / {np.sum(v > FAIL[1])}"
+
+
+def _honest(rs, mode) -> str:
+    n = sum(r[mode]["n"] for r in rs)
+    w2 = sum(r[mode]["within_2sigma"] for r in rs)
+    bad = sum(r[mode]["beyond_3sigma"] > BEYOND_3SIGMA_MAX * max(r[mode]["n"], 1) for r in rs)
+    return f"{w2 / max(n, 1):.0%} | {bad}"
+
+
+def summary_table(results) -> list[str]:
+    best = best_peer_column(results)
+    has_os = all("os" in r.get("peers", {}) for r in results)
+    head = ["group", "n", "a: mean / median", "a: >20° / >45°", "a: ≤2σ", "a: >3σ walks",
+            "b: mean / median", "b: >20° / >45°", "b: ≤2σ", "b: >3σ walks"]
+    if best:
+        head += [f"{best}: mean / median", ">20° / >45°"]
+    if has_os:
+        head += ["os: mean / median", ">20° / >45°"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for g, rs in _groups(results):
+        cells = [g, str(len(rs)),
+                 _stats([r["a"]["heading_err_mean"] for r in rs]), _honest(rs, "a"),
+                 _stats([r["b"]["heading_err_mean"] for r in rs]), _honest(rs, "b")]
+        if best:
+            cells.append(_stats([r["peers"][best] for r in rs]))
+        if has_os:
+            cells.append(_stats([r["peers"]["os"] for r in rs]))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _f(v, bold_above=None) -> str:
+    if v is None or not np.isfinite(v):
+        return "–"
+    s = f"{v:.1f}"
+    return f"**{s}**" if bold_above is not None and v > bold_above else s
+
+
+def _best_of(peers: dict, suffix: str) -> str:
+    cols = [c for c in PEER_COLUMNS if c.endswith(suffix) and (suffix == "_gcal" or not c.endswith("_gcal"))]
+    cols = [c for c in cols if c in peers]
+    if not cols:
+        return "–"
+    c = min(cols, key=lambda k: peers[k])
+    return f"{peers[c]:.1f} {c.split('_')[0]}"
+
+
+def walk_table(results) -> list[str]:
+    core = any(r.get("core") for r in results)
+    head = ["walk", "a", "b", *(["core"] if core else []), "best _cal", "best _cal_gcal", "os",
+            "a ≤2σ", "a >3σ", "b ≤2σ", "b >3σ"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results:
+        p = r.get("peers", {})
+        cells = [r["walk"].removeprefix("Thibaud_"), _f(r["a"]["heading_err_mean"], FAIL[0]),
+                 _f(r["b"]["heading_err_mean"], FAIL[1])]
+        if core:
+            cells.append(_f((r.get("core") or {}).get("heading_err_mean")))
+        cells += [_best_of(p, "_cal"), _best_of(p, "_gcal"), _f(p.get("os"))]
+        for m in ("a", "b"):
+            n = max(r[m]["n"], 1)
+            cells += [f"{r[m]['within_2sigma'] / n:.0%}", f"{r[m]['beyond_3sigma'] / n:.0%}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def markdown(results, elapsed_s: float, cpu_s: float, jobs: int, peer_line: str, commit: str = "") -> str:
+    a_sps = np.median([r["a"]["samples_per_s"] for r in results if r["a"].get("samples_per_s")])
+    imu = [r["imufusion_samples_per_s"] for r in results if r.get("imufusion_samples_per_s")]
+    speed = (f" Throughput (median over walks, same run): replay mode a {a_sps / 1e6:.2f} M samples/s,"
+             f" imufusion {np.median(imu) / 1e6:.2f} M samples/s." if imu else "")
     lines = [
         SECTION,
         "",
-        "Mode (a): the day's magnetometer calibration (`calibrate`, as `pdr-mag calibrate` makes it) and"
-        " nothing else; raw gyroscope. Measured by `python benchmarks/heading.py --write-results` — every"
-        " column in the same run on the same inputs, scored with `../shared/benchmarks/tyrex/score.py` (mean"
-        " |heading error|, degrees, 5–120 s). `pdr_mag` = `FusionCore` defaults; `pdr_mag_pipe` = the whole"
-        " pipeline via `replay(REC, calibration=…)`; peers as in PEERS.md (`*_gcal`: also handed the day's"
-        " gyro offset)." + (f" Commit measured: {commit}." if commit else ""),
+        f"`python benchmarks/heading.py --jobs {jobs} --write-results` ({len(results)} walks found in"
+        f" `../shared/datasets/tyrex-pdrcsv`, {elapsed_s:.0f} s wall on {jobs} processes, {cpu_s:.0f} s CPU"
+        + (f", commit {commit}" if commit else "") + "). Mean |heading error| per walk (shared scorer,"
+        " 5–120 s), degrees; group cells: mean / median over walks, and walks above 20° / 45°. Mode a ="
+        " `replay` with the day's `pdr-mag calibrate` file; mode b = no calibration. ≤2σ: pooled share of"
+        " scored frames with |error| ≤ 2σ of `heading_std_deg` (Gaussian 95 %); >3σ walks: walks with more"
+        " than 10 % of their frames beyond 3σ. Peers as in PEERS.md, fed the same day's calibration"
+        f" (best column in this run shown). {peer_line}.{speed}",
         "",
-        "| trial | " + " | ".join(cols) + " |",
-        "|---|" + "---|" * len(cols),
-    ]
-    for trial in TRIALS:
-        lines.append(f"| {trial} | " + " | ".join(_fmt(table[trial].get(c)) for c in cols) + " |")
-    for label, group in (("Dist (4)", DIST), ("NoDist (3)", NODIST), ("all 7", TRIALS)):
-        vals = [np.mean([table[t].get(c, np.nan) for t in group]) for c in cols]
-        lines.append(f"| **mean, {label}** | " + " | ".join(_fmt(v) for v in vals) + " |")
-    n1, n2, n = calib_counts
-    groups = (("dist", DIST), ("nodist", NODIST))
-    ours = {g: np.mean([table[t]["pdr_mag"] for t in grp]) for g, grp in groups}
-    pipe_m = {g: np.mean([table[t].get("pdr_mag_pipe", np.nan) for t in grp]) for g, grp in groups}
-    both = {g: f"{ours[g]:.2f}°" for g in ours}
-    for g in both:
-        if np.isfinite(pipe_m[g]):
-            both[g] += f" (pipeline {pipe_m[g]:.2f}°)"
-    lines += [
+        *summary_table(results),
         "",
-        f"Against PEERS.md's published bests (best column separately): disturbed {both['dist']} vs"
-        f" {PEERS_BEST['dist']}° (vqf_cal_gcal), undisturbed {both['nodist']} vs {PEERS_BEST['nodist']}°"
-        " (madgwick_cal_gcal). The peers above are re-run on this project's calibration (the same inputs as"
-        " ours), so a few of their figures differ from PEERS.md, which used its own ellipsoid fit.",
+        "Per walk (a, b, core: mean |error|, bold: a > 20°, b > 45°; best peers of each kind; std honesty):",
         "",
-        PIPE_NOTE,
-        "",
-        f"Honesty of `heading_std_deg` (pdr_mag, all scored frames of the 7 walks, n = {n}): truth within"
-        f" 1σ in {n1 / n:.0%} of the frames, within 2σ in {n2 / n:.0%} (Gaussian: 68 % / 95 %).",
-        "",
-        f"Speed (same recording `{spd['trial']}`, {spd['samples']} sensor samples, same run, best of"
-        f" several): fusion core {spd['core_per_s'] / 1e6:.2f} M samples/s, imufusion `Ahrs` (per-sample"
-        f" Python calls) {spd['imufusion_per_s'] / 1e6:.3f} M samples/s — ratio **{spd['ratio']:.1f}×**.",
+        *walk_table(results),
         "",
     ]
     return "\n".join(lines)
 
 
-def _fmt(v) -> str:
-    return "–" if v is None or not np.isfinite(v) else f"{v:.1f}"
-
-
 def write_section(text: str) -> None:
+    from _common import RESULTS
+
+    old = RESULTS.read_text()
+    for sec in OLD_SECTIONS:  # this script's earlier section (7 walks, mode a only)
+        start = old.find(sec)
+        if start >= 0:
+            nxt = old.find("\n## ", start + len(sec))
+            old = old[:start] + (old[nxt + 1:] if nxt >= 0 else "")
+    RESULTS.write_text(old)
     _write_section(SECTION, text)
+
+
+def write_fixture(results, path: Path = FIXTURE) -> None:
+    """The peers' figures per walk, for the real-walk tests' bounds (derived numbers, not data)."""
+    obj = {"about": "mean |heading error| (deg, shared tyrex scorer) of the PEERS.md peers and the phone's"
+                    " own fusion per walk, as benchmarks/heading.py runs them (day's pdr-mag calibrate file"
+                    " scaled to the WMM; _gcal: the day's gyro offset removed). Written by"
+                    " `python benchmarks/heading.py --write-fixture`.",
+           "peers": {r["walk"]: {k: round(v, 3) for k, v in r["peers"].items()} for r in results}}
+    path.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--write-results", action="store_true", help=f"write the section '{SECTION}' of RESULTS.md"
-    )
-    ap.add_argument("--no-pipeline", action="store_true", help="skip the pdr_mag_pipe column")
-    ap.add_argument("--speed-repeats", type=int, default=3)
+    ap.add_argument("--walks", default=None, help="comma-separated globs (no wildcard: substring)")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes")
+    ap.add_argument("--json", type=Path, default=None, help="dump the per-walk figures to FILE")
+    ap.add_argument("--series", type=Path, default=None, help="per-walk error and σ series (npz) into DIR")
+    ap.add_argument("--peers-from", type=Path, default=None, help="peer/os figures from an earlier --json")
+    ap.add_argument("--no-core", action="store_true", help="leave out the fusion-core-only column")
+    ap.add_argument("--check-peers", action="store_true", help="list peer figures off PEERS.md by > 0.5°")
+    ap.add_argument("--write-results", action="store_true", help=f"write the section '{SECTION}'")
+    ap.add_argument("--write-fixture", action="store_true", help=f"write {FIXTURE.relative_to(ROOT)}")
     ap.add_argument("--commit", default="", help="commit to name in the section")
     args = ap.parse_args(argv)
-    table, counts = accuracy(with_pipeline=not args.no_pipeline)
-    spd = speed(repeats=args.speed_repeats)
-    text = markdown(table, counts, spd, args.commit)
+    walks = discover_walks(args.walks)
+    if not walks:
+        print(f"no walks match {args.walks!r} in {DATA}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    results = run_all(walks, max(1, args.jobs), core=not args.no_core, peers=args.peers_from is None,
+                      series=args.series)
+    elapsed = time.perf_counter() - t0
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)  # the pool's workers, reaped when it closed
+    cpu = ru.ru_utime + ru.ru_stime
+    if args.peers_from is not None:
+        given = load_peers(args.peers_from)
+        for r in results:
+            if r["walk"] in given:
+                r["peers"] = given[r["walk"]]
+    peer_line, off = check_peers(results)
+    text = markdown(results, elapsed, cpu, max(1, args.jobs), peer_line, args.commit)
     print(text)
+    if args.check_peers:
+        for w, c, v, ref in off:
+            print(f"  {w:<40} {c:<20} ours {v:6.1f}  PEERS.md {ref:6.1f}  Δ {v - ref:+.1f}")
+    print(f"wall time {elapsed:.0f} s on {args.jobs} processes, CPU {cpu:.0f} s", file=sys.stderr)
+    if args.json:
+        args.json.write_text(json.dumps({"elapsed_s": elapsed, "cpu_s": cpu, "walks": results}, indent=1,
+                                        default=float))
     if args.write_results:
         write_section(text)
+    if args.write_fixture:
+        write_fixture(results)
     return 0
 
 

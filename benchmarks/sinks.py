@@ -1,23 +1,22 @@
-"""Speed and memory of the MCAP and rerun sinks on a long replay (issue 5).
+"""Speed and memory of the MCAP and rerun sinks on a long replay.
 
 A synthetic phone recording (accelerometer and gyroscope at 200 Hz, magnetometer at 100 Hz, truth at 50 Hz;
 a walker turning now and then, phone tilting a little, hard iron, noise, gyro bias; Zürich's WMM field) is
 replayed through :func:`replay.run.replay` — the real :class:`pdr_mag.pipeline.HeadingPipeline` — with no
-sink, with :class:`~pdr_mag.sinks.mcap.McapSink` (in-process, and ``_bg``: ``background=True``, encoding
-in a writer process), with :class:`~pdr_mag.sinks.rerun.RerunSink` and with both.
+sink, with :class:`~pdr_mag.sinks.mcap.McapSink` (``mcap``: every message; ``mcap@HZ``: ``rate_hz=HZ``),
+with :class:`~pdr_mag.sinks.rerun.RerunSink` (``rrd``) and with both (``both``).
 Every configuration runs in its own process, so the peak memory of one does not leak into the next.
 
-Reported per run: wall time of the replay (sinks opened, fed and closed inside it); CPU time of all threads
-and of the writer process (``_bg``); CPU time of the replay's own thread (what the pipeline waits for when
-other cores are free); the overhead ratios against the same replay without sinks; and the peak resident
-memory *during* the replay above the resident memory just before it (psutil, sampled every 10 ms: counts
-the Rust side of rerun and the zstd buffers too, not only Python objects; the writer process of ``_bg`` is
-not included — it holds one batch and one chunk).  Running it for 10 and 60 minutes shows whether memory
-grows with the length.
+Reported per run: wall time of the replay (sinks opened, fed and closed inside it); CPU time of all threads;
+CPU time of the replay's own thread; the overhead against the same replay without sinks (ratios and seconds
+of wall time); the messages written to the MCAP file; and the peak resident memory *during* the replay above
+the resident memory just before it (psutil, sampled every 10 ms: counts the Rust side of rerun and the zstd
+buffers too, not only Python objects).  Running it for 10 and 60 minutes shows whether memory grows with
+the length.
 
-    python benchmarks/sinks.py                     # 10 and 60 min, all configurations, 2 runs each
-    python benchmarks/sinks.py --minutes 10        # one length
-    python benchmarks/sinks.py --one both --minutes 60 --out /tmp/x   # a single run (JSON on stdout)
+    python benchmarks/sinks.py                     # 10 and 60 min, the default configurations, 2 runs each
+    python benchmarks/sinks.py --minutes 60 --configs none mcap mcap@10 --repeat 3
+    python benchmarks/sinks.py --one mcap --minutes 60 --out /tmp/x   # a single run (JSON on stdout)
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-CONFIGS = ("none", "mcap", "mcap_bg", "rrd", "both", "both_bg")
+CONFIGS = ("none", "mcap", "mcap@10", "rrd", "both")  # the default set; any "mcap@HZ" is accepted
 SITE = {
     "device": "synthetic benchmark phone",
     "latitude_deg": 47.3769,
@@ -93,7 +92,7 @@ def make_recording(minutes: float, seed: int = 0):
 
 
 def _cpu_all() -> float:
-    """CPU seconds of this process (all threads: rerun's, the MCAP I/O thread) + its finished children."""
+    """CPU seconds of this process (all threads: rerun's too) + its finished children."""
     import resource
 
     ch = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -138,10 +137,11 @@ def run_one(config: str, minutes: float, out_dir: Path) -> dict:
 
     sinks = []
     paths = []
-    if config in ("mcap", "both", "mcap_bg", "both_bg"):
+    if config == "both" or config.startswith("mcap"):
+        rate = float(config.split("@")[1]) if "@" in config else None
         paths.append(out_dir / f"{config}-{minutes:g}.mcap")
-        sinks.append(McapSink(paths[-1], background=config.endswith("_bg")))
-    if config in ("rrd", "both", "both_bg"):
+        sinks.append(McapSink(paths[-1], rate_hz=rate))
+    if config in ("rrd", "both"):
         paths.append(out_dir / f"{config}-{minutes:g}.rrd")
         sinks.append(RerunSink(paths[-1]))
     # import the sink libraries before timing: a constant ~1 s (rerun) that is not per-sample overhead
@@ -160,6 +160,7 @@ def run_one(config: str, minutes: float, out_dir: Path) -> dict:
     stop.set()
     sampler.join()
     sizes = {p.suffix[1:]: p.stat().st_size for p in paths}
+    messages = sum(sum(s.counts.values()) for s in sinks if isinstance(s, McapSink))
     for p in paths:
         p.unlink()
     return {
@@ -174,15 +175,31 @@ def run_one(config: str, minutes: float, out_dir: Path) -> dict:
         "rss_before_MB": rss0 / 2**20,
         "peak_above_MB": (peak[0] - rss0) / 2**20,
         "file_MB": {k: v / 2**20 for k, v in sizes.items()},
+        "mcap_messages": messages,
     }
+
+
+def _config(name: str) -> str:
+    """A configuration name: one of :data:`CONFIGS` or ``mcap@HZ`` (the MCAP sink with ``rate_hz=HZ``)."""
+    if name in CONFIGS:
+        return name
+    if name.startswith("mcap@"):
+        try:
+            if float(name[5:]) > 0:
+                return name
+        except ValueError:
+            pass
+    raise argparse.ArgumentTypeError(f"expected one of {CONFIGS} or mcap@HZ, got {name!r}")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, nargs="*", default=[10.0, 60.0])
     ap.add_argument("--repeat", type=int, default=2, help="runs per configuration (best time, worst memory)")
-    ap.add_argument("--configs", nargs="*", choices=CONFIGS, default=list(CONFIGS))
-    ap.add_argument("--one", choices=CONFIGS, help="run one configuration in this process, print JSON")
+    ap.add_argument(
+        "--configs", nargs="*", type=_config, default=list(CONFIGS), help=f"of {CONFIGS}, mcap@HZ"
+    )
+    ap.add_argument("--one", type=_config, help="run one configuration in this process, print JSON")
     ap.add_argument("--out", type=Path, default=None, help="folder for the files written (deleted after)")
     args = ap.parse_args(argv)
     if args.one:
@@ -218,10 +235,10 @@ def main(argv=None) -> int:
         for k, v in runs.items()
     }
     print(
-        "| length | sinks | wall | CPU all | CPU replay thread | ratio wall / CPU all / CPU thread "
-        "| peak memory above start | files |"
+        "| length | sinks | wall | overhead vs none | CPU all | CPU replay thread "
+        "| ratio wall / CPU all / CPU thread | MCAP messages | peak memory above start (vs none) | files |"
     )
-    print("| --- | --- | ---: | ---: | ---: | --- | ---: | --- |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: | --- |")
     for (minutes, config), r in best.items():
         base = best.get((minutes, "none"))
         ratio = (
@@ -230,11 +247,16 @@ def main(argv=None) -> int:
             if base
             else "—"
         )
+        extra = f"+{r['elapsed_s'] - base['elapsed_s']:.1f} s" if base else "—"
+        peak = f"{r['peak_above_MB']:.0f} MB" + (
+            f" (+{r['peak_above_MB'] - base['peak_above_MB']:.0f})" if base else ""
+        )
         files = ", ".join(f"{k} {v:.0f} MB" for k, v in r["file_MB"].items()) or "—"
         print(
             f"| {minutes:g} min ({r['samples'] / 1e6:.2f} M samples, {r['outputs']} outputs) | {config} | "
-            f"{r['elapsed_s']:.1f} s | {r['cpu_s']:.1f} s | {r['main_thread_cpu_s']:.1f} s | {ratio} | "
-            f"{r['peak_above_MB']:.0f} MB | {files} |"
+            f"{r['elapsed_s']:.1f} s | {extra} | {r['cpu_s']:.1f} s | {r['main_thread_cpu_s']:.1f} s | "
+            f"{ratio} | "
+            f"{r['mcap_messages'] / 1e6:.2f} M | {peak} | {files} |"
         )
     return 0
 

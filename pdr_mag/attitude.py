@@ -2,7 +2,7 @@
 
 An error-state (multiplicative) extended Kalman filter with seven error states — world-frame attitude
 error ``δθ``, gyroscope bias error ``δb`` and a Gauss–Markov magnetometer heading error ``c`` — whose
-recursion is the compiled kernel :mod:`pdr_mag._fusion_kernel` (model and formulas in its docstring).
+recursion is compiled in :mod:`pdr_mag.fusion` (the model there, each sensor's equations in its module).
 In short:
 
 * gyroscope: propagates ``q`` (device → ENU) with the bias-corrected rate (across gaps up to ``max_dt``,
@@ -59,8 +59,10 @@ reference of the detectors is, in this order: the value passed to :meth:`FusionC
 field's WMM strength, else none (the strength check is off).  The dip reference is the field's
 inclination, else learnt from clean samples.
 
-State: :meth:`get_state` / :meth:`set_state` round-trip a JSON-serialisable dict; splitting a stream into
-any chunks gives identical results (everything lives in one float vector).
+State: everything the filter carries from one sample to the next is one record of
+:data:`pdr_mag.fusion.state.STATE` (named fields), so splitting a stream into any chunks gives identical
+results; :meth:`get_state` / :meth:`set_state` round-trip it exactly as a JSON-serialisable dict of those
+fields.
 """
 
 from __future__ import annotations
@@ -69,30 +71,26 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from pdr_mag import _fusion_kernel as K
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import EarthField
-from pdr_mag.interference import DET_FLAG, InterferenceSettings
-
-STATE_VERSION = 3
-_NO_CUTS = np.empty(0, dtype=np.intp)
-
-#: diag columns of the kernel output, in order
-_DIAG_NAMES = (
-    "gyro_heading_deg",
-    "field_strength_uT",
-    "field_ref_uT",
-    "strength_tol_uT",
-    "dip_deg",
-    "dip_ref_deg",
-    "dip_tol_deg",
-    "strength_var_uT2",
-    "interference_score",
-    "gyro_bias_x",
-    "gyro_bias_y",
-    "gyro_bias_z",
-    "consistency_deg",
+from pdr_mag.fusion import kernel
+from pdr_mag.fusion.state import (
+    DIAG_NAMES,
+    FLAG_COLS,
+    FLOAT_COLS,
+    PARAMS,
+    STATE,
+    new_rows,
+    new_state,
+    state_from_json,
+    state_to_json,
 )
+from pdr_mag.interference import InterferenceSettings
+
+#: format of :meth:`FusionCore.get_state`
+STATE_VERSION = 4
+_NO_CUTS = np.empty(0, dtype=np.intp)
+_NO_SNAPS = np.empty(0, dtype=STATE)
 
 
 @dataclass(frozen=True)
@@ -107,9 +105,9 @@ class FusionSettings:
         Gyroscope bias random walk, rad/s/√s.
     bias0_std : float
         Initial bias standard deviation per axis, rad/s.  0.1 (5.7 °/s per axis, √3 · 5.7 ≈ 10 °/s for the
-        norm) covers the raw offsets of real phones (4–6 °/s, on one axis: PEERS.md) at about 1σ; the
-        previous 0.17 (10 °/s per axis, 17 °/s norm) let the first seconds of a disturbed, not yet flagged
-        field teach the filter offsets no phone has (tyrex FrontPocket, online mode: 3–4 °/s on x/y).
+        norm) covers the raw offsets of real phones (4–6 °/s, on one axis: PEERS.md) at about 1σ; a wider
+        prior lets the first seconds of a disturbed, not yet flagged field teach the filter offsets no
+        phone has.
     tilt0_std : float
         Initial tilt standard deviation, rad.
     acc_tau_s : float
@@ -250,41 +248,20 @@ class FusionSettings:
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
 
-    def as_array(self) -> np.ndarray:
-        p = np.zeros(K.N_PARAM)
-        p[K.P_GYRO_NOISE] = self.gyro_noise
-        p[K.P_BIAS_RW] = self.bias_rw
-        p[K.P_BIAS0] = self.bias0_std
-        p[K.P_ACC_NOISE] = self.acc_noise
-        p[K.P_ACC_DYN] = self.acc_dyn
-        p[K.P_ACC_GATE] = self.acc_gate
-        p[K.P_ACC_W] = self.acc_gyro
-        p[K.P_MAG_NOISE] = np.radians(self.mag_noise_deg)
-        p[K.P_MAG_NOISE_UT] = self.mag_noise_uT
-        p[K.P_MAG_INTERVAL] = self.mag_interval_s
-        p[K.P_MAG_GATE] = self.mag_gate
-        p[K.P_STILL_GYRO] = self.still_gyro
-        p[K.P_STILL_ACC] = self.still_acc
-        p[K.P_STILL_TAU] = self.still_tau_s
-        p[K.P_STILL_MIN] = self.still_min_s
-        p[K.P_ZUPT_NOISE] = self.zupt_noise
-        p[K.P_OUT_DT] = 1.0 / self.output_rate_hz if self.output_rate_hz > 0 else 0.0
-        p[K.P_TILT0] = self.tilt0_std
-        p[K.P_GRAV] = self.gravity
-        p[K.P_MAX_DT] = self.max_dt
-        p[K.P_MAG_DIST_K] = self.mag_dist_k
-        p[K.P_MAGERR_TAU] = self.mag_error_tau_s
-        p[K.P_MAG_CONS_K] = self.mag_cons_k
-        p[K.P_ACC_TAU] = self.acc_tau_s
-        p[K.P_ACC_INTERVAL] = self.acc_interval_s
-        p[K.P_ACC_AVG_NOISE] = self.acc_avg_noise
-        p[K.P_ACC_CORR] = self.acc_corr_s
-        p[K.P_MAG_TILT_K] = self.mag_tilt_k
-        p[K.P_TURN_SPEED] = self.turn_speed
-        p[K.P_TURN_CORR] = self.turn_corr_s
-        p[K.P_REJ_INFLATE] = np.radians(self.reject_inflate_deg)
-        p[K.P_MAG_DT_UNC] = self.mag_time_unc_s
-        p[K.P_MAGERR_STD] = np.radians(self.mag_error_std_deg)
+    def as_params(self) -> np.ndarray:
+        """The settings in the compiled kernel's units: a one-element array of
+        :data:`pdr_mag.fusion.state.PARAMS` (``*_deg`` → ``*_rad``, ``output_rate_hz`` → ``out_dt_s``)."""
+        p = np.zeros(1, dtype=PARAMS)
+        for f in fields(self):
+            name, v = f.name, getattr(self, f.name)
+            if name == "interference":
+                continue
+            if name == "output_rate_hz":
+                p["out_dt_s"] = 1.0 / v if v > 0 else 0.0
+            elif name.endswith("_deg"):
+                p[name[:-4] + "_rad"] = np.radians(v)
+            else:
+                p[name] = v
         return p
 
 
@@ -300,9 +277,10 @@ class FusionCore:
 
     def __init__(self, settings: FusionSettings | None = None, field: EarthField | None = None):
         self.settings = settings or FusionSettings()
-        self._p = self.settings.as_array()
-        self._ip = self.settings.interference.as_array()
-        self._st = K.new_state()
+        self._p = self.settings.as_params()
+        self._ip = self.settings.interference.as_params()
+        self._st = new_state()
+        self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
         self._ref_strength: float | None = None
         self.snapshots: list = []  # kept by process(snapshot_at=…)
         self.field: EarthField | None = None
@@ -312,8 +290,8 @@ class FusionCore:
     def set_field(self, field: EarthField | None) -> None:
         """Set (or clear) the reference Earth field."""
         self.field = field
-        self._st[K.S_DECL] = np.radians(field.declination_deg) if field is not None else 0.0
-        self._st[K.S_DIPREF] = field.inclination_deg if field is not None else np.nan
+        self._st["declination"] = np.radians(field.declination_deg) if field is not None else 0.0
+        self._st["dip_ref"] = field.inclination_deg if field is not None else np.nan
         self._apply_strength()
 
     def set_reference_strength(self, strength_uT: float | None) -> None:
@@ -325,11 +303,11 @@ class FusionCore:
 
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:
-            self._st[K.S_FREF] = self._ref_strength
+            self._st["f_ref"] = self._ref_strength
         elif self.field is not None:
-            self._st[K.S_FREF] = self.field.strength
+            self._st["f_ref"] = self.field.strength
         else:
-            self._st[K.S_FREF] = np.nan
+            self._st["f_ref"] = np.nan
 
     @property
     def north(self) -> str:
@@ -365,67 +343,59 @@ class FusionCore:
         """:meth:`process` on checked input: contiguous ``kind`` (int8), ``t``, ``xyz`` (float64),
         ``allowed`` (bool), ``cuts`` (intp, the ``snapshot_at``), ``m`` ≥ the number of gyro samples; the
         rows' ``cal_state`` is ``cal_state``."""
-        out_t = np.empty(m)
-        out_q = np.empty((m, 4))
-        out_std = np.empty(m)
-        out_mag = np.empty(m, dtype=np.bool_)
-        out_int = np.empty(m, dtype=np.bool_)
-        diag_rows = np.empty((K.N_DIAG, m))  # each diagnostic a contiguous row: no copies below
-        out_diag = diag_rows.T
-        h_y = np.empty(m)
-        h_x = np.empty(m)
-        snaps = np.empty((len(cuts), K.N_STATE))
+        floats, q, flags = new_rows(m)
+        snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
-        k = K.run_cut(
-            kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps,
-            out_t, out_q, out_std, out_mag, out_int, out_diag, h_y, h_x,
-        )  # fmt: skip
+        k = kernel.run_cut(kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps, floats, q, flags)
         ref = self._ref_strength
-        self.snapshots = [(s, ref) for s in snaps] if len(cuts) else []
-        q = out_q[:k]
-        heading = np.arctan2(h_y[:k], h_x[:k])
+        self.snapshots = (
+            [(raw, ref) for raw in snaps.view(np.uint8).reshape(len(cuts), -1)] if len(cuts) else []
+        )
+        col = dict(zip(FLOAT_COLS, floats[:, :k], strict=True)) | dict(
+            zip(FLAG_COLS, flags[:, :k], strict=True)
+        )
+        heading = np.arctan2(col["h_y"], col["h_x"])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
-        diag = dict(zip(_DIAG_NAMES, diag_rows[:, :k], strict=True))
         return EstimateBatch(
-            t=out_t[:k],
-            q_wd=q,
+            t=col["t"],
+            q_wd=q[:k],
             heading_deg=heading,
-            heading_std_deg=out_std[:k],
-            mag_used=out_mag[:k],
-            interference=out_int[:k],
+            heading_std_deg=col["heading_std_deg"],
+            mag_used=col["mag_used"],
+            interference=col["interference"],
             cal_state=np.full(k, cal_state, dtype="<U13"),
-            diag=diag,
+            diag={name: col[name] for name in DIAG_NAMES},
         )
 
     # ------------------------------------------------------------------ state
     @property
     def bias(self) -> np.ndarray:
         """Current gyroscope bias estimate, rad/s (device frame)."""
-        return self._st[K.S_B : K.S_B + 3].copy()
+        return self._st["b"][0].copy()
 
     @property
     def interference_flag(self) -> bool:
-        return bool(self._st[K.S_DET + DET_FLAG] > 0)
+        return bool(self._st["det"]["flag"][0])
 
     def get_state(self) -> dict:
-        """JSON-serialisable state (NaN written as None)."""
+        """JSON-serialisable state: the fields of :data:`pdr_mag.fusion.state.STATE` by name."""
         return {
             "version": STATE_VERSION,
-            "state": [None if not np.isfinite(v) else float(v) for v in self._st],
+            "state": state_to_json(self._st[0]),
             "reference_strength_uT": self._ref_strength,
         }
 
     def _snapshot(self) -> tuple:
-        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state vector; not serialisable)."""
-        return self._st.copy(), self._ref_strength
+        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state's bytes; not serialisable)."""
+        return self._raw.copy(), self._ref_strength
 
     def _restore(self, snap: tuple) -> None:
         """Put back a :meth:`_snapshot` (as :meth:`set_state` does for a :meth:`get_state` dict: the
         reference field of this object wins)."""
-        st, self._ref_strength = snap
-        self._st = st.copy()
+        raw, self._ref_strength = snap
+        self._raw[:] = raw
         self.set_field(self.field)
 
     def set_state(self, state: dict) -> None:
@@ -433,10 +403,7 @@ class FusionCore:
         except the strength reference, which is restored)."""
         if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
             raise ValueError(f"state: expected a FusionCore state dict of version {STATE_VERSION}")
-        vals = state.get("state")
-        if not isinstance(vals, list) or len(vals) != K.N_STATE:
-            raise ValueError(f"state['state']: expected a list of {K.N_STATE} numbers")
-        self._st = np.array([np.nan if v is None else float(v) for v in vals])
+        self._st[:] = state_from_json(STATE, state.get("state"), "state['state']")
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)

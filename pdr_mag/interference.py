@@ -36,20 +36,20 @@ references with low variance and consistency scores, so a disturbance cannot dra
 Two levels.  The default thresholds flag *gross* disturbances (a magnet, a steel door: ±14 µT, ±15° of
 dip, 30° of turn, 100 µT² of variance) — the fusion skips those samples.  Below the thresholds the
 fusion does not trust the field blindly either: it weights each sample by the smallest disturbance that
-explains the deviations measured here (:mod:`pdr_mag._fusion_kernel`).  Tight thresholds alone reject
+explains the deviations measured here (:mod:`pdr_mag.fusion.mag`).  Tight thresholds alone reject
 most of an indoor walk (the building's field wanders by several µT and degrees) and leave the heading
 to the gyroscope for too long; measured on the tyrex walks, the two levels together do better than
 either.
 
-Two forms: :func:`detect_step` (``@njit``, one sample, its state in a small float array), which the
-fusion kernel (:mod:`pdr_mag._fusion_kernel`) calls per magnetometer sample, and vectorised numpy
+Two forms: :func:`detect_step` (``@njit``, one sample, its state in a record of :data:`DETECTOR_STATE`),
+which the fusion kernel (:mod:`pdr_mag.fusion.mag`) calls per magnetometer sample, and vectorised numpy
 functions for arrays (:func:`strength_score`, :func:`dip_deg`, :func:`windowed_variance`,
 :func:`consistency_angle_deg`, :func:`hold_off`) that give the same numbers.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from numba import njit
@@ -128,49 +128,24 @@ class InterferenceSettings:
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
 
-    def as_array(self) -> np.ndarray:
-        """Packed for the compiled kernel (order of :data:`_FIELDS`)."""
-        return np.array([float(getattr(self, k)) for k in _FIELDS])
+    def as_params(self) -> np.ndarray:
+        """The thresholds as the compiled detectors read them: a one-element array of :data:`PARAMS`."""
+        p = np.zeros(1, dtype=PARAMS)
+        for name in PARAMS.names:
+            p[name] = getattr(self, name)
+        return p
 
 
-_FIELDS = (
-    "strength_tol_uT",
-    "strength_tol_rel",
-    "var_window_s",
-    "var_max_uT2",
-    "dip_tol_deg",
-    "consistency_window_s",
-    "consistency_tol_deg",
-    "hold_on_s",
-    "hold_off_s",
-    "learn_ref_s",
-    "strength_band_rel",
-    "dip_band_deg",
-    "consistency_bias_k",
-)
-# indices into InterferenceSettings.as_array()
-(
-    I_STR_TOL,
-    I_STR_REL,
-    I_VAR_WIN,
-    I_VAR_MAX,
-    I_DIP_TOL,
-    I_CONS_WIN,
-    I_CONS_TOL,
-    I_HOLD_ON,
-    I_HOLD_OFF,
-    I_LEARN,
-    I_STR_BAND,
-    I_DIP_BAND,
-    I_CONS_K,
-) = range(13)
+#: the thresholds as the compiled detectors read them: one float64 field per :class:`InterferenceSettings`
+#: attribute, same name and unit
+PARAMS = np.dtype([(f.name, np.float64) for f in fields(InterferenceSettings)])
 
 
 # ----------------------------------------------------------------------------------------------- scalar
 @njit(cache=True, error_model="numpy")
 def strength_tol(ref_uT, p):
     """Half-width of the accepted strength band, µT."""
-    return max(p[I_STR_TOL], p[I_STR_REL] * ref_uT)
+    return max(p.strength_tol_uT, p.strength_tol_rel * ref_uT)
 
 
 @njit(cache=True, error_model="numpy")
@@ -211,7 +186,7 @@ def hold_step(flag, since, score, t, p):
     if bad != flag:
         if not np.isfinite(since):
             since = t
-        wait = p[I_HOLD_ON] if bad else p[I_HOLD_OFF]
+        wait = p.hold_on_s if bad else p.hold_off_s
         if t - since >= wait:
             flag = bad
             since = np.nan
@@ -221,25 +196,41 @@ def hold_step(flag, since, score, t, p):
 
 
 # ------------------------------------------------------------------------------------------ detector state
-#: layout of the detector state (a slice of the fusion kernel's state vector, or an array of its own)
-DET_FM = 0  # EW mean of the strength
-DET_FM2 = 1  # EW mean of the strength²
-DET_T = 2  # time of the last sample
-DET_MW = 3  # 3: EW mean of the world-frame field direction
-DET_DIPLOC = 6  # learnt local dip, deg
-DET_FLOC = 7  # learnt local strength, µT
-DET_NLEARN = 8  # samples learnt from
-DET_FLAG = 9  # flag (0/1)
-DET_SINCE = 10  # hold timer: when the score changed side of 1 (NaN: no change pending)
-N_DET = 11
+#: the detectors' state for one magnetometer stream (nested in the fusion filter's state), and the figures of
+#: its latest sample (the fusion's noise model and diagnostics read them)
+DETECTOR_STATE = np.dtype(
+    [
+        ("t", np.float64),  # time of the last sample, s (NaN: none yet)
+        ("f_mean", np.float64),  # EW mean of the strength F, µT (NaN: restart)
+        ("f2_mean", np.float64),  # EW mean of F², µT²
+        ("mw", np.float64, (3,)),  # EW mean m̄_w of the world-frame field direction (NaN in x: restart)
+        ("f_loc", np.float64),  # learnt local strength F_loc, µT (NaN: nothing learnt)
+        ("dip_loc", np.float64),  # learnt local dip I_loc, deg
+        ("n_learn", np.int64),  # clean samples learnt from
+        ("flag", np.bool_),  # interference flag, after the hold timers
+        ("since", np.float64),  # hold timer: when the score changed side of 1 (NaN: no change pending)
+        # the latest sample
+        ("f", np.float64),  # strength F, µT
+        ("dip", np.float64),  # dip I, deg
+        ("tol_f", np.float64),  # half-width tol_F of the strength band, µT
+        ("tol_dip", np.float64),  # half-width of the dip band, deg
+        ("var", np.float64),  # var_τ(F), µT²
+        ("cons", np.float64),  # gyro-consistency angle ∠(m_w, m̄_w), deg
+        ("score_f", np.float64),  # strength score s_F
+        ("score_dip", np.float64),  # dip score s_I
+        ("score", np.float64),  # max of the four scores
+    ],
+    align=True,
+)
 
 
-def new_detector_state() -> np.ndarray:
-    """A fresh detector state (nothing learnt, flag down)."""
-    det = np.full(N_DET, np.nan)
-    det[DET_NLEARN] = 0.0
-    det[DET_FLAG] = 0.0
-    return det
+def new_detector_state() -> np.void:
+    """A fresh detector state (nothing learnt, flag down): one record of :data:`DETECTOR_STATE`."""
+    det = np.zeros(1, dtype=DETECTOR_STATE)
+    for name in DETECTOR_STATE.names:
+        if DETECTOR_STATE[name].base == np.float64:
+            det[name] = np.nan
+    return det[0]
 
 
 @njit(cache=True, error_model="numpy")
@@ -248,8 +239,8 @@ def detect_step(det, f, dip, mwx, mwy, mwz, t, fref, dipref, sigma_b_deg, ip):
 
     Parameters
     ----------
-    det : float64 array (N_DET,)
-        Detector state, updated in place.
+    det : DETECTOR_STATE record
+        Detector state, updated in place; its fields ``f`` … ``score`` receive this sample's figures.
     f, dip : float
         Strength (µT) and dip (deg) of the sample.
     mwx, mwy, mwz : float
@@ -260,58 +251,68 @@ def detect_step(det, f, dip, mwx, mwy, mwz, t, fref, dipref, sigma_b_deg, ip):
         Reference strength and inclination (NaN when unknown).
     sigma_b_deg : float
         Gyro bias uncertainty of the filter, deg/s (widens the consistency tolerance).
-    ip : float64 array
-        :meth:`InterferenceSettings.as_array`.
+    ip : PARAMS record
+        :meth:`InterferenceSettings.as_params`.
 
     Returns
     -------
-    tuple
-        ``(flag, score, score_f, score_d, var, cons, f_loc, dip_loc, tol_f)``.
+    bool
+        The interference flag.
     """
-    dtm = t - det[DET_T] if np.isfinite(det[DET_T]) else np.inf
-    if dtm > 5.0 * ip[I_VAR_WIN] or not np.isfinite(det[DET_FM]):
-        det[DET_FM] = f
-        det[DET_FM2] = f * f
+    dtm = t - det.t if np.isfinite(det.t) else np.inf
+    if dtm > 5.0 * ip.var_window_s or not np.isfinite(det.f_mean):
+        det.f_mean = f
+        det.f2_mean = f * f
     else:
-        a = ew_alpha(dtm, ip[I_VAR_WIN])
-        det[DET_FM] += a * (f - det[DET_FM])
-        det[DET_FM2] += a * (f * f - det[DET_FM2])
-    var = max(det[DET_FM2] - det[DET_FM] ** 2, 0.0)
-    if dtm > 5.0 * ip[I_CONS_WIN] or not np.isfinite(det[DET_MW]):  # (re)start the mean direction
-        det[DET_MW], det[DET_MW + 1], det[DET_MW + 2] = mwx, mwy, mwz
+        a = ew_alpha(dtm, ip.var_window_s)
+        det.f_mean += a * (f - det.f_mean)
+        det.f2_mean += a * (f * f - det.f2_mean)
+    var = max(det.f2_mean - det.f_mean**2, 0.0)
+    mw = det.mw
+    if dtm > 5.0 * ip.consistency_window_s or not np.isfinite(mw[0]):  # (re)start the mean direction
+        mw[0], mw[1], mw[2] = mwx, mwy, mwz
         cons = 0.0
     else:
-        cons = angle_deg(mwx, mwy, mwz, det[DET_MW], det[DET_MW + 1], det[DET_MW + 2])
-        a = ew_alpha(dtm, ip[I_CONS_WIN])
-        det[DET_MW] += a * (mwx - det[DET_MW])
-        det[DET_MW + 1] += a * (mwy - det[DET_MW + 1])
-        det[DET_MW + 2] += a * (mwz - det[DET_MW + 2])
-    det[DET_T] = t
+        cons = angle_deg(mwx, mwy, mwz, mw[0], mw[1], mw[2])
+        a = ew_alpha(dtm, ip.consistency_window_s)
+        mw[0] += a * (mwx - mw[0])
+        mw[1] += a * (mwy - mw[1])
+        mw[2] += a * (mwz - mw[2])
+    det.t = t
     # strength and dip: against the learnt local values and, loosely, against the references
-    band_f = abs(f - fref) / (ip[I_STR_BAND] * fref) if np.isfinite(fref) else 0.0
-    band_d = abs(dip - dipref) / ip[I_DIP_BAND] if np.isfinite(dipref) else 0.0
-    score_v = var / ip[I_VAR_MAX]
-    score_c = cons / (ip[I_CONS_TOL] + ip[I_CONS_K] * sigma_b_deg * ip[I_CONS_WIN])
+    band_f = abs(f - fref) / (ip.strength_band_rel * fref) if np.isfinite(fref) else 0.0
+    band_d = abs(dip - dipref) / ip.dip_band_deg if np.isfinite(dipref) else 0.0
+    score_v = var / ip.var_max_uT2
+    score_c = cons / (ip.consistency_tol_deg + ip.consistency_bias_k * sigma_b_deg * ip.consistency_window_s)
     if max(max(band_f, band_d), max(score_v, score_c)) < 1.0:
         # learn the local references (running mean of the first samples, then time constant learn_ref_s)
-        det[DET_NLEARN] += 1.0
-        a = max(ew_alpha(min(dtm, 1.0), ip[I_LEARN]), 1.0 / det[DET_NLEARN])
-        if not np.isfinite(det[DET_FLOC]):
-            det[DET_FLOC] = f
-            det[DET_DIPLOC] = dip
+        det.n_learn += 1
+        a = max(ew_alpha(min(dtm, 1.0), ip.learn_ref_s), 1.0 / det.n_learn)
+        if not np.isfinite(det.f_loc):
+            det.f_loc = f
+            det.dip_loc = dip
         else:
-            det[DET_DIPLOC] += a * (dip - det[DET_DIPLOC])
-            det[DET_FLOC] += a * (f - det[DET_FLOC])
-    floc = det[DET_FLOC]
-    diploc = det[DET_DIPLOC]
+            det.dip_loc += a * (dip - det.dip_loc)
+            det.f_loc += a * (f - det.f_loc)
+    floc = det.f_loc
+    diploc = det.dip_loc
     ftol = strength_tol(fref if np.isfinite(fref) else floc, ip)
     score_f = max(band_f, abs(f - floc) / ftol) if np.isfinite(floc) else band_f
-    score_d = max(band_d, abs(dip - diploc) / ip[I_DIP_TOL]) if np.isfinite(diploc) else band_d
+    score_d = max(band_d, abs(dip - diploc) / ip.dip_tol_deg) if np.isfinite(diploc) else band_d
     score = max(max(score_f, score_d), max(score_v, score_c))
-    flag, since = hold_step(det[DET_FLAG] > 0, det[DET_SINCE], score, t, ip)
-    det[DET_FLAG] = 1.0 if flag else 0.0
-    det[DET_SINCE] = since
-    return flag, score, score_f, score_d, var, cons, floc, diploc, ftol
+    flag, since = hold_step(det.flag, det.since, score, t, ip)
+    det.flag = flag
+    det.since = since
+    det.f = f
+    det.dip = dip
+    det.tol_f = ftol
+    det.tol_dip = ip.dip_tol_deg
+    det.var = var
+    det.cons = cons
+    det.score_f = score_f
+    det.score_dip = score_d
+    det.score = score
+    return flag
 
 
 # ----------------------------------------------------------------------------------------------- arrays
@@ -387,7 +388,7 @@ def _cons(t, m, tau):
 def hold_off(t: np.ndarray, score: np.ndarray, settings: InterferenceSettings | None = None) -> np.ndarray:
     """Flags (bool, N) from scores with the hold-on / hold-off timers."""
     s = settings or InterferenceSettings()
-    return _hold(np.asarray(t, dtype=float), np.asarray(score, dtype=float), s.as_array())
+    return _hold(np.asarray(t, dtype=float), np.asarray(score, dtype=float), s.as_params()[0])
 
 
 @njit(cache=True, error_model="numpy")

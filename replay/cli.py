@@ -34,7 +34,8 @@ for _name in COMMANDS:
 
 
 def _fail(message: str) -> int:
-    click.echo(f"pdr-mag: {message}", err=True)
+    one_line = " ".join(message.split("\n"))
+    click.echo(f"pdr-mag: {one_line}", err=True)
     return 2
 
 
@@ -52,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(exc.format_message().replace("\n", " "))
     except BrokenPipeError:
         return 1
+    except OSError as exc:
+        if exc.filename is None:  # not about a file the user named: a bug or the machine, keep the traceback
+            raise
+        return _fail(f"{exc.filename}: {exc.strerror or exc}")
     return rv if isinstance(rv, int) else 0
 
 

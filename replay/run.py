@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from replay.errors import InputError
@@ -102,19 +104,16 @@ def load_calibration(path) -> MagCalibration:
         raise InputError(p, f"cannot read ({exc})") from None
 
 
-def make_sink(kind: str, path, *, spawn: bool = False):
+def make_sink(kind: str, path, *, spawn: bool = False, rate_hz: float | None = None):
     """An MCAP or rerun sink (``spawn``: rerun also streams to a live viewer it starts; ``path`` may then be
-    None), or :class:`InputError` when that sink is not available in this build."""
-    try:
-        if kind == "mcap":
-            from pdr_mag.sinks.mcap import McapSink
+    None; ``rate_hz``: the MCAP sink's rate limit)."""
+    if kind == "mcap":
+        from pdr_mag.sinks.mcap import McapSink
 
-            return McapSink(path)
-        from pdr_mag.sinks.rerun import RerunSink
+        return McapSink(path, rate_hz=rate_hz)
+    from pdr_mag.sinks.rerun import RerunSink
 
-        return RerunSink(path, spawn=spawn)
-    except ImportError:
-        raise InputError(path, f"--{'mcap' if kind == 'mcap' else 'rrd'} output not available yet") from None
+    return RerunSink(path, spawn=spawn)
 
 
 def os_reference(rec: Recording | RecordingSource):
@@ -129,6 +128,7 @@ def replay(
     settings: PipelineSettings | None = None,
     progress: bool | None = None,
     slice_s: float | None = None,
+    episode_settings: EpisodeSettings | None = None,
 ) -> dict:
     """Replay a recording; return the run summary (the ``replay --json`` object).
 
@@ -148,6 +148,9 @@ def replay(
     slice_s : float, optional
         Stream time pushed between polls, s (default :data:`SLICE_S`). The outputs do not depend on it (the
         pipeline gives the same rows, events and calibrations however its input is chunked).
+    episode_settings : EpisodeSettings, optional
+        Thresholds of the drift episodes (:mod:`pdr_mag.episodes`) in the summary's ``episodes``; each
+        episode also goes to the sinks as a ``drift_episode`` event when it closes.
     """
     if slice_s is None:
         slice_s = SLICE_S
@@ -177,6 +180,7 @@ def replay(
         "format": src.format,
         "north": pipe.north,
         "t0": merge.t0,
+        "mag_interval_s": pipe.fusion.settings.mag_interval_s,
     }
     if pipe.field is not None:
         meta["field"] = {
@@ -209,6 +213,7 @@ def replay(
         total = src.size or None
         bar = tqdm(total=total, unit="B", unit_scale=True, desc="replay", leave=False)
     events: list = []
+    finder = EpisodeFinder(episode_settings, truth=src.truth)
     state_counts: Counter = Counter()
     n_cal_seen = len(pipe.calibrations)
     n_pushed = dict.fromkeys(merge.present, 0)
@@ -223,7 +228,7 @@ def replay(
                         s.inputs(name, t, xyz)
                     n_pushed[name] += len(t)
             batch = pipe.flush() if final else pipe.poll()
-            _emit(pipe, batch, sinks, events, state_counts)
+            _emit(pipe, batch, sinks, events, state_counts, finder)
             cals = pipe.calibrations
             for t_cal, cal in cals[n_cal_seen:]:
                 for s in sinks:
@@ -231,6 +236,7 @@ def replay(
             n_cal_seen = len(cals)
             if bar is not None:
                 bar.update(merge.position - bar.n)
+        _emit_episodes(finder.finish(), sinks)
     finally:
         if bar is not None:
             bar.close()
@@ -250,6 +256,8 @@ def replay(
             "n_samples": n_pushed,
             "cal_state_rows": dict(sorted(state_counts.items())),
             "calibration_given": calibration is not None,
+            "episodes": [ep.to_dict() for ep in finder.episodes],
+            "episode_settings": {"truth": finder.has_truth, **asdict(finder.settings)},
             "elapsed_s": elapsed,
             "samples_per_s": n_samples / elapsed if elapsed > 0 else None,
         }
@@ -257,7 +265,14 @@ def replay(
     return summary
 
 
-def _emit(pipe: HeadingPipeline, batch: EstimateBatch, sinks, events: list, state_counts: Counter) -> None:
+def _emit(
+    pipe: HeadingPipeline,
+    batch: EstimateBatch,
+    sinks,
+    events: list,
+    state_counts: Counter,
+    finder: EpisodeFinder,
+) -> None:
     evs = pipe.pop_events()
     if pipe.settings.keep_mag_calibrated:
         tm, xm = pipe.pop_mag_calibrated()
@@ -272,6 +287,15 @@ def _emit(pipe: HeadingPipeline, batch: EstimateBatch, sinks, events: list, stat
             s.estimates(batch)
     for ev in evs:
         events.append(ev.to_dict())
+        for s in sinks:
+            s.event(ev)
+    _emit_episodes(finder.update(batch, evs), sinks)
+
+
+def _emit_episodes(episodes, sinks) -> None:
+    """Each closed drift episode to every sink, as a ``drift_episode`` event at its start."""
+    for ep in episodes:
+        ev = ep.to_event()
         for s in sinks:
             s.event(ev)
 
@@ -297,6 +321,11 @@ def summary_table(summary: dict) -> str:
         rows.append(
             ("last calibration", f"{last['method']} offset ({off}) µT, field {last['field_uT'] or 0:.1f} µT")
         )
+    episodes = summary.get("episodes", [])
+    kinds = Counter(e["kind"] for e in episodes)
+    rows.append(("drift episodes", ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"))
+    for i, ep in enumerate(worst([Episode.from_dict(e) for e in episodes]), 1):
+        rows.append((f"  worst {i}", ep.describe()))
     dropped = summary["dropped_samples"]
     rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
     if summary.get("samples_per_s"):

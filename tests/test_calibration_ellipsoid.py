@@ -9,6 +9,7 @@ from _calibration_sim import F_UT, sample, soft_iron_ellipsoid
 from pdr_mag.calibration import fit_als, fit_ellipsoid, fit_twostep, initial_ellipsoid
 from pdr_mag.calibration.ellipsoid import ellipsoid_specific_solve
 from pdr_mag.calibration.geometry import calibration_from_ellipsoid, monomials, quadric_to_ellipsoid
+from pdr_mag.calibration.sphere import sphere_lls
 
 Z = 3.5
 
@@ -70,13 +71,26 @@ def test_als_removes_the_noise_bias_of_plain_ls(cover, what):
     assert bias_als < Z * se_als
 
 
-def test_twostep_falls_back_to_sphere_for_planar_data():
+def test_twostep_on_planar_data_and_its_sphere_fallback():
+    """Directions within ±3° of the x-y plane: the in-plane offset and semi-axes are determined (the
+    circle fit's σ·sqrt(2/N) per component), the out-of-plane axis is not.  The ellipsoid is kept only
+    while its axis ratio is within ``max_axis_ratio``; below the ratio it has, step 1's sphere is used."""
     rng = np.random.default_rng(8)
     b, L = soft_iron_ellipsoid(rng, spread=0.0)
-    m, _ = sample(rng, 300, b, L, 0.5, "planar")
+    sigma, n = 0.5, 300
+    m, _ = sample(rng, n, b, L, sigma, "planar")
     b0, L0, source = initial_ellipsoid(m)
-    assert source in ("sphere", "ellipsoid")
-    assert np.all(np.isfinite(b0)) and np.all(np.linalg.eigvalsh(L0) > 0)
+    assert source == "ellipsoid"
+    assert np.all(np.abs(b0[:2] - b[:2]) < Z * sigma * np.sqrt(2 / n))
+    in_plane = np.linalg.eigvalsh(L0[:2, :2])
+    np.testing.assert_allclose(in_plane, F_UT, atol=Z * sigma * np.sqrt(2 / n) * 2)
+    ax = np.linalg.eigvalsh(L0)
+    assert ax[-1] / ax[0] <= 3.0
+    b1, L1, source1 = initial_ellipsoid(m, max_axis_ratio=0.9 * ax[-1] / ax[0])
+    assert source1 == "sphere"
+    b_s, r_s, _ = sphere_lls(m)  # step 1 itself
+    np.testing.assert_allclose(b1, b_s, rtol=0, atol=1e-12 * F_UT)
+    np.testing.assert_allclose(L1, r_s * np.eye(3), rtol=1e-14, atol=0)
 
 
 def test_als_with_known_noise_shape():

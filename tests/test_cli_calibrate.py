@@ -38,7 +38,7 @@ def good_rec(tmp_path):
     return _write_rec(tmp_path / "rec", m, meta), b * 47.06 / F_UT
 
 
-@pytest.mark.parametrize("method", ["auto", "sphere", "ellipsoid", "als", "ml"])
+@pytest.mark.parametrize("method", ["auto", "ellipsoid", "als", "ml"])
 def test_calibrate_writes_interface_json(good_rec, tmp_path, capsys, method):
     rec, b = good_rec
     out = tmp_path / f"{method}.json"
@@ -49,10 +49,19 @@ def test_calibrate_writes_interface_json(good_rec, tmp_path, capsys, method):
     assert d["accepted"] is True and d["reasons"] == []
     assert 0.0 <= d["coverage"] <= 1.0
     cal = MagCalibration.from_json(out)
-    if method != "sphere":  # the offset-only fit is biased by the soft iron it ignores
-        assert np.all(np.abs(cal.offset_array - b) < 5 * np.asarray(cal.offset_std_uT))
+    assert np.all(np.abs(cal.offset_array - b) < 5 * np.asarray(cal.offset_std_uT))
     text = capsys.readouterr().out
     assert "ACCEPTED" in text and "WMM" in text
+
+
+def test_offset_only_method_refused_for_the_soft_iron_it_ignores(good_rec, tmp_path, capsys):
+    rec, _ = good_rec
+    out = tmp_path / "sphere.json"
+    assert main(["calibrate", str(rec), "--method", "sphere", "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert d["accepted"] is False
+    assert any("leaves out soft iron" in r and "method auto" in r for r in d["reasons"]), d["reasons"]
+    assert "REJECTED" in capsys.readouterr().out
 
 
 def test_calibrate_real_tyrex(tmp_path, capsys):

@@ -17,7 +17,7 @@ from pdr_mag.sim import SCENARIOS, simulate
 from replay.cli import main
 from replay.formats import pdrcsv
 
-ROOT = pytest.importorskip("pathlib").Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parent.parent
 FILES = ("mag.csv", "accel.csv", "gyro.csv", "truth.csv", "truth_position.csv", "meta.json")
 
 
@@ -122,6 +122,27 @@ def test_rates_site_and_plain_field_options(tmp_path, capsys):
     meta = json.loads((out2 / "meta.json").read_text())
     assert (meta["latitude_deg"], meta["longitude_deg"], meta["date"]) == (-33.9, 151.2, "2025-03-01")
     assert meta["simulation"]["inclination_deg"] < 0  # southern hemisphere: field points up
+
+
+def test_named_phone_option(tmp_path, capsys):
+    """``--phone iphone4s``: its rates, its ±2 g range (running clips it; the reader counts the clipped
+    samples) and its own hard iron, which ``--effect hard_iron=…`` still overrides."""
+    out = tmp_path / "run"
+    argv = ["simulate", "--scenario", "run", "--duration", "20", "--phone", "iphone4s", "--out", str(out)]
+    assert main(argv) == 0
+    assert "phones (--phone NAME" in (main(["simulate", "--list"]), capsys.readouterr().out)[1]
+    rec = pdrcsv.read(out)
+    sim = rec.meta["simulation"]
+    assert sim["phone_name"] == "iphone4s" and sim["phone"]["accel_range"] == pytest.approx(19.6133)
+    for stream, rate in ((rec.accel, 90.0), (rec.gyro, 108.0), (rec.mag, 38.0)):
+        assert 1.0 / np.median(np.diff(stream.t)) == pytest.approx(rate, rel=0.01)
+    assert sim["effects"]["hard_iron"] == [85.0, 205.0, -550.0]
+    assert rec.dropped["accel:saturated"] > 0.1 * len(rec.accel)
+    out2 = tmp_path / "still"
+    argv = ["simulate", "--scenario", "still", "--duration", "5", "--phone", "iphone4s",
+            "--effect", "hard_iron=600,0,0", "--out", str(out2)]
+    assert main(argv) == 0
+    assert pdrcsv.read(out2).meta["simulation"]["effects"]["hard_iron"] == [600.0, 0.0, 0.0]
 
 
 def test_same_seed_byte_identical_files(tmp_path, capsys):

@@ -12,7 +12,7 @@ import pytest
 
 from replay.cli import main
 from replay.formats import READERS, detect, formats, read_recording
-from tests.conftest import DATASETS, dataset
+from tests.conftest import dataset
 
 FIX = Path(__file__).parent / "fixtures"
 FIXTURES = {
@@ -76,9 +76,11 @@ def test_not_recordings(tmp_path):
     assert detect(tmp_path / "notes.txt") is None and detect(tmp_path) is None
     with pytest.raises(Exception, match="not a recording in a known format"):
         read_recording(tmp_path / "notes.txt")
-    if DATASETS.exists():  # the mocap files beside tyrex trials are not recordings
-        q = DATASETS / "tyrex-attitude" / "qualisys" / "Thibaud_Nexus5_NoDist_Texting.mat"
-        assert detect(q) is None
+
+
+def test_mocap_files_beside_tyrex_trials_are_not_recordings():
+    q = dataset("tyrex-attitude", "qualisys", "Thibaud_Nexus5_NoDist_Texting.mat")
+    assert detect(q) is None
 
 
 def _one_line_exit_2(capsys, argv, must_name):

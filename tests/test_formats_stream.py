@@ -63,16 +63,21 @@ def _mcap(tmp_path: Path) -> Path:
 
 
 def _paths(tmp_path):
+    """The fixtures of every reader (always here); the real recordings are :func:`_real_paths`."""
     yield from (FIX / name for name in sorted(FIXTURES))
     yield Path(shutil.make_archive(str(tmp_path / "ios"), "zip", FIX / "sensorlogger_ios"))  # a zip export
     yield _mcap(tmp_path)
     yield write_bag(tmp_path / "bag.mcap", n=120)
+
+
+def _real_paths(tmp_path):
     for parts in sorted(REAL):
         yield dataset(*parts)
 
 
-def test_every_reader_streams_the_same_samples(tmp_path, monkeypatch):
-    whole = {p: read_recording(p) for p in _paths(tmp_path)}
+@pytest.mark.parametrize("paths", [_paths, _real_paths], ids=["fixtures", "real"])
+def test_every_reader_streams_the_same_samples(tmp_path, monkeypatch, paths):
+    whole = {p: read_recording(p) for p in paths(tmp_path)}
     monkeypatch.setattr(_common, "CHUNK", 7)
     monkeypatch.setattr(_common, "UNIT_CHECK_SAMPLES", 5)
     for p, rec in whole.items():

@@ -208,8 +208,12 @@ def test_kernel_step_matches_the_vectorised_functions():
     f = np.linalg.norm(m_w, axis=1)
     u = m_w / f[:, None]
     det = new_detector_state()
-    ip = S.as_array()
-    out = np.array([detect_step(det, f[i], 61.0, *u[i], t[i], 47.0, 61.0, 0.0, ip) for i in range(len(t))])
-    np.testing.assert_allclose(out[:, 4], windowed_variance(t, f, S.var_window_s), rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(out[:, 5], consistency_angle_deg(t, m_w, S.consistency_window_s), atol=1e-6)
+    ip = S.as_params()[0]
+    out = []
+    for i in range(len(t)):
+        flag = detect_step(det, f[i], 61.0, *u[i], t[i], 47.0, 61.0, 0.0, ip)
+        out.append((flag, det["score"], det["var"], det["cons"]))
+    out = np.array(out)
+    np.testing.assert_allclose(out[:, 2], windowed_variance(t, f, S.var_window_s), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(out[:, 3], consistency_angle_deg(t, m_w, S.consistency_window_s), atol=1e-6)
     np.testing.assert_array_equal(out[:, 0].astype(bool), hold_off(t, out[:, 1]))

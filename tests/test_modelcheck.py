@@ -179,13 +179,18 @@ def test_local_anomaly():
 
 
 def test_diagnosis_replays_in_the_simulator():
-    """Simulate with the found effect: the gap closes to the noise (the diagnosis can be replayed)."""
+    """Simulate a new recording (another seed: other motion noise and sensor noise) with the effect as found:
+    its diagnosis names the same effect with the same value, and the gap closes to the noise."""
     r, d = _cached("time_offset", "figure8", {"time_offset": 0.04})
-    found = d.final.estimate["time_offset"]["seconds"]
-    r2 = _sim("figure8", {"time_offset": 0.04}, duration=40.0)
+    est = d.final.estimate["time_offset"]
+    r2 = _sim("figure8", {"time_offset": est["seconds"]}, seed=4, duration=40.0)
     d2 = diagnose(*r2.mag, *r2.gyro, *r2.accel, settings=None)
-    assert d2.missing_effect == "time_offset"
-    assert abs(d2.final.estimate["time_offset"]["seconds"] - found) < 1e-9  # same seed, same answer
+    _check_named(d2, "time_offset", 2.5)
+    est2 = d2.final.estimate["time_offset"]
+    # two independent estimates: 6 σ of their difference + the 2 ms floor of test_time_offset
+    assert abs(est2["seconds"] - est["seconds"]) <= 6 * np.hypot(est["std"], est2["std"]) + 0.002
+    # what is left is the noise (0.4 µT) and the orientation error (≈ 0.4 µT, test_noise_is_estimated…)
+    assert d2.final.gap < np.hypot(NOISE, 0.4)
 
 
 def test_use_truth_mode_on_control():

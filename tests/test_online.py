@@ -335,13 +335,13 @@ def test_update_blocks_equals_update_per_block():
 
 
 def test_online_refits_are_judged_by_the_calibration_core_rules():
-    """An implausible soft iron (eigenvalue spread 2) is refused with the core's own reason, although the
-    online rules (offset σ, residual, offset range, radius) would let it through."""
+    """An implausible soft iron (eigenvalue spread 3.2) is refused with the core's own reason, although
+    the online rules (offset σ, residual, offset range, radius) would let it through."""
     from pdr_mag.calibration.model import MagCalibration
     from pdr_mag.calibration.refit import judge
 
     cal = MagCalibration.from_arrays(
-        [10.0, -20.0, 30.0], np.diag([1.4, 0.7, 1.0]), field_uT=47.0, method="ml", n_samples=400,
+        [10.0, -20.0, 30.0], np.diag([1.6, 0.5, 1.0]), field_uT=47.0, method="ml", n_samples=400,
         residual_rms_uT=0.5, offset_std_uT=[0.1, 0.1, 0.1],
     )
     verdict = judge(cal, OnlineSettings(), field_ref=47.0)

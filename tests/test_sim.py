@@ -298,3 +298,79 @@ def test_local_anomaly_in_any_scenario_reaches_its_peak(scenario, peak):
     assert res.meta["simulation"]["anomaly_windows"]
     if scenario == "walk":  # laid out along the middle third of the walk
         assert b[t < 8.0].max() < 1.0
+
+
+# ------------------------------------------------------------------------------------------ hard cases
+@pytest.mark.parametrize(("scenario", "seed"), [("run", 21), ("run_pocket", 22)])
+def test_running_clips_a_2g_accelerometer_where_the_specific_force_exceeds_it(scenario, seed):
+    """The iPhone 4S accelerometer saturates at ±2 g: a sample is clipped exactly where the true specific
+    force (gravity + the trajectory's acceleration, noise-free) is beyond the range on an axis — except
+    within a few noise σ of the limit — and running does that often (tyrex: 23–27 % of the samples of
+    running in hand have an axis at the limit)."""
+    res = simulate(scenario, seed=seed, duration_s=40.0, phone="iphone4s")
+    ph = res.phone
+    t, a = res.accel
+    q = res.trajectory.orientation(t)
+    f = quat_rotate(q, res.trajectory.accel_w(t) + [0.0, 0.0, GRAVITY], inverse=True)
+    assert np.abs(a).max() <= ph.accel_range + 0.5 * ph.accel_step  # clipped, then rounded to the step
+    clipped = np.abs(a) >= ph.accel_range - 0.5 * ph.accel_step
+    beyond = np.abs(f) > ph.accel_range
+    near = np.abs(np.abs(f) - ph.accel_range) < 5.0 * ph.accel_noise + ph.accel_step
+    assert np.all((clipped == beyond) | near)
+    share = np.mean(np.any(clipped, axis=1)[t > 5.0])
+    assert share == pytest.approx(np.mean(np.any(beyond, axis=1)[t > 5.0]), abs=np.mean(np.any(near, axis=1)))
+    assert 0.10 < share < 0.50
+    assert np.abs(res.gyro[1]).max() < ph.gyro_range  # the gyroscope's ±2000 °/s is not reached
+
+
+def test_running_has_steps_at_2_5_to_3_hz_and_peaks_beyond_2g():
+    res = simulate("run", seed=23, duration_s=60.0, phone=PhoneSpec.ideal())
+    t = np.arange(5.0, 55.0, 0.01)
+    a = res.trajectory.accel_w(t)
+    spec = np.abs(np.fft.rfft(a[:, 2] - a[:, 2].mean()))
+    f_step = np.fft.rfftfreq(len(t), 0.01)[int(np.argmax(spec))]
+    assert 2.45 <= f_step <= 3.05
+    # the vertical specific force of the trunk averages g over a step and peaks at π g / (2 D) = 2.2–2.9 g
+    assert np.mean(a[:, 2]) == pytest.approx(0.0, abs=0.1)
+    sf = np.linalg.norm(a + [0.0, 0.0, GRAVITY], axis=1)
+    assert np.percentile(sf, 99) > 2.2 * GRAVITY
+    speed = np.linalg.norm(np.diff(res.trajectory.walker_position(t), axis=0), axis=1).sum() / 50.0
+    assert 2.3 < speed < 3.9
+
+
+@pytest.mark.parametrize("seed", [24, 25])
+def test_steel_hides_the_field_for_a_minute_where_it_was_put(seed):
+    """``steel``: 30–90 s of 120 s along magnetised shelving — the anomaly at the phone exceeds the Earth's
+    horizontal field (the heading reference) nearly all along the window, and is gone 5 s outside it."""
+    res = simulate("steel", seed=seed)
+    sim = res.meta["simulation"]
+    assert [(w["t0"], w["t1"]) for w in sim["steel_windows"]] == [(30.0, 90.0)]
+    t = res.mag[0]
+    b = np.linalg.norm(res.model.value("local_anomaly").field_w(res.trajectory.position(t)), axis=1)
+    b_h = np.hypot(*res.field.field_w[:2])
+    inside = (t >= 30.0) & (t <= 90.0)
+    assert np.mean(b[inside] > b_h) > 0.75 and np.median(b[inside]) > 1.5 * b_h
+    assert np.all(b[(t < 25.0) | (t > 95.0)] < 1.5)
+    hidden = t[b > b_h]
+    assert 28.0 < hidden.min() < 32.0 and 88.0 < hidden.max() < 92.0
+    (w,) = sim["anomaly_windows"]  # one window, where the steel is (the 1-µT edge a few seconds wider)
+    assert 24.0 < w["t0"] < 30.0 and 90.0 < w["t1"] < 96.0
+
+
+def test_named_phone_has_its_hardware_and_its_large_hard_iron():
+    """``phone="iphone4s"``: its rates and ±2 g range, and a 593-µT hard iron that the raw field is centred
+    on (|raw| ≈ 600 µT for a 48-µT field); an ``effects`` value still overrides the phone's own."""
+    res = simulate("figure8", seed=26, duration_s=30.0, phone="iphone4s")
+    assert res.phone.accel_range == pytest.approx(2.0 * GRAVITY)
+    assert (res.phone.accel_rate_hz, res.phone.gyro_rate_hz, res.phone.mag_rate_hz) == (90.0, 108.0, 38.0)
+    b = res.model.value("hard_iron")
+    assert np.linalg.norm(b) == pytest.approx(593.1, abs=0.1)
+    t, m = res.mag
+    h = correct_mag(res.model, t, m)
+    np.testing.assert_allclose(np.linalg.norm(h, axis=1), res.field.strength, atol=2.0)  # 0.4 µT noise
+    assert np.linalg.norm(m.mean(axis=0) - b) < res.field.strength
+    assert res.meta["simulation"]["phone_name"] == "iphone4s"
+    other = simulate("figure8", seed=26, duration_s=30.0, phone="iphone4s", effects={"hard_iron": 600.0})
+    np.testing.assert_array_equal(other.model.value("hard_iron"), [600.0, 600.0, 600.0])
+    with pytest.raises(ValueError, match="phone"):
+        simulate("figure8", phone="nokia3310")

@@ -1,27 +1,29 @@
 """McapSink: write synthetic inputs and estimates, read them back with mcap's own reader.
 
-CDR messages are decoded with mcap-ros2-support's decoder (what a ROS 2 tool would see) and, byte for byte,
-compared with its encoder; JSON messages with ``json``.
+CDR messages are decoded with mcap-ros2-support's decoder (what a ROS 2 tool would see), JSON messages with
+``json``.  ``fixtures/pdrmcap_v2_handwritten.mcap`` holds the messages of :func:`_fixed_calls` as written by
+a CDR encoder independent of mcap-ros2-support (numpy structured arrays, format version 2): the sink must
+write the same bytes, and the reader must read that file.
 """
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import NonSeekingReader, make_reader
+from mcap_ros2.decoder import DecoderFactory
 
-pytest.importorskip("mcap")
-pytest.importorskip("mcap_ros2")
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import heading_deg_from_quat
+from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event
+from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS
+from pdr_mag.sinks.mcap import INPUT_TOPICS, SCHEMAS, McapSink
 
-from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
-from mcap_ros2.decoder import DecoderFactory  # noqa: E402
-
-from pdr_mag.calibration.model import MagCalibration  # noqa: E402
-from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
-from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event  # noqa: E402
-from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS  # noqa: E402
-from pdr_mag.sinks.mcap import INPUT_TOPICS, SCHEMAS, McapSink  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
+FIXTURE = ROOT / "tests" / "fixtures" / "pdrmcap_v2_handwritten.mcap"
 
 
 def _unit_quats(rng, n):
@@ -212,28 +214,6 @@ def test_outputs_values(written):
     )
 
 
-def test_cdr_bytes_equal_mcap_ros2_encoder(written):
-    """Every CDR message is byte-identical to mcap_ros2's own encoding of its decoded content.
-
-    Catches alignment/padding mistakes the decoder alone would forgive (e.g. trailing bytes).
-    """
-    from mcap_ros2._dynamic import serialize_dynamic
-
-    with open(written["path"], "rb") as f:
-        r = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
-        n_checked = {}
-        encoders = {}
-        cdr = [c.topic for c in r.get_summary().channels.values() if c.message_encoding == "cdr"]
-        for schema, channel, message, decoded in r.iter_decoded_messages(topics=cdr, log_time_order=False):
-            if schema.name not in encoders:
-                encoders[schema.name] = serialize_dynamic(schema.name, schema.data.decode())[schema.name]
-            assert bytes(encoders[schema.name](_plain(decoded))) == message.data, channel.topic
-            n_checked[channel.topic] = n_checked.get(channel.topic, 0) + 1
-    assert n_checked["/imu/accel"] == len(written["inputs"]["accel"][0])
-    assert n_checked["/pdr/heading"] == len(written["batch"])
-    assert len(n_checked) == 9
-
-
 def test_cdr_vector3_layout(written):
     """The documented 36-byte layout: CDR_LE header, then float64 t, x, y, z (readers rely on it)."""
     t, xyz = written["inputs"]["gyro"]
@@ -287,6 +267,7 @@ def test_events_calibration_and_metadata(written):
     info = meta["pdr_mag"][0]
     assert info["time_offset_ns"] == "0" and info["clamped_log_times"] == "0"
     assert json.loads(info["message_counts"]) == written["sink"].counts
+    assert json.loads(info["rate_limit_hz"]) is None
 
 
 def test_negative_times_offset_and_clamp(tmp_path):
@@ -323,22 +304,173 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="kind"):
         sink.inputs("baro", np.zeros(1), np.zeros((1, 3)))
     sink.close()
+    for bad in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="rate_hz"):
+            McapSink(tmp_path / "z.mcap", rate_hz=bad)
+
+
+# ---------------------------------------------------------------- the same bytes as an independent encoder
+_N = 400  # samples at 200 Hz: 2 s
+_EXACT_QUATS = np.array(
+    [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.6, 0.8, 0.0, 0.0],
+        [0.8, 0.0, 0.0, 0.6],
+        [0.5, 0.5, 0.5, 0.5],
+        [0.0, 0.6, 0.0, 0.8],
+    ]
+)
+
+
+def _fixed_calls(sink) -> None:
+    """A fixed sequence of sink calls on every topic, negative times included.
+
+    Values use exact arithmetic only (no libm), so every machine gives the same bits; the reference heading
+    (``atan2``) is the one value that may differ in its last bit.
+    """
+    k = np.arange(_N)
+    kf = k.astype(float)
+    t = -0.5 + kf / 200.0
+    states = np.array(["none", "offset", "ellipsoid"])
+    sink.open({"device": "fixture", "t0": -0.5, "north": "true", "latitude_deg": 45.25})
+    for s in (slice(0, 160), slice(160, 320), slice(320, _N)):  # several calls per topic
+        ts, ks = t[s], kf[s]
+        sink.inputs("accel", ts, np.column_stack([ks / 64, -ks / 128, 9.75 + ks / 1024]))
+        sink.inputs("gyro", ts, np.column_stack([ks / 4096, 0.125 - ks / 8192, ks * ks / 2**20]))
+        sink.inputs(
+            "mag", ts[::2], np.column_stack([20.5 + ks[::2] / 16, -5.0 + ks[::2] / 32, -40.0 * ks[::2] / 512])
+        )
+        sink.mag_calibrated(ts[::2], np.column_stack([ks[::2] / 16, ks[::2] / 32, -ks[::2] / 20]))
+        e = k[s][::4]
+        diag = {key: e * (j + 1) / 8.0 for j, key in enumerate(DIAG_KEYS) if key != "coverage"}
+        diag["dip_deg"] = np.where(e % 12 == 0, np.nan, diag["dip_deg"])
+        sink.estimates(
+            EstimateBatch(
+                t=t[e],
+                q_wd=_EXACT_QUATS[e % 5],
+                heading_deg=e * 0.5,
+                heading_std_deg=1.0 + e / 256,
+                mag_used=e % 3 == 0,
+                interference=e % 7 == 0,
+                cal_state=states[e % 3],
+                diag=diag,
+            )
+        )
+    sink.reference("truth", t[::8], _EXACT_QUATS[k[::8] % 5])
+    sink.event(Event(0.25, "interference_start", {"score": 1.75, "axis": "strength"}))
+    sink.event(Event(1.5, "interference_end"))
+    sink.calibration(
+        -0.25, MagCalibration.from_arrays([10.0, -5.0, 3.0], np.diag([1.25, 0.75, 1.0]), field_uT=48.0)
+    )
+    sink.close()
+
+
+def _content(path):
+    """Messages ``(topic, log_time, data)`` in file order and metadata records of an MCAP file."""
+    with open(path, "rb") as f:
+        r = make_reader(f, validate_crcs=True)
+        msgs = [(c.topic, m.log_time, m.data) for _, c, m in r.iter_messages(log_time_order=False)]
+    with open(path, "rb") as f:
+        meta = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    channels = {
+        c.topic: (summary.schemas[c.schema_id].name, c.message_encoding, c.metadata)
+        for c in summary.channels.values()
+    }
+    return msgs, meta, channels
+
+
+def test_same_messages_as_the_independent_cdr_encoder(tmp_path):
+    """The sink writes, message for message, the bytes of the numpy CDR encoder of the fixture."""
+    p = tmp_path / "new.mcap"
+    _fixed_calls(McapSink(p, chunk_size=16 * 1024))
+    new_msgs, new_meta, new_channels = _content(p)
+    old_msgs, old_meta, old_channels = _content(FIXTURE)
+    assert new_channels == old_channels
+    by_topic = {}
+    for topic, log_time, data in old_msgs:
+        by_topic.setdefault(topic, []).append((log_time, data))
+    n_compared = 0
+    for topic, expected in by_topic.items():
+        got = [(lt, d) for tp, lt, d in new_msgs if tp == topic]
+        assert [g[0] for g in got] == [e[0] for e in expected], topic
+        if topic.endswith("/heading") and topic.startswith("/reference/"):  # atan2: to the last bit or so
+            a = np.frombuffer(b"".join(d[4:] for _, d in got), "<f8")
+            b = np.frombuffer(b"".join(d[4:] for _, d in expected), "<f8")
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+        else:
+            assert [g[1] for g in got] == [e[1] for e in expected], topic
+        n_compared += len(got)
+    assert n_compared == len(new_msgs) > 1500
+    old_info, new_info = dict(old_meta).pop("pdr_mag"), dict(new_meta).pop("pdr_mag")
+    assert [m for m in new_meta if m[0] != "pdr_mag"] == [m for m in old_meta if m[0] != "pdr_mag"]
+    assert json.loads(new_info.pop("rate_limit_hz")) is None
+    assert new_info == old_info and old_info["time_offset_ns"] == "1000000000"
+
+
+def test_reads_the_files_of_the_independent_cdr_encoder():
+    """A format-version-2 file written by the numpy encoder reads as what :func:`_fixed_calls` gave it."""
+    from replay.formats import read_recording
+
+    got = read_recording(FIXTURE)
+    assert got.format == "pdr-mcap"
+    t = -0.5 + np.arange(_N) / 200.0
+    kf = np.arange(float(_N))
+    np.testing.assert_array_equal(got.accel.t, t)
+    np.testing.assert_array_equal(got.accel.xyz, np.column_stack([kf / 64, -kf / 128, 9.75 + kf / 1024]))
+    np.testing.assert_array_equal(got.mag.t, t[::2])
+    np.testing.assert_array_equal(got.truth[0], t[::8])
+    np.testing.assert_array_equal(got.truth[1], _EXACT_QUATS[np.arange(0, _N, 8) % 5])
+    assert got.meta["device"] == "fixture" and got.meta["latitude_deg"] == 45.25 and got.dropped == {}
+
+
+# ---------------------------------------------------------------------- rate limit
+def test_rate_limit_keeps_the_first_message_of_each_interval(tmp_path):
+    p = tmp_path / "r.mcap"
+    _fixed_calls(McapSink(p, rate_hz=4.0))
+    msgs, meta, _ = _content(p)
+    t = -0.5 + np.arange(_N) / 200.0  # sample k at 200 Hz over 2 s; the 0.25-s intervals start at k = 50 j
+
+    def first_per_interval(step):  # a topic with a sample every `step` k: the first one at or after 50 j
+        return t[np.ceil(50 * np.arange(8) / step).astype(int) * step]
+
+    expected = {
+        "/imu/accel": t[::50],
+        "/imu/gyro": t[::50],
+        "/mag/raw": t[::50],
+        "/mag/calibrated": t[::50],
+        "/pdr/orientation": first_per_interval(4),
+        "/pdr/heading": first_per_interval(4),
+        "/pdr/diag": first_per_interval(4),
+        "/reference/truth/orientation": first_per_interval(8),
+        "/reference/truth/heading": first_per_interval(8),
+    }
+    by_topic = {}
+    for topic, log_time, _data in msgs:
+        by_topic.setdefault(topic, []).append(log_time)
+    for topic, t_kept in expected.items():
+        assert by_topic[topic] == (np.round(t_kept * 1e9).astype(np.int64) + 1_000_000_000).tolist(), topic
+    assert len(by_topic["/pdr/events"]) == 2 and len(by_topic["/pdr/calibration"]) == 1  # never limited
+    info = dict(meta)["pdr_mag"]
+    assert json.loads(info["rate_limit_hz"]) == 4.0
+    assert json.loads(info["message_counts"])["/imu/accel"] == 8
+
+    from replay.formats import read_recording
+
+    got = read_recording(p)  # still a readable recording, at the lower rate
+    np.testing.assert_array_equal(got.accel.t, t[::50])
 
 
 # ---------------------------------------------------------------------- replay round trip
-@pytest.mark.parametrize("background", [False, True], ids=["in-process", "writer-process"])
-def test_replaying_the_mcap_reproduces_the_outputs(tmp_path, background):
+def test_replaying_the_mcap_reproduces_the_outputs(tmp_path):
     """``replay rec --mcap a.mcap --out-csv 1.csv`` then ``replay a.mcap --out-csv 2.csv``: identical CSV."""
-    from pathlib import Path
-
-    run = pytest.importorskip("replay.run")
+    from replay import run
     from replay.formats import read_recording
 
-    rec = Path(__file__).resolve().parent.parent / "recordings" / "mixed"
-    if not (rec / "mag.csv").exists():
-        pytest.skip("recordings/mixed not present")
+    rec = ROOT / "recordings" / "mixed"
     a, csv1, csv2 = tmp_path / "a.mcap", tmp_path / "1.csv", tmp_path / "2.csv"
-    run.replay(rec, sinks=[McapSink(a, background=background), run.CsvSink(csv1)], progress=False)
+    run.replay(rec, sinks=[McapSink(a), run.CsvSink(csv1)], progress=False)
     again = read_recording(a)  # replay/formats/pdrmcap.py
     assert again.format == "pdr-mcap"
     run.replay(again, sinks=[run.CsvSink(csv2)], progress=False)
@@ -347,52 +479,11 @@ def test_replaying_the_mcap_reproduces_the_outputs(tmp_path, background):
     assert first == second
 
 
-def _all_messages(path):
-    with open(path, "rb") as f:
-        r = make_reader(f, validate_crcs=True)
-        msgs = sorted((c.topic, m.log_time, m.data) for _, c, m in r.iter_messages())
-    with open(path, "rb") as f:
-        meta = [(m.name, dict(m.metadata)) for m in make_reader(f).iter_metadata()]
-    return msgs, meta
-
-
-def test_writer_process_writes_the_same_file_content(tmp_path):
-    files = []
-    for background in (False, True):
-        p = tmp_path / f"bg{background}.mcap"
-        sink = McapSink(p, background=background, chunk_size=32 * 1024)
-        sink.open({"device": "x", "t0": -0.5})
-        t = -0.5 + np.arange(3000) / 100.0
-        sink.inputs("mag", t, np.sin(t)[:, None] * [1.0, 2.0, 3.0])
-        sink.estimates(_batch(np.random.default_rng(1), t[::2]))
-        sink.reference("os", t, _unit_quats(np.random.default_rng(2), len(t)))
-        sink.event(Event(1.0, "recalibrated", {"method": "ml"}))
-        sink.calibration(2.0, MagCalibration.from_arrays([1.0, 2.0, 3.0], field_uT=50.0))
-        sink.close()
-        assert sink.time_offset_ns == 1_000_000_000
-        files.append((p, dict(sink.counts)))
-    (p0, c0), (p1, c1) = files
-    assert c0 == c1 and c0["/mag/raw"] == 3000
-    assert _all_messages(p0) == _all_messages(p1)
-
-
-def test_writer_process_reports_errors_at_close(tmp_path):
-    sink = McapSink(tmp_path / "bad.mcap", background=True)
-    sink.open({})
-    sink.inputs("gyro", np.arange(4.0), np.zeros((4, 2)))  # wrong shape: fails in the writer process
-    sink.inputs("gyro", np.arange(4.0) + 4, np.zeros((4, 3)))  # later calls are drained, not deadlocked
-    with pytest.raises(RuntimeError, match="writer process"):
-        sink.close()
-
-
 def test_cli_replay_of_the_written_mcap_gives_the_same_csv(tmp_path):
     """``pdr-mag replay REC --mcap a.mcap --out-csv 1.csv``; ``pdr-mag replay a.mcap --out-csv 2.csv``."""
-    from pathlib import Path
+    from replay import cli
 
-    cli = pytest.importorskip("replay.cli")
-    rec = Path(__file__).resolve().parent.parent / "recordings" / "mixed"
-    if not (rec / "mag.csv").exists():
-        pytest.skip("recordings/mixed not present")
+    rec = ROOT / "recordings" / "mixed"
     a, csv1, csv2 = tmp_path / "a.mcap", tmp_path / "1.csv", tmp_path / "2.csv"
     assert cli.main(["replay", str(rec), "--mcap", str(a), "--out-csv", str(csv1), "-q"]) == 0
     assert cli.main(["replay", str(a), "--out-csv", str(csv2), "-q"]) == 0
@@ -401,11 +492,8 @@ def test_cli_replay_of_the_written_mcap_gives_the_same_csv(tmp_path):
     assert first == csv2.read_bytes()
 
 
-def test_message_indexes_sorted_when_a_channel_goes_back_in_time(tmp_path):
-    """A caller may hand a channel earlier times later (not the replay): indexes are still sorted."""
-    from mcap.records import MessageIndex
-    from mcap.stream_reader import StreamReader
-
+def test_a_channel_going_back_in_time_reads_in_log_time_order(tmp_path):
+    """A caller may hand a channel earlier times later (not the replay): the file reads in log-time order."""
     p = tmp_path / "unsorted.mcap"
     with McapSink(p, chunk_size=1 << 16) as sink:
         sink.open({})
@@ -413,10 +501,26 @@ def test_message_indexes_sorted_when_a_channel_goes_back_in_time(tmp_path):
         sink.inputs("mag", 5.0 + np.arange(100) / 100, np.ones((100, 3)))
         sink.inputs("mag", 10.0 + np.arange(100) / 100, np.ones((100, 3)))  # repeated times: ties
     with open(p, "rb") as f:
-        indexes = [r for r in StreamReader(f).records if isinstance(r, MessageIndex)]
-    assert len(indexes) == 1
-    entries = indexes[0].records
-    assert len(entries) == 300 and entries == sorted(entries)
-    with open(p, "rb") as f:
         t = [m.log_time for _, _, m in make_reader(f, validate_crcs=True).iter_messages(log_time_order=True)]
-    assert t == sorted(t) and len(t) == 300
+    assert t == sorted(t) and len(t) == 300 and t[0] == 5_000_000_000
+
+
+def test_cli_mcap_rate(tmp_path, capsys):
+    """``pdr-mag replay REC --mcap a.mcap --mcap-rate 5``: each high-rate topic ≤ 5 messages a second."""
+    from replay import cli
+
+    rec, a = ROOT / "recordings" / "mixed", tmp_path / "a.mcap"
+    assert cli.main(["replay", str(rec), "--mcap", str(a), "--mcap-rate", "5", "-q"]) == 0
+    msgs, meta, channels = _content(a)
+    info = dict(meta)["pdr_mag"]
+    assert json.loads(info["rate_limit_hz"]) == 5.0
+    counts = json.loads(info["message_counts"])
+    for topic, (_, encoding, _) in channels.items():
+        if encoding != "cdr":
+            continue
+        bins = [lt // 200_000_000 for tp, lt, _ in msgs if tp == topic]  # 0.2-s intervals (time offset 0)
+        assert len(bins) == len(set(bins)) == counts[topic] > 50, topic
+    assert cli.main(["replay", str(rec), "--mcap", str(a), "--mcap-rate", "0", "-q"]) == 2
+    assert cli.main(["replay", str(rec), "--mcap-rate", "5", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "--mcap-rate" in err[0] and "--mcap-rate needs --mcap" in err[1]

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
 
-pytest.importorskip("rerun")
-from rerun.chunk import RrdReader  # noqa: E402
-
-from pdr_mag.calibration.model import MagCalibration  # noqa: E402
-from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
-from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event  # noqa: E402
-from pdr_mag.sinks.rerun import RerunSink  # noqa: E402
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import heading_deg_from_quat
+from pdr_mag.episodes import Episode
+from pdr_mag.estimates import DIAG_KEYS, EstimateBatch, Event
+from pdr_mag.sinks.rerun import RerunSink
 
 
 def _unit_quats(rng, n):
@@ -34,6 +33,41 @@ def _read(path):
             else:
                 values = col.to_pylist()
             d.setdefault(name, []).extend(values)
+    return out
+
+
+def read_blueprint(path):
+    """The default blueprint of an .rrd: {view origin: {"class", "name", "x" (ns), "y", "legend"}}, the
+    containers' shares, and the per-entity visible time ranges of the 3-D view."""
+    reader = RrdReader(path)
+    (store,) = reader.blueprints()
+    views: dict[str, dict] = {}
+    extra: dict[str, dict] = {}
+    for chunk in reader.stream(store=store).to_chunks():
+        rb = chunk.to_record_batch()
+        path_parts = chunk.entity_path.strip("/").split("/")
+        if path_parts[0] != "view":
+            continue
+        d = views.setdefault(path_parts[1], {})
+        cols = {n: rb.column(n).to_pylist()[-1] for n in rb.schema.names if ":" in n}
+        if "ViewBlueprint:space_origin" in cols:
+            d["origin"] = cols["ViewBlueprint:space_origin"][0]
+            d["class"] = cols["ViewBlueprint:class_identifier"][0]
+            d["name"] = cols["ViewBlueprint:display_name"][0]
+        if "TimeAxis:view_range" in cols:
+            r = cols["TimeAxis:view_range"][0]
+            d["x"] = (r["start"], r["end"])
+        if "ScalarAxis:range" in cols:
+            d["y"] = tuple(cols["ScalarAxis:range"][0])
+        if "PlotLegend:visible" in cols:
+            d["legend"] = cols["PlotLegend:visible"][0]
+        if "VisibleTimeRanges:ranges" in cols:
+            extra.setdefault(path_parts[1], {})["/".join(path_parts[4:-1])] = cols["VisibleTimeRanges:ranges"]
+    out = {}
+    for key, d in views.items():
+        if "origin" in d:
+            d["overrides"] = extra.get(key, {})
+            out[d["origin"]] = d
     return out
 
 
@@ -153,7 +187,7 @@ def test_series_read_back_equal(written):
 
 def test_state_lanes_only_on_change(written):
     data = _read(written["path"])
-    t_cal, cal_states = _series(data, "/state/calibration", "StateChange:state")
+    t_cal, cal_states = _series(data, "/state/mag_calibration", "StateChange:state")
     assert cal_states == ["none", "offset"]
     assert t_cal[1] == 5_000_000_000
     _, interf = _series(data, "/state/interference", "StateChange:state")
@@ -184,30 +218,93 @@ def test_cloud_fit_and_events(written):
     _, levels = _series(data, "/events", "TextLog:level")
     assert texts[0].startswith("interference_start") and levels[0] == "WARN"
     assert texts[1] == "interference_end" and levels[1] == "INFO"
-    assert texts[2].startswith("calibration ellipsoid accepted")
+    assert texts[2].startswith("calibration: ellipsoid accepted")
     assert list(t_ev) == [2_000_000_000, 4_000_000_000, 5_000_000_000]
 
 
-def test_blueprint_present(written):
-    reader = RrdReader(written["path"])
-    assert len(reader.recordings()) == 1
-    stores = reader.blueprints()
-    assert len(stores) == 1
-    views = {}
-    for chunk in reader.stream(store=stores[0]).to_chunks():
-        rb = chunk.to_record_batch()
-        if "ViewBlueprint:space_origin" in rb.schema.names:
-            origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
-            kind = rb.column("ViewBlueprint:class_identifier").to_pylist()[0][0]
-            views[origin] = kind
-    assert views["/heading"] == "TimeSeries"
-    assert views["/field"] == "TimeSeries"
-    assert views["/heading_error"] == "TimeSeries"
-    assert views["/dip"] == "TimeSeries"
-    assert views["/state"] == "StateTimeline"
-    assert views["/mag"] == "3D"
-    assert views["/coverage"] == "TimeSeries"
-    assert views["/events"] == "TextLog"
+def test_blueprint_fitted_to_the_data(written):
+    views = read_blueprint(written["path"])
+    kinds = {o: v["class"] for o, v in views.items()}
+    for origin in ("/heading", "/heading_error", "/field", "/dip", "/detector", "/mag_use", "/coverage"):
+        assert kinds[origin] == "TimeSeries", origin
+    for sensor in ("accel", "gyro", "mag"):  # one plot per sensor
+        assert kinds[f"/inputs/{sensor}"] == "TimeSeries"
+    assert kinds["/state"] == "StateTimeline" and kinds["/mag"] == "3D" and kinds["/events"] == "TextLog"
+    # every time axis spans the whole recording (absolute, not round the cursor)
+    b = written["batch"]
+    lo, hi = b.t[0] * 1e9, b.t[-1] * 1e9
+    for origin, v in views.items():
+        if v["class"] in ("TimeSeries", "StateTimeline"):
+            x0, x1 = v["x"]
+            assert x0 < lo < hi < x1 and (x1 - x0) < 1.1 * (hi - lo), origin
+        if v["class"] == "TimeSeries":
+            assert v["legend"] is False, origin  # the titles name the series: nothing covers the curves
+    # error plot: symmetric, fitted to the error (uniform random headings here: up to 180°) and 2σ
+    y0, y1 = views["/heading_error"]["y"]
+    assert y0 == -y1 and y1 == pytest.approx(180.0)
+    assert views["/heading"]["y"] == (0.0, 360.0)
+    # field and dip: the detector's bands widened to twice their tolerance
+    d = b.diag
+    f0, f1 = views["/field"]["y"]
+    assert f0 == pytest.approx(np.min(d["field_ref_uT"] - 2 * d["strength_tol_uT"]))
+    assert f1 == pytest.approx(np.max(d["field_ref_uT"] + 2 * d["strength_tol_uT"]))
+    # the 3-D view accumulates the clouds up to the cursor, and shows the fits at the cursor only
+    ov = views["/mag"]["overrides"]
+    assert set(ov) == {"mag/raw", "mag/calibrated"}
+
+
+def test_drift_episode_rotation_and_one_line_per_calibration(tmp_path):
+    path = tmp_path / "ep.rrd"
+    sink = RerunSink(path)
+    sink.open({"source": "x", "mag_interval_s": 0.2})
+    t = np.arange(0, 30, 0.02)
+    n = len(t)
+    used = (np.arange(n) % 10 == 0) & ~((t >= 10) & (t < 20))
+    flag = (t >= 12) & (t < 18)
+    sink.reference("truth", t, np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)))
+    sink.estimates(
+        EstimateBatch(
+            t=t,
+            q_wd=np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+            heading_deg=np.where((t > 11) & (t < 19), 15.0, 1.0),
+            heading_std_deg=np.full(n, 3.0),
+            mag_used=used,
+            interference=flag,
+            cal_state=np.full(n, "offset"),
+        )
+    )
+    cal = MagCalibration.from_arrays([1.0, 2.0, 3.0], None, field_uT=48.0, method="sphere", coverage=0.5)
+    sink.event(Event(5.0, "calibration_accepted", {"method": "sphere"}))
+    sink.calibration(5.0, cal)
+    sink.event(Event(1.0, "rotation_episode_start"))
+    sink.event(Event(4.0, "rotation_episode_end"))
+    ep = Episode("error", 11.0, 19.0, 10.0, 14.0, 15.0, peak_error_deg=14.0, peak_std_deg=3.0, t_flag=12.0)
+    gap = Episode("no_reference", 9.8, 20.0, 10.0, 10.2, 20.0, peak_error_deg=14.0, peak_std_deg=3.0)
+    sink.event(ep.to_event())
+    sink.event(gap.to_event())
+    sink.close()
+    data = _read(path)
+    _, texts = _series(data, "/events", "TextLog:text")
+    assert sum("sphere" in x for x in texts) == 1  # the event and the calibration: one line
+    assert texts[0].startswith("rotation_episode_start") and texts[-1].startswith("drift episode: error")
+    t_drift, drift = _series(data, "/state/drift", "StateChange:state")
+    assert drift == ["no_reference", "error", "no_reference", ""]  # the worst open kind at each time
+    np.testing.assert_array_equal(t_drift, np.array([9.8, 11.0, 19.0, 20.0]) * 1e9)
+    _, rot = _series(data, "/state/rotation", "StateChange:state")
+    assert rot == ["rotating", ""]
+    # magnetometer: 5 corrections per second × 0.2 s = all of each second, none from 10 to 20 s
+    t_share, share = _series(data, "/mag_use/share")
+    np.testing.assert_allclose(np.array(share)[(t_share > 0) & (t_share < 9e9)], 1.0)
+    np.testing.assert_allclose(np.array(share)[(t_share > 10e9) & (t_share < 20e9)], 0.0)
+    _, lane = _series(data, "/state/magnetometer", "StateChange:state")
+    assert lane == ["used", "not used", "used"]
+    # the strips in the error plot: the flag's stretch at the bottom, the episodes at the top
+    t_strip, strip = _series(data, "/heading_error/strip_interference")
+    np.testing.assert_allclose(np.array(t_strip)[np.isfinite(strip)], [12e9, 18e9])
+    t_strip, strip = _series(data, "/heading_error/strip_drift_error")
+    np.testing.assert_allclose(np.array(t_strip)[np.isfinite(strip)], [11e9, 19e9])
+    half = read_blueprint(path)["/heading_error"]["y"][1]
+    assert np.nanmax(strip) < half  # inside the plot
 
 
 def test_bad_arguments(tmp_path):

@@ -24,9 +24,13 @@ name on both sides.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit
 
+from pdr_mag import _jit_cache
+from pdr_mag.calibration import diversity
 from pdr_mag.calibration.diversity import buffer_coverage, offer, put, redundant
 
 STATE = np.dtype(
@@ -368,3 +372,7 @@ def stale_now(ti, state, cal, params, ring):
 def coverage_now(state, cal, buf):
     """:func:`current_coverage` on the one-element record arrays (the Python side's entry)."""
     return current_coverage(state[0], cal[0], buf)
+
+
+# numba's cache checks a kernel against its own file only: empty the caches when diversity.py changed too
+_jit_cache.refresh_if_changed((diversity, sys.modules[__name__]), "online")

@@ -27,27 +27,26 @@ METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep
 _K = {"sphere": 4, "diagonal": 6, "full": 9}
 
 
-def _admissible(cal: MagCalibration, s: AcceptanceSettings) -> bool:
-    """A fit the data can support: finite offset σ within the rule, plausible soft-iron spread."""
+def _admissible(cal: MagCalibration) -> bool:
+    """A fit that can compete: finite offset σ (non-singular information) and a finite positive radius."""
     std = np.asarray(cal.offset_std_uT, dtype=float)
-    ev = np.linalg.eigvalsh(cal.soft_iron_array)
-    return bool(np.all(np.isfinite(std)) and np.isfinite(cal.field_uT) and cal.field_uT > 0
-                and std.max() <= s.max_offset_std_frac * cal.field_uT
-                and ev[0] > 0 and ev[-1] / ev[0] <= s.max_axis_ratio)
+    return bool(np.all(np.isfinite(std)) and np.isfinite(cal.field_uT) and cal.field_uT > 0)
 
 
 def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
                  settings: AcceptanceSettings | None = None) -> MagCalibration:
     """Geometric ML fits of the nested models; the one with the smallest BIC (module docstring).
 
-    Only *admissible* fits compete (offset 1-σ and soft-iron eigenvalue spread within the acceptance
-    thresholds of ``settings``): with poor coverage a richer model can lower the RSS by bending into an
-    implausible ellipsoid, and ``auto`` then keeps the simpler model.  If none is admissible, the
-    simplest model is returned (and the acceptance rules will say why it is not accepted).
+    Only *admissible* fits compete (a finite offset covariance and radius).  Plausibility is not part of
+    the choice: a strongly elongated ellipsoid that the samples support is kept, and the acceptance rules
+    say that its soft iron is beyond plausibility, instead of keeping a sphere whose residual would then be
+    blamed on the field.  With poor coverage an over-fitted richer model gains too little RSS to pay its
+    BIC penalty, and one the samples do not determine is refused by the heading rule.  If none is
+    admissible, the simplest model is returned (and the acceptance rules will say why it is not
+    accepted).  ``settings`` is accepted for symmetry with :func:`calibrate` and not used.
     ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k", "admissible"}}`` and
     ``extra["model"]`` the choice.
     """
-    s = settings if settings is not None else AcceptanceSettings()
     m = _check_mag(mag, 10)
     n = len(m)
     fits: dict[str, MagCalibration] = {}
@@ -66,7 +65,7 @@ def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
         rss = float(cal.extra["rss_uT2"])
         k = _K[model]
         table[model] = {"rss_uT2": rss, "k": k, "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
-                        "admissible": _admissible(cal, s)}
+                        "admissible": _admissible(cal)}
         fits[model] = cal
     ok = [key for key in table if table[key]["admissible"]] or [models[0]]
     best = min(ok, key=lambda key: table[key]["bic"])
@@ -98,7 +97,8 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
     field : float or EarthField, optional
         Reference field strength (µT), e.g. the WMM field for the recording's position and date; used by
         the radius rule of the acceptance check.  An ``EarthField`` also gives the expected dip angle,
-        which the alignment must reproduce to be accepted as significant.
+        which the alignment must reproduce to be accepted as significant, and the horizontal share of the
+        field that turns field errors into heading errors (the heading rule of :func:`coverage.accept`).
     settings : AcceptanceSettings, optional
         Thresholds of the acceptance rules (the documented defaults when omitted).
 
@@ -148,4 +148,4 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
         cal = replace(cal, extra=extra)
         if al is not None and al.significant:
             cal = replace(cal, mag_to_imu=tuple(tuple(float(v) for v in row) for row in al.rotation))
-    return assess(m, cal, ref, settings)
+    return assess(m, cal, field if ref is not None else None, settings)

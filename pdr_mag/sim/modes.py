@@ -8,7 +8,10 @@ A mode gives, as smooth analytic functions of time,
 * the walker's speed, m/s.
 
 Gait numbers: step frequency 1.6–2.0 Hz (stride half that), vertical bounce ±2.5 cm (≈ 3 m/s² at the
-step frequency), lateral sway ±3 cm at the stride frequency, arm swing ±35°, thigh swing ±25°.
+step frequency), lateral sway ±3 cm at the stride frequency, arm swing ±35°, thigh swing ±25°.  Running
+(:func:`running`, :func:`running_pocket`): steps at 2.5–3.0 Hz, 2.4–3.8 m/s, the trunk's vertical specific
+force a train of ground-contact pulses peaking at 2.2–2.9 g (:func:`_run_bounce`), so a ±2 g accelerometer
+clips.
 """
 
 from __future__ import annotations
@@ -228,4 +231,105 @@ def still(rng: np.random.Generator) -> Mode:
     return Mode("still", angles, offset)
 
 
-MODES = {"texting": texting, "swing": swing, "pocket": pocket, "figure8": figure8, "still": still}
+def _run_gait(rng: np.random.Generator) -> tuple[float, float, float]:
+    """Running: step frequency (Hz), step angular frequency (rad/s), speed (m/s)."""
+    f = _u(rng, 2.5, 3.0)
+    step_len = _u(rng, 0.95, 1.25)
+    return f, 2.0 * np.pi * f, f * step_len
+
+
+#: Harmonics of the step frequency kept in the running bounce (the contact pulse's spectrum falls as 1/n²).
+RUN_HARMONICS = 8
+
+
+def _run_bounce(rng: np.random.Generator, w: float) -> tuple[Sines, Sines, Sines]:
+    """Walker-frame (lateral, forward, vertical) trunk motion of running.
+
+    The vertical specific force of the trunk is the ground reaction per unit mass: a half-sine pulse of
+    contact share ``D`` of the step period ``T`` and zero in flight, its mean g (the body neither rises nor
+    sinks over a step), so its peak is ``P = π g / (2 D)`` (D 0.53–0.7: 2.2–2.9 g)::
+
+        s(t) = P cos(π t / (D T))  for |t| < D T / 2,   z̈ = s − g
+        s(t) = g + Σ_n A_n cos(n w t),   A_n = (2/T) P cos(π n D) · 2a / (a² − (n w)²),   a = π / (D T)
+        z(t) = −Σ_n A_n / (n w)² cos(n w t)
+
+    (first :data:`RUN_HARMONICS` harmonics).  Lateral sway ±2–3 cm at the stride frequency, fore-aft surge
+    ±1–2 cm at the step frequency.
+    """
+    from pdr_mag.conventions import GRAVITY
+
+    duty = _u(rng, 0.53, 0.7)
+    period = 2.0 * np.pi / w
+    peak = np.pi * GRAVITY / (2.0 * duty)
+    a = np.pi / (duty * period)
+    ph = _ph(rng)
+    terms = []
+    for n in range(1, RUN_HARMONICS + 1):
+        b = n * w
+        a_n = (2.0 / period) * peak * np.cos(np.pi * n * duty) * 2.0 * a / (a * a - b * b)
+        terms.append((-a_n / (b * b), b, n * ph + 0.5 * np.pi))  # cos x = sin(x + π/2)
+    return (
+        Sines(0.0, ((_u(rng, 0.02, 0.03), 0.5 * w, ph),)),
+        Sines(0.0, ((_u(rng, 0.01, 0.02), w, ph + _u(rng, 0.0, 0.5)),)),
+        Sines(0.0, tuple(terms)),
+    )
+
+
+def running(rng: np.random.Generator) -> Mode:
+    """Running with the phone in the hand: the forearm bent and swinging with the arm (±20–35° of pitch,
+    the hand ±12–20 cm fore and aft at the stride frequency), the phone gripped top forward, screen to the
+    body side (x down: rolled 75–95°)."""
+    f, w, v = _run_gait(rng)
+    lat, fwd, up = _run_bounce(rng, w)
+    amp, ph = _u(rng, 20, 35) * DEG, _ph(rng)
+    reach, lift = _u(rng, 0.12, 0.2), _u(rng, 0.04, 0.08)
+    angles = (
+        Sines(0.0, ((_u(rng, 8, 15) * DEG, 0.5 * w, ph + 0.5 * np.pi),)),
+        Sines(_u(rng, 15, 35) * DEG, ((amp, 0.5 * w, ph), (3.0 * DEG, w, _ph(rng)))),
+        Sines(_u(rng, 75, 95) * DEG, ((5.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(0.0, ((5.0 * DEG, 0.5 * w, _ph(rng)),)),
+    )
+    x0, z0 = _u(rng, 0.2, 0.3), _u(rng, 1.0, 1.15)
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        s = np.sin(0.5 * w * t + ph)
+        return np.stack(
+            [x0 + lat(t)[0], 0.15 + fwd(t)[0] + reach * s, z0 + up(t)[0] + lift * s], axis=1
+        )
+
+    return Mode("running", angles, offset, speed=v, step_hz=f)
+
+
+def running_pocket(rng: np.random.Generator) -> Mode:
+    """Running with the phone in a front trouser pocket: as :func:`pocket`, the thigh swinging ±35–50°
+    at the stride frequency, on the running trunk."""
+    f, w, v = _run_gait(rng)
+    lat, fwd, up = _run_bounce(rng, w)
+    amp, ph = _u(rng, 35, 50) * DEG, _ph(rng)
+    thigh = Sines(0.0, ((amp, 0.5 * w, ph),))
+    along = _u(rng, 0.15, 0.25)
+    angles = (
+        Sines(0.0, ((8.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(90.0 * DEG, ((amp, 0.5 * w, ph),)),
+        Sines(_u(rng, 5, 12) * DEG, ((4.0 * DEG, 0.5 * w, _ph(rng)),)),
+        Sines(0.0, ((3.0 * DEG, w, _ph(rng)),)),
+    )
+
+    def offset(t: np.ndarray) -> np.ndarray:
+        b = thigh(t)[0]
+        return np.stack(
+            [0.12 + lat(t)[0], fwd(t)[0] + along * np.sin(b), 0.95 + up(t)[0] - along * np.cos(b)], axis=1
+        )
+
+    return Mode("running_pocket", angles, offset, speed=v, step_hz=f)
+
+
+MODES = {
+    "texting": texting,
+    "swing": swing,
+    "pocket": pocket,
+    "figure8": figure8,
+    "still": still,
+    "running": running,
+    "running_pocket": running_pocket,
+}

@@ -7,6 +7,7 @@ Default effects (every scenario; ``--effect NAME=off`` removes one)::
     gyro_bias  = (0.6, −0.8, 0.5) °/s = (0.01047, −0.01396, 0.00873) rad/s
     noise      = 0.4 µT
     local_anomaly = 30 µT peak           mixed and chain only (a steel area on the walk)
+    local_anomaly = 250 µT peak          steel (a dense steel area hiding the Earth's field for a minute)
 
 ``time_offset``, ``mag_imu_misalignment`` and ``bias_drift`` are off by default.
 """
@@ -37,11 +38,21 @@ DEFAULT_EFFECTS: dict[str, object] = {
 
 @dataclass(frozen=True)
 class Plan:
-    """A built scenario: the trajectory, its segments and where the steel areas are (time windows)."""
+    """A built scenario: the trajectory, its segments and where the steel areas are (time windows).
+
+    ``steel_spacing_m``, ``steel_lateral_m``, ``steel_height_m``: ranges of the distance between steel
+    dipoles along the path, of their distance to the side of it and of their height; ``steel_aligned``:
+    the dipoles' moments share one direction (±0.3 rad scatter), as in one large structure magnetised by
+    the ambient field, instead of independent random directions (:func:`layout_dipoles`).
+    """
 
     trajectory: Trajectory
     segments: list[tuple[str, float, float]]
     anomaly_windows: list[tuple[float, float]]
+    steel_spacing_m: tuple[float, float] = (1.5, 3.0)
+    steel_lateral_m: tuple[float, float] = (0.9, 2.0)
+    steel_height_m: tuple[float, float] = (0.0, 2.8)
+    steel_aligned: bool = False
 
 
 @dataclass(frozen=True)
@@ -87,6 +98,7 @@ def _plan(
     parts: list[tuple[str, float]],
     steel: list[tuple[float, float]] = (),
     zigzag: bool = False,
+    **layout,
 ) -> Plan:
     """Modes in sequence with given durations (scaled to ``duration``); turns on walking parts."""
     total = sum(p[1] for p in parts)
@@ -115,7 +127,7 @@ def _plan(
     )
     traj = Trajectory(modes, bounds, heading, duration)
     windows = [(round(a * scale, 6), round(b * scale, 6)) for a, b in steel]
-    return Plan(traj, segs, windows)
+    return Plan(traj, segs, windows, **layout)
 
 
 def _single(mode: str) -> Callable[[float, np.random.Generator], Plan]:
@@ -158,6 +170,24 @@ def _chain(duration: float, rng: np.random.Generator) -> Plan:
     )
 
 
+def _steel(duration: float, rng: np.random.Generator) -> Plan:
+    # a texting walk of 120 s (3 s standing first); 30..90 s of it along steel shelving at the phone's
+    # height, magnetised as one structure: dipoles every 0.3–0.6 m, 0.6–1.0 m to either side, 0.8–1.6 m
+    # high, so the anomaly at the phone exceeds the Earth's horizontal field almost all along — a minute
+    # without a heading reference; zigzag turns, so the area is passed once; scaled to the duration
+    return _plan(
+        rng,
+        duration,
+        [("stand:texting", 3.0), ("texting", 117.0)],
+        steel=[(30.0, 90.0)],
+        zigzag=True,
+        steel_spacing_m=(0.3, 0.6),
+        steel_lateral_m=(0.6, 1.0),
+        steel_height_m=(0.8, 1.6),
+        steel_aligned=True,
+    )
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
@@ -185,6 +215,18 @@ SCENARIOS: dict[str, Scenario] = {
             120.0,
             _walking("pocket"),
         ),
+        Scenario(
+            "run",
+            "3 s standing, then running with the phone in the hand; steps 2.5–3 Hz, contact peaks 2.2–2.9 g",
+            120.0,
+            _walking("running"),
+        ),
+        Scenario(
+            "run_pocket",
+            "3 s standing, then running with the phone in a front trouser pocket; steps 2.5–3 Hz",
+            120.0,
+            _walking("running_pocket"),
+        ),
         Scenario("still", "phone lying still on a table, screen up", 60.0, _single("still")),
         Scenario(
             "mixed",
@@ -201,6 +243,14 @@ SCENARIOS: dict[str, Scenario] = {
             _chain,
             {"local_anomaly": 30.0},
         ),
+        Scenario(
+            "steel",
+            "a texting walk through a dense steel area hiding the Earth's field for a minute "
+            "(30–90 s of 120 s, scaled)",
+            120.0,
+            _steel,
+            {"local_anomaly": 250.0},
+        ),
     )
 }
 
@@ -209,9 +259,11 @@ def layout_dipoles(plan: Plan, peak_uT: float, rng: np.random.Generator) -> Dipo
     """Steel as point dipoles beside the path in the plan's steel windows, scaled so the largest |B| the
     phone meets is ``peak_uT``.
 
-    Dipoles every 1.5–3 m of path, 0.9–2 m to the side (left or right), 0–2.8 m high, random moment
-    directions, log-normal magnitudes.  Without windows the middle third of the recording is used; where
-    the walker does not move, one dipole sits 0.6–0.9 m from the phone.
+    Dipoles every ``plan.steel_spacing_m`` (1.5–3 m) of path, ``plan.steel_lateral_m`` (0.9–2 m) to the
+    side (left or right), ``plan.steel_height_m`` (0–2.8 m) high, random moment directions (or one shared
+    direction, ``plan.steel_aligned``), log-normal magnitudes.  Without windows
+    the middle third of the recording is used; where the walker does not move, one dipole sits 0.6–0.9 m
+    from the phone.
     """
     traj = plan.trajectory
     windows = plan.anomaly_windows or [(traj.t_end / 3.0, 2.0 * traj.t_end / 3.0)]
@@ -232,12 +284,14 @@ def layout_dipoles(plan: Plan, peak_uT: float, rng: np.random.Generator) -> Dipo
         while d < dist[-1]:
             i = int(np.searchsorted(dist, d))
             side = rng.choice([-1.0, 1.0])
-            lat = side * rng.uniform(0.9, 2.0)
+            lat = side * rng.uniform(*plan.steel_lateral_m)
             right = np.array([np.cos(psi[i]), -np.sin(psi[i]), 0.0])
-            positions.append(walker[i] + lat * right + [0.0, 0.0, rng.uniform(0.0, 2.8)])
-            d += rng.uniform(1.5, 3.0)
+            positions.append(walker[i] + lat * right + [0.0, 0.0, rng.uniform(*plan.steel_height_m)])
+            d += rng.uniform(*plan.steel_spacing_m)
     pos = np.asarray(positions, dtype=float).reshape(-1, 3)
     dirs = rng.standard_normal((len(pos), 3))
+    if plan.steel_aligned:  # one structure magnetised along one direction (induced by the ambient field)
+        dirs = np.broadcast_to(dirs[0], dirs.shape) + 0.3 * dirs
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     mom = dirs * np.exp(rng.normal(0.0, 0.5, (len(pos), 1)))
     unit = DipoleField(pos, mom, cutoff_m=DIPOLE_CUTOFF_M)

@@ -21,6 +21,7 @@ from pdr_mag.sensor_model import (
     measure_gyro,
     measure_mag,
 )
+from pdr_mag.sim.phones import PHONES, Phone
 from pdr_mag.sim.sampling import sample_times
 from pdr_mag.sim.scenarios import DEFAULT_EFFECTS, SCENARIOS, Plan, layout_dipoles
 from pdr_mag.sim.trajectory import Trajectory
@@ -116,7 +117,7 @@ def simulate(
     duration_s: float | None = None,
     effects: Mapping[str, object] | None = None,
     defaults: bool = True,
-    phone: PhoneSpec | None = None,
+    phone: PhoneSpec | Phone | str | None = None,
     site: Mapping[str, object] | None = None,
     field_w=None,
     truth_rate_hz: float = 25.0,
@@ -137,8 +138,10 @@ def simulate(
         object.
     defaults : bool
         Start from the documented default effects (True) or from none.
-    phone : PhoneSpec, optional
-        Rates, noise, resolution, ranges, drops (:class:`PhoneSpec` defaults).
+    phone : PhoneSpec, Phone or str, optional
+        Rates, noise, resolution, ranges, drops (:class:`PhoneSpec` defaults); or a named
+        :class:`~pdr_mag.sim.phones.Phone` (or its name in :data:`~pdr_mag.sim.phones.PHONES`): its
+        hardware, and its own effects (e.g. the hard iron) under ``effects``.
     site : mapping, optional
         ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` of the WMM field (:data:`DEFAULT_SITE`).
     field_w : array-like (3,), optional
@@ -155,6 +158,13 @@ def simulate(
         raise ValueError(f"duration_s: expected 1..86400 s, got {duration_s!r}")
     if not (isinstance(seed, int | np.integer) and seed >= 0):
         raise ValueError(f"seed: expected an integer ≥ 0, got {seed!r}")
+    phone_name = None
+    if isinstance(phone, str):
+        if phone not in PHONES:
+            raise ValueError(f"phone: unknown {phone!r}; known: {', '.join(PHONES)}")
+        phone = PHONES[phone]
+    if isinstance(phone, Phone):
+        phone_name, phone, effects = phone.name, phone.spec, {**phone.effects, **(effects or {})}
     phone = phone or PhoneSpec()
     site = dict(DEFAULT_SITE if site is None else site)
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(9)]
@@ -209,6 +219,7 @@ def simulate(
         "declination_deg": round(fld.declination_deg, 6),
         "inclination_deg": round(fld.inclination_deg, 6),
         "phone": {k: _json_safe(v) for k, v in asdict(phone).items()},
+        **({"phone_name": phone_name} if phone_name else {}),
         "segments": [{"mode": m, "t0": a, "t1": b} for m, a, b in plan.segments],
         "steel_windows": [{"t0": a, "t1": b} for a, b in plan.anomaly_windows] if anomaly_layout else [],
         "anomaly_windows": _anomaly_windows(model, traj, duration),

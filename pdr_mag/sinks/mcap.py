@@ -2,8 +2,8 @@
 
 Layout (the contract between this sink and the MCAP reader ``replay/formats/pdrmcap.py``), format version 2
 -----------------------------------------------------------------------------------------------------------
-High-rate topics are CDR (``message_encoding="cdr"``) with ``ros2msg`` schemas (definitions and byte
-layouts in :mod:`pdr_mag.sinks._mcap_schemas`); events and calibrations are JSON with JSON schemas.
+High-rate topics are CDR (``message_encoding="cdr"``) with ``ros2msg`` schemas (the definitions are in
+:mod:`pdr_mag.sinks._mcap_schemas`); events and calibrations are JSON with JSON schemas.
 Times: a message carries the recording's own time ``t`` (float64, exactly as read) and is logged at the
 integer-nanosecond ``log_time = publish_time = round(t·1e9) + time_offset_ns``.
 
@@ -35,7 +35,9 @@ topic                              schema                             message
 The three input topics carry exactly what the pipeline read (the reader's cleaned, contract-unit streams):
 ``t``, ``x``, ``y``, ``z`` are the float64 bits, so reading them back gives bit-identical arrays and replaying
 the MCAP reproduces the outputs exactly.  A CDR message of those topics is 36 bytes: ``00 01 00 00``
-(CDR, little endian) then the four little-endian float64 ``t, x, y, z``.
+(CDR, little endian) then the four little-endian float64 ``t, x, y, z``; the reader decodes them in blocks
+relying on that.  Channel metadata: ``time_offset_ns`` on every channel, ``unit`` and ``role`` on the
+vector topics, ``frame_id`` on the poses.
 
 Metadata records:
 
@@ -45,7 +47,7 @@ Metadata records:
 * ``calibration`` — one per :meth:`McapSink.calibration`: ``t`` and ``json`` (the ``calibrate --json``
   object);
 * ``pdr_mag`` — at close: ``format_version``, ``time_offset_ns``, ``clamped_log_times``,
-  ``message_counts`` (JSON, per topic).
+  ``message_counts`` (JSON, per topic), ``rate_limit_hz`` (JSON: ``null`` when every message was written).
 
 Format version 1 wrote every topic as JSON (``pdr_mag.Vector3Stamped`` ``{"t","x","y","z"}``
 etc.); the reader still reads it.
@@ -56,57 +58,58 @@ MCAP times are unsigned.  ``time_offset_ns`` is 0 unless the recording has negat
 smallest whole number of seconds that makes the earliest time non-negative, the earliest time being
 ``meta["t0"]`` when the caller gives it, else the first time the sink sees.  A time that is still negative
 after the offset (possible only without ``meta["t0"]``) is logged at 0 and counted in ``clamped_log_times``;
-its ``t`` field is unaffected.  The offset is also in every channel's metadata.
+its ``t`` field is unaffected.
 
-Speed and memory: a batch of CDR messages is one numpy structured array holding the MCAP record headers and
-the payloads (:mod:`pdr_mag.sinks._mcap_chunks`), so a message costs a fraction of a µs; chunks of
-``chunk_size`` uncompressed bytes are compressed and written by an I/O thread.  At most 8192 rows are
-encoded at once and at most 4 chunks are held, so memory stays bounded whatever the recording length
-(``benchmarks/sinks.py``).
+Rate limit
+----------
+With ``rate_hz`` set, each high-rate topic keeps the first message whose ``t`` falls into each interval
+``[k, k + 1) / rate_hz`` (``k`` an integer), so at most ``rate_hz`` messages a second; the estimate topics
+share their rows, as do a reference's two topics.  Events and calibrations are always written.  Such a file
+is for viewing: its inputs are decimated, so replaying it is not the original replay.
+
+Writing
+-------
+:class:`mcap.writer.Writer` writes the file in chunks of ``chunk_size`` uncompressed bytes (compressed, with
+message indexes) and a summary section (schemas, channels, chunk indexes, statistics) that lets readers
+seek.  Memory holds one open chunk plus an index entry per chunk written, whatever the recording length.
+Each CDR message is a dict encoded by ``mcap-ros2-support`` and added by the writer, both in Python: about
+10 µs a message, and an hour of a phone recording at 200 Hz is about 3 million messages (the cost is
+measured by ``benchmarks/sinks.py``; ``rate_hz`` bounds it).  Long calls are handled :data:`MAX_ROWS` rows
+at a time, so transient memory stays bounded too.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
+import mcap_ros2
 import numpy as np
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+from mcap_ros2._dynamic import serialize_dynamic  # the encoder behind mcap_ros2.writer.Writer
 
 from pdr_mag._json import jsonable
+from pdr_mag.conventions import heading_deg_from_quat
 from pdr_mag.estimates import DIAG_KEYS
-from pdr_mag.sinks import _mcap_schemas as S
-from pdr_mag.sinks._mcap_chunks import (
-    HEADER_SIZE,
-    ChunkWriter,
-    new_records,
-    one_record,
-    record_bytes,
-    record_dtype,
-)
-from pdr_mag.sinks._mcap_process import WriterProcess
+from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
 
 FORMAT_VERSION = 2
 
 #: Topics of the three input streams, by the ``kind`` of :meth:`McapSink.inputs`.
 INPUT_TOPICS = {"accel": "/imu/accel", "gyro": "/imu/gyro", "mag": "/mag/raw"}
 INPUT_UNITS = {"accel": "m/s^2", "gyro": "rad/s", "mag": "uT"}
-#: Schemas by short key (name, encodings, definition): see :mod:`pdr_mag.sinks._mcap_schemas`.
-SCHEMAS = S.SCHEMAS
 
 #: Event kinds logged as warnings in ``/pdr/events`` (all others are INFO).
-WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested")
+WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested", "drift_episode")
 _LOG_INFO, _LOG_WARNING = 2, 3
 
-_COMPRESSION = ("zstd", "lz4", "none")
-#: Longest run of rows encoded at once (longer calls are sliced: bounded transient memory).
-_MAX_ROWS = 8192
-
-# record dtypes (MCAP message header + CDR payload) of the fixed-size messages
-_VECTOR3 = record_dtype(S.cdr_dtype(S.VECTOR3_FIELDS, HEADER_SIZE))
-_POSE = record_dtype(S.cdr_dtype(S.POSE_FIELDS, HEADER_SIZE))
-_HEADING_REF = record_dtype(S.cdr_dtype(S.HEADING_REF_FIELDS, HEADER_SIZE))
-_DIAG = record_dtype(S.cdr_dtype(S.DIAG_COLUMNS, HEADER_SIZE))
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+#: Longest run of rows turned into messages at once (longer calls are sliced: bounded transient memory).
+MAX_ROWS = 8192
+_LIBRARY = f"pdr_mag; {LIBRARY_IDENTIFIER}; mcap-ros2-support/{mcap_ros2.__version__}"
+_ORIGIN = {"x": 0.0, "y": 0.0, "z": 0.0}
 
 
 class McapSink:
@@ -120,29 +123,32 @@ class McapSink:
         Chunk compression.
     chunk_size : int
         Uncompressed bytes per chunk (bounds the memory the writer holds).
-    background : bool
-        Encode and write in a separate process (``multiprocessing`` "spawn"): the caller only pickles
-        the arrays into a pipe.  The pipe blocks when the writer falls behind, so memory stays bounded.
-        Errors in the writer are raised by :meth:`close`.  As with any "spawn" process, a calling
-        *script* needs the usual ``if __name__ == "__main__":`` guard.  Rarely worth it now that encoding
-        is vectorised (spawn start-up ≈ 0.5 s).
+    rate_hz : float, optional
+        At most this many messages a second on each high-rate topic (module docstring, "Rate limit").
+        None (the default) writes every message: the file holds the complete inputs and replays exactly.
     """
 
     def __init__(
-        self, path, *, compression: str = "zstd", chunk_size: int = 1 << 20, background: bool = False
+        self, path, *, compression: str = "zstd", chunk_size: int = 1 << 20, rate_hz: float | None = None
     ):
         if compression not in _COMPRESSION:
-            raise ValueError(f"compression: expected one of {_COMPRESSION}, got {compression!r}")
+            raise ValueError(f"compression: expected one of {tuple(_COMPRESSION)}, got {compression!r}")
         if int(chunk_size) <= 0:
             raise ValueError(f"chunk_size: expected a positive number of bytes, got {chunk_size!r}")
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(
+                f"rate_hz: expected a positive number of messages a second or None, got {rate_hz!r}"
+            )
         self.path = Path(path)
         self.compression = compression
         self.chunk_size = int(chunk_size)
-        self.background = bool(background)
-        self._proc: WriterProcess | None = None
-        self._writer: ChunkWriter | None = None
+        self.rate_hz = None if rate_hz is None else float(rate_hz)
+        self._fh = None
+        self._writer: Writer | None = None
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._encoders: dict[str, Callable[[dict], bytes]] = {}
+        self._last_bin: dict[str, int] = {}
         self._t0_hint: float | None = None
         self._offset_ns: int | None = None
         self._clamped = 0
@@ -150,129 +156,119 @@ class McapSink:
 
     # ------------------------------------------------------------------ Sink protocol
     def open(self, meta: dict) -> None:
-        if self._writer is not None or self._proc is not None:
+        if self._writer is not None:
             raise RuntimeError("McapSink: open() called twice without close()")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.background:
-            self._proc = WriterProcess(self.path, self.compression, self.chunk_size)
-            self._proc.send("open", (dict(meta or {}),))
-            return
-        self._schemas, self._channels, self.counts = {}, {}, {}
+        self._schemas, self._channels, self._last_bin, self.counts = {}, {}, {}, {}
         self._t0_hint, self._offset_ns, self._clamped = None, None, 0
-        self._writer = ChunkWriter(self.path, self.chunk_size, self.compression)
         meta = dict(meta or {})
         t0 = meta.get("t0")
         if isinstance(t0, (int, float)) and math.isfinite(t0):
             self._t0_hint = float(t0)
+        self._fh = self.path.open("wb")
+        self._writer = Writer(
+            self._fh, chunk_size=self.chunk_size, compression=_COMPRESSION[self.compression]
+        )
+        self._writer.start(profile="", library=_LIBRARY)
         self._writer.add_metadata("recording", _str_dict(meta))
 
     def inputs(self, kind: str, t: np.ndarray, xyz: np.ndarray) -> None:
         if kind not in INPUT_TOPICS:
             raise ValueError(f"kind: expected one of {tuple(INPUT_TOPICS)}, got {kind!r}")
-        if self._forward("inputs", kind, np.asarray(t, dtype=float), np.asarray(xyz, dtype=float)):
-            return
         self._vector3(INPUT_TOPICS[kind], t, xyz, {"unit": INPUT_UNITS[kind], "role": "input"})
 
     def mag_calibrated(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        if self._forward("mag_calibrated", np.asarray(t, dtype=float), np.asarray(xyz, dtype=float)):
-            return
         self._vector3("/mag/calibrated", t, xyz, {"unit": "uT", "role": "output"})
 
     def estimates(self, batch) -> None:
+        self._check_open()
         n = len(batch)
-        if n == 0 or self._forward("estimates", batch):
-            return
-        if n > _MAX_ROWS:  # bounded transient memory whatever the caller hands over
-            for i in range(0, n, _MAX_ROWS):
-                self.estimates(_slice_batch(batch, slice(i, i + _MAX_ROWS)))
+        if n == 0:
             return
         t = np.asarray(batch.t, dtype=float)
-        ns = self._log_times(t)
-        self._pose("/pdr/orientation", ns, np.asarray(batch.q_wd, dtype=float).reshape(n, 4))
-        self._heading(ns, t, batch)
-
-        cols = {k: np.asarray(v, dtype=float) for k, v in batch.diag.items() if k in DIAG_KEYS}
-        if cols:
-            if "field_ref_uT" in cols and "strength_tol_uT" in cols:
-                cols["strength_lower_uT"] = cols["field_ref_uT"] - cols["strength_tol_uT"]
-                cols["strength_upper_uT"] = cols["field_ref_uT"] + cols["strength_tol_uT"]
-            if "dip_ref_deg" in cols and "dip_tol_deg" in cols:
-                cols["dip_lower_deg"] = cols["dip_ref_deg"] - cols["dip_tol_deg"]
-                cols["dip_upper_deg"] = cols["dip_ref_deg"] + cols["dip_tol_deg"]
-            rec = new_records(_DIAG, self._channel("/pdr/diag", "diag"), ns)
-            rec["t"] = t
-            for key, name in S.DIAG_FIELDS.items():
-                rec[name] = cols[key] if key in cols else np.nan
-            self._add("/pdr/diag", ns, rec)
+        q = np.asarray(batch.q_wd, dtype=float).reshape(n, 4)
+        columns = (
+            np.asarray(batch.heading_deg, dtype=float),
+            np.asarray(batch.heading_std_deg, dtype=float),
+            np.asarray(batch.mag_used, dtype=bool),
+            np.asarray(batch.interference, dtype=bool),
+            np.asarray(batch.cal_state).astype(str).ravel(),
+        )
+        diag = {k: np.asarray(v, dtype=float) for k, v in batch.diag.items() if k in DIAG_KEYS}
+        for rows, ns in self._kept("/pdr/orientation", t):
+            t_rows = t[rows]
+            self._pose("/pdr/orientation", ns, q[rows])
+            heading = (
+                {
+                    "t": a,
+                    "heading_deg": h,
+                    "heading_std_deg": s,
+                    "mag_used": m,
+                    "interference": i,
+                    "cal_state": c,
+                }
+                for a, h, s, m, i, c in zip(
+                    t_rows.tolist(), *(col[rows].tolist() for col in columns), strict=True
+                )
+            )
+            self._write("/pdr/heading", "heading", ns, heading)
+            if diag:
+                self._write(
+                    "/pdr/diag", "diag", ns, _diag_messages(t_rows, {k: v[rows] for k, v in diag.items()})
+                )
 
     def reference(self, name: str, t: np.ndarray, q_wd: np.ndarray) -> None:
-        from pdr_mag.conventions import heading_deg_from_quat
-
+        self._check_open()
         t = np.asarray(t, dtype=float)
-        n = len(t)
-        if n == 0 or self._forward("reference", name, t, np.asarray(q_wd, dtype=float)):
-            return
-        q = np.asarray(q_wd, dtype=float).reshape(n, 4)
-        if n > _MAX_ROWS:
-            for i in range(0, n, _MAX_ROWS):
-                self.reference(name, t[i : i + _MAX_ROWS], q[i : i + _MAX_ROWS])
-            return
-        ns = self._log_times(t)
-        self._pose(f"/reference/{name}/orientation", ns, q)
-        topic = f"/reference/{name}/heading"
-        rec = new_records(_HEADING_REF, self._channel(topic, "heading_ref"), ns)
-        rec["t"] = t
-        rec["heading_deg"] = heading_deg_from_quat(q)
-        self._add(topic, ns, rec)
+        q = np.asarray(q_wd, dtype=float).reshape(len(t), 4)
+        for rows, ns in self._kept(f"/reference/{name}/orientation", t):
+            self._pose(f"/reference/{name}/orientation", ns, q[rows])
+            heading = heading_deg_from_quat(q[rows]).tolist()
+            msgs = ({"t": a, "heading_deg": h} for a, h in zip(t[rows].tolist(), heading, strict=True))
+            self._write(f"/reference/{name}/heading", "heading_ref", ns, msgs)
 
     def event(self, ev) -> None:
-        if self._forward("event", ev):
-            return
+        self._check_open()
         d = ev.to_dict()
-        ns = int(self._log_times(np.array([float(ev.t)]))[0])
+        ns = self._log_times(np.array([float(ev.t)]))
         details = {k: v for k, v in d.items() if k not in ("t", "kind")}
-        text = ev.kind + (" " + json.dumps(jsonable(details), sort_keys=True) if details else "")
+        sec, nsec = divmod(int(ns[0]), 1_000_000_000)
         msg = {
-            "timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000},
+            "timestamp": {"sec": sec, "nsec": nsec},
             "level": _LOG_WARNING if ev.kind in WARNING_EVENTS else _LOG_INFO,
-            "message": text,
+            "message": ev.kind + (" " + json.dumps(jsonable(details), sort_keys=True) if details else ""),
             "name": "pdr_mag",
             "file": "",
             "line": 0,
         }
-        self._add_one("/pdr/events", "log", ns, json.dumps(msg).encode())
+        self._write("/pdr/events", "log", ns, [msg])
 
     def calibration(self, t: float, cal) -> None:
-        if self._forward("calibration", float(t), cal):
-            return
+        self._check_open()
         d_cal = jsonable(cal.to_dict())
-        ns = int(self._log_times(np.array([float(t)]))[0])
-        self._add_one("/pdr/calibration", "calibration", ns, json.dumps({"t": float(t), **d_cal}).encode())
+        ns = self._log_times(np.array([float(t)]))
+        self._write("/pdr/calibration", "calibration", ns, [{"t": float(t), **d_cal}])
         self._writer.add_metadata("calibration", {"t": repr(float(t)), "json": json.dumps(d_cal)})
 
     def close(self) -> None:
-        if self._proc is not None:
-            proc, self._proc = self._proc, None
-            result = proc.finish()
-            self.counts = result.get("counts", {})
-            self._offset_ns = result.get("time_offset_ns")
-            self._clamped = result.get("clamped", 0)
-            if result.get("error"):
-                raise RuntimeError(f"McapSink writer process for {self.path}: {result['error']}")
-            return
         if self._writer is None:
             return
-        self._writer.add_metadata(
-            "pdr_mag",
-            {
-                "format_version": str(FORMAT_VERSION),
-                "time_offset_ns": str(self._offset_ns or 0),
-                "clamped_log_times": str(self._clamped),
-                "message_counts": json.dumps(self.counts, sort_keys=True),
-            },
-        )
-        self._writer.finish()
-        self._writer = None
+        writer, fh = self._writer, self._fh
+        self._writer = self._fh = None
+        try:
+            writer.add_metadata(
+                "pdr_mag",
+                {
+                    "format_version": str(FORMAT_VERSION),
+                    "time_offset_ns": str(self.time_offset_ns),
+                    "clamped_log_times": str(self._clamped),
+                    "message_counts": json.dumps(self.counts, sort_keys=True),
+                    "rate_limit_hz": json.dumps(self.rate_hz),
+                },
+            )
+            writer.finish()
+        finally:
+            fh.close()
 
     def __enter__(self):
         return self
@@ -280,107 +276,130 @@ class McapSink:
     def __exit__(self, *exc):
         self.close()
 
-    # ------------------------------------------------------------------ helpers
-    def _forward(self, name: str, *args) -> bool:
-        """In background mode, send the call to the writer process (True); else check we are open."""
-        if self._proc is not None:
-            self._proc.send(name, args)
-            return True
-        if self._writer is None:
-            raise RuntimeError("McapSink: open() must be called before writing (and not after close())")
-        return False
-
     @property
     def time_offset_ns(self) -> int:
         return self._offset_ns or 0
 
-    def _log_times(self, t: np.ndarray) -> np.ndarray:
-        """Integer-ns log times ``round(t·1e9) + offset`` (see the module docstring on negative t)."""
+    # ------------------------------------------------------------------ times and rows
+    def _check_open(self) -> None:
+        if self._writer is None:
+            raise RuntimeError("McapSink: open() must be called before writing (and not after close())")
+
+    def _fix_offset(self, t: np.ndarray) -> None:
+        """Choose ``time_offset_ns`` at the first times seen (see the module docstring on negative t)."""
         if self._offset_ns is None:
             first = float(np.min(t)) if self._t0_hint is None else min(self._t0_hint, float(np.min(t)))
             self._offset_ns = 0 if first >= 0 else int(math.ceil(-first)) * 1_000_000_000
-        ns = np.round(np.asarray(t, dtype=float) * 1e9).astype(np.int64) + self._offset_ns
+
+    def _log_times(self, t: np.ndarray) -> np.ndarray:
+        """Integer-ns log times ``round(t·1e9) + offset``; still negative → 0, counted."""
+        self._fix_offset(t)
+        ns = np.round(t * 1e9).astype(np.int64) + self._offset_ns
         neg = ns < 0
         if neg.any():
             self._clamped += int(neg.sum())
             ns[neg] = 0
         return ns
 
-    def _vector3(self, topic: str, t, xyz, channel_meta: dict) -> None:
-        t = np.asarray(t, dtype=float)
+    def _kept(self, key: str, t: np.ndarray) -> Iterator[tuple[slice | np.ndarray, np.ndarray]]:
+        """``(rows, log times)`` of the rows of ``t`` to write, at most :data:`MAX_ROWS` at a time.
+
+        ``key`` names the rate limiter's state: the first row of each ``1/rate_hz`` interval of ``t`` is kept
+        unless the previous row (of this call, or the last of the previous call with this key) is in it.
+        """
         n = len(t)
         if n == 0:
             return
-        xyz = np.asarray(xyz, dtype=float).reshape(n, 3)
-        if n > _MAX_ROWS:
-            for i in range(0, n, _MAX_ROWS):
-                self._vector3(topic, t[i : i + _MAX_ROWS], xyz[i : i + _MAX_ROWS], channel_meta)
+        self._fix_offset(t)  # from every row, kept or not
+        if self.rate_hz is None:
+            for i in range(0, n, MAX_ROWS):
+                rows = slice(i, i + MAX_ROWS)
+                yield rows, self._log_times(t[rows])
             return
-        ns = self._log_times(t)
-        rec = new_records(_VECTOR3, self._channel(topic, "vector3", channel_meta), ns)
-        rec["t"] = t
-        rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        self._add(topic, ns, rec)
+        bins = np.floor(t * self.rate_hz).astype(np.int64)
+        prev = np.empty_like(bins)
+        prev[0] = self._last_bin.get(key, bins[0] - 1)
+        prev[1:] = bins[:-1]
+        self._last_bin[key] = int(bins[-1])
+        kept = np.flatnonzero(bins != prev)
+        for i in range(0, len(kept), MAX_ROWS):
+            rows = kept[i : i + MAX_ROWS]
+            yield rows, self._log_times(t[rows])
+
+    # ------------------------------------------------------------------ messages
+    def _vector3(self, topic: str, t, xyz, channel_meta: dict) -> None:
+        self._check_open()
+        t = np.asarray(t, dtype=float)
+        xyz = np.asarray(xyz, dtype=float).reshape(len(t), 3)
+        for rows, ns in self._kept(topic, t):
+            x, y, z = xyz[rows].T.tolist()
+            msgs = (
+                {"t": a, "x": b, "y": c, "z": d} for a, b, c, d in zip(t[rows].tolist(), x, y, z, strict=True)
+            )
+            self._write(topic, "vector3", ns, msgs, channel_meta)
 
     def _pose(self, topic: str, ns: np.ndarray, q: np.ndarray) -> None:
-        rec = new_records(_POSE, self._channel(topic, "pose", {"frame_id": S.POSE_FRAME.decode()}), ns)
-        rec["sec"] = ns // 1_000_000_000
-        rec["nanosec"] = ns % 1_000_000_000
-        rec["frame_len"] = len(S.POSE_FRAME) + 1
-        rec["frame_id"] = S.POSE_FRAME
-        rec["qw"], rec["qx"], rec["qy"], rec["qz"] = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        self._add(topic, ns, rec)
+        sec, nsec = np.divmod(ns, 1_000_000_000)
+        w, x, y, z = q.T.tolist()
+        msgs = (
+            {
+                "timestamp": {"sec": s, "nanosec": n},
+                "frame_id": POSE_FRAME,
+                "pose": {"position": _ORIGIN, "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}},
+            }
+            for s, n, qw, qx, qy, qz in zip(sec.tolist(), nsec.tolist(), w, x, y, z, strict=True)
+        )
+        self._write(topic, "pose", ns, msgs, {"frame_id": POSE_FRAME})
 
-    def _heading(self, ns: np.ndarray, t: np.ndarray, batch) -> None:
-        """``/pdr/heading``: CDR with a variable-length string (``cal_state``), rows trimmed to their size."""
-        states = np.asarray(batch.cal_state).astype(str).ravel()
-        uniq, inv = np.unique(states, return_inverse=True)
-        enc = [u.encode() for u in uniq]
-        width = max(len(e) for e in enc) + 1
-        dtype = record_dtype(S.heading_dtype(-(-width // 8) * 8, HEADER_SIZE))
-        start = dtype.fields["cal_state"][1]  # offset of the string's bytes in the record
-        sizes = start + np.array([len(e) + 1 for e in enc], dtype=np.int64)[inv.ravel()]
-        rec = new_records(dtype, self._channel("/pdr/heading", "heading"), ns, sizes)
-        rec["t"] = t
-        rec["heading_deg"] = batch.heading_deg
-        rec["heading_std_deg"] = batch.heading_std_deg
-        rec["mag_used"] = batch.mag_used
-        rec["interference"] = batch.interference
-        rec["cal_len"] = sizes - start
-        rec["cal_state"] = np.array(enc, dtype=f"S{width}")[inv.ravel()]
-        self._add("/pdr/heading", ns, rec, sizes)
+    def _write(
+        self,
+        topic: str,
+        schema: str,
+        ns: np.ndarray,
+        messages: Iterable[dict],
+        channel_meta: dict | None = None,
+    ) -> None:
+        """Encode ``messages`` (one per log time in ``ns``) and add them to ``topic``'s channel."""
+        cid = self._channel(topic, schema, channel_meta)
+        encode, add = self._encoders[schema], self._writer.add_message
+        for log_time, msg in zip(ns.tolist(), messages, strict=True):
+            add(cid, log_time, encode(msg), log_time)
+        self.counts[topic] = self.counts.get(topic, 0) + len(ns)
 
-    def _channel(self, topic: str, schema: str, channel_meta: dict | None = None) -> int:
+    def _channel(self, topic: str, schema: str, channel_meta: dict | None) -> int:
         cid = self._channels.get(topic)
         if cid is None:
-            spec = S.SCHEMAS[schema]
-            sid = self._schemas.get(schema)
-            if sid is None:
-                sid = self._writer.register_schema(spec.name, spec.encoding, spec.text.encode())
-                self._schemas[schema] = sid
+            spec = SCHEMAS[schema]
+            if schema not in self._schemas:
+                self._schemas[schema] = self._writer.register_schema(
+                    spec.name, spec.encoding, spec.text.encode()
+                )
+                self._encoders[schema] = _encoder(spec)
             md = {**(channel_meta or {}), "time_offset_ns": str(self.time_offset_ns)}
-            cid = self._writer.register_channel(topic, spec.message_encoding, sid, md)
+            cid = self._writer.register_channel(topic, spec.message_encoding, self._schemas[schema], md)
             self._channels[topic] = cid
         return cid
 
-    def _add(self, topic: str, ns: np.ndarray, rec: np.ndarray, sizes=None) -> None:
-        blob, sizes = record_bytes(rec, sizes)
-        self._writer.add_records(ns, blob, sizes)
-        self.counts[topic] = self.counts.get(topic, 0) + len(ns)
-
-    def _add_one(self, topic: str, schema: str, ns: int, data: bytes) -> None:
-        cid = self._channel(topic, schema)
-        blob, sizes = one_record(cid, ns, data)
-        self._writer.add_records(np.array([ns], dtype=np.int64), blob, sizes)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-
 
 # ---------------------------------------------------------------------- helpers
-def _slice_batch(batch, sl: slice):
-    from dataclasses import fields, replace
+def _encoder(spec: Schema) -> Callable[[dict], bytes]:
+    """Message dict → bytes: CDR by mcap-ros2-support from the ``ros2msg`` definition, else JSON."""
+    if spec.message_encoding == "cdr":
+        return serialize_dynamic(spec.name, spec.text)[spec.name]
+    return lambda msg: json.dumps(msg).encode()
 
-    cols = {f.name: getattr(batch, f.name)[sl] for f in fields(batch) if f.name != "diag"}
-    return replace(batch, **cols, diag={k: v[sl] for k, v in batch.diag.items()})
+
+def _diag_messages(t: np.ndarray, cols: dict[str, np.ndarray]) -> Iterator[dict]:
+    """``pdr_mag/msg/Diagnostics`` dicts: ``t``, the diagnostic columns and the detector bands."""
+    if "field_ref_uT" in cols and "strength_tol_uT" in cols:
+        cols["strength_lower_uT"] = cols["field_ref_uT"] - cols["strength_tol_uT"]
+        cols["strength_upper_uT"] = cols["field_ref_uT"] + cols["strength_tol_uT"]
+    if "dip_ref_deg" in cols and "dip_tol_deg" in cols:
+        cols["dip_lower_deg"] = cols["dip_ref_deg"] - cols["dip_tol_deg"]
+        cols["dip_upper_deg"] = cols["dip_ref_deg"] + cols["dip_tol_deg"]
+    names = ["t", *DIAG_FIELDS.values()]
+    table = np.column_stack([t, *(cols.get(key, np.full(len(t), np.nan)) for key in DIAG_FIELDS)])
+    return (dict(zip(names, row, strict=True)) for row in table.tolist())
 
 
 def _str_dict(d: dict) -> dict[str, str]:

@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from replay.commands._output import writable_file
 from replay.errors import InputError
 
 _METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
@@ -34,6 +35,8 @@ def command(rec: Path, method: str, json_path: Path | None) -> int:
     from replay.formats import read_recording
 
     recording = read_recording(rec)
+    if json_path is not None:
+        writable_file(json_path)
     mag_file = rec / "mag.csv" if rec.is_dir() else rec
     mag = np.asarray(recording.mag.xyz, dtype=float)
     if mag.ndim != 2 or mag.shape[1] != 3 or len(mag) < 4:
@@ -85,6 +88,10 @@ def summary(cal, rec, field) -> str:
     lines.append(fl)
     ev = np.linalg.eigvalsh(cal.soft_iron_array)
     lines.append("  soft iron  eigenvalues " + " ".join(f"{v:.3f}" for v in ev))
+    fig = ex.get("heading")
+    if isinstance(fig, dict) and fig.get("std_deg") is not None:
+        lines.append(f"  heading    ±{fig['std_deg']:.2f}° (1-σ, worst heading and pose) left by the "
+                     f"calibration")
     if "alignment" in ex:
         al = ex["alignment"]
         if al is None:

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from replay.commands._output import writable_dir, writable_file
 from replay.errors import InputError
 
 
@@ -69,6 +70,10 @@ def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_trut
                 raise InputError(rec, f"no {name} stream: diagnose needs gyro and accel for the orientation")
     if len(recording.mag) < 50:
         raise InputError(rec, f"need at least 50 magnetometer samples, got {len(recording.mag)}")
+    if json_path is not None and str(json_path) != "-":
+        writable_file(json_path)
+    if report_dir is not None:
+        writable_dir(report_dir)
     g, a = recording.gyro, recording.accel
     try:
         diag = diagnose(
@@ -81,6 +86,7 @@ def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_trut
         raise InputError(rec, f"diagnose failed: {exc}") from None
     out = diag.to_dict()
     out["source"] = str(rec)
+    out["dropped_samples"] = dict(recording.dropped)
     if json_path is not None:
         text = json.dumps(out, indent=1, ensure_ascii=False)
         if str(json_path) == "-":

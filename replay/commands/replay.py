@@ -1,4 +1,5 @@
-"""``pdr-mag replay REC [--calibration FILE] [--out-csv FILE] [--mcap FILE] [--rrd FILE] [--json FILE]``."""
+"""``pdr-mag replay REC [--calibration FILE] [--out-csv FILE] [--mcap FILE [--mcap-rate HZ]] [--rrd FILE]
+[--json FILE]``."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from replay.commands._output import writable_file
 from replay.errors import InputError
 
 
@@ -18,6 +20,13 @@ from replay.errors import InputError
 @click.option(
     "--mcap", type=click.Path(path_type=Path), help="MCAP file with inputs, outputs and references."
 )
+@click.option(
+    "--mcap-rate",
+    type=click.FloatRange(min=0, min_open=True),
+    metavar="HZ",
+    help="At most HZ messages a second on each high-rate MCAP topic (default: every message). "
+    "Writes faster; the file is then for viewing, not for replaying.",
+)
 @click.option("--rrd", type=click.Path(path_type=Path), help="rerun recording (.rrd).")
 @click.option("--viewer", is_flag=True, help="Also stream to a live rerun viewer (started for you).")
 @click.option("--json", "json_path", type=click.Path(path_type=Path), help="Run summary as JSON.")
@@ -25,7 +34,7 @@ from replay.errors import InputError
     "--progress/--no-progress", default=None, help="Progress bar (default: long recordings on a tty)."
 )
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
-def command(rec, calibration, out_csv, mcap, rrd, viewer, json_path, progress, quiet):
+def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
     from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
 
@@ -34,22 +43,24 @@ def command(rec, calibration, out_csv, mcap, rrd, viewer, json_path, progress, q
         why = "; ".join(cal.reasons) or "no reason given"
         msg = f"pdr-mag: warning: {calibration}: this calibration was not accepted ({why}); using it"
         click.echo(msg, err=True)
+    if mcap_rate is not None and mcap is None:
+        raise click.UsageError("--mcap-rate needs --mcap FILE")
+    for path in (out_csv, json_path, mcap, rrd):
+        if path is not None:
+            writable_file(path)
     sinks = []
     if mcap is not None:
-        sinks.append(make_sink("mcap", mcap))
+        sinks.append(make_sink("mcap", mcap, rate_hz=mcap_rate))
     if rrd is not None or viewer:
         sinks.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
         sinks.append(CsvSink(out_csv))
-    for p in (out_csv, json_path, mcap, rrd):
-        if p is not None and p.parent and not p.parent.exists():
-            try:
-                p.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise InputError(p, f"cannot create the folder ({exc.strerror})") from None
     summary = replay(rec, calibration=cal, sinks=sinks, progress=progress)
     if json_path is not None:
-        json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
+        try:
+            json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise InputError(json_path, f"cannot write ({exc.strerror})") from None
     if not quiet:
         click.echo(summary_table(summary))
     return 0

@@ -3,7 +3,8 @@
     pdr-mag simulate --scenario NAME --seed N --out DIR [--effect NAME=VALUE ...] [--duration S]
     pdr-mag simulate --list
 
-Options beyond the contract: ``--imu-rate``/``--mag-rate`` (Hz), the site (``--latitude``, ``--longitude``,
+Options beyond the contract: ``--phone NAME`` (a named phone of ``--list``: rates, accelerometer range,
+its own hard iron), ``--imu-rate``/``--mag-rate`` (Hz), the site (``--latitude``, ``--longitude``,
 ``--altitude``, ``--date``) or a plain ``--field E,N,U`` (µT) instead of the WMM.
 
 Effect values: a number, comma-separated numbers, or ``off`` (see ``--list``).  The same arguments give
@@ -20,7 +21,9 @@ import numpy as np
 
 from pdr_mag.field import EarthField, decimal_year
 from pdr_mag.sensor_model import EFFECTS, PhoneSpec, parse_effect_value
-from pdr_mag.sim import DEFAULT_EFFECTS, DEFAULT_SITE, SCENARIOS, simulate
+from pdr_mag.sim import DEFAULT_EFFECTS, DEFAULT_SITE, PHONES, SCENARIOS, simulate
+from replay.commands._output import writable_dir
+from replay.errors import InputError
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
 
@@ -51,6 +54,9 @@ def _listing() -> str:
         f"resolution {ph.accel_step:g} m/s² {ph.gyro_step:g} rad/s {ph.mag_step:g} µT, "
         f"range ±{ph.accel_range:g} m/s² ±{ph.gyro_range:g} rad/s ±{ph.mag_range:g} µT"
     )
+    lines.append("phones (--phone NAME; its effects are defaults under --effect):")
+    for p in PHONES.values():
+        lines.append(f"  {p.name:<9} {p.description}")
     lines.append(
         f"site: lat {DEFAULT_SITE['latitude_deg']}, lon {DEFAULT_SITE['longitude_deg']}, "
         f"{DEFAULT_SITE['date']} (WMM field; truth is device→ENU, true north)"
@@ -96,6 +102,13 @@ def _parse_effects(items: tuple[str, ...]) -> dict:
     default=None,
     help="magnetometer rate, Hz (default 50)",
 )
+@click.option(
+    "--phone",
+    "phone_name",
+    type=click.Choice(list(PHONES)),
+    default=None,
+    help="a named phone (see --list): rates, accelerometer range, its own hard iron",
+)
 @click.option("--latitude", type=click.FloatRange(-90.0, 90.0), default=None, help="site latitude, deg")
 @click.option("--longitude", type=click.FloatRange(-180.0, 180.0), default=None, help="site longitude, deg")
 @click.option("--altitude", type=float, default=None, help="site altitude, m")
@@ -116,6 +129,7 @@ def command(
     duration,
     imu_rate,
     mag_rate,
+    phone_name,
     latitude,
     longitude,
     altitude,
@@ -153,11 +167,13 @@ def command(
             raise click.BadParameter(
                 f"expected 3 comma-separated numbers in µT ({exc})", param_hint="--field"
             ) from None
-    phone = PhoneSpec()
+    spec = PhoneSpec() if phone_name is None else PHONES[phone_name].spec
     if imu_rate is not None:
-        phone = replace(phone, accel_rate_hz=imu_rate, gyro_rate_hz=imu_rate)
+        spec = replace(spec, accel_rate_hz=imu_rate, gyro_rate_hz=imu_rate)
     if mag_rate is not None:
-        phone = replace(phone, mag_rate_hz=mag_rate)
+        spec = replace(spec, mag_rate_hz=mag_rate)
+    phone = spec if phone_name is None else replace(PHONES[phone_name], spec=spec)
+    writable_dir(out)
     res = simulate(
         scenario, seed=seed, duration_s=duration, effects=overrides, phone=phone, site=site, field_w=field_w
     )
@@ -170,11 +186,14 @@ def command(
         source="pdr-mag simulate",
         format=pdrcsv.NAME,
     )
-    pdrcsv.write(rec, out, value_fmt=VALUE_FMT)
-    tp, pp = res.truth_position
-    with (out / "truth_position.csv").open("w", encoding="utf-8", newline="\n") as fh:
-        fh.write("t,x,y,z\n")
-        np.savetxt(fh, np.column_stack([tp, pp]), fmt=["%.6f", "%.3f", "%.3f", "%.3f"], delimiter=",")
+    try:
+        pdrcsv.write(rec, out, value_fmt=VALUE_FMT)
+        tp, pp = res.truth_position
+        with (out / "truth_position.csv").open("w", encoding="utf-8", newline="\n") as fh:
+            fh.write("t,x,y,z\n")
+            np.savetxt(fh, np.column_stack([tp, pp]), fmt=["%.6f", "%.3f", "%.3f", "%.3f"], delimiter=",")
+    except OSError as exc:
+        raise InputError(exc.filename or out, f"cannot write ({exc.strerror})") from None
     click.echo(
         f"{scenario} seed {seed}: {res.duration_s:g} s, mag {len(res.mag[0])}, accel {len(res.accel[0])}, "
         f"gyro {len(res.gyro[0])} samples; effects {', '.join(res.model.active) or 'none'} → {out}"

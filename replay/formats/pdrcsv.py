@@ -32,7 +32,11 @@ def _header(fh, path: Path, header: list[str]) -> None:
     first = fh.readline()
     got = [c.strip() for c in first.strip().split(",")]
     if got[: len(header)] != header:
-        raise InputError(path, f"bad header {first.strip()!r}, expected {','.join(header)!r}", line=1)
+        shown = first.strip()
+        if "\ufffd" in shown or any(ord(c) < 32 and c != "\t" for c in shown):
+            raise InputError(path, f"bad header: not text (a binary file?), expected {','.join(header)!r}", 1)
+        shown = shown if len(shown) <= 60 else shown[:60] + "…"
+        raise InputError(path, f"bad header {shown!r}, expected {','.join(header)!r}", line=1)
 
 
 def _read_builder(path: Path, header: list[str], key: str, dropped: Counter) -> StreamBuilder:

@@ -16,7 +16,9 @@ Files written before the CDR layout (format version 1, still in users' hands) ar
 as JSON (``message_encoding="json"``): ``pdr_mag.Vector3Stamped`` ``{"t", "x", "y", "z"}`` (17 significant
 digits), ``foxglove.PoseInFrame`` and ``pdr_mag.HeadingReference`` ``{"t", "heading_deg"}``; there a message
 without ``t`` falls back to its ``log_time`` minus the channel's ``time_offset_ns``, and ``null`` is NaN.
-Each topic is decoded by its own channel's encoding, so either layout (or a mix) reads.
+Each topic is decoded by its own channel's encoding, so either layout (or a mix) reads.  A file written
+with a rate limit (``rate_limit_hz`` in the ``pdr_mag`` metadata record) reads the same way, with its
+decimated streams.
 
 ``t`` is the sample time as float64, so the streams read back bit-identical to what was written.  NaN
 values are dropped as ``<stream>:nan``.  The metadata record ``recording`` becomes ``Recording.meta``

@@ -1,0 +1,542 @@
+"""Drift episodes: the stretches of a run where the heading went wrong, and what noticed it.
+
+Numbers in, numbers out: the rows of :class:`pdr_mag.estimates.EstimateBatch` (in time order, in any
+chunks), the pipeline's events and, when the recording has one, the true orientation → a list of
+:class:`Episode`.  :class:`EpisodeFinder` streams: it keeps only the open stretches and the detector
+transitions of the last few seconds, so its memory does not grow with the recording.
+
+Kinds (each with its threshold in :class:`EpisodeSettings`)
+---------------------------------------------------------
+``error``
+    ``|e|`` with ``e = wrap(ψ − ψ_true)`` (heading minus the true heading interpolated at the row, wrapped to
+    [−180, 180) deg) exceeded ``error_deg``.  The episode is the stretch around it in which ``|e|`` stays
+    above ``error_onset_deg`` — from where the error began to grow to where it came back.  Needs the truth.
+``sigma``
+    the filter's own 1-σ ``heading_std_deg`` exceeded ``std_deg`` (the stretch where it stays above).
+``no_reference``
+    no magnetometer correction (``mag_used``) for longer than ``no_reference_s``: the episode runs from the
+    last correction (or the first row) to the next one (or the last row); the heading is the gyroscope's.
+
+``error`` and ``sigma`` count only rows from the first magnetometer correction on (before it the heading is
+arbitrary and σ is 180° by construction — that start is a ``no_reference`` stretch when it is long).
+Stretches of one kind less than ``merge_s`` apart are one episode; ``error`` and ``sigma`` stretches shorter
+than ``min_duration_s`` are none.
+
+What noticed it
+---------------
+For the window ``[t_lo, t_end]`` — ``t_lo`` is ``t_start − lookback_s`` or the interference flag's last fall
+before ``t_start``, whichever is later (a disturbance flagged and over is not this one's) — an episode
+lists the first time each detector fired:
+``interference`` (the flag rose), ``strength`` / ``dip`` (the field strength / dip angle left the
+detector's band ``ref ± tol``, the ``field_ref_uT ± strength_tol_uT`` and ``dip_ref_deg ± dip_tol_deg``
+columns) and the events ``recalibration_requested`` and ``calibration_rejected``.
+
+Detection latency: ``t_flag`` is the first rise of the interference flag in the window;
+``t_field_out`` is when the field left its inner band — its deviation ``d = max(|F − F_ref| / tol_F,
+|I − I_ref| / tol_I)`` reached ``field_band_frac`` (half way to the detector's threshold by default) for the
+first time after ``t_lo`` or the flag's previous fall, whichever is later (that time itself when the field
+was already out then); ``latency_s = t_flag − t_field_out``.  A disturbance the filter follows
+before the flag rises shows as a positive latency with a large ``error_at_flag_deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import NamedTuple
+
+import numpy as np
+
+from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.estimates import Event
+
+#: Episode kinds, with the unit of their threshold and peak.
+KINDS = {"error": "deg", "sigma": "deg", "no_reference": "s"}
+
+#: Detectors an episode can name (see the module docstring).
+DETECTORS = ("strength", "dip", "interference", "recalibration_requested", "calibration_rejected")
+
+
+@dataclass(frozen=True)
+class EpisodeSettings:
+    """Thresholds of the episode finder.
+
+    Attributes
+    ----------
+    error_deg : float
+        ``|heading − truth|`` above which an ``error`` episode is found, deg.
+    error_onset_deg : float
+        An ``error`` episode extends on both sides while ``|heading − truth|`` stays above this, deg.
+    std_deg : float
+        ``heading_std_deg`` above which a ``sigma`` episode is found, deg.
+    no_reference_s : float
+        Time without a magnetometer correction above which a ``no_reference`` episode is found, s.
+    merge_s : float
+        Stretches of one kind closer than this are one episode, s.
+    min_duration_s : float
+        ``error`` and ``sigma`` stretches shorter than this are not episodes (the filter's start-up
+        transient, a single outlier), s.
+    field_band_frac : float
+        The field counts as out of its inner band when its strength or dip deviation reaches this fraction
+        of the detector's tolerance (for the detection latency).
+    lookback_s : float
+        Detectors that fired up to this long before an episode's start are its detectors, s.
+    max_truth_gap_s : float
+        Rows farther than this from a valid truth sample have no error, s.
+    """
+
+    error_deg: float = 10.0
+    error_onset_deg: float = 5.0
+    std_deg: float = 10.0
+    no_reference_s: float = 10.0
+    merge_s: float = 2.0
+    min_duration_s: float = 1.0
+    field_band_frac: float = 0.5
+    lookback_s: float = 5.0
+    max_truth_gap_s: float = 0.5
+
+    def __post_init__(self):
+        for name, value in asdict(self).items():
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}: expected a finite value ≥ 0, got {value!r}")
+        if self.error_onset_deg > self.error_deg:
+            raise ValueError(
+                f"error_onset_deg: expected ≤ error_deg ({self.error_deg}), got {self.error_onset_deg}"
+            )
+
+    def threshold(self, kind: str) -> float:
+        """The threshold of ``kind`` in its unit (:data:`KINDS`)."""
+        return {"error": self.error_deg, "sigma": self.std_deg, "no_reference": self.no_reference_s}[kind]
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One drift episode (times on the recording's clock, s).
+
+    Attributes
+    ----------
+    kind : str
+        ``"error"``, ``"sigma"`` or ``"no_reference"``.
+    t_start, t_end : float
+        The stretch.
+    threshold : float
+        The kind's threshold (deg, deg, s).
+    peak : float
+        The kind's quantity at its worst: max ``|error|`` (deg), max σ (deg), the gap (s).
+    t_peak : float
+        When it peaked (for ``no_reference`` the gap's end).
+    peak_error_deg : float or None
+        The signed error of largest magnitude inside the stretch (None without truth).
+    peak_std_deg : float
+        The largest ``heading_std_deg`` inside the stretch (NaN when no row of it had one).
+    detectors : tuple of (str, float)
+        ``(detector, first time)`` in the window ``[t_lo, t_end]``, in time order.
+    t_flag, t_field_out, latency_s : float or None
+        The detection latency (module docstring).
+    error_at_flag_deg : float or None
+        The error at ``t_flag`` (None without truth or flag).
+    """
+
+    kind: str
+    t_start: float
+    t_end: float
+    threshold: float
+    peak: float
+    t_peak: float
+    peak_error_deg: float | None = None
+    peak_std_deg: float = float("nan")
+    detectors: tuple = ()
+    t_flag: float | None = None
+    t_field_out: float | None = None
+    latency_s: float | None = None
+    error_at_flag_deg: float | None = None
+
+    @property
+    def severity(self) -> float:
+        """How far past its threshold: ``peak / threshold`` (the console ranks episodes by it)."""
+        return self.peak / self.threshold if self.threshold > 0 else float("inf")
+
+    def describe(self) -> str:
+        """One line for people: the stretch, how bad, what noticed it and how late."""
+        err = "" if self.peak_error_deg is None else f"error {self.peak_error_deg:+.1f}°"
+        std = "" if not np.isfinite(self.peak_std_deg) else f"σ {self.peak_std_deg:.1f}°"
+        if self.kind == "error":
+            what = f"peak {err}" + (f" ({std})" if std else "")
+        elif self.kind == "sigma":
+            what = f"peak {std}" + (f" ({err})" if err else "")
+        else:
+            also = ", ".join(x for x in (err, std) if x)
+            what = f"{self.peak:.1f} s on the gyroscope alone" + (f" ({also})" if also else "")
+        text = f"{self.kind} {self.t_start:.1f}–{self.t_end:.1f} s: {what}; "
+        if self.t_flag is None:
+            text += "no interference flag"
+        else:
+            text += f"flag at {self.t_flag:.1f} s"
+            if self.latency_s is not None:
+                text += f", {self.latency_s:.1f} s after the field left its band"
+            if self.error_at_flag_deg is not None:
+                text += f", error then {self.error_at_flag_deg:+.1f}°"
+        others = [n for n, _ in self.detectors if n not in ("interference", "strength", "dip")]
+        return text + ("; " + ", ".join(others) if others else "")
+
+    def to_event(self) -> Event:
+        """The ``drift_episode`` :class:`pdr_mag.estimates.Event` at ``t_start`` that sinks draw (its
+        ``data``: ``episode`` = the kind, the other fields of :meth:`to_dict`)."""
+        d = self.to_dict()
+        d.pop("t_start")
+        return Event(self.t_start, "drift_episode", {"episode": d.pop("kind"), **d})
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Episode:
+        """Back from :meth:`to_dict` (a ``replay --json`` entry; JSON null → NaN for ``peak_std_deg``)."""
+        kw = {f.name: d[f.name] for f in fields(cls) if f.name in d}
+        kw["detectors"] = tuple((x["detector"], x["t"]) for x in d.get("detectors", ()))
+        if kw.get("peak_std_deg") is None:
+            kw["peak_std_deg"] = float("nan")
+        return cls(**kw)
+
+    def to_dict(self) -> dict:
+        """The ``replay --json`` form (``duration_s`` and ``unit`` added, detectors as objects)."""
+        d = asdict(self)
+        d["duration_s"] = self.t_end - self.t_start
+        d["unit"] = KINDS[self.kind]
+        d["detectors"] = [{"detector": n, "t": t} for n, t in self.detectors]
+        return d
+
+
+@dataclass
+class _Run:
+    """An open stretch above the onset level, and its peaks so far."""
+
+    t_start: float
+    t_last: float
+    reached: bool = False
+    peak: float = -np.inf
+    t_peak: float = np.nan
+    err: float = np.nan
+    std: float = np.nan
+
+
+class _Change(NamedTuple):
+    """A transition of a binary signal: when, to which state, and the error then (deg, NaN if unknown)."""
+
+    t: float
+    up: bool
+    err: float
+
+
+class _Closed(NamedTuple):
+    """A closed stretch waiting to become an :class:`Episode`."""
+
+    kind: str
+    t_start: float
+    t_end: float
+    peak: float
+    t_peak: float
+    err: float
+    std: float
+
+
+@dataclass
+class _Signal:
+    """A binary signal's transitions (:class:`_Change`), pruned to the finder's horizon."""
+
+    state: bool = False
+    trans: list = field(default_factory=list)
+
+
+class EpisodeFinder:
+    """Find drift episodes in a run's rows, streaming.
+
+    Parameters
+    ----------
+    settings : EpisodeSettings, optional
+    truth : (t, q_wd) or None
+        True orientation (w-first quaternions, device → ENU), rows with NaN ignored.
+
+    ``update(batch, events)`` with every batch and event of the run, in time order, returns the episodes
+    closed so far; ``finish()`` the rest (sorted by start).
+    """
+
+    def __init__(self, settings: EpisodeSettings | None = None, truth=None):
+        self.settings = settings or EpisodeSettings()
+        self._truth = None
+        if truth is not None:
+            t_tr = np.asarray(truth[0], dtype=float)
+            q = np.asarray(truth[1], dtype=float).reshape(len(t_tr), 4)
+            ok = np.isfinite(t_tr) & np.all(np.isfinite(q), axis=1)
+            if ok.sum() >= 2:
+                t_tr, q = t_tr[ok], q[ok]
+                order = np.argsort(t_tr, kind="stable")
+                t_tr, q = t_tr[order], q[order]
+                self._truth = (t_tr, np.unwrap(heading_deg_from_quat(q), period=360.0))
+        self._runs: dict[str, _Run | None] = {"error": None, "sigma": None}
+        self._referenced = False  # a magnetometer correction has been seen
+        self._t_first = np.nan
+        self._t_now = np.nan
+        self._last_used = np.nan  # time of the last magnetometer correction (NaN: none yet)
+        self._gap_peak_err = np.nan
+        self._gap_peak_std = np.nan
+        self._signals = {name: _Signal() for name in (*DETECTORS, "field_out")}
+        self._pending: list[_Closed] = []
+        self._done: list[Episode] = []
+
+    @property
+    def has_truth(self) -> bool:
+        return self._truth is not None
+
+    # ------------------------------------------------------------------ input
+    def error_deg(self, t: np.ndarray, heading_deg: np.ndarray) -> np.ndarray:
+        """``wrap(heading − truth)`` at ``t``, deg; NaN without truth within ``max_truth_gap_s``."""
+        t = np.asarray(t, dtype=float)
+        if self._truth is None:
+            return np.full(len(t), np.nan)
+        tt, hh = self._truth
+        err = wrap_deg(np.asarray(heading_deg, dtype=float) - np.interp(t, tt, hh))
+        j = np.clip(np.searchsorted(tt, t), 1, len(tt) - 1)
+        near = np.minimum(np.abs(t - tt[j - 1]), np.abs(tt[j] - t))
+        err[(near > self.settings.max_truth_gap_s) | (t < tt[0]) | (t > tt[-1])] = np.nan
+        return err
+
+    def update(self, batch, events=()) -> list[Episode]:
+        """Take the next rows (an ``EstimateBatch``) and the events up to them; return the episodes closed."""
+        s = self.settings
+        n = len(batch)
+        for ev in events:
+            d = ev if isinstance(ev, dict) else ev.to_dict()
+            if d["kind"] in ("recalibration_requested", "calibration_rejected"):
+                self._signals[d["kind"]].trans.append(_Change(float(d["t"]), True, np.nan))
+        if n == 0:
+            return self._release()
+        t = np.asarray(batch.t, dtype=float)
+        if not np.isfinite(self._t_first):
+            self._t_first = float(t[0])
+            self._last_used = np.nan
+        err = self.error_deg(t, batch.heading_deg)
+        std = np.asarray(batch.heading_std_deg, dtype=float)
+        used = np.asarray(batch.mag_used, dtype=bool)
+        cal = np.full(n, self._referenced)
+        if not self._referenced:
+            first = np.flatnonzero(used)
+            if len(first):
+                cal[first[0] :] = True
+                self._referenced = True
+        abs_err = np.where(cal, np.abs(err), np.nan)
+        std_cal = np.where(cal, std, np.nan)
+        with np.errstate(invalid="ignore"):
+            self._feed("error", t, abs_err > s.error_onset_deg, abs_err > s.error_deg, abs_err, err, std)
+            self._feed("sigma", t, std_cal > s.std_deg, std_cal > s.std_deg, std_cal, err, std)
+        self._no_reference(t, used, err, std)
+        self._detector_rows(t, batch, err)
+        self._t_now = float(t[-1])
+        for kind, run in self._runs.items():
+            if run is not None and self._t_now - run.t_last > s.merge_s:
+                self._close(kind)
+        return self._release()
+
+    def finish(self) -> list[Episode]:
+        """Close what is open at the end of the run; return the remaining episodes."""
+        for kind in self._runs:
+            if self._runs[kind] is not None:
+                self._close(kind)
+        if np.isfinite(self._t_now):
+            start = self._last_used if np.isfinite(self._last_used) else self._t_first
+            gap = self._t_now - start
+            if gap > self.settings.no_reference_s:
+                self._gap(start, self._t_now)
+        return self._release()
+
+    # ------------------------------------------------------------------ stretches
+    def _feed(self, kind, t, above, core, value, err, std) -> None:
+        """Hysteresis runs: rows above the onset level, merged across gaps < merge_s, kept if any is core."""
+        idx = np.flatnonzero(above)
+        if len(idx) == 0:
+            return
+        merge = self.settings.merge_s
+        cut = np.flatnonzero(np.diff(t[idx]) > merge) + 1
+        for seg in np.split(idx, cut):
+            run = self._runs[kind]
+            t0 = float(t[seg[0]])
+            if run is not None and t0 - run.t_last > merge:
+                self._close(kind)
+                run = None
+            if run is None:
+                run = self._runs[kind] = _Run(t_start=t0, t_last=t0)
+            run.t_last = float(t[seg[-1]])
+            run.reached = run.reached or bool(np.any(core[seg]))
+            k = seg[int(np.argmax(value[seg]))]
+            if value[k] > run.peak:
+                run.peak, run.t_peak = float(value[k]), float(t[k])
+            run.err = _signed_max(run.err, err[seg])
+            run.std = _nanmax(run.std, std[seg])
+
+    def _close(self, kind: str) -> None:
+        run = self._runs[kind]
+        self._runs[kind] = None
+        if run is not None and run.reached and run.t_last - run.t_start >= self.settings.min_duration_s:
+            self._pending.append(
+                _Closed(kind, run.t_start, run.t_last, run.peak, run.t_peak, run.err, run.std)
+            )
+
+    def _no_reference(self, t, used, err, std) -> None:
+        """Gaps between magnetometer corrections longer than ``no_reference_s``."""
+        s = self.settings
+        idx = np.flatnonzero(used)
+        bounds = np.r_[0, idx + 1] if len(idx) else np.array([0])
+        for i, u in enumerate(idx):
+            lo = bounds[i]
+            start = self._last_used if np.isfinite(self._last_used) else self._t_first
+            self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo : u + 1])
+            self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo : u + 1])
+            gap = float(t[u]) - start
+            if gap > s.no_reference_s:
+                self._gap(start, float(t[u]))
+            self._last_used = float(t[u])
+            self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
+        lo = bounds[-1]
+        self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo:])
+        self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo:])
+
+    def _gap(self, start: float, end: float) -> None:
+        self._pending.append(
+            _Closed("no_reference", start, end, end - start, end, self._gap_peak_err, self._gap_peak_std)
+        )
+
+    # ------------------------------------------------------------------ detectors
+    def _detector_rows(self, t, batch, err) -> None:
+        """Transitions of the interference flag and of the field's bands in these rows."""
+        d = batch.diag
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dev_f = _deviation(d, "field_strength_uT", "field_ref_uT", "strength_tol_uT", len(t))
+            dev_i = _deviation(d, "dip_deg", "dip_ref_deg", "dip_tol_deg", len(t))
+            dev = np.fmax(dev_f, dev_i)
+            rows = {
+                "interference": np.asarray(batch.interference, dtype=bool),
+                "strength": dev_f >= 1.0,
+                "dip": dev_i >= 1.0,
+                "field_out": dev >= self.settings.field_band_frac,
+            }
+        for name, flags in rows.items():
+            sig = self._signals[name]
+            prev = np.r_[sig.state, flags[:-1]]
+            for i in np.flatnonzero(flags != prev):
+                sig.trans.append(_Change(float(t[i]), bool(flags[i]), float(err[i])))
+            sig.state = bool(flags[-1])
+
+    def _release(self) -> list[Episode]:
+        """The episodes closed since the last call (their windows end at their ends, all seen); prune."""
+        out = [self._episode(p) for p in self._pending]
+        self._pending = []
+        # transitions older than any window still to come are not needed (keep the last one for the state)
+        starts = [r.t_start for r in self._runs.values() if r is not None]
+        starts.append(self._last_used if np.isfinite(self._last_used) else self._t_first)
+        horizon = min([*starts, self._t_now]) - self.settings.lookback_s - self.settings.merge_s
+        if np.isfinite(horizon):
+            for sig in self._signals.values():
+                k = 0
+                while k + 1 < len(sig.trans) and sig.trans[k + 1].t < horizon:
+                    k += 1
+                if k:
+                    del sig.trans[:k]
+        out.sort(key=lambda e: (e.t_start, e.kind))
+        self._done += out
+        return out
+
+    def _episode(self, c: _Closed) -> Episode:
+        s = self.settings
+        kind, t_start, t_end = c.kind, c.t_start, c.t_end
+        interference = self._signals["interference"].trans
+        lo = max([t_start - s.lookback_s] + [c.t for c in interference if not c.up and c.t <= t_start])
+        found = []
+        for name in DETECTORS:
+            first = _first_rise(self._signals[name].trans, lo, t_end)
+            if first is not None:
+                found.append((name, first.t))
+        found.sort(key=lambda x: x[1])
+        flag = _first_rise(interference, lo, t_end)
+        t_flag = err_flag = t_out = latency = None
+        if flag is not None:
+            t_flag = flag.t
+            err_flag = None if not np.isfinite(flag.err) else flag.err
+            since = max([lo] + [c.t for c in interference if not c.up and c.t < t_flag])
+            t_out = _first_up(self._signals["field_out"].trans, since, t_flag)
+            if t_out is not None:
+                latency = t_flag - t_out
+        else:
+            t_out = _first_up(self._signals["field_out"].trans, lo, t_end)
+        return Episode(
+            kind=kind,
+            t_start=float(t_start),
+            t_end=float(t_end),
+            threshold=s.threshold(kind),
+            peak=float(c.peak),
+            t_peak=float(c.t_peak),
+            peak_error_deg=None if not np.isfinite(c.err) else float(c.err),
+            peak_std_deg=float(c.std),
+            detectors=tuple(found),
+            t_flag=t_flag,
+            t_field_out=t_out,
+            latency_s=latency,
+            error_at_flag_deg=err_flag,
+        )
+
+    @property
+    def episodes(self) -> list[Episode]:
+        """Every episode released so far, by start."""
+        return sorted(self._done, key=lambda e: (e.t_start, e.kind))
+
+
+def worst(episodes, n: int = 3) -> list[Episode]:
+    """The ``n`` episodes furthest past their thresholds (:attr:`Episode.severity`), worst first."""
+    return sorted(episodes, key=lambda e: -e.severity)[:n]
+
+
+def _deviation(d: dict, value: str, ref: str, tol: str, n: int) -> np.ndarray:
+    """``|value − ref| / tol`` from diag columns; 0 where any is missing."""
+    if value not in d or ref not in d or tol not in d:
+        return np.zeros(n)
+    dev = np.abs(np.asarray(d[value], dtype=float) - np.asarray(d[ref], dtype=float)) / np.asarray(
+        d[tol], dtype=float
+    )
+    return np.where(np.isfinite(dev), dev, 0.0)
+
+
+def _first_rise(trans: list, lo: float, hi: float) -> _Change | None:
+    """The first rise in ``[lo, hi]``, or None."""
+    for c in trans:
+        if c.t > hi:
+            break
+        if c.up and c.t >= lo:
+            return c
+    return None
+
+
+def _first_up(trans: list, lo: float, hi: float) -> float | None:
+    """When the signal is first up in ``[lo, hi]``: ``lo`` itself if it was up then, else its first rise."""
+    state = False
+    for c in trans:
+        if c.t > lo:
+            break
+        state = c.up
+    if state:
+        return lo
+    hit = _first_rise(trans, lo, hi)
+    return None if hit is None else hit.t
+
+
+def _signed_max(current: float, values: np.ndarray) -> float:
+    """The value of largest magnitude among ``current`` and ``values`` (NaN ignored)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return current
+    k = v[int(np.argmax(np.abs(v)))]
+    return float(k) if not np.isfinite(current) or abs(k) > abs(current) else current
+
+
+def _nanmax(current: float, values: np.ndarray) -> float:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return current
+    m = float(v.max())
+    return m if not np.isfinite(current) else max(current, m)

@@ -1,0 +1,43 @@
+"""The fusion filter's compiled recursion (numba, ``cache=True``), one module per part of the model.
+
+:class:`pdr_mag.attitude.FusionCore` is the Python face of this package (settings, input checks, state
+round trip); the per-sample recursion is here.
+
+Model: an error-state (multiplicative) extended Kalman filter.
+
+nominal state
+    ``q`` attitude, device → ENU (true north when a declination is given), w-first; ``b`` gyroscope bias,
+    device frame, rad/s; ``c`` the slowly varying error of the magnetometer heading, rad.
+error state ``δx = (δθ, δb, δc)``, 7 values
+    ``R_true = Exp(δθ) R`` with ``δθ`` in the world frame (so ``δθ_z`` is the heading error and
+    ``heading_std = √P[δθ_z, δθ_z]``), ``b_true = b + δb``, ``c_true = c + δc``.
+prediction (:mod:`~pdr_mag.fusion.gyro`)
+    ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``;
+    ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``; ``c ← φ c`` (first-order Gauss–Markov); gaps add
+    their unknown rotation to ``P``; a zero-rate update ``ω_m = b + δb + n`` while the device is still.
+accelerometer (:mod:`~pdr_mag.fusion.accel`)
+    tilt only: the direction of the specific force averaged in the world frame observes
+    ``(−δθ_y, δθ_x)`` as it was τ ago (hence also ``δb``); gated on ``||ā| − g|``.
+magnetometer (:mod:`~pdr_mag.fusion.mag`)
+    heading only: ``r = wrap(atan2(m_w,x, m_w,y) − D − c)`` observes ``h_t·δθ_xy + δθ_z + δc`` with the
+    tilt errors as consider states; noise from the field's horizontal strength and the smallest
+    disturbance that explains the detectors' deviations; skipped while the interference flag
+    (:mod:`pdr_mag.interference`) is up, when the caller disallows it or beyond a χ² gate.
+
+Modules
+-------
+:mod:`~pdr_mag.fusion.state`
+    the state, parameter and output layouts (numpy records with named fields) and their JSON form;
+:mod:`~pdr_mag.fusion.eskf`
+    quaternion helpers, the scalar Kalman updates and the injection of the error estimate;
+:mod:`~pdr_mag.fusion.gyro`, :mod:`~pdr_mag.fusion.accel`, :mod:`~pdr_mag.fusion.mag`
+    one sensor each, with its equations in the module docstring;
+:mod:`~pdr_mag.fusion.kernel`
+    the run loop over a merged chunk of samples and the output rows.
+
+To change a measurement model, edit its sensor module; to add a detector, extend
+:data:`pdr_mag.interference.DETECTOR_STATE` and :func:`pdr_mag.interference.detect_step`; to carry a new
+quantity from sample to sample, add a field to :data:`~pdr_mag.fusion.state.STATE` (the JSON state
+follows; bump :data:`pdr_mag.attitude.STATE_VERSION`).  The kernels' numba cache is refreshed when any of
+these modules changes (:mod:`pdr_mag._jit_cache`).
+"""

@@ -1,0 +1,176 @@
+"""Tilt from the accelerometer: the first sample sets it, later samples correct it.
+
+Start.  The first usable sample gives the tilt (up = a/|a| in device coordinates); the heading is then
+arbitrary (device +y, or device −z for a phone held upright, projected on the horizontal plane points
+north) with variance π², the tilt variance ``tilt0_std²`` per axis, the bias ``bias0_std²`` per axis and
+``c`` its stationary variance.
+
+Averaged update (default, ``acc_tau_s > 0``).  The specific force is averaged in the almost inertial world
+frame over **every** sample, ``ā_w ← ā_w + α (R a − ā_w)`` with ``α = 1 − exp(−Δt/τ)``: the mean linear
+acceleration of a walking, swinging or pocketed phone over τ is Δv/τ ≈ 0, so ``ā_w`` points up (single
+samples of a swinging arm point along the arm; gating them before averaging would bias the average).  At
+most every ``acc_interval_s`` the direction ``u_w = ā_w / |ā_w| ≈ e_z + (−δθ_y, δθ_x, 0)`` is observed,
+as it was τ ago (the mean delay of the exponential window): since ``δθ' = −R δb``,
+``δθ(t − τ) = δθ(t) + τ R δb``, so the two scalar updates have
+
+    u_w,x:  H = −e_δθy − τ (row y of R) on δb
+    u_w,y:  H = +e_δθx + τ (row x of R) on δb
+
+and the tilt drift of an unknown raw gyro offset (4–6 °/s on real phones) is read as bias instead of being
+smeared over the average.  Noise ``acc_avg_noise² + (acc_dyn · ||ā| − g| / g)²``; skipped when
+``||ā| − g| > acc_gate · g``.  While the heading is unknown (no magnetometer yet) its errors are consider
+states of these updates: through the bias terms the linearised update would otherwise shrink its (capped,
+uniform) variance.
+
+Per-sample update (``acc_tau_s = 0``).  ``u_w = (R a)_h / g``, the horizontal specific force over g (not
+over |a|: a tilt error δ shows as g·δ whatever the vertical acceleration, and a walking hand's horizontal
+and vertical accelerations are correlated over a step, so dividing by |a| would bias the mean direction by
+``−E[a_h a_v] / g²``, ≈ 1° for ±2 m/s²), observing ``(−δθ_y, δθ_x)``; noise ``acc_noise² + (acc_dyn ·
+||a| − g| / g)² + (acc_gyro |ω|)² + var(a)/g² · acc_corr_s / Δt_a`` (the linear acceleration's recent
+variance, correlated over ``acc_corr_s``, spread over the samples) ``+ (turn_speed · ω_up / g)² ·
+turn_corr_s / Δt_a`` (the centripetal acceleration of a turn); skipped when ``||a| − g| > acc_gate · g``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pdr_mag.fusion.eskf import inject, rotation_matrix, update, update_h
+from pdr_mag.fusion.gyro import ew_stats_step
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+from pdr_mag.interference import ew_alpha
+
+
+@njit(cache=True, error_model="numpy")
+def init_tilt(s, ax, ay, az, p):
+    """Attitude of record ``s`` from one accelerometer sample; covariance at its start values."""
+    n = np.sqrt(ax * ax + ay * ay + az * az)
+    ux, uy, uz = ax / n, ay / n, az / n
+    # north = device y projected on the horizontal plane (fallback: device -z, for a phone held upright)
+    d = uy
+    nx, ny, nz = -d * ux, 1.0 - d * uy, -d * uz
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn < 0.2:
+        d = -uz
+        nx, ny, nz = -d * ux, -d * uy, -1.0 - d * uz
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    ex, ey, ez = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+    # R rows = east, north, up in device coordinates
+    r00, r01, r02 = ex, ey, ez
+    r10, r11, r12 = nx, ny, nz
+    r20, r21, r22 = ux, uy, uz
+    tr = r00 + r11 + r22
+    if tr > 0:
+        sq = np.sqrt(tr + 1.0) * 2
+        w, x, y, z = 0.25 * sq, (r21 - r12) / sq, (r02 - r20) / sq, (r10 - r01) / sq
+    elif r00 > r11 and r00 > r22:
+        sq = np.sqrt(1.0 + r00 - r11 - r22) * 2
+        w, x, y, z = (r21 - r12) / sq, 0.25 * sq, (r01 + r10) / sq, (r02 + r20) / sq
+    elif r11 > r22:
+        sq = np.sqrt(1.0 + r11 - r00 - r22) * 2
+        w, x, y, z = (r02 - r20) / sq, (r01 + r10) / sq, 0.25 * sq, (r12 + r21) / sq
+    else:
+        sq = np.sqrt(1.0 + r22 - r00 - r11) * 2
+        w, x, y, z = (r10 - r01) / sq, (r02 + r20) / sq, (r12 + r21) / sq, 0.25 * sq
+    qn = np.sqrt(w * w + x * x + y * y + z * z)
+    q = s.q
+    q[0], q[1], q[2], q[3] = w / qn, x / qn, y / qn, z / qn
+    for k in range(4):
+        s.q_gyro[k] = q[k]
+    P = s.P
+    for i in range(NX):
+        for m in range(NX):
+            P[i, m] = 0.0
+    t0 = p.tilt0_std**2
+    P[TH_X, TH_X] = t0
+    P[TH_Y, TH_Y] = t0
+    P[TH_Z, TH_Z] = np.pi**2
+    b0 = p.bias0_std**2
+    for i in range(BIAS, BIAS + 3):
+        P[i, i] = b0
+    P[C_ERR, C_ERR] = p.mag_error_std_rad**2
+    s.c = 0.0
+    s.init = 1
+
+
+@njit(cache=True, error_model="numpy")
+def accel_step(s, R, ax, ay, az, t, p):
+    """One accelerometer sample (m/s², device frame) at time t; ``R`` scratch 3×3."""
+    first = not (s.have_acc and np.isfinite(s.t_acc))
+    ew_stats_step(s.acc_stats, first, t - s.t_acc, ax, ay, az, p.still_tau_s)
+    s.t_acc_prev = s.t_acc
+    s.t_acc = t
+    s.have_acc = True
+    n = np.sqrt(ax * ax + ay * ay + az * az)
+    if n < 1e-6:
+        return
+    if s.init == 0:
+        init_tilt(s, ax, ay, az, p)
+        return
+    g = p.gravity
+    da = abs(n - g) / g
+    rotation_matrix(s.q, R)
+    if p.acc_tau_s > 0.0:
+        _averaged_update(s, R, ax, ay, az, t, p)
+        return
+    if da > p.acc_gate:
+        return
+    wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
+    wn = np.sqrt(wx * wx + wy * wy + wz * wz)
+    dta = t - s.t_acc_prev if np.isfinite(s.t_acc_prev) else 0.01
+    dta = min(max(dta, 1e-4), 0.1)
+    rv = (
+        p.acc_noise**2
+        + (p.acc_dyn * da) ** 2
+        + (p.acc_gyro * wn) ** 2
+        + s.acc_stats.var / (g * g) * p.acc_corr_s / dta
+    )
+    wup = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz
+    rv += (p.turn_speed * wup / g) ** 2 * p.turn_corr_s / dta
+    uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
+    uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
+    dx = np.zeros(NX)
+    update(s.P, dx, TH_Y, -1.0, uxw, rv)
+    update(s.P, dx, TH_X, 1.0, uyw, rv)
+    inject(s, dx)
+
+
+@njit(cache=True, error_model="numpy")
+def _averaged_update(s, R, ax, ay, az, t, p):
+    """The world-frame average ``ā_w``; at most every ``acc_interval_s``, the update from its direction."""
+    aw = s.acc_w
+    awx = R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az
+    awy = R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az
+    awz = R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az
+    if not np.isfinite(aw[0]) or not np.isfinite(s.t_acc_update) or t - s.t_acc_update > 10.0 * p.acc_tau_s:
+        aw[0], aw[1], aw[2] = awx, awy, awz
+        s.t_acc_update = t
+        return
+    a = ew_alpha(t - s.t_acc_prev, p.acc_tau_s)
+    aw[0] += a * (awx - aw[0])
+    aw[1] += a * (awy - aw[1])
+    aw[2] += a * (awz - aw[2])
+    if t - s.t_acc_update < p.acc_interval_s:
+        return
+    s.t_acc_update = t
+    g = p.gravity
+    na = np.sqrt(aw[0] ** 2 + aw[1] ** 2 + aw[2] ** 2)
+    dev = abs(na - g) / g
+    if dev > p.acc_gate:
+        return
+    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
+    tau = p.acc_tau_s
+    hx = np.zeros(NX)
+    hy = np.zeros(NX)
+    hx[TH_Y] = -1.0
+    hy[TH_X] = 1.0
+    for m in range(3):  # the tilt error of τ ago: δθ(t − τ) = δθ(t) + τ R δb
+        hx[BIAS + m] = -tau * R[1, m]
+        hy[BIAS + m] = tau * R[0, m]
+    dx = np.zeros(NX)
+    unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
+    update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)
+    update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown)
+    inject(s, dx)

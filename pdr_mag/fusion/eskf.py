@@ -1,0 +1,180 @@
+"""Quaternion and error-state Kalman filter algebra of the fusion kernel (numba, scalar code).
+
+Quaternions are w-first Hamilton quaternions, ``q`` rotates device into world coordinates
+(``v_w = R(q) v_d``).  The attitude error is a world-frame rotation vector: ``R_true = Exp(δθ) R``, so an
+estimated correction ``δθ`` is injected as ``q ← Exp(δθ) ⊗ q``.
+
+Measurements are processed as scalars: with ``H`` one row, ``S = H P Hᵀ + r_v``, ``K = P Hᵀ / S``,
+``δx ← δx + K (r − H δx)`` (``r`` the residual before this update: several scalar updates accumulate in
+one ``δx`` that is injected once) and ``P ← P − K H P``.  With *consider* states (Schmidt–Kalman) the gain
+of those states is set to zero and ``P`` follows the Joseph form for that gain,
+``P ← P − k cᵀ − c kᵀ + S k kᵀ`` with ``c = P Hᵀ``, valid for any gain.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+
+
+# ------------------------------------------------------------------------------------------ quaternions
+@njit(cache=True, error_model="numpy")
+def rotation_matrix(q, R):
+    """``R ← R(q)``: the rotation matrix of unit quaternion ``q`` (rows: world east, north, up)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R[0, 0] = 1 - 2 * (y * y + z * z)
+    R[0, 1] = 2 * (x * y - w * z)
+    R[0, 2] = 2 * (x * z + w * y)
+    R[1, 0] = 2 * (x * y + w * z)
+    R[1, 1] = 1 - 2 * (x * x + z * z)
+    R[1, 2] = 2 * (y * z - w * x)
+    R[2, 0] = 2 * (x * z - w * y)
+    R[2, 1] = 2 * (y * z + w * x)
+    R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True, error_model="numpy")
+def exp_quat(vx, vy, vz):
+    """Unit quaternion ``Exp(v)`` of a rotation vector v (rad), w-first."""
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    if a < 1e-12:
+        c, s = 1.0, 0.5
+    else:
+        c, s = np.cos(0.5 * a), np.sin(0.5 * a) / a
+    return c, s * vx, s * vy, s * vz
+
+
+@njit(cache=True, error_model="numpy")
+def store_product(q, aw, ax, ay, az, bw, bx, by, bz):
+    """``q ← a ⊗ b``, normalised."""
+    w = aw * bw - ax * bx - ay * by - az * bz
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    n = np.sqrt(w * w + x * x + y * y + z * z)
+    q[0], q[1], q[2], q[3] = w / n, x / n, y / n, z / n
+
+
+@njit(cache=True, error_model="numpy")
+def rotate_body(q, vx, vy, vz):
+    """``q ← q ⊗ Exp(v)``, v a rotation vector in the device frame (gyroscope integration)."""
+    bw, bx, by, bz = exp_quat(vx, vy, vz)
+    store_product(q, q[0], q[1], q[2], q[3], bw, bx, by, bz)
+
+
+@njit(cache=True, error_model="numpy")
+def rotate_world(q, vx, vy, vz):
+    """``q ← Exp(v) ⊗ q``, v a rotation vector in the world frame (an attitude correction)."""
+    aw, ax, ay, az = exp_quat(vx, vy, vz)
+    store_product(q, aw, ax, ay, az, q[0], q[1], q[2], q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def rotate_vector(v, ex, ey, ez):
+    """``v ← Exp(e) v`` to second order in e (a world-frame vector carried along with a correction e)."""
+    vx, vy, vz = v[0], v[1], v[2]
+    cx, cy, cz = ey * vz - ez * vy, ez * vx - ex * vz, ex * vy - ey * vx
+    dx, dy, dz = ey * cz - ez * cy, ez * cx - ex * cz, ex * cy - ey * cx
+    v[0], v[1], v[2] = vx + cx + 0.5 * dx, vy + cy + 0.5 * dy, vz + cz + 0.5 * dz
+
+
+@njit(cache=True, error_model="numpy")
+def heading_deg(q):
+    """Heading of the device's +y axis, deg clockwise from north, in [0, 360)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    r01 = 2.0 * (x * y - w * z)
+    r11 = 1.0 - 2.0 * (x * x + z * z)
+    return np.degrees(np.arctan2(r01, r11)) % 360.0
+
+
+@njit(cache=True, error_model="numpy")
+def wrap(a):
+    """Angle wrapped to [−π, π)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# ------------------------------------------------------------------------------------------ scalar updates
+@njit(cache=True, error_model="numpy")
+def update(P, dx, j, s, r, rv):
+    """Scalar update with ``H = s·e_j``; r the residual before this update, rv its noise variance."""
+    update2(P, dx, j, s, j, 0.0, r, rv)
+
+
+@njit(cache=True, error_model="numpy")
+def update2(P, dx, j, s, j2, s2, r, rv):
+    """Scalar update with ``H = s·e_j + s2·e_j2`` (j ≠ j2 or s2 = 0)."""
+    col = np.empty(NX)
+    for i in range(NX):
+        col[i] = s * P[i, j] + s2 * P[i, j2]
+    r = r - s * dx[j] - s2 * dx[j2]
+    S = s * col[j] + s2 * col[j2] + rv
+    if S <= 0.0:
+        return
+    for i in range(NX):
+        dx[i] += col[i] * r / S
+    for i in range(NX):
+        ci = col[i] / S
+        for m in range(NX):
+            P[i, m] -= ci * col[m]
+
+
+@njit(cache=True, error_model="numpy")
+def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False):
+    """Scalar update with a general ``H = h``; with ``consider_tilt`` the tilt errors (δθ_x, δθ_y), with
+    ``consider_heading`` the heading errors (δθ_z and δc) are consider states (zero gain, Joseph form)."""
+    col = np.empty(NX)
+    for i in range(NX):
+        v = 0.0
+        for m in range(NX):
+            v += P[i, m] * h[m]
+        col[i] = v
+    S = rv
+    for i in range(NX):
+        S += h[i] * col[i]
+        r -= h[i] * dx[i]
+    if S <= 0.0:
+        return
+    k = np.empty(NX)
+    for i in range(NX):
+        k[i] = col[i] / S
+    if consider_tilt:
+        k[TH_X] = 0.0
+        k[TH_Y] = 0.0
+    if consider_heading:
+        k[TH_Z] = 0.0
+        k[C_ERR] = 0.0
+    for i in range(NX):
+        dx[i] += k[i] * r
+    for i in range(NX):
+        for m in range(NX):
+            P[i, m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
+
+
+@njit(cache=True, error_model="numpy")
+def inject(s, dx):
+    """Apply the error estimate ``dx`` to the nominal state of record ``s`` and zero it.
+
+    The world-frame quantities the filter carries — the averaged specific force ``acc_w`` and the
+    detectors' mean field direction ``det.mw`` — turn with the attitude correction, so they stay in the
+    corrected frame (the consistency check then measures the field's motion against the gyro-propagated
+    frame, whatever the filter concluded from it).
+    """
+    ex, ey, ez = dx[TH_X], dx[TH_Y], dx[TH_Z]
+    rotate_world(s.q, ex, ey, ez)
+    if np.isfinite(s.acc_w[0]):
+        rotate_vector(s.acc_w, ex, ey, ez)
+    if np.isfinite(s.det.mw[0]):
+        rotate_vector(s.det.mw, ex, ey, ez)
+    for i in range(3):
+        s.b[i] += dx[BIAS + i]
+    s.c += dx[C_ERR]
+    for i in range(NX):
+        dx[i] = 0.0
+    P = s.P
+    for i in range(NX):  # keep P symmetric
+        for m in range(i + 1, NX):
+            v = 0.5 * (P[i, m] + P[m, i])
+            P[i, m] = v
+            P[m, i] = v

@@ -1,0 +1,173 @@
+"""Prediction with the gyroscope, and the zero-rate update while the device is still.
+
+Prediction, per gyroscope sample after an interval Δt::
+
+    q ← q ⊗ Exp((ω̄ − b) Δt)          ω̄ the mean of this and the previous raw rate
+    P ← Φ P Φᵀ + Q
+    Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c)
+    Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))
+    c ← φ c
+
+with ``R = R(q)`` (the attitude error is in the world frame, the bias in the device frame, so a bias
+error turns the attitude by ``−R δb Δt``), σ_g ``gyro_noise``, σ_b ``bias_rw``, and ``c`` a first-order
+Gauss–Markov process (τ_c ``mag_error_tau_s``, stationary σ_c ``mag_error_std_deg``): the heading error
+of a calibrated magnetometer indoors — residual calibration error, the building's own field — is
+correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.
+An unknown heading is uniform: ``P[δθ_z, δθ_z]`` is capped at π² by scaling its row and column (which
+keeps ``P`` positive semi-definite).
+
+Gaps.  Up to ``GAP_DT`` the mean rate of the two ends is the rate in between.  Longer intervals up to
+``max_dt`` are integrated the same way, but the rate in between deviates from that mean by about the recent
+motion level, so each attitude variance grows by ``var(ω) (Δt − GAP_DT)²``; longer still, the interval is
+not integrated (only ``P`` is propagated) and the unknown rotation ``(|ω̄|² + var(ω)) Δt²`` is added — a
+0.25-s gap of a phone turning at 2 rad/s is 30° that must not be hidden from ``P``.  The tilt variances
+are capped at ``TILT_VAR_MAX`` (the accelerometer's linearisation holds), the heading's at π².
+
+Zero-rate update.  The still detector keeps exponentially weighted means and mean square deviations of
+gyroscope and accelerometer (time constant ``still_tau_s``).  While both deviations stay below
+``still_gyro`` / ``still_acc`` for ``still_min_s``, every gyroscope sample observes the bias directly,
+``ω_m = b + δb + n`` (three scalar updates), with per-sample noise ``zupt_noise² / Δt`` — a noise density,
+so the information per second does not depend on the gyroscope's rate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pdr_mag.fusion.eskf import inject, rotate_body, rotation_matrix, update
+from pdr_mag.fusion.state import BIAS, NX, TH_Z
+from pdr_mag.interference import ew_alpha
+
+#: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
+GAP_DT = 0.05
+#: largest tilt-error variance a gap may add up to, rad² (30°: the accelerometer linearisation holds)
+TILT_VAR_MAX = (np.pi / 6.0) ** 2
+
+
+@njit(cache=True, error_model="numpy")
+def predict(s, R, wx, wy, wz, dt, p):
+    """Propagate record ``s`` by Δt = ``dt`` with the bias-corrected rate w (rad/s); ``R`` scratch 3×3."""
+    rotate_body(s.q, wx * dt, wy * dt, wz * dt)
+    rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
+    rotation_matrix(s.q, R)
+    P = s.P
+    # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    C = np.empty((3, 3))
+    for i in range(3):
+        for m in range(3):
+            A[i, m] = P[i, m]
+            B[i, m] = P[i, 3 + m]
+            C[i, m] = P[3 + i, 3 + m]
+    GC = np.empty((3, 3))  # G C
+    GB = np.empty((3, 3))  # G Bᵀ
+    for i in range(3):
+        for m in range(3):
+            s1 = 0.0
+            s2 = 0.0
+            for k in range(3):
+                s1 += R[i, k] * C[k, m]
+                s2 += R[i, k] * B[m, k]
+            GC[i, m] = -dt * s1
+            GB[i, m] = -dt * s2
+    qa = p.gyro_noise**2 * dt
+    qb = p.bias_rw**2 * dt
+    phi = np.exp(-dt / p.mag_error_tau_s)
+    # cross terms with c (column 6), from the old P
+    pac = np.empty(3)
+    for i in range(3):
+        s1 = 0.0
+        for k in range(3):
+            s1 += R[i, k] * P[3 + k, 6]
+        pac[i] = phi * (P[i, 6] - dt * s1)
+    for i in range(3):
+        P[3 + i, 6] = phi * P[3 + i, 6]
+        P[6, 3 + i] = P[3 + i, 6]
+        P[i, 6] = pac[i]
+        P[6, i] = pac[i]
+    P[6, 6] = phi * phi * P[6, 6] + p.mag_error_std_rad**2 * (1.0 - phi * phi)
+    s.c *= phi
+    for i in range(3):
+        for m in range(3):
+            gcg = 0.0
+            for k in range(3):
+                gcg += GC[i, k] * (-dt * R[m, k])
+            a = A[i, m] + GB[i, m] + GB[m, i] + gcg
+            if i == m:
+                a += qa
+            P[i, m] = a
+            bb = B[i, m] + GC[i, m]
+            P[i, 3 + m] = bb
+            P[3 + m, i] = bb
+            if i == m:
+                P[3 + i, 3 + m] = C[i, m] + qb
+    if P[TH_Z, TH_Z] > np.pi**2:  # an unknown heading is uniform
+        fs = np.pi / np.sqrt(P[TH_Z, TH_Z])
+        for i in range(NX):
+            P[TH_Z, i] *= fs
+            P[i, TH_Z] *= fs
+
+
+@njit(cache=True, error_model="numpy")
+def inflate_attitude(P, v):
+    """Add v (rad²) to the variance of each attitude error; tilt capped at TILT_VAR_MAX, heading at π²."""
+    for j in range(3):
+        cap = np.pi**2 if j == TH_Z else TILT_VAR_MAX
+        vj = min(v, max(cap - P[j, j], 0.0))
+        P[j, j] += vj
+
+
+@njit(cache=True, error_model="numpy")
+def ew_stats_step(st, first, dt, x, y, z, tau):
+    """One sample into an :data:`~pdr_mag.fusion.state.EW_STATS` record (time constant tau);
+    ``first``: start it at this sample."""
+    mean = st.mean
+    if first:
+        mean[0], mean[1], mean[2] = x, y, z
+        st.var = 1.0
+        return
+    a = ew_alpha(dt, tau)
+    dx, dy, dz = x - mean[0], y - mean[1], z - mean[2]
+    st.var += a * (dx * dx + dy * dy + dz * dz - st.var)
+    mean[0] += a * dx
+    mean[1] += a * dy
+    mean[2] += a * dz
+
+
+@njit(cache=True, error_model="numpy")
+def gyro_step(s, R, wx, wy, wz, t, p):
+    """One gyroscope sample (rad/s) at time t: still statistics, prediction, zero-rate update."""
+    first = not (s.have_gyro and np.isfinite(s.t_gyro))
+    ew_stats_step(s.gyro_stats, first, t - s.t_gyro, wx, wy, wz, p.still_tau_s)
+    if s.init > 0 and s.have_gyro:
+        dt = t - s.t_gyro
+        if dt > 0.0:
+            ox = 0.5 * (wx + s.w_gyro[0]) - s.b[0]
+            oy = 0.5 * (wy + s.w_gyro[1]) - s.b[1]
+            oz = 0.5 * (wz + s.w_gyro[2]) - s.b[2]
+            if dt <= p.max_dt:
+                predict(s, R, ox, oy, oz, dt, p)
+                if dt > GAP_DT:  # a gap: the rate in between is known to the recent motion level only
+                    inflate_attitude(s.P, s.gyro_stats.var * (dt - GAP_DT) ** 2)
+            else:  # too long to integrate: P only, and the unknown rotation meanwhile
+                predict(s, R, 0.0, 0.0, 0.0, dt, p)
+                inflate_attitude(s.P, (ox * ox + oy * oy + oz * oz + s.gyro_stats.var) * dt * dt)
+        still = (s.gyro_stats.var < p.still_gyro**2) and (s.acc_stats.var < p.still_acc**2)
+        if still:
+            if not np.isfinite(s.still_since):
+                s.still_since = t
+            if t - s.still_since >= p.still_min_s:
+                dx = np.zeros(NX)
+                dtg = min(max(t - s.t_gyro, 1e-4), 0.1) if np.isfinite(s.t_gyro) else 0.01
+                rv = p.zupt_noise**2 / dtg  # a noise density: the same information per second at any rate
+                update(s.P, dx, BIAS, 1.0, wx - s.b[0], rv)
+                update(s.P, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
+                update(s.P, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
+                inject(s, dx)
+        else:
+            s.still_since = np.nan
+    s.w_gyro[0], s.w_gyro[1], s.w_gyro[2] = wx, wy, wz
+    s.t_gyro = t
+    s.have_gyro = True

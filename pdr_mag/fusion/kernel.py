@@ -1,0 +1,142 @@
+"""The run loop of the fusion filter: samples in, output rows out (numba, ``cache=True``).
+
+:func:`run` dispatches a merged, time-ordered chunk sample by sample to :func:`~pdr_mag.fusion.accel.
+accel_step`, :func:`~pdr_mag.fusion.gyro.gyro_step` and :func:`~pdr_mag.fusion.mag.mag_step`, all of which
+read and write one record of :data:`~pdr_mag.fusion.state.STATE`; everything carried from one sample to the
+next is in that record, so a chunked run equals a single run.
+
+Output rows: one per gyroscope sample once the tilt is known, decimated to a grid of ``out_dt_s`` anchored
+at the first such sample (a row at the first gyroscope sample at or after each grid time; ``out_dt_s = 0``
+gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√P[δθ_z, δθ_z])``, whether
+the magnetometer corrected the heading and whether the interference flag was up since the previous row,
+and the diagnostics (:data:`~pdr_mag.fusion.state.DIAG_NAMES`).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from numba import njit
+
+from pdr_mag import _jit_cache, interference
+from pdr_mag.fusion import accel, eskf, gyro, mag, state
+from pdr_mag.fusion.accel import accel_step
+from pdr_mag.fusion.eskf import heading_deg
+from pdr_mag.fusion.gyro import gyro_step
+from pdr_mag.fusion.mag import mag_step
+from pdr_mag.fusion.state import TH_Z, Rows
+
+
+@njit(cache=True, error_model="numpy")
+def run(kind, t, xyz, allowed, st, p, ip, out, k0):
+    """Process a chunk (``kind`` 0 accelerometer, 1 gyroscope, 2 magnetometer) with the state record
+    ``st``, writing rows into the :class:`~pdr_mag.fusion.state.Rows` columns ``out`` from row ``k0`` on;
+    returns the number of rows written."""
+    R = np.empty((3, 3))
+    n_out = k0
+    for i in range(len(t)):
+        k = kind[i]
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        ti = t[i]
+        if k == 0:
+            if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
+                accel_step(st, R, x, y, z, ti, p)
+        elif k == 2:
+            mag_step(st, R, x, y, z, ti, allowed[i], p, ip)
+        elif k == 1:
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                continue
+            gyro_step(st, R, x, y, z, ti, p)
+            if st.init == 0:
+                continue
+            nxt = st.t_next_out
+            if np.isfinite(nxt) and ti < nxt:
+                continue
+            if p.out_dt_s > 0:
+                if not np.isfinite(nxt):
+                    nxt = ti
+                while nxt <= ti:
+                    nxt += p.out_dt_s
+                st.t_next_out = nxt
+            _write_row(st, ti, out, n_out)
+            n_out += 1
+    return n_out - k0
+
+
+@njit(cache=True, error_model="numpy")
+def _write_row(st, ti, out, n):
+    """Row n of ``out`` from the state at gyroscope time ti; resets the since-last-row flags."""
+    out.t[n] = ti
+    for c in range(4):
+        out.q[n, c] = st.q[c]
+    out.heading_std_deg[n] = np.degrees(np.sqrt(max(st.P[TH_Z, TH_Z], 0.0)))
+    out.mag_used[n] = st.mag_used
+    out.interference[n] = st.det.flag or st.interference_seen
+    st.mag_used = False
+    st.interference_seen = False
+    det = st.det
+    out.gyro_heading_deg[n] = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
+    out.field_strength_uT[n] = det.f
+    out.field_ref_uT[n] = det.f_loc
+    out.strength_tol_uT[n] = det.tol_f
+    out.dip_deg[n] = det.dip
+    out.dip_ref_deg[n] = det.dip_loc
+    out.dip_tol_deg[n] = det.tol_dip
+    out.strength_var_uT2[n] = det.var
+    out.interference_score[n] = det.score
+    out.gyro_bias_x[n] = st.b[0]
+    out.gyro_bias_y[n] = st.b[1]
+    out.gyro_bias_z[n] = st.b[2]
+    out.consistency_deg[n] = det.cons
+
+
+@njit(cache=True, error_model="numpy")
+def named_rows(floats, q, flags):
+    """The :class:`~pdr_mag.fusion.state.Rows` of the blocks of :func:`~pdr_mag.fusion.state.new_rows`:
+    row i of ``floats`` is column ``FLOAT_COLS[i]``, row i of ``flags`` column ``FLAG_COLS[i]``."""
+    return Rows(
+        floats[0], floats[1], floats[2], floats[3], floats[4], floats[5], floats[6], floats[7], floats[8],
+        floats[9], floats[10], floats[11], floats[12], floats[13], floats[14], floats[15], floats[16],
+        q, flags[0], flags[1],
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, floats, q, flags):
+    """:func:`run` over the whole chunk with a copy of the state put in ``snaps[j]`` before sample
+    ``cuts[j]`` (increasing); then each row's quaternion sign made non-negative in w and its heading's
+    ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state``, ``params`` and ``iparams`` are
+    one-element arrays of :data:`~pdr_mag.fusion.state.STATE`, :data:`~pdr_mag.fusion.state.PARAMS` and
+    :data:`pdr_mag.interference.PARAMS`; ``floats``, ``q``, ``flags`` the output blocks of
+    :func:`~pdr_mag.fusion.state.new_rows`.  Returns the number of rows (the rows of one :func:`run` call
+    per piece: the same rows, cut or not)."""
+    st = state[0]
+    p = params[0]
+    ip = iparams[0]
+    out = named_rows(floats, q, flags)
+    n = len(t)
+    k = 0
+    a = 0
+    for j in range(len(cuts) + 1):
+        b = cuts[j] if j < len(cuts) else n
+        if b > a or j == len(cuts):
+            k += run(kind[a:b], t[a:b], xyz[a:b], allowed[a:b], st, p, ip, out, k)
+        if j < len(cuts):
+            snaps[j] = st
+        a = b
+    for i in range(k):
+        s = -1.0 if q[i, 0] < 0 else 1.0
+        for c in range(4):
+            q[i, c] = q[i, c] * s
+        w = q[i, 0]
+        x = q[i, 1]
+        y = q[i, 2]
+        z = q[i, 3]
+        out.h_y[i] = 2.0 * (x * y - w * z)
+        out.h_x[i] = 1.0 - 2.0 * (x * x + z * z)
+    return k
+
+
+# numba checks a cached function against its own file only: empty the caches when any of these changed
+_jit_cache.refresh_if_changed((interference, state, eskf, gyro, accel, mag, sys.modules[__name__]), "fusion")

@@ -1,0 +1,161 @@
+"""Heading from the calibrated magnetometer: the interference detectors, then a heading-only update.
+
+Detectors.  Every finite sample goes through :func:`pdr_mag.interference.detect_step` (strength, variance,
+dip against the filter's up direction, gyro consistency of the world-frame direction ``m_w = R m_d``, with
+hold timers), whatever the caller allows; their state is the record ``det`` inside the filter's state.
+
+Measurement.  Heading only: ``ψ = atan2(m_w,x, m_w,y)``; the residual ``r = wrap(ψ − D − c)`` (D the
+declination, 0 for magnetic north) observes
+
+    h = (h_t, 1 on δθ_z, 0 on δb, 1 on δc),    h_t = −k_t (m_x m_z, m_y m_z) / B_h²
+
+``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag_tilt_k``).  The tilt
+errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
+field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
+accelerometer correction of the tilt carries over to the heading through ``P``.
+
+Noise::
+
+    σ_ψ² = σ_h² + σ_m² / B_h² + (|ω| τ_m F / B_h)² + k_d² d_min² / B_h²
+    d_min² = (F − F_loc)² + (F (I − I_loc))² + k_c (F ∠cons_d)²,   ∠cons_d = max(∠cons − σ_b W, 0)
+
+σ_h ``mag_noise_deg``, σ_m ``mag_noise_uT``, ``B_h`` the measured horizontal strength, τ_m
+``mag_time_unc_s`` (the device turns by ``|ω| τ_m`` within the timestamp uncertainty), k_d ``mag_dist_k``,
+k_c ``mag_cons_k``.  ``d_min`` is the smallest disturbance that explains the deviations of strength, dip
+and world-frame direction from the detectors' references (a disturbance d changes the strength by at most
+|d|, the dip by at most |d|/F and turns the horizontal field by at most |d|/B_h); the consistency angle
+counts only beyond what the filter's own bias uncertainty explains over the detector's window
+(σ_b = √tr P_bb, W ``consistency_window_s``).
+
+Gates.  No update while the interference flag is up (except the first fix, when strength and dip are
+fine), when the caller disallows it, within ``mag_interval_s`` of the last update (the errors are
+correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag_gate² · S`` with ``S = h P hᵀ`` plus the
+*undisturbed* part of σ_ψ² (a suspect field gets less weight; it cannot widen the gate).  While a
+clean-looking field keeps failing the gate, the heading may be what is wrong: ``P[δθ_z, δθ_z]`` grows by
+``reject_inflate_deg²`` per second (only the heading's, so the bias is not dragged when the gate opens).
+
+First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
+specific force turned with it).  The residual is then zero, so ``δθ_z = −(δc + h_t·δθ_xy + n)``: the
+heading error *is* that sample's correlated field error, and
+
+    P[δθ_z, ·] = −P[c, ·] − h_t P[δθ_xy, ·]
+    P[δθ_z, δθ_z] = σ_ψ² + P_cc + h_t P_tilt h_tᵀ + 2 h_t P[δθ_xy, c]
+
+so a later field with the same offset — a disturbance present since the start — is not read as drift
+(that is, as gyro bias about up).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+from pdr_mag.interference import detect_step, dip_of
+
+
+@njit(cache=True, error_model="numpy")
+def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
+    """One calibrated magnetometer sample (µT, device frame) at time t; ``allowed``: the caller permits a
+    heading update from it.  ``R`` scratch 3×3."""
+    if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or s.init == 0:
+        return
+    rotation_matrix(s.q, R)
+    f = np.sqrt(mx * mx + my * my + mz * mz)
+    if f <= 0.0:
+        return
+    # --- detectors
+    ux, uy, uz = R[2, 0], R[2, 1], R[2, 2]  # world up in device coordinates
+    dip = dip_of(mx, my, mz, ux, uy, uz)
+    mwx = (R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz) / f
+    mwy = (R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz) / f
+    mwz = (R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz) / f
+    P = s.P
+    sb = np.sqrt(max(P[BIAS, BIAS] + P[BIAS + 1, BIAS + 1] + P[BIAS + 2, BIAS + 2], 0.0))  # σ_b
+    det = s.det
+    flag = detect_step(det, f, dip, mwx, mwy, mwz, t, s.f_ref, s.dip_ref, np.degrees(sb), ip)
+    if flag:
+        s.interference_seen = True
+    # --- gates
+    if not allowed:
+        return
+    if flag and not (s.init < 2 and det.score_f < 1.0 and det.score_dip < 1.0):
+        return
+    if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag_interval_s:
+        return
+    bh = np.sqrt(mwx * mwx + mwy * mwy) * f
+    if bh < 1e-3:
+        return
+    psi = np.arctan2(mwx, mwy)
+    r = wrap(psi - s.declination)
+    # --- noise
+    dmin2 = 0.0
+    if np.isfinite(det.f_loc):
+        dmin2 += (f - det.f_loc) ** 2
+    if np.isfinite(det.dip_loc):
+        dmin2 += (f * np.radians(dip - det.dip_loc)) ** 2
+    cons_d = max(det.cons - np.degrees(sb) * ip.consistency_window_s, 0.0)
+    dmin2 += p.mag_cons_k * (f * np.radians(cons_d)) ** 2
+    rv_clean = p.mag_noise_rad**2 + p.mag_noise_uT**2 / (bh * bh)
+    if p.mag_time_unc_s > 0.0:
+        wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
+        rv_clean += (np.sqrt(wx * wx + wy * wy + wz * wz) * p.mag_time_unc_s * f / bh) ** 2
+    rv = rv_clean + p.mag_dist_k**2 * dmin2 / (bh * bh)
+    # --- measurement row: tilt (consider states), heading, c
+    bh2 = mwx * mwx + mwy * mwy
+    h = np.zeros(NX)
+    h[TH_X] = -p.mag_tilt_k * mwx * mwz / bh2
+    h[TH_Y] = -p.mag_tilt_k * mwy * mwz / bh2
+    h[TH_Z] = 1.0
+    h[C_ERR] = 1.0
+    if s.init < 2:
+        _first_fix(s, h, r, rv, t)
+        return
+    r = wrap(r - s.c)
+    # χ² gate with the undisturbed noise
+    S = rv_clean
+    for i in range(NX):
+        for m in range(NX):
+            S += h[i] * P[i, m] * h[m]
+    if r * r > p.mag_gate**2 * S:
+        # a clean-looking field that keeps disagreeing: let the heading's variance grow
+        if np.isfinite(s.t_reject):
+            P[TH_Z, TH_Z] += p.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
+        s.t_reject = t
+        return
+    s.t_reject = np.nan
+    dx = np.zeros(NX)
+    update_h(P, dx, h, r, rv, True)
+    inject(s, dx)
+    s.t_mag_update = t
+    s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _first_fix(s, h, r, rv, t):
+    """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
+    rotate_world(s.q, 0.0, 0.0, r)
+    rotate_world(s.q_gyro, 0.0, 0.0, r)
+    aw = s.acc_w
+    if np.isfinite(aw[0]):  # the averaged specific force lives in the re-headed world frame
+        c, sn = np.cos(r), np.sin(r)
+        x0, y0 = aw[0], aw[1]
+        aw[0], aw[1] = c * x0 - sn * y0, sn * x0 + c * y0
+    P = s.P
+    x, y, z = TH_X, TH_Y, TH_Z
+    for i in range(NX):
+        P[z, i] = 0.0
+        P[i, z] = 0.0
+    # δθ_z = −(δc + h_t·δθ_xy + n)
+    rt = h[x] * h[x] * P[x, x] + 2.0 * h[x] * h[y] * P[x, y] + h[y] * h[y] * P[y, y]
+    P[z, z] = rv + P[C_ERR, C_ERR] + rt + 2.0 * (h[x] * P[x, C_ERR] + h[y] * P[y, C_ERR])
+    for j in range(NX):
+        if j != z:
+            v = -P[C_ERR, j] - h[x] * P[x, j] - h[y] * P[y, j]
+            P[z, j] = v
+            P[j, z] = v
+    s.init = 2
+    s.t_mag_update = t
+    s.mag_used = True
+    s.det.mw[0], s.det.mw[1], s.det.mw[2] = np.nan, 0.0, 0.0

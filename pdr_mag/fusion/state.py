@@ -1,0 +1,212 @@
+"""The fusion filter's state, parameters and output rows, each in named fields.
+
+The compiled kernels (:mod:`pdr_mag.fusion.kernel` and the modules it calls) read and write one record of
+:data:`STATE`, read one record of :data:`PARAMS` (the :class:`pdr_mag.attitude.FusionSettings` in the
+kernel's units) and one of :data:`pdr_mag.interference.PARAMS`, and write their output into the named
+columns of a :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its
+fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
+:func:`state_from_json` turn it into a JSON dict and back exactly.
+
+Error state (the rows and columns of ``P``): ``δθ`` (3, world frame; ``δθ_z`` is the heading error),
+``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag.fusion` for the model.
+"""
+
+from __future__ import annotations
+
+from collections import namedtuple
+
+import numpy as np
+
+from pdr_mag._json import state_float
+from pdr_mag.interference import DETECTOR_STATE, new_detector_state
+
+#: size of the error state (δθ, δb, δc)
+NX = 7
+#: rows of ``P``: attitude error about east, north, up (world frame), the first of the three gyro-bias errors
+#: (device x, y, z), the magnetometer heading error c
+TH_X, TH_Y, TH_Z, BIAS, C_ERR = 0, 1, 2, 3, 6
+
+#: exponentially weighted mean and mean square deviation of a 3-vector stream (the still detector)
+EW_STATS = np.dtype([("mean", np.float64, (3,)), ("var", np.float64)], align=True)
+
+#: everything the filter carries from one sample to the next
+STATE = np.dtype(
+    [
+        # the filter: nominal state and covariance of the error state
+        ("q", np.float64, (4,)),  # attitude, device → ENU (true north with a declination), w-first
+        ("b", np.float64, (3,)),  # gyroscope bias, device frame, rad/s
+        ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
+        ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
+        ("init", np.int64),  # 0 nothing yet, 1 tilt from the accelerometer, 2 heading from the magnetometer
+        ("q_gyro", np.float64, (4,)),  # gyroscope-only attitude from the same start (diagnostics)
+        # gyroscope
+        ("have_gyro", np.bool_),
+        ("t_gyro", np.float64),  # time of the last gyroscope sample, s
+        ("w_gyro", np.float64, (3,)),  # last raw rate, rad/s
+        # still detector (zero-rate updates)
+        ("gyro_stats", EW_STATS),  # of the rate, rad/s
+        ("acc_stats", EW_STATS),  # of the specific force, m/s²
+        ("still_since", np.float64),  # start of the current still period, s (NaN: moving)
+        # accelerometer
+        ("have_acc", np.bool_),
+        ("t_acc", np.float64),  # time of the last accelerometer sample, s
+        ("t_acc_prev", np.float64),  # time of the one before, s
+        ("acc_w", np.float64, (3,)),  # EW mean ā_w of the world-frame specific force, m/s² (NaN: restart)
+        ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
+        # magnetometer
+        ("declination", np.float64),  # D, rad (0: magnetic north)
+        ("f_ref", np.float64),  # reference strength of the detectors, µT (NaN: unknown)
+        ("dip_ref", np.float64),  # reference inclination, deg (NaN: learnt)
+        ("t_mag_update", np.float64),  # time of the last heading update, s
+        ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
+        ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.interference)
+        # output rows
+        ("t_next_out", np.float64),  # grid time of the next output row, s
+        ("mag_used", np.bool_),  # the magnetometer corrected the heading since the last row
+        ("interference_seen", np.bool_),  # the flag was up since the last row
+    ],
+    align=True,
+)
+
+#: the settings in the kernel's units (:meth:`pdr_mag.attitude.FusionSettings.as_params`): each field is
+#: the setting of the same name, but ``*_rad`` for the setting ``*_deg`` and ``out_dt_s`` (0: every gyro
+#: sample) for ``output_rate_hz``
+PARAMS = np.dtype(
+    [
+        (name, np.float64)
+        for name in (
+            "gyro_noise",
+            "bias_rw",
+            "bias0_std",
+            "tilt0_std",
+            "acc_tau_s",
+            "acc_interval_s",
+            "acc_avg_noise",
+            "acc_noise",
+            "acc_corr_s",
+            "acc_dyn",
+            "turn_speed",
+            "turn_corr_s",
+            "acc_gyro",
+            "acc_gate",
+            "mag_noise_rad",
+            "mag_noise_uT",
+            "mag_dist_k",
+            "mag_time_unc_s",
+            "mag_cons_k",
+            "mag_tilt_k",
+            "mag_error_std_rad",
+            "mag_error_tau_s",
+            "mag_interval_s",
+            "mag_gate",
+            "reject_inflate_rad",
+            "still_gyro",
+            "still_acc",
+            "still_tau_s",
+            "still_min_s",
+            "zupt_noise",
+            "out_dt_s",
+            "gravity",
+            "max_dt",
+        )
+    ]
+)
+
+#: diagnostic columns of the output, in order (:data:`pdr_mag.estimates.DIAG_KEYS`)
+DIAG_NAMES = (
+    "gyro_heading_deg",
+    "field_strength_uT",
+    "field_ref_uT",
+    "strength_tol_uT",
+    "dip_deg",
+    "dip_ref_deg",
+    "dip_tol_deg",
+    "strength_var_uT2",
+    "interference_score",
+    "gyro_bias_x",
+    "gyro_bias_y",
+    "gyro_bias_z",
+    "consistency_deg",
+)
+
+#: float columns of the output, one row per output gyroscope sample: time, heading std (deg), the arguments
+#: ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, and the diagnostics;
+#: in the order of the rows of the float block of :func:`new_rows`
+FLOAT_COLS = ("t", "heading_std_deg", "h_y", "h_x", *DIAG_NAMES)
+#: flag columns: the magnetometer corrected the heading / the interference flag was up, since the last row
+FLAG_COLS = ("mag_used", "interference")
+#: the output columns by name, as the kernel writes them (:func:`pdr_mag.fusion.kernel.named_rows`);
+#: ``q`` the attitude (m, 4), w ≥ 0
+Rows = namedtuple("Rows", (*FLOAT_COLS, "q", *FLAG_COLS))
+
+
+def new_rows(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Room for ``m`` output rows: the float block (``FLOAT_COLS`` × m), the attitudes (m × 4) and the flag
+    block (``FLAG_COLS`` × m); each column contiguous.  (Three arrays: what crosses into the compiled code
+    cheaply; :func:`pdr_mag.fusion.kernel.named_rows` names their rows.)"""
+    return np.empty((len(FLOAT_COLS), m)), np.empty((m, 4)), np.empty((len(FLAG_COLS), m), dtype=np.bool_)
+
+
+def new_state() -> np.ndarray:
+    """A filter that has seen nothing: a one-element array of :data:`STATE` (the kernels take its record)."""
+    st = np.zeros(1, dtype=STATE)
+    st["q"] = st["q_gyro"] = (1.0, 0.0, 0.0, 0.0)
+    for name in (
+        "t_gyro",
+        "still_since",
+        "t_acc",
+        "t_acc_prev",
+        "acc_w",
+        "t_acc_update",
+        "f_ref",
+        "dip_ref",
+        "t_mag_update",
+        "t_reject",
+        "t_next_out",
+    ):
+        st[name] = np.nan
+    st["det"] = new_detector_state()
+    return st
+
+
+# ------------------------------------------------------------------------------------------ JSON
+def state_to_json(rec: np.void) -> dict:
+    """A record as a JSON-serialisable dict: field name → number, nested list or dict (a nested record);
+    non-finite floats as :func:`pdr_mag._json.state_float` strings, so the round trip is exact."""
+    out = {}
+    for name in rec.dtype.names:
+        v = rec[name]
+        if v.dtype.names is not None:
+            out[name] = state_to_json(v)
+        elif v.dtype == np.bool_:
+            out[name] = bool(v)
+        elif np.issubdtype(v.dtype, np.integer):
+            out[name] = int(v)
+        elif v.ndim:
+            out[name] = np.vectorize(state_float, otypes=[object])(v).tolist()
+        else:
+            out[name] = state_float(v)
+    return out
+
+
+def state_from_json(dtype: np.dtype, obj, where: str = "state") -> np.ndarray:
+    """The one-element array of ``dtype`` that :func:`state_to_json` wrote; ``ValueError`` naming the field
+    when a field is missing or has the wrong shape."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected a dict of the fields of {sorted(dtype.names)}")
+    rec = np.zeros(1, dtype=dtype)
+    for name in dtype.names:
+        sub = dtype[name]
+        if name not in obj:
+            raise ValueError(f"{where}.{name}: missing")
+        if sub.names is not None:
+            rec[name] = state_from_json(sub, obj[name], f"{where}.{name}")
+            continue
+        try:
+            v = np.array(obj[name], dtype=np.float64) if sub.base != np.bool_ else np.array(obj[name])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{where}.{name}: expected numbers ({exc})") from exc
+        if v.shape != sub.shape:
+            raise ValueError(f"{where}.{name}: expected shape {sub.shape}, got {v.shape}")
+        rec[name] = v
+    return rec
