@@ -1,36 +1,38 @@
 """HeadingPipeline: the streaming state machine that ties calibration, detection and fusion together.
 
-Data flow per sample stream (accelerometer, gyroscope, magnetometer — independent, irregular rates)::
+Data flow (accelerometer, gyroscope, magnetometer: independent, irregular rates)::
 
-    push / push_arrays ─► per-stream buffers ─► time-ordered merge ─► blocks of ``block_s`` ─►
-        calibrate mag (current MagCalibration, ``mag_to_imu``) ─► FusionCore (detectors + filter) ─►
-        estimates (+ cal_state)  ─►  OnlineCalibrator (diversity buffer, refits, stale test) ─► events
+    push / push_arrays ─► pending samples per stream ─► time-ordered merge ─► blocks of ``block_s`` ─►
+        calibrate mag (the calibration in force) ─► FusionCore (detectors + filter) ─► estimates
+    a closed block's magnetometer samples (+ up vector, gyro rate) ─► OnlineCalibrator ─► calibration, events
 
-Determinism (streaming == batch).  Samples are released from the per-stream buffers only when they are
-older than the newest sample of *every* expected stream (so no later push can precede them; ties go
-accel < gyro < mag) and fused at once (the fusion core gives the same result however its input is cut).
-The calibration changes only at block boundaries (multiples of ``block_s`` in stream time): when the
-released samples pass the end of a block, the online calibrator is given that block's magnetometer samples
-(with the filter's up vector and the gyro rate of the latest row at or before each — causal, so
-independent of the cuts) before any sample of the next block is fused.  Hence the output depends on the
-data alone, not on how it was cut into pushes: sample by sample, in chunks or all at once give identical
-rows.
+What the output is.  Stream time is cut into blocks ``[k·block_s, (k+1)·block_s)``, and the rows are those
+of processing block by block: fuse the block's samples with the calibration in force, then close it —
+give its magnetometer samples to the online calibrator, each with the up vector of the filter's latest
+output row at or before it (the accelerometer's direction before the filter has an attitude) and the norm
+of the latest gyro sample.  The calibration thus changes only at block ends.
 
-Speed.  The filter is not called once per block: it runs ahead over a span of blocks with the calibration
-in use (one call into the compiled kernel), the span's blocks are then closed by one call to
-:meth:`OnlineCalibrator.update_blocks <pdr_mag.calibration.online.OnlineCalibrator.update_blocks>`, which
-stops at the first block whose close changes the calibration; the filter is then put back to its latest
-snapshot before that boundary (the span's start, or one taken every ``_SNAP_EVERY`` blocks inside long
-spans) and re-run up to it (calibration changes are rare: a few per recording), and the next span starts
-there.  The rows are those of block-by-block processing, whatever the span lengths (tested).  The
-per-poll bookkeeping (merge, magnetometer context, span layout) is compiled
-(:mod:`pdr_mag._pipeline_kernel`).  The one exception to streaming == batch is
-:meth:`HeadingPipeline.poll`'s look-ahead bound: a stream more than ``max_lag_s`` behind the others is not
-waited for (its late samples are dropped and counted), which only happens when a stream stalls.
+Streaming == batch.  Samples leave the pending buffers only once they are older than the newest sample of
+every stream (no later push can precede them; ties go accel < gyro < mag), so the merged stream does not
+depend on how the input was cut into pushes; the fusion core's output does not depend on how its input is
+cut, and the calibrator is given whole blocks.  Sample by sample, in chunks or all at once give identical
+rows, events and calibrations (tested).  The one exception is :meth:`HeadingPipeline.poll`'s look-ahead
+bound: a stream more than ``max_lag_s`` behind the others is not waited for (its late samples are dropped
+and counted), which only happens when a stream stalls.
+
+Speculative spans.  One call into the compiled filter and one into the calibrator per block would cost
+more in fixed per-call work than the block's fusion itself (a block is ~100 samples).  So the filter runs
+ahead over a span of blocks with the calibration in force, in one call; then the span's ended blocks go to
+the calibrator in one call, which stops at the end of the first block whose close changed the
+calibration.  Then the filter is put back to its state at the span's start and run again up to that
+block's end, and the next span starts after it with the new calibration.  Changes are rare (a few per
+recording, most while the calibration converges), so a span is short after a change and doubles after
+each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks).  The rows are those of block-by-block
+processing whatever the span length (tested).
 
 Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data between polls (``push``
 processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
-estimates leave at every :meth:`poll`.
+estimates leave at every :meth:`HeadingPipeline.poll`.
 
 Errors at the boundary, flags in the loop: a wrong shape or unknown stream name raises ``ValueError``; a
 NaN row, a repeated or backward timestamp is dropped and counted in :attr:`HeadingPipeline.dropped`.
@@ -55,18 +57,14 @@ from pdr_mag.field import EarthField, earth_field_from_meta
 #: Stream names and their ``kind`` codes in the merged sample stream.
 KINDS = {"accel": 0, "gyro": 1, "mag": 2}
 _NAMES = {v: k for k, v in KINDS.items()}
-STATE_VERSION = 1
-#: Blocks fused in one speculative span (see :meth:`HeadingPipeline._process`): the first span after a
-#: calibration change is short (changes come in runs while the calibration converges, and each one throws
-#: away the span's fusion after it), each span without a change doubles the next, up to the maximum.  A
-#: span of L blocks costs a fixed c ≈ 7 blocks' worth of fusion (Python per span) and, at a rate r of
-#: changes per block, r·L/2 blocks thrown away per block: L ≈ √(2·7/r) ≈ 30 for the one change in 40 s of
-#: the walks' later minutes (measured: 32 beats 64 by 4–5 ms on the swinging walks, ±0.5 ms elsewhere).
-_SPAN_MIN = 8
-_SPAN_MAX = 32
-#: Blocks between the filter snapshots taken inside a span (a change re-runs the filter from the latest one).
-_SNAP_EVERY = 4
+STATE_VERSION = 2
 _NO_OFFSET = np.zeros(3)
+_NO_CUTS = np.empty(0, dtype=np.intp)  # FusionCore._run's snapshot indices: none
+#: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
+#: (changes come in runs while the calibration converges), doubled after each span without one, up to the
+#: most.
+_SPAN_MIN = 4
+_SPAN_MAX = 32
 
 
 def _default_fusion_settings():
@@ -116,9 +114,8 @@ class PipelineSettings:
 
 
 class _Stream:
-    """Pending samples of one input stream: rows ``[lo, hi)`` of one buffer that grows (doubling) when a
-    push does not fit after moving the pending rows to its start — so a push is one copy, and the samples
-    before a time are taken (and merged with the other streams') by :func:`_pipeline_kernel.take_merge3`."""
+    """Pending samples of one input stream, in time order: rows ``[lo, hi)`` of a buffer that grows
+    (doubling) when a push does not fit after moving the pending rows to its start."""
 
     __slots__ = ("t", "xyz", "lo", "hi", "last_t")
 
@@ -127,7 +124,7 @@ class _Stream:
         self.xyz = np.empty((0, 3))
         self.lo = 0
         self.hi = 0
-        self.last_t = -np.inf
+        self.last_t = -np.inf  # the latest sample pushed
 
     @property
     def n(self) -> int:
@@ -166,7 +163,8 @@ class HeadingPipeline:
         Recording metadata (``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date``): with position
         and date, the WMM gives the reference field and the heading is true north.
     fusion : object, optional
-        A fusion core to use instead of :class:`pdr_mag.attitude.FusionCore` (same interface; for tests).
+        A fusion core to use instead of :class:`pdr_mag.attitude.FusionCore` (for tests; the pipeline uses
+        its ``_run``, ``_snapshot``/``_restore``, ``set_reference_strength``, ``get_state``/``set_state``).
 
     Examples
     --------
@@ -194,13 +192,11 @@ class HeadingPipeline:
             self.field: EarthField | None = earth_field_from_meta(self.meta)
         except ValueError as exc:
             raise ValueError(f"meta: {exc}") from exc
-        from pdr_mag.attitude import FusionCore
-
         if fusion is None:
+            from pdr_mag.attitude import FusionCore
+
             fusion = FusionCore(self.settings.fusion or _default_fusion_settings(), self.field)
         self.fusion = fusion
-        # a FusionCore's entry for checked input (the rows get the calibration state too); else process()
-        self._fusion_run = fusion._run if type(fusion) is FusionCore else None
         f = self.field
         self.online = OnlineCalibrator(
             self.settings.online_settings,
@@ -208,29 +204,24 @@ class HeadingPipeline:
             strength=None if f is None else f.strength,
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
         )
-        self._streams = {k: _Stream() for k in KINDS}
-        self._stream_list = tuple(self._streams.values())  # in kind order
-        self._done_t = -np.inf  # everything before this time has been processed
-        self._cur_blk: float | None = None  # index of the block the last fused piece belonged to
-        self._span = (
-            _SPAN_MIN  # blocks in the next speculative span (speed only: results do not depend on it)
-        )
-        self._pend: list[np.ndarray] = []  # magnetometer rows (t, raw, up, rate) of the open block
-        self._coverage = 0.0
-        self._up_acc = np.full(3, np.nan)
-        self._rate = np.zeros(1)
         self.dropped: Counter = Counter()
-        self._out: list[EstimateBatch] = []
-        self._events: list[Event] = []
-        self._magcal: list[tuple[np.ndarray, np.ndarray]] = []
-        self._interf = False
-        self._up = np.array([np.nan, np.nan, np.nan])
+        self._streams = {k: _Stream() for k in KINDS}
+        self._done_t = -np.inf  # every sample before this time has been processed
+        self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
+        self._pend = np.empty(0, dtype=PK.MAG_ROW)  # magnetometer rows of the open block, not yet closed
+        self._carry = np.zeros(1, dtype=PK.CARRY)  # the magnetometer context from before (see mag_context)
+        self._carry[0]["q"] = np.nan
+        self._carry[0]["accel"] = np.nan
+        self._coverage = 0.0  # the calibrator's buffer coverage after the last closed block
+        self._interf = False  # the interference flag of the last output row
         self._calibrations: list[tuple[float, MagCalibration]] = []
-        self._cal_mats: tuple = (None,)  # (calibration, offset, matrix transposed) of _apply
         self._n_out = 0
         self._t_first = np.nan
         self._t_last = np.nan
-        self._sync_fusion_reference()
+        self._out: list[EstimateBatch] = []
+        self._events: list[Event] = []
+        self._magcal: list[tuple[np.ndarray, np.ndarray]] = []
+        self._use_calibration()
 
     # ------------------------------------------------------------------ properties
     @property
@@ -285,23 +276,13 @@ class HeadingPipeline:
         if not len(t):
             return
         s = self._streams[name]
-        # the common case: finite, strictly increasing, after everything pushed and processed (copied in
-        # place when the buffer has room)
-        code = PK.append_in_order(s.t, s.xyz, s.hi, t, xyz, s.last_t, self._done_t)
-        if code:
-            if code == 1:
-                s.hi += len(t)
-                s.last_t = float(t[-1])
-            else:
-                s.append(t, xyz)
-            if self._n_pending() > self.settings.max_pending:
-                self._process(self._safe_horizon())
-            return
-        good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
-        if not np.all(good):
-            self.dropped[f"{name}:nan"] += int(np.count_nonzero(~good))
-            t, xyz = t[good], xyz[good]
-        if len(t):
+        if not (
+            t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t)
+        ):  # drop (and count) what cannot be used
+            good = np.isfinite(t) & np.all(np.isfinite(xyz), axis=1)
+            if not np.all(good):
+                self.dropped[f"{name}:nan"] += int(np.count_nonzero(~good))
+                t, xyz = t[good], xyz[good]
             # strictly increasing after the previous sample, and not before what has been processed
             prev = np.maximum.accumulate(np.concatenate([[s.last_t], t]))[:-1]
             ok = t > prev
@@ -314,12 +295,9 @@ class HeadingPipeline:
             t, xyz = t[keep], xyz[keep]
         if len(t):
             s.append(t, xyz)
-        if self._n_pending() > self.settings.max_pending:
-            self._process(self._safe_horizon())
-
-    def _n_pending(self) -> int:
-        a, g, m = self._stream_list
-        return a.hi - a.lo + g.hi - g.lo + m.hi - m.lo
+        a, g, m = self._streams.values()
+        if a.n + g.n + m.n > self.settings.max_pending:
+            self._process(min(a.last_t, g.last_t, m.last_t))
 
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
@@ -328,12 +306,10 @@ class HeadingPipeline:
         return self._take_out()
 
     def _poll_horizon(self) -> float:
-        a, g, m = self._stream_list
-        h = min(a.last_t, g.last_t, m.last_t)
-        newest = max(a.last_t, g.last_t, m.last_t)
-        if math.isfinite(newest):
-            h = max(h, newest - self.settings.max_lag_s)
-        return h
+        """The oldest of the streams' latest samples, but not more than ``max_lag_s`` behind the newest."""
+        last = [s.last_t for s in self._streams.values()]
+        newest = max(last)
+        return max(min(last), newest - self.settings.max_lag_s) if math.isfinite(newest) else min(last)
 
     def flush(self) -> EstimateBatch:
         """Process everything pending (end of stream) and return the remaining estimates."""
@@ -359,221 +335,165 @@ class HeadingPipeline:
         """Batch convenience: ``{"accel": (t, xyz), ...}`` all at once → every estimate (a loop over push)."""
         for name, (t, xyz) in streams.items():
             self.push_arrays(name, t, xyz)
-        self._process(self._poll_horizon())  # poll, then flush: the rows of both concatenated once
-        self._process(np.inf, final=True)
-        out, self._out = self._out, []
-        return EstimateBatch.concat(out)
+        self._process(self._poll_horizon())
+        return self.flush()
 
     def _take_out(self) -> EstimateBatch:
         out, self._out = self._out, []
         return EstimateBatch.concat(out) if len(out) != 1 else out[0]
 
-    # ------------------------------------------------------------------ merge + blocks
-    def _safe_horizon(self) -> float:
-        return min(s.last_t for s in self._streams.values())
-
+    # ------------------------------------------------------------------ processing
     def _process(self, horizon: float, final: bool = False) -> None:
-        """Fuse every pending sample before ``horizon`` (all of them when ``final``); a block whose end the
-        horizon has passed is closed (online calibration update).
-
-        Fusion runs speculatively over spans of ``_SPAN_MIN`` … ``_SPAN_MAX`` blocks with the calibration in
-        use at
-        the span's start (one call into the compiled filter instead of one per block).  The blocks are then
-        closed in order; when a close changes the calibration, the filter is put back to its state at the
-        span's start and re-run up to that block boundary (the same rows: the filter's output does not
-        depend on how its input is cut), and a new span starts there with the new calibration.  The result
-        is that of fusing block by block.
-        """
-        b = self.settings.block_s
+        """Fuse every pending sample before ``horizon`` (all of them when ``final``), span by span, and close
+        the blocks that ended."""
         if final:
             t_end = np.inf
+        elif not np.isfinite(horizon) or horizon <= self._done_t:
+            return
         else:
-            if not np.isfinite(horizon) or horizon <= self._done_t:
-                return
             t_end = horizon
-        # each stream's samples before t_end, merged in time order, ties in kind order: accel < gyro < mag
-        sa, sg, sm = self._stream_list
-        sa.lo, sg.lo, sm.lo, kind, t, xyz, blk = PK.take_merge3(
-            sa.t, sa.xyz, sa.lo, sa.hi, sg.t, sg.xyz, sg.lo, sg.hi, sm.t, sm.xyz, sm.lo, sm.hi, t_end, b
-        )
+        kind, t, xyz = self._merge(t_end)
         if not final:
             self._done_t = t_end
-        if len(t):
-            if final:
-                self._done_t = max(self._done_t, float(t[-1]))
-            i, n = 0, len(t)
-            while i < n:
-                if self._cur_blk is not None and blk[i] > self._cur_blk:
-                    self._close_block()
-                self._cur_blk = float(blk[i])
-                i += self._fuse_span(kind[i:], t[i:], xyz[i:], blk[i:])
-        if self._cur_blk is not None and (final or (self._cur_blk + 1) * b <= t_end):
-            self._close_block()
-
-    def _fuse_span(self, kind: np.ndarray, t: np.ndarray, xyz: np.ndarray, blk: np.ndarray) -> int:
-        """Fuse a span starting at the first of these samples (see :meth:`_process`), closing the blocks
-        inside it; returns the number of samples fused for good."""
-        cal = self.online.calibration
-        state = self.online.cal_state
-        off = self._offset_only(cal)
-        e, lo, hi, mag_lo, mag_hi, data, allowed, n_gyro = PK.span_start(
-            blk, kind, xyz, self._span, off if off is not None else _NO_OFFSET, cal is not None
-        )
-        kind, t, xyz, blk = kind[:e], t[:e], xyz[:e], blk[:e]
-        if cal is not None and off is None:
-            data = self._calibrated(cal, kind, xyz)
-        n_p = len(lo)
-        # filter snapshots at the span's start and (long spans) every _SNAP_EVERY pieces: what a calibration
-        # change inside the span puts back before re-running the filter up to the change
-        snap_at = lo[_SNAP_EVERY::_SNAP_EVERY] if n_p > 2 * _SNAP_EVERY else lo[:0]
-        snap = self.fusion._snapshot() if n_p > 1 else None
-        if self._fusion_run is not None:  # FusionCore: the input is checked, the rows get the state
-            batch = self._fusion_run(kind, t, data, allowed, snap_at, n_gyro, state)
-        else:
-            batch = (
-                self.fusion.process(kind, t, data, allowed, snapshot_at=snap_at)
-                if len(snap_at)
-                else self.fusion.process(kind, t, data, allowed)
-            )
-        snaps = self.fusion.snapshots if len(snap_at) else []
-        # rows (one per output gyro sample) of each block-piece
-        piece_ev: list = []  # (piece, source, Event): the order of block-by-block processing
-        covs = np.full(n_p, self._coverage)
-        n_pieces = n_p
-        if self.settings.online:
-            row_hi, ctx = PK.span_context(
-                kind, t, xyz, hi, batch.t, batch.q_wd, self._up, self._up_acc, self._rate
-            )
-        else:
-            row_hi, ctx = PK.rows_before(batch.t, t, hi), None
-        if ctx is not None and n_p > 1:
-            # close every block but the last: the open block's earlier samples, then the span's
-            pre = np.concatenate(self._pend) if self._pend else np.empty((0, PK.N_CTX))
-            self._pend = []
-            n_rows_c, last, has, ends, piece_of_row, ok, r_t, r_mag, r_up, r_rate = PK.close_span(
-                pre, ctx, mag_lo, mag_hi
-            )
+        elif len(t):
+            self._done_t = max(self._done_t, float(t[-1]))
+        b = self.settings.block_s
+        blk = np.floor(t / b)
+        i = 0
+        while i < len(t):
+            i = self._fuse_span(kind, t, xyz, blk, i, t_end)
+        pend = self._pend
+        if len(pend) and (math.floor(pend["t"][-1] / b) + 1) * b <= t_end:
+            # no later sample, but the horizon passed the end of the open block
+            self._pend = pend[:0]
             before = self.online.calibration
-            if ok:  # the common case: contiguous and finite, as update_blocks would make them
-                events, n_done, cov = self.online._update_rows(r_t, r_mag, r_up, r_rate, ends)
-            else:
-                rows = np.concatenate([pre, ctx[: mag_hi[-2]]]) if len(pre) else ctx[: mag_hi[-2]]
-                r_t = rows[:, 0]
-                events, n_done, cov = self.online.update_blocks(
-                    rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7], ends
-                )
-            if n_rows_c:
-                for r, (te, k, d) in events:
-                    piece_ev.append((int(piece_of_row[r]), 1, Event(te, k, d)))
-                # coverage after each closed block with samples, carried over the pieces without
-                covs = PK.piece_coverage(cov, last, has, self._coverage)
-                if self.online.calibration is not before:
-                    q = int(piece_of_row[n_done - 1])
-                    n_pieces = q + 1
-                    self._coverage = float(covs[q + 1])
-                    if self.online.calibration is not None:
-                        self._calibrations.append((float(r_t[n_done - 1]), self.online.calibration))
-                else:
-                    self._coverage = float(covs[-1])
-            self._cur_blk = float(blk[lo[n_pieces]] if n_pieces < n_p else blk[lo[-1]])
-        elif n_p > 1:
-            self._cur_blk = float(blk[lo[-1]])
-        end = int(hi[n_pieces - 1])
-        if end < e:
-            # the calibration changed at a block boundary inside the span: redo the filter up to there from
-            # the latest snapshot before it
-            j = int(np.searchsorted(snap_at, end, side="right"))
-            start = int(snap_at[j - 1]) if j else 0
-            self.fusion._restore(snaps[j - 1] if j else snap)
-            if end > start:
-                self.fusion.process(kind[start:end], t[start:end], data[start:end], allowed[start:end])
-            self._sync_fusion_reference()
-            self._span = _SPAN_MIN
-        else:
-            if ctx is not None and mag_hi[-1] > mag_lo[-1]:
-                self._pend.append(ctx[mag_lo[-1] : mag_hi[-1]])
-            if n_p == self._span:
-                self._span = min(2 * self._span, _SPAN_MAX)
-        n_rows = int(row_hi[n_pieces - 1])
-        if ctx is not None:
-            PK.carry_context(kind, xyz, end, batch.q_wd, n_rows, self._up, self._up_acc, self._rate)
-        if n_rows:
-            if n_rows < len(batch):
-                batch = _head(batch, n_rows)
-            # the calibration (hence cal_state) is the span start's in every piece kept
-            if self._fusion_run is None:
-                batch.cal_state = np.full(n_rows, state, dtype="<U13")
-            batch.diag["coverage"] = PK.rows_coverage(covs, row_hi, n_pieces)
-            for r, ev in self._interference_events(batch):
-                piece_ev.append((int(np.searchsorted(row_hi, r, side="right")), 0, ev))
-            self._n_out += n_rows
+            events, _, _, cov = self._close_blocks(pend, np.floor(pend["t"] / b))
+            self._events += [ev for _, _, ev in events]
+            self._coverage = float(cov[-1]) if len(cov) else self._coverage
+            if self.online.calibration is not before:
+                self._use_calibration()
+
+    def _merge(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each stream's pending samples before ``t_end``, merged in time order, ties in kind order
+        (accel < gyro < mag): ``(kind, t, xyz)``."""
+        a, g, m = self._streams.values()
+        kind, t, xyz, a.lo, g.lo, m.lo = PK.take_merged(
+            a.t, a.xyz, a.lo, a.hi, g.t, g.xyz, g.lo, g.hi, m.t, m.xyz, m.lo, m.hi, t_end
+        )
+        return kind, t, xyz
+
+    def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
+        """Fuse the span of blocks that starts at sample ``i`` (see the module docstring); returns the index
+        of the first sample not fused for good."""
+        e = int(blk.searchsorted(blk[i] + self._span))
+        # the span's last block has ended when a later sample is here or the horizon passed its end
+        last_ended = e < len(t) or (blk[e - 1] + 1) * self.settings.block_s <= t_end
+        n = self._fuse_and_close(kind[i:e], t[i:e], xyz[i:e], blk[i:e], last_ended)
+        if n == e - i and e < len(t):
+            self._span = min(2 * self._span, _SPAN_MAX)
+        return i + n
+
+    def _fuse_and_close(self, kind, t, xyz, blk, last_ended: bool) -> int:
+        """Fuse these samples with the calibration in force and close their ended blocks; returns how many
+        are fused for good: all, or those up to the end of the block whose close changed the calibration."""
+        b = self.settings.block_s
+        cal = self.online.calibration
+        cal_state = self.online.cal_state
+        # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
+        data, allowed, n_gyro = PK.filter_input(kind, xyz, self._mag_offset, cal is not None)
+        if cal is not None and self._mag_matrix_t is not None:
+            is_mag = kind == 2
+            data[is_mag] = data[is_mag] @ self._mag_matrix_t
+        snap = self.fusion._snapshot()
+        batch = self.fusion._run(kind, t, data, allowed, _NO_CUTS, n_gyro, cal_state)
+        end = len(t)
+        events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
+        closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
+        if self.settings.online:
+            # the open block's magnetometer rows, then these samples'
+            rows = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend)
+            row_blk = np.floor(rows["t"] / b)
+            n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
+            events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
+            self._pend = rows[n_ended:]
+            if self.online.calibration is not cal:
+                # the blocks after the one whose close changed the calibration are to be fused with the new
+                # one: the filter goes back to the span's start and runs again up to that block's end
+                self._span = _SPAN_MIN
+                self._pend = rows[:0]
+                end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
+                if end < len(t):
+                    self.fusion._restore(snap)
+                    batch = self.fusion._run(
+                        kind[:end], t[:end], data[:end], allowed[:end], _NO_CUTS, n_gyro, cal_state
+                    )
+                self._use_calibration()  # after the filter's state (with its reference strength) is put back
+            PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
+        if len(batch):
+            batch.diag["coverage"] = PK.rows_coverage(batch.t, b, closed_blk, closed_cov, self._coverage)
+            events += [(math.floor(ev.t / b), 0, ev) for ev in self._interference_events(batch)]
+            self._n_out += len(batch)
             self._out.append(batch)
-        if piece_ev:
-            piece_ev.sort(key=lambda x: (x[0], x[1]))
-            self._events += [ev for _, _, ev in piece_ev]
-        if not math.isfinite(self._t_first):
-            self._t_first = float(t[0])
-        self._t_last = float(t[end - 1])
-        if self.settings.keep_mag_calibrated and cal is not None:
-            m = kind[:end] == 2
-            if np.any(m):
-                self._magcal.append((t[:end][m].copy(), data[:end][m].copy()))
+        if len(closed_cov):
+            self._coverage = float(closed_cov[-1])
+        events.sort(key=lambda x: x[:2])  # block by block: the filter's events, then the calibrator's
+        self._events += [ev for _, _, ev in events]
+        if end:
+            if not math.isfinite(self._t_first):
+                self._t_first = float(t[0])
+            self._t_last = float(t[end - 1])
+            if self.settings.keep_mag_calibrated and cal is not None:
+                m = kind[:end] == 2
+                self._magcal.append((t[:end][m], data[:end][m]))
         return end
 
-    def _close_block(self) -> None:
-        """End of a block: the online calibrator sees the block's magnetometer samples."""
-        if self._pend:
-            p = np.concatenate(self._pend)
-            self._pend = []
-            before = self.online.calibration
-            for te, k, d in self.online.update(p[:, 0], p[:, 1:4], p[:, 4:7], p[:, 7]):
-                self._events.append(Event(te, k, d))
-            self._coverage = self.online.coverage()
-            if self.online.calibration is not before and self.online.calibration is not None:
-                self._calibrations.append((float(p[-1, 0]), self.online.calibration))
-                self._sync_fusion_reference()
+    def _close_blocks(
+        self, rows: np.ndarray, row_blk: np.ndarray
+    ) -> tuple[list, int, np.ndarray, np.ndarray]:
+        """Give the calibrator the magnetometer rows of ended blocks (``row_blk``: each row's block); it
+        stops after the first block whose close changed the calibration.  Returns the events as ``(block,
+        1, Event)``, the rows taken, and the blocks closed with the coverage after each."""
+        if not len(rows):
+            return [], 0, np.empty(0), np.empty(0)
+        ends = np.empty(len(rows), dtype=np.bool_)
+        ends[:-1] = row_blk[1:] != row_blk[:-1]
+        ends[-1] = True
+        before = self.online.calibration
+        got, n, cov = self.online.update_blocks(rows["t"], rows["m"], rows["up"], rows["rate"], ends)
+        if self.online.calibration is not before and self.online.calibration is not None:
+            self._calibrations.append((float(rows["t"][n - 1]), self.online.calibration))
+        closed = np.isfinite(cov[:n])
+        events = [(row_blk[r], 1, Event(te, k, d)) for r, (te, k, d) in got]
+        return events, n, row_blk[:n][closed], cov[:n][closed]
 
-    def _calibrated(self, cal: MagCalibration | None, kind: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """The merged samples with the magnetometer's calibrated by :meth:`MagCalibration.apply` (NaN
-        without a calibration); the calibration's matrices are kept while it stays the same."""
-        if cal is None:
-            data = xyz.copy()
-            data[kind == 2] = np.nan
-            return data
-        _, off, a_t, eye = self._cal_matrices(cal)
-        if eye:
-            return PK.minus_offset(kind, xyz, off)
-        data = xyz.copy()
-        is_mag = kind == 2
-        data[is_mag] = (xyz[is_mag] - off) @ a_t
-        return data
-
-    def _cal_matrices(self, cal: MagCalibration) -> tuple:
-        """``(cal, offset, matrix transposed, whether it is the identity)``, kept while ``cal`` stays."""
-        if self._cal_mats[0] is not cal:
+    def _use_calibration(self, restored: bool = False) -> None:
+        """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = mag_to_imu · soft iron; None
+        for the identity) for the filter's input, and (unless ``restored`` with the fusion core's state) its
+        radius as the detectors' reference strength and its offset covariance as a source of heading error."""
+        cal = self.online.calibration
+        self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
+        self._mag_matrix_t = None
+        if cal is not None:
             a = cal.soft_iron_array
             if cal.mag_to_imu is not None:
                 a = np.asarray(cal.mag_to_imu, dtype=float) @ a
-            eye = bool(np.all(a == np.eye(3)))  # offset only: (m − b) @ I is m − b
-            self._cal_mats = (cal, cal.offset_array, a.T, eye)
-        return self._cal_mats
+            self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
+        if not restored and cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
+            if not self._calibrations:
+                self._calibrations.append((-np.inf, cal))
+            self.fusion.set_reference_strength(float(cal.field_uT))
+        if not restored:
+            self.fusion.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
-    def _offset_only(self, cal: MagCalibration | None) -> np.ndarray | None:
-        """The offset of an offset-only calibration (None without one or with a matrix)."""
-        if cal is None:
-            return None
-        _, off, _, eye = self._cal_matrices(cal)
-        return off if eye else None
-
-    def _interference_events(self, batch: EstimateBatch) -> list[tuple[int, Event]]:
-        """Flag changes in these rows, as (row, event)."""
-        out = []
-        flags = np.asarray(batch.interference, dtype=bool)
-        if PK.all_equal(flags, self._interf):
-            return out  # no change (the common case)
+    def _interference_events(self, batch: EstimateBatch) -> list[Event]:
+        """The changes of the interference flag in these rows."""
+        flags = batch.interference
+        if flags.all() if self._interf else not flags.any():
+            return []  # no change (the common case)
         prev = np.empty_like(flags)
         prev[0] = self._interf
         prev[1:] = flags[:-1]
+        out = []
         for i in np.flatnonzero(flags != prev):
             kind = "interference_start" if flags[i] else "interference_end"
             data = {}
@@ -581,17 +501,9 @@ class HeadingPipeline:
                 v = batch.diag.get(key)
                 if v is not None and np.isfinite(v[i]):
                     data[key] = round(float(v[i]), 3)
-            out.append((int(i), Event(float(batch.t[i]), kind, data)))
+            out.append(Event(float(batch.t[i]), kind, data))
         self._interf = bool(flags[-1])
         return out
-
-    def _sync_fusion_reference(self) -> None:
-        cal = self.online.calibration
-        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
-            if not self._calibrations:
-                self._calibrations.append((-np.inf, cal))
-            self.fusion.set_reference_strength(float(cal.field_uT))
-        self.fusion.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> dict:
@@ -631,19 +543,14 @@ class HeadingPipeline:
             "pending": pend,
             "done_t": state_float(self._done_t),
             "dropped": dict(self.dropped),
-            "interf": self._interf,
-            "up": [state_float(v) for v in self._up],
-            "up_acc": [state_float(v) for v in self._up_acc],
-            "rate": state_float(self._rate[0]),
-            "cur_blk": None if self._cur_blk is None else self._cur_blk,
-            "pend": [
-                [state_float(v) for v in row] for row in (np.concatenate(self._pend) if self._pend else [])
-            ],
+            "mag_rows": [state_float(v) for v in self._pend.view(np.float64)],
+            "carry": [state_float(v) for v in self._carry.view(np.float64)],
             "coverage": self._coverage,
+            "interf": self._interf,
+            "calibrations": [[state_float(t), c.to_dict()] for t, c in self._calibrations],
             "n_out": self._n_out,
             "t_first": state_float(self._t_first),
             "t_last": state_float(self._t_last),
-            "calibrations": [[state_float(t), c.to_dict()] for t, c in self._calibrations],
             "fusion": self.fusion.get_state(),
             "online": self.online.get_state(),
         }
@@ -663,37 +570,20 @@ class HeadingPipeline:
                 s.last_t = float(p["last_t"])
             self._done_t = float(state["done_t"])
             self.dropped = Counter(state["dropped"])
-            self._interf = bool(state["interf"])
-            self._up = np.asarray([float(v) for v in state["up"]])
-            self._up_acc = np.asarray([float(v) for v in state["up_acc"]])
-            self._rate = np.array([float(state["rate"])])
-            self._cur_blk = None if state["cur_blk"] is None else float(state["cur_blk"])
-            pend = np.asarray([[float(v) for v in row] for row in state["pend"]], dtype=float)
-            self._pend = [pend.reshape(-1, 8)] if len(pend) else []
+            self._pend = np.array([float(v) for v in state["mag_rows"]]).view(PK.MAG_ROW)
+            self._carry.view(np.float64)[:] = [float(v) for v in state["carry"]]
             self._coverage = float(state["coverage"])
+            self._interf = bool(state["interf"])
+            self._calibrations = [(float(t), MagCalibration.from_dict(c)) for t, c in state["calibrations"]]
             self._n_out = int(state["n_out"])
             self._t_first = float(state["t_first"])
             self._t_last = float(state["t_last"])
-            self._calibrations = [(float(t), MagCalibration.from_dict(c)) for t, c in state["calibrations"]]
-            self.fusion.set_state(state["fusion"])
+            self.fusion.set_state(state["fusion"])  # with its reference strength
             self.online.set_state(state["online"])
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"state: malformed ({exc!r})") from exc
+        self._use_calibration(restored=True)
         self._out, self._events, self._magcal = [], [], []
-
-
-def _head(batch: EstimateBatch, n: int) -> EstimateBatch:
-    """The first ``n`` rows of a batch."""
-    return EstimateBatch(
-        t=batch.t[:n],
-        q_wd=batch.q_wd[:n],
-        heading_deg=batch.heading_deg[:n],
-        heading_std_deg=batch.heading_std_deg[:n],
-        mag_used=batch.mag_used[:n],
-        interference=batch.interference[:n],
-        cal_state=batch.cal_state[:n],
-        diag={k: v[:n] for k, v in batch.diag.items()},
-    )
 
 
 def _kind_name(kind) -> str:
@@ -705,5 +595,3 @@ def _kind_name(kind) -> str:
         return _NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
-
-

@@ -167,22 +167,26 @@ def _feed(cal: OnlineCalibrator, d, chunk=0.25):
     return events
 
 
-def test_refits_fit_only_on_new_samples():
+def test_refits_fit_only_on_new_samples(monkeypatch):
     """Once calibrated, a refit attempt fits only after ``max(refit_min_new, refit_new_frac·n)`` new buffer
     samples (more while the buffer only renews: ``refit_backoff``): far fewer fits than fitting whenever the
     buffer changed, and the same offset within the fit's σ."""
+    from pdr_mag.calibration import refit
+
     d = synth_walk(duration=240.0, seed=11)
     fits, cals = {}, {}
     every = OnlineSettings(refit_min_new=0.0, refit_new_frac=0.0, refit_backoff=1.0)
+    fit = refit.candidates
+    count = [0]
+
+    def counted(*args):
+        count[0] += 1
+        return fit(*args)
+
+    monkeypatch.setattr(refit, "candidates", counted)
     for name, s in (("every", every), ("gated", OnlineSettings())):
+        count[0] = 0
         oc = OnlineCalibrator(s, strength=F, sin_dip=np.sin(INC))
-        count = [0]
-
-        def counted(n, fit=oc._candidates, count=count):
-            count[0] += 1
-            return fit(n)
-
-        oc._candidates = counted
         _feed(oc, d)
         fits[name], cals[name] = count[0], oc.calibration
     assert fits["gated"] < 0.5 * fits["every"], fits
@@ -195,17 +199,16 @@ def test_full_fit_only_when_the_core_could_accept_its_coverage():
     """The core's ellipsoid fit is judged on its equal-area coverage (128 cells, ≥ 50 %): 50 samples spread
     over the sphere pass the online trigger (30° caps) but can fill at most 39 % of the cells, so the fit
     is not attempted (``ellipsoid_precheck_frac``); 300 are enough."""
+    from pdr_mag.calibration.refit import candidates
+
     rng = np.random.default_rng(3)
 
     def methods(n):
         d = rng.normal(size=(n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
-        oc._buf[:n, 0] = np.arange(n)
-        oc._buf[:n, 1:4] = F * d + B_TRUE + rng.normal(0, 0.3, (n, 3))
-        oc._buf[:n, 4:7] = [0.0, 0.0, 1.0]
-        oc._nbuf = n
-        return {c.method for c in oc._candidates(n)}
+        m = F * d + B_TRUE + rng.normal(0, 0.3, (n, 3))
+        u = np.tile([0.0, 0.0, 1.0], (n, 1))
+        return {c.method for c in candidates(m, u, None, True, F, np.sin(INC), OnlineSettings())}
 
     assert methods(50) <= {"gravity", "sphere"}
     assert methods(300) - {"gravity", "sphere"}
@@ -256,7 +259,7 @@ def test_local_vertical_field_is_not_taken_for_a_moved_offset():
     """A building whose vertical field is 8 µT weaker than the WMM's (|m_cal| 39.6 µT instead of 47 µT all
     along the walk): in the texting pose it looks like an offset shift along the mean up vector, but no
     device-fixed shift is needed once the local field is free — no recalibration, the given offset stays
-    (tyrex iPhone 5 NoDist had this and lost 1.3° of heading to a wrong recalibration)."""
+    (the tyrex iPhone 5 NoDist walk has such a field: read as a moved offset it costs 1.3° of heading)."""
     from pdr_mag.calibration.model import MagCalibration
 
     d = synth_walk(duration=120.0, seed=9, local_w=(0.0, 0.0, 8.0))
@@ -298,8 +301,9 @@ def test_offset_refit_keeps_the_soft_iron_shape():
 
 
 def test_update_blocks_equals_update_per_block():
-    """Several blocks in one call (the pipeline's path) == one call per block: same events, same state;
-    with ``stop_on_change`` it stops at the end of the block whose close changed the calibration."""
+    """Several blocks in one call (the pipeline's path) == one call per block: it stops at the end of the
+    block whose close changed the calibration; called again from there until every row is taken, the same
+    events, coverage and state."""
     d = synth_walk(duration=40.0, seed=9)
     t, q = d["truth"]
     tm, mag = d["mag"]
@@ -314,22 +318,27 @@ def test_update_blocks_equals_update_per_block():
         w = blk == k
         ev_a += a.update(tm[w], mag[w], up[w], rate[w])
     b = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
-    ev_b, n, cov = b.update_blocks(tm, mag, up, rate, ends, stop_on_change=False)
-    assert n == len(tm) and ev_a == [e for _, e in ev_b] and a.get_state() == b.get_state()
+    ev_b, cov, i, stops = [], np.full(len(tm), np.nan), 0, []
+    while i < len(tm):
+        before = b.calibration
+        ev, n, c = b.update_blocks(tm[i:], mag[i:], up[i:], rate[i:], ends[i:])
+        ev_b += [e for _, e in ev]
+        cov[i : i + n] = c[:n]
+        i += n
+        assert ends[i - 1]  # a whole number of blocks
+        if i < len(tm):
+            assert b.calibration is not before  # stopped at a change
+            stops.append(i)
+    assert stops and ev_a == ev_b and a.get_state() == b.get_state()
     assert np.all(np.isfinite(cov[ends])) and not np.any(np.isfinite(cov[~ends]))
     assert cov[-1] == pytest.approx(a.coverage())
-    # stopping at the first change: the prefix is a whole number of blocks and ends with the change
-    c = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
-    ev_c, n, _ = c.update_blocks(tm, mag, up, rate, ends)
-    assert 0 < n < len(tm) and ends[n - 1] and c.calibration is not None
-    assert [e for _, e in ev_c] == [e for e in ev_a if e[0] <= tm[n - 1]]
 
 
 def test_online_refits_are_judged_by_the_calibration_core_rules():
     """An implausible soft iron (eigenvalue spread 3.2) is refused with the core's own reason, although
     the online rules (offset σ, residual, offset range, radius) would let it through."""
     from pdr_mag.calibration.model import MagCalibration
-    from pdr_mag.calibration.online import OnlineSettings, judge
+    from pdr_mag.calibration.refit import judge
 
     cal = MagCalibration.from_arrays(
         [10.0, -20.0, 30.0], np.diag([1.6, 0.5, 1.0]), field_uT=47.0, method="ml", n_samples=400,
@@ -342,3 +351,45 @@ def test_online_refits_are_judged_by_the_calibration_core_rules():
                                           n_samples=400, residual_rms_uT=0.5, offset_std_uT=[0.1] * 3),
                OnlineSettings(), field_ref=47.0)
     assert ok.accepted, ok.reasons
+
+
+def test_rows_with_nan_are_skipped():
+    """Rows with a NaN up vector (no attitude yet) or time are skipped: the same events, coverage and state
+    as without them, also when a block's last row is one."""
+    d = synth_walk(duration=30.0, seed=2)
+    t, q = d["truth"]
+    tm, mag = d["mag"]
+    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
+    up = rot.inv().apply([0.0, 0.0, 1.0])
+    rate = np.interp(tm, d["gyro"][0], np.linalg.norm(d["gyro"][1], axis=1))
+    blk = np.floor(tm / 0.5)
+    ends = np.r_[blk[1:] != blk[:-1], True]
+    bad = np.zeros(len(tm), dtype=bool)
+    bad[:30] = True  # whole blocks at the start
+    bad[np.flatnonzero(ends)[5::7]] = True  # some blocks' last rows
+    up_nan, t_nan = up.copy(), tm.copy()
+    up_nan[bad] = np.nan
+    t_nan[np.flatnonzero(bad)[::5]] = np.nan
+    rate_nan = rate.copy()
+    rate_nan[::11] = np.nan
+
+    def feed(*rows_and_ends):
+        oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+        ev, cov_blk, i = [], [], 0
+        t_, m_, u_, r_, e_ = rows_and_ends
+        while i < len(t_):
+            got, n, cov = oc.update_blocks(t_[i:], m_[i:], u_[i:], r_[i:], e_[i:])
+            ev += [e for _, e in got]
+            fin = np.isfinite(cov[:n])
+            cov_blk += list(zip(blk_of[i : i + n][fin], cov[:n][fin], strict=True))
+            i += n
+        return ev, cov_blk, oc.get_state()
+
+    blk_of = blk[~bad]
+    ends_good = np.r_[blk_of[1:] != blk_of[:-1], True]
+    rate_good = np.where(np.isfinite(rate_nan), rate_nan, 0.0)[~bad]
+    ref = feed(tm[~bad], mag[~bad], up[~bad], rate_good, ends_good)
+    blk_of = blk
+    got = feed(t_nan, mag, up_nan, rate_nan, ends)
+    assert ref[0] == got[0] and ref[1] == got[1] and ref[2] == got[2]
+    assert any(k == "calibration_accepted" for _, k, _ in ref[0])

@@ -1,0 +1,236 @@
+"""Online refits: the candidate fits of the diversity buffer, their verdicts, and when one is taken into use.
+
+Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vectors ``u_i``:
+
+* the gravity-aided fit (:mod:`pdr_mag.calibration.gravity`), always: it needs yaw turns only.  It keeps the
+  shape of the calibration in force (:func:`gravity_fit_keeping_shape`): a magnet or a case moves the hard
+  iron, not the sensor's scale and axes;
+* seed 003's linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
+  the buffer's direction coverage about the gravity fit's offset reaches ``sphere_coverage``;
+* the calibration core's full fit (:func:`pdr_mag.calibration.select.calibrate`: model by BIC, geometric
+  ML; seeds 000/001/004) once the coverage reaches ``ellipsoid_coverage``, the core's own equal-area
+  coverage could accept it (``ellipsoid_precheck_frac``), and a figure-8 was seen (or nothing is calibrated
+  yet).
+
+Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravity, then the smallest offset
+σ) is the refit's result.  Whether it replaces the calibration in force is :func:`replaces`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from pdr_mag.calibration.coverage import AcceptanceSettings
+from pdr_mag.calibration.coverage import accept as core_accept
+from pdr_mag.calibration.coverage import coverage as core_coverage
+from pdr_mag.calibration.diversity import direction_coverage
+from pdr_mag.calibration.gravity import gravity_aided_offset
+from pdr_mag.calibration.model import _EYE, MagCalibration
+from pdr_mag.calibration.select import calibrate
+from pdr_mag.calibration.sphere import fit_sphere
+
+if TYPE_CHECKING:
+    from pdr_mag.calibration.online import OnlineSettings
+
+#: Preference among accepted refits: the full fit's methods (ellipsoid, ml, …) rank 2.
+_RANK = {"gravity": 0, "sphere": 1}
+
+
+def candidates(
+    m: np.ndarray,
+    u: np.ndarray,
+    current: MagCalibration | None,
+    full_fit_allowed: bool,
+    field_ref: float | None,
+    sin_dip_ref: float | None,
+    settings: OnlineSettings,
+) -> list[MagCalibration]:
+    """Every refit of the buffer (raw ``m``, up ``u``), judged; ``full_fit_allowed``: a figure-8 was seen or
+    nothing is calibrated yet."""
+    s = settings
+    cands: list[MagCalibration] = []
+    centre = current.offset_array if current is not None else None
+    try:
+        g = gravity_fit_keeping_shape(m, u, current, field_ref, sin_dip_ref, s)
+        cands.append(g)
+        centre = g.offset_array
+    except ValueError:
+        pass
+    centred = m - (centre if centre is not None else m.mean(axis=0))
+    cov = direction_coverage(centred)
+    if cov >= s.sphere_coverage:
+        try:
+            cands.append(replace(fit_sphere(m), coverage=cov))
+        except (ValueError, ArithmeticError):
+            pass
+    if (
+        cov >= s.ellipsoid_coverage
+        and full_fit_allowed
+        and core_coverage(centred) >= s.ellipsoid_precheck_frac * AcceptanceSettings().min_coverage
+    ):
+        try:
+            full = calibrate(m, method="auto", field=field_ref)
+            cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
+        except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
+            pass
+    first = current is None
+    # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
+    return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+
+
+def best(judged: list[MagCalibration]) -> MagCalibration | None:
+    """The richest accepted refit (full > sphere > gravity), then the one with the smallest offset σ."""
+    good = [c for c in judged if c.accepted]
+    if not good:
+        return None
+    return max(good, key=lambda c: (_RANK.get(c.method, 2), -float(max(c.offset_std_uT))))  # finite σ
+
+
+def gravity_fit_keeping_shape(
+    m: np.ndarray,
+    u: np.ndarray,
+    current: MagCalibration | None,
+    field_ref: float | None,
+    sin_dip_ref: float | None,
+    settings: OnlineSettings,
+) -> MagCalibration:
+    """Gravity-aided offset fit keeping the soft iron and ``mag_to_imu`` of ``current``.
+
+    With ``M = R·A`` (R = mag_to_imu or I, A = soft iron), ``y = M m`` is the field in the device frame up
+    to a constant ``c = M b``; the fit on ``(y, u)`` gives ``c``, hence ``b = M⁻¹ c`` and its covariance
+    ``M⁻¹ Σ_c M⁻ᵀ``.
+    """
+    s = settings
+    a = current.soft_iron_array if current is not None else np.eye(3)
+    r = None if current is None or current.mag_to_imu is None else np.asarray(current.mag_to_imu, dtype=float)
+    mm = a if r is None else r @ a
+    shaped = not is_identity(mm, 1e-12)
+    g = gravity_aided_offset(
+        m @ mm.T if shaped else m, u, field_ref, sin_dip_ref if field_ref is not None else None,
+        s.sigma_strength_uT, s.sigma_tilt_deg, prior_strength_std_uT=s.prior_strength_std_uT,
+        prior_dip_std_deg=s.prior_dip_std_deg,
+    )  # fmt: skip
+    if not shaped:
+        return g
+    mi = np.linalg.inv(mm)
+    cov_b = mi @ np.asarray(g.covariance, dtype=float) @ mi.T
+    return MagCalibration.from_arrays(
+        mi @ g.offset_array,
+        a,
+        field_uT=g.field_uT,
+        method="gravity",
+        residual_rms_uT=g.residual_rms_uT,
+        offset_std_uT=np.sqrt(np.maximum(np.diag(cov_b), 0)),
+        n_samples=g.n_samples,
+        covariance=cov_b,
+        mag_to_imu=current.mag_to_imu,
+        extra={**g.extra, "shape_from": current.method},
+    )
+
+
+def judge(
+    cal: MagCalibration,
+    settings: OnlineSettings,
+    field_ref: float | None,
+    first: bool = False,
+    coverage: float | None = None,
+) -> MagCalibration:
+    """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
+
+    The calibration core's rules (:func:`pdr_mag.calibration.coverage.accept`: sample count, radius against
+    the reference, residual, offset σ and range, soft-iron spread, conditioning — the coverage rules apply
+    where the fit recorded its coverage) are applied to every refit but the gravity-aided one, whose
+    geometry they do not describe; the online rules below are applied in any case: offset σ (below
+    ``max_offset_std_uT``, or ``first_offset_std_uT`` for the very first calibration), residual RMS relative
+    to F, offset magnitude, radius against the reference strength.  ``coverage`` given: the copy also gets
+    it (for the gravity-aided refit, whose rules do not read it).
+    """
+    reasons: list[str] = []
+    if cal.method != "gravity":
+        reasons += list(core_accept(cal, field=field_ref).reasons)
+    f = cal.field_uT
+    s = settings
+    bound = s.max_offset_std_uT if not first else max(s.first_offset_std_uT, s.max_offset_std_uT)
+    if not all(map(math.isfinite, cal.offset_std_uT)) or max(cal.offset_std_uT) > bound:
+        std = np.asarray(cal.offset_std_uT, dtype=float)
+        reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
+    if not np.isfinite(f) or f <= 0:
+        reasons.append("no finite field radius")
+    elif cal.residual_rms_uT > s.max_rms_frac * f:
+        reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {s.max_rms_frac:.0%} of F")
+    if np.linalg.norm(cal.offset_array) > s.max_offset_uT:
+        reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
+    if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > 0.25:
+        reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
+    if coverage is not None:
+        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
+    return cal.with_acceptance(not reasons, reasons)
+
+
+def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool) -> bool:
+    """Whether an accepted refit replaces the calibration in force (outside a recalibration).
+
+    Never a soft-iron shape by an offset-only fit, nor a calibration given by the user by a gravity or
+    sphere fit; not when the residual got worse (``> 1.5 · old + 0.3`` µT: disturbed samples in the
+    buffer); not on noise: the offset must move by 2 σ (σ at least 0.2 µT) or its σ shrink by 20 %.  An
+    upgrade to a soft-iron shape passes the last two rules.
+    """
+    if old is None:
+        return True
+    if state_of(old) == "ellipsoid" and state_of(new) == "offset":
+        return False
+    if provided and new.method in ("gravity", "sphere"):
+        return False
+    shift = np.linalg.norm(new.offset_array - old.offset_array)
+    std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
+    std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
+    upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
+    rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
+    if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
+        return False
+    return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+
+
+def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibration:
+    """A sphere or full refit taken into use gets ``extra["sin_dip"]``: the median of ``−m̂_cal · u`` over the
+    samples it was fitted on (a gravity fit has its own)."""
+    if cal.method == "gravity":
+        return cal
+    mc = cal.apply(m)
+    nm = np.linalg.norm(mc, axis=1)
+    v = -np.einsum("ij,ij->i", mc, u) / np.maximum(nm, 1e-9)
+    return replace(cal, extra={**cal.extra, "sin_dip": float(np.median(v))})
+
+
+def state_of(cal: MagCalibration) -> str:
+    """``"offset"`` for an identity soft iron, else ``"ellipsoid"``."""
+    if cal.soft_iron is _EYE:
+        return "offset"  # the identity of from_arrays(soft_iron=None)
+    return "offset" if is_identity(cal.soft_iron, 1e-9) else "ellipsoid"
+
+
+def is_identity(a, atol: float) -> bool:
+    """``np.allclose(a, np.eye(3), atol=atol)`` for a 3×3 nested sequence, without numpy's overhead."""
+    for i in range(3):
+        for j in range(3):
+            e = 1.0 if i == j else 0.0
+            if not abs(float(a[i][j]) - e) <= atol + 1e-5 * e:
+                return False
+    return True
+
+
+def summary(cal: MagCalibration) -> dict:
+    """The figures of a calibration for an event's data."""
+    return {
+        "method": cal.method,
+        "offset_uT": [round(float(v), 3) for v in cal.offset],
+        "offset_std_uT": [round(float(v), 3) if np.isfinite(v) else None for v in cal.offset_std_uT],
+        "field_uT": round(float(cal.field_uT), 3) if np.isfinite(cal.field_uT) else None,
+        "residual_rms_uT": round(float(cal.residual_rms_uT), 3) if np.isfinite(cal.residual_rms_uT) else None,
+        "coverage": round(float(cal.coverage), 3) if np.isfinite(cal.coverage) else None,
+        "n_samples": int(cal.n_samples),
+    }

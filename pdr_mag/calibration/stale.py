@@ -1,0 +1,124 @@
+"""Stale-calibration test: has the hard-iron offset moved (a magnetised case), or is it a passing disturbance?
+
+The physics.  A new device-fixed offset ``δ`` adds the same vector to the calibrated field in the device
+frame whatever the orientation, so ``|m_cal| − F ≈ δ · m̂_cal`` varies with orientation in a fixed,
+repeatable way: the gravity-aided fit of ``δ`` (:mod:`pdr_mag.calibration.gravity`) on recent calibrated
+samples explains it down to the noise, with the same ``δ`` from the older and the newer half of the window.
+An external anomaly is fixed in the world (or moves with the walker's position): it rotates with the device
+like the Earth's field, no constant device-frame ``δ`` explains it, the two halves disagree and the fit
+residual stays large; and it passes.  A building whose field differs from the WMM is a third case: held in
+one pose, it mimics a shift along the mean up vector, so a shift counts only where the data determine it
+with the local strength and dip free (:func:`device_fixed`).
+
+The test runs on the recent window when its cheap first part found the strength deviating
+(:func:`pdr_mag.calibration._online_kernel.stale_precheck`); what follows a found shift (confirmation a
+while later, the recalibration request) is the calibrator's state machine
+(:class:`pdr_mag.calibration.online.OnlineCalibrator`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from pdr_mag.calibration.gravity import FitModel, fit_offset
+
+if TYPE_CHECKING:
+    from pdr_mag.calibration.online import OnlineSettings
+
+
+class Shift(NamedTuple):
+    """A device-fixed offset shift found on the window: ``δ`` of the calibrated field, its 1-σ and the
+    whole-window fit's residual RMS (µT)."""
+
+    delta: np.ndarray
+    sigma: np.ndarray
+    rms: float
+
+
+#: :func:`window_shift`'s verdict when a fit failed: the test says nothing (a pending candidate stays).
+INCONCLUSIVE = "inconclusive"
+
+
+def window_shift(
+    mag_cal: np.ndarray,
+    up: np.ndarray,
+    model: FitModel,
+    free_model: FitModel,
+    settings: OnlineSettings,
+    candidate_pending: bool,
+) -> Shift | None | str:
+    """Fit a device-fixed shift ``δ`` of the calibrated field on the window (oldest first).
+
+    ``model``: the fit's references (F, sin I: the WMM's or the calibration's) with their priors;
+    ``free_model``: F and sin I free (for :func:`device_fixed`).
+
+    Fits on the whole window and on each half; the shift counts when the halves agree (within 3 σ of their
+    difference, at least 3 µT), the whole-window fit explains the deviation (RMS below half of
+    ``strength_tol_frac · F``), the shift is significant (above ``stale_min_shift_uT`` and 4 σ), well
+    posed (σ below twice ``max_offset_std_uT``) and :func:`device_fixed`.
+
+    Returns the :class:`Shift`, None when there is none, or :data:`INCONCLUSIVE` when a fit failed.  With
+    no candidate pending, a whole-window fit that fails the tests ends the test at once (None).
+    """
+    s = settings
+    n = len(mag_cal)
+    half = n // 2
+    fits = []
+    for lo, hi in ((0, n), (0, half), (half, n)):
+        try:
+            fit = fit_offset(mag_cal[lo:hi], up[lo:hi], model)
+        except ValueError:
+            return INCONCLUSIVE
+        if not fit.ok:
+            return INCONCLUSIVE
+        fits.append(Shift(fit.offset, np.sqrt(np.maximum(np.diag(fit.offset_cov), 0)), fit.rms))
+        if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], model.strength, s):
+            return None
+    whole, a, b = fits
+    sig_ab = np.sqrt(a.sigma**2 + b.sigma**2)
+    consistent = bool(np.all(np.abs(a.delta - b.delta) < np.maximum(3 * sig_ab, 3.0)))
+    if not (consistent and _explains(whole, model.strength, s) and device_fixed(mag_cal, up, free_model, s)):
+        return None
+    return whole
+
+
+def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
+    """The whole-window tests: explained, significant and well posed."""
+    shift = float(np.linalg.norm(fit.delta))
+    return bool(
+        fit.rms < 0.5 * s.strength_tol_frac * strength
+        and shift > s.stale_min_shift_uT
+        and shift > 4 * float(np.linalg.norm(fit.sigma))
+        and float(np.max(fit.sigma)) < 2 * s.max_offset_std_uT
+    )
+
+
+def device_fixed(mag_cal: np.ndarray, up: np.ndarray, free_model: FitModel, settings: OnlineSettings) -> bool:
+    """Whether the window's deviation needs a *device-fixed* offset shift, whatever the local field.
+
+    The window fits hold the local field near the WMM (priors of a few µT / degrees), so a building whose
+    vertical field differs by several µT is, for a phone held in one pose (texting: device z ≈ up, only yaw
+    turns), indistinguishable from an offset shift along the mean up vector ``ū``: ``|m_cal|`` and the dip
+    deviate the same way, orientation-dependently only through the tilt.  Such a shift is not evidence of a
+    moved offset, and taking it as one puts its across-``ū`` part into the horizontal field (tyrex iPhone 5
+    NoDist: a local field 8 µT weaker vertically read as a shift of (−2.5, −3.4, 7.1) µT; heading 1.7° →
+    3.0°).  Here F and F sin I are free (the alternative "the local field differs" gets its own two
+    unknowns): a shift counts only where the data determine it — its components along the covariance's
+    eigen-directions that exceed 4 σ each must together exceed ``stale_min_shift_uT`` (a shift along an
+    ill-determined direction, even at 3 σ, is what a few µT of local field error and the walk's tilt
+    errors make of the ambiguity).  ``free_model``: the fit's σ, F and sin I not given.
+    """
+    try:
+        fit = fit_offset(mag_cal, up, free_model)
+    except ValueError:
+        return False
+    cov = fit.offset_cov
+    if not fit.ok or not np.all(np.isfinite(cov)):
+        return False
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    c = v.T @ fit.offset  # the shift along the covariance's eigen-directions
+    sig = np.sqrt(np.clip(w, 0.0, None))
+    c = c[np.abs(c) > 4.0 * sig]  # the components the data determine
+    return bool(np.linalg.norm(c) > settings.stale_min_shift_uT)
