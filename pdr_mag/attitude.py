@@ -479,10 +479,10 @@ class FusionCore:
         self.set_field(self.field)
 
 
-def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
-    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``), as (row, event): a
-    ``heading_reset`` event with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise
-    positive) and the ``heading_std_deg`` it left."""
+def heading_reset_events(batch: EstimateBatch) -> list[Event]:
+    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``): ``heading_reset`` events
+    with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise seen from above) and the
+    ``heading_std_deg`` it left."""
     jumps = batch.diag.get("heading_reset_deg") if batch.diag else None
     if jumps is None:
         return []
@@ -490,5 +490,5 @@ def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
     for i in np.flatnonzero(np.isfinite(jumps)):
         std = float(batch.heading_std_deg[i])
         data = {"jump_deg": round(float(jumps[i]), 3), "heading_std_deg": round(std, 3)}
-        out.append((int(i), Event(float(batch.t[i]), "heading_reset", data)))
+        out.append(Event(float(batch.t[i]), "heading_reset", data))
     return out
