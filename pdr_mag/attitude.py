@@ -358,6 +358,19 @@ class FusionCore:
         self._ref_strength = None if strength_uT is None else float(strength_uT)
         self._apply_strength()
 
+    def set_calibration_covariance(self, cov_uT2) -> None:
+        """Covariance of the calibration's offset (3×3, device frame, µT²; None = exact).  The heading error
+        it causes, ``g Σ_b gᵀ`` at each sample's orientation, joins the stationary variance of the
+        magnetometer error state c: a coarse early calibration (σ of a few µT against a horizontal field of
+        ~20 µT: ~10°) then weighs as little as it deserves, and the std says so."""
+        if cov_uT2 is None:
+            self._st["cal_cov"] = 0.0
+            return
+        c = np.asarray(cov_uT2, dtype=float)
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+            raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
+        self._st["cal_cov"] = 0.5 * (c + c.T)
+
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:
             self._st["f_ref"] = self._ref_strength
@@ -466,10 +479,10 @@ class FusionCore:
         self.set_field(self.field)
 
 
-def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
-    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``), as (row, event): a
-    ``heading_reset`` event with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise
-    positive) and the ``heading_std_deg`` it left."""
+def heading_reset_events(batch: EstimateBatch) -> list[Event]:
+    """The heading re-acquisitions in these rows (``diag["heading_reset_deg"]``): ``heading_reset`` events
+    with ``jump_deg`` (the turn onto the magnetometer's heading, counter-clockwise seen from above) and the
+    ``heading_std_deg`` it left."""
     jumps = batch.diag.get("heading_reset_deg") if batch.diag else None
     if jumps is None:
         return []
@@ -477,5 +490,5 @@ def heading_reset_events(batch: EstimateBatch) -> list[tuple[int, Event]]:
     for i in np.flatnonzero(np.isfinite(jumps)):
         std = float(batch.heading_std_deg[i])
         data = {"jump_deg": round(float(jumps[i]), 3), "heading_std_deg": round(std, 3)}
-        out.append((int(i), Event(float(batch.t[i]), "heading_reset", data)))
+        out.append(Event(float(batch.t[i]), "heading_reset", data))
     return out

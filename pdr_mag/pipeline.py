@@ -49,6 +49,7 @@ import numpy as np
 
 from pdr_mag import _pipeline_kernel as PK
 from pdr_mag._json import state_float
+from pdr_mag.attitude import heading_reset_events
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
@@ -67,10 +68,20 @@ _SPAN_MIN = 4
 _SPAN_MAX = 32
 
 
-def _default_fusion_settings():
+def _fusion_settings(settings, meta: dict):
+    """The fusion settings (defaults when None), with the accelerometer range the recording states
+    (``meta["accel_range_m_s2"]``, per axis) unless the settings give one."""
+    from dataclasses import replace
+
     from pdr_mag.attitude import FusionSettings
 
-    return FusionSettings()
+    settings = settings or FusionSettings()
+    rng = meta.get("accel_range_m_s2")
+    if settings.acc_range == 0.0 and rng is not None:
+        if not (isinstance(rng, int | float) and math.isfinite(rng) and rng > 0):
+            raise ValueError(f"meta: accel_range_m_s2: expected a positive number of m/s², got {rng!r}")
+        settings = replace(settings, acc_range=float(rng))
+    return settings
 
 
 @dataclass(frozen=True)
@@ -195,7 +206,7 @@ class HeadingPipeline:
         if fusion is None:
             from pdr_mag.attitude import FusionCore
 
-            fusion = FusionCore(self.settings.fusion or _default_fusion_settings(), self.field)
+            fusion = FusionCore(_fusion_settings(self.settings.fusion, self.meta), self.field)
         self.fusion = fusion
         f = self.field
         self.online = OnlineCalibrator(
@@ -432,6 +443,7 @@ class HeadingPipeline:
         if len(batch):
             batch.diag["coverage"] = PK.rows_coverage(batch.t, b, closed_blk, closed_cov, self._coverage)
             events += [(math.floor(ev.t / b), 0, ev) for ev in self._interference_events(batch)]
+            events += [(math.floor(ev.t / b), 0, ev) for ev in heading_reset_events(batch)]
             self._n_out += len(batch)
             self._out.append(batch)
         if len(closed_cov):
@@ -469,7 +481,7 @@ class HeadingPipeline:
     def _use_calibration(self, restored: bool = False) -> None:
         """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = mag_to_imu · soft iron; None
         for the identity) for the filter's input, and (unless ``restored`` with the fusion core's state) its
-        radius as the detectors' reference strength."""
+        radius as the detectors' reference strength and its offset covariance as a source of heading error."""
         cal = self.online.calibration
         self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
         self._mag_matrix_t = None
@@ -482,6 +494,8 @@ class HeadingPipeline:
             if not self._calibrations:
                 self._calibrations.append((-np.inf, cal))
             self.fusion.set_reference_strength(float(cal.field_uT))
+        if not restored:
+            self.fusion.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
     def _interference_events(self, batch: EstimateBatch) -> list[Event]:
         """The changes of the interference flag in these rows."""

@@ -255,3 +255,38 @@ def test_span_length_does_not_change_the_result(walk, monkeypatch):
         assert [(e.t, e.kind) for e in pipe.pop_events()] == events
         assert [t for t, _ in pipe.calibrations] == [t for t, _ in ref.calibrations]
         assert pipe.fusion.get_state() == ref.fusion.get_state()
+
+
+def test_accelerometer_range_from_the_recording():
+    """``meta["accel_range_m_s2"]`` reaches the filter unless its settings give one; a bad one is named."""
+    from pdr_mag.attitude import FusionSettings
+
+    assert HeadingPipeline(meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.acc_range == 19.6
+    given = PipelineSettings(fusion=FusionSettings(acc_range=39.2))
+    assert HeadingPipeline(given, meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.acc_range == 39.2
+    with pytest.raises(ValueError, match="accel_range_m_s2"):
+        HeadingPipeline(meta={**META, "accel_range_m_s2": -1})
+
+
+def test_heading_reset_is_an_event_of_the_pipeline():
+    """A walk whose first 40 s have a field turned by 90° (strength and dip unchanged: undetectable): the
+    pipeline, given the (exact) calibration, re-acquires the heading once the true field is back and emits
+    one ``heading_reset`` with the jump."""
+    from scipy.spatial.transform import Rotation
+
+    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim import simulate
+
+    w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None})
+    tm, m = w.mag
+    tt, qt = w.truth
+    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    a = np.where(tm < tm[0] + 40.0, np.radians(90.0), 0.0)
+    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
+    pipe = HeadingPipeline(
+        PipelineSettings(online=False), calibration=MagCalibration(offset=(0.0, 0.0, 0.0)), meta=w.meta
+    )
+    pipe.run({"accel": w.accel, "gyro": w.gyro, "mag": (tm, (rt.inv() * turn * rt).apply(m))})
+    resets = [e for e in pipe.pop_events() if e.kind == "heading_reset"]
+    assert len(resets) == 1 and resets[0].t > tm[0] + 40.0
+    assert abs(abs(resets[0].data["jump_deg"]) - 90.0) < 10.0

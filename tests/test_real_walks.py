@@ -87,7 +87,6 @@ XFAIL_B: dict[str, tuple[str, bool]] = {
         "14.8° > 6.4° (os 4.4° + 2°): the first online calibration of the 590-µT offset is 18 µT off",
         True,
     ),
-    "Thibaud_iPhone5_Dist_FrontPocket": ("21.2° > 21.1° (imufusion_cal 19.1° + 2°)", False),
 }
 #: (walk, mode) → the share of its frames beyond 3σ today, strict
 XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {
@@ -96,7 +95,6 @@ XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {
         " dip before the first disturbance",
         True,
     ),
-    ("Thibaud_Nexus5_Dist_AR", "b"): ("11 % of the frames beyond 3σ", False),
     ("Thibaud_iPhone5_Dist_AR", "b"): (
         "50 % of the frames beyond 3σ: online calibration in the disturbed area",
         True,

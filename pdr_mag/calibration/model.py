@@ -108,6 +108,17 @@ class MagCalibration:
     def soft_iron_array(self) -> np.ndarray:
         return np.asarray(self.soft_iron, dtype=float)
 
+    @property
+    def offset_covariance(self) -> np.ndarray | None:
+        """Covariance of the offset, 3×3 µT²: the offset block of ``covariance`` (every fit puts the offset
+        first), else ``diag(offset_std_uT²)``; None when neither is known."""
+        if self.covariance is not None:
+            c = np.asarray(self.covariance, dtype=float)
+            if c.ndim == 2 and c.shape[0] >= 3 and np.all(np.isfinite(c[:3, :3])):
+                return c[:3, :3].copy()
+        s = np.asarray(self.offset_std_uT, dtype=float)
+        return np.diag(s * s) if np.all(np.isfinite(s)) else None
+
     def apply(self, mag_raw: np.ndarray) -> np.ndarray:
         """Calibrated field ``soft_iron @ (m_raw − offset)`` for samples of shape (3,) or (N, 3), µT.
 

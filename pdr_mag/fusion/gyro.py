@@ -112,9 +112,10 @@ def predict(s, R, wx, wy, wz, dt, p):
 
 @njit(cache=True, error_model="numpy")
 def magerr_var(s, p):
-    """Stationary variance of c, rad²: ``σ_c² + (mag_env_k · d_env / B_h)²`` (the environment's recent
-    disturbance level ``d_env``, see :mod:`pdr_mag.fusion.mag`)."""
-    v = p.mag_error_std_rad**2
+    """Stationary variance of c, rad²: ``σ_c² + (mag_env_k · d_env / B_h)² + g Σ_b gᵀ`` (the environment's
+    recent disturbance level ``d_env`` and the calibration's offset covariance ``Σ_b`` seen in the heading
+    at the latest sample, see :mod:`pdr_mag.fusion.mag`)."""
+    v = p.mag_error_std_rad**2 + s.cal_var
     if p.mag_env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
         v += p.mag_env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
     return v

@@ -61,6 +61,7 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
+from pdr_mag.fusion.gyro import magerr_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
@@ -97,6 +98,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     bh = np.sqrt(mwx * mwx + mwy * mwy) * f
     if bh < 1e-3:
         return
+    _calibration_variance(s, R, mwx * f, mwy * f)
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
@@ -121,7 +123,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     h[TH_Z] = 1.0
     h[C_ERR] = 1.0
     if s.init < 2:
-        _first_fix(s, h, r, rv, t)
+        _first_fix(s, h, r, rv, t, p)
         return
     r = wrap(r - s.c)
     # χ² gate with the undisturbed noise
@@ -186,6 +188,25 @@ def _reacquire(s, R, jump, h, rv, t, p):
 
 
 @njit(cache=True, error_model="numpy")
+def _calibration_variance(s, R, ex, ny):
+    """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
+    (device frame) causes at this orientation, ``g = ∂ψ/∂m_d = (m_y R_x − m_x R_y) / B_h²`` (rows x, y of
+    R; ``m_x, m_y`` the field's east and north components)."""
+    bh2 = ex * ex + ny * ny
+    if bh2 <= 0.0:
+        return
+    g0 = (ny * R[0, 0] - ex * R[1, 0]) / bh2
+    g1 = (ny * R[0, 1] - ex * R[1, 1]) / bh2
+    g2 = (ny * R[0, 2] - ex * R[1, 2]) / bh2
+    C = s.cal_cov
+    s.cal_var = (
+        g0 * (C[0, 0] * g0 + C[0, 1] * g1 + C[0, 2] * g2)
+        + g1 * (C[1, 0] * g0 + C[1, 1] * g1 + C[1, 2] * g2)
+        + g2 * (C[2, 0] * g0 + C[2, 1] * g1 + C[2, 2] * g2)
+    )
+
+
+@njit(cache=True, error_model="numpy")
 def _environment_step(s, dmin2, t, det, p):
     """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s``, and the local
     reference's horizontal strength ``B_h = F_loc cos I_loc`` (they set the stationary variance of c)."""
@@ -199,8 +220,10 @@ def _environment_step(s, dmin2, t, det, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _first_fix(s, h, r, rv, t):
+def _first_fix(s, h, r, rv, t, p):
     """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
+    P = s.P
+    P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], magerr_var(s, p))  # a coarse calibration's error from the start
     rotate_world(s.q_gyro, 0.0, 0.0, r)
     _turn_world_frame(s, r)
     _heading_from_field(s, h, rv)

@@ -67,6 +67,8 @@ STATE = np.dtype(
         ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
         ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
+        ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
+        ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
         ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
