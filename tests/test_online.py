@@ -179,9 +179,9 @@ def test_refits_fit_only_on_new_samples(monkeypatch):
     fit = refit.candidates
     count = [0]
 
-    def counted(*args):
+    def counted(*args, **kwargs):
         count[0] += 1
-        return fit(*args)
+        return fit(*args, **kwargs)
 
     monkeypatch.setattr(refit, "candidates", counted)
     for name, s in (("every", every), ("gated", OnlineSettings())):
@@ -393,3 +393,18 @@ def test_rows_with_nan_are_skipped():
     got = feed(t_nan, mag, up_nan, rate_nan, ends)
     assert ref[0] == got[0] and ref[1] == got[1] and ref[2] == got[2]
     assert any(k == "calibration_accepted" for _, k, _ in ref[0])
+
+
+def test_correlated_errors_scale_the_offset_covariance():
+    """12 samples over 3 s hold about 1 + 3 / 2 = 2.5 independent errors (field_corr_s = 2 s): the
+    covariance grows by 12 / 2.5; samples spread over 60 s are independent enough (no change)."""
+    from pdr_mag.calibration.model import MagCalibration
+    from pdr_mag.calibration.refit import with_correlated_errors
+
+    cov = np.diag([1.0, 4.0, 9.0])
+    cal = MagCalibration.from_arrays((1.0, 2.0, 3.0), offset_std_uT=(1.0, 2.0, 3.0), covariance=cov)
+    short = with_correlated_errors(cal, np.linspace(0.0, 3.0, 12), 2.0)
+    np.testing.assert_allclose(np.asarray(short.covariance), cov * 12 / 2.5, rtol=1e-12)
+    np.testing.assert_allclose(short.offset_std_uT, np.sqrt(np.diag(cov) * 12 / 2.5), rtol=1e-12)
+    long = with_correlated_errors(cal, np.linspace(0.0, 60.0, 12), 2.0)
+    assert long is cal

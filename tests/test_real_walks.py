@@ -78,11 +78,6 @@ XFAIL_A: dict[str, tuple[str, bool]] = {
 }
 #: walk → its mode-b figure against its bound today, strict
 XFAIL_B: dict[str, tuple[str, bool]] = {
-    "Thibaud_Nexus5_NoDist_FrontPocket": (
-        "7.2° > 6.4° (os 4.4° + 2°): the error is before and around the first online calibration",
-        False,
-    ),
-    "Thibaud_Nexus5_NoDist_RunningHand": ("7.7° > 6.7° (os 4.7° + 2°); running in hand", False),
     "Thibaud_iPhone4S_NoDist_Texting": (
         "14.8° > 6.4° (os 4.4° + 2°): the first online calibration of the 590-µT offset is 18 µT off",
         True,
@@ -99,7 +94,6 @@ XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {
         "50 % of the frames beyond 3σ: online calibration in the disturbed area",
         True,
     ),
-    ("Thibaud_iPhone5_Dist_FrontPocket", "b"): ("14 % of the frames beyond 3σ", True),
 }
 
 

@@ -82,7 +82,9 @@ class OnlineSettings:
         A gravity/sphere refit is accepted only when every offset σ is below this.
     first_offset_std_uT : float
         The same bound for the very first calibration (none yet): a coarse offset early lets the filter
-        align the heading and learn the gyro bias before the first disturbance; refits refine it.
+        align the heading and learn the gyro bias before the first disturbance; refits refine it.  Its σ
+        (scaled for correlated errors, ``field_corr_s``) goes with it to the fusion filter, which weighs the
+        field by it: 8 µT against a horizontal field of ~20 µT is a ~20° heading, better than none.
     max_rms_frac : float
         Accepted only when the robust residual RMS is below ``max_rms_frac · F``.
     max_offset_uT : float
@@ -115,6 +117,10 @@ class OnlineSettings:
     recal_fallback_s : float
         While recalibrating without a figure-8, an accepted gravity-aided refit on the new buffer older
         than this ends the recalibration.
+    field_corr_s : float
+        Time over which the errors of buffered samples stay correlated (the local field of the place, the
+        priors' error), s: a gravity-aided fit's offset covariance is scaled by ``N / N_eff``,
+        ``N_eff = min(N, 1 + span / field_corr_s)`` (:func:`.refit.with_correlated_errors`).
     """
 
     buffer_size: int = 400
@@ -130,8 +136,8 @@ class OnlineSettings:
     sigma_tilt_deg: float = 3.0
     prior_strength_std_uT: float = 3.0
     prior_dip_std_deg: float = 3.0
-    max_offset_std_uT: float = 2.0
-    first_offset_std_uT: float = 4.0
+    max_offset_std_uT: float = 3.0
+    first_offset_std_uT: float = 8.0
     max_rms_frac: float = 0.08
     max_offset_uT: float = 2000.0
     strength_tol_frac: float = 0.15
@@ -148,6 +154,7 @@ class OnlineSettings:
     stale_rate_hz: float = 10.0
     episode_rate: float = 1.5
     recal_fallback_s: float = 20.0
+    field_corr_s: float = 2.0
 
 
 _EPISODE_EVENTS = {K.EPISODE_START: "rotation_episode_start", K.EPISODE_END: "rotation_episode_end"}
@@ -364,7 +371,7 @@ class OnlineCalibrator:
         full_fit_allowed = bool(self._state[0]["episode_seen"]) or self.cal_state == "none"
         judged = refit.candidates(
             self._buf["m"][:n], self._buf["u"][:n], self.calibration, full_fit_allowed, self.field_ref,
-            self.sin_dip_ref, self.settings,
+            self.sin_dip_ref, self.settings, times=self._buf["t"][:n],
         )  # fmt: skip
         chosen = refit.best(judged)
         if chosen is None:

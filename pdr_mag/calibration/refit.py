@@ -48,14 +48,17 @@ def candidates(
     field_ref: float | None,
     sin_dip_ref: float | None,
     settings: OnlineSettings,
+    times: np.ndarray | None = None,
 ) -> list[MagCalibration]:
-    """Every refit of the buffer (raw ``m``, up ``u``), judged; ``full_fit_allowed``: a figure-8 was seen or
-    nothing is calibrated yet."""
+    """Every refit of the buffer (raw ``m``, up ``u``, sample ``times``), judged; ``full_fit_allowed``: a
+    figure-8 was seen or nothing is calibrated yet."""
     s = settings
     cands: list[MagCalibration] = []
     centre = current.offset_array if current is not None else None
     try:
         g = gravity_fit_keeping_shape(m, u, current, field_ref, sin_dip_ref, s)
+        if times is not None:
+            g = with_correlated_errors(g, times, s.field_corr_s)
         cands.append(g)
         centre = g.offset_array
     except ValueError:
@@ -80,6 +83,31 @@ def candidates(
     first = current is None
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+
+
+def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float) -> MagCalibration:
+    """The offset covariance of a fit whose residuals are correlated in time, scaled by ``N / N_eff``.
+
+    The fit's covariance treats its N samples' errors as independent.  They are not: the local field
+    (steel, the building's own field) and the strength and dip priors' errors are the same for samples taken
+    within ``corr_s`` of each other, so the samples hold about ``N_eff = min(N, 1 + span / corr_s)``
+    independent errors, ``span`` the time the buffer covers.  A buffer of a few seconds — the first fit of
+    a walk — then claims what a few samples can tell, not what a dozen could.
+    """
+    n = len(times)
+    if n < 2 or corr_s <= 0 or cal.covariance is None:
+        return cal
+    span = float(np.max(times) - np.min(times))
+    k = n / min(n, 1.0 + span / corr_s)
+    if k <= 1.0:
+        return cal
+    cov = np.asarray(cal.covariance, dtype=float) * k
+    return replace(
+        cal,
+        covariance=tuple(map(tuple, cov.tolist())),
+        offset_std_uT=tuple(np.sqrt(np.maximum(np.diag(cov)[:3], 0.0)).tolist()),
+        extra={**cal.extra, "correlation_inflation": k},
+    )
 
 
 def best(judged: list[MagCalibration]) -> MagCalibration | None:
