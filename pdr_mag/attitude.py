@@ -198,6 +198,10 @@ class FusionSettings:
         ``mag_env_tau_s`` and ``B_h`` the reference horizontal strength (0 = off).
     mag_env_tau_s : float
         Memory of that environment level, s.
+    mag_env_prior_uT : float
+        The environment level before anything is known of it, µT: a walk starts where the field may already
+        be turned (indoor fields deviate from the model by several µT), so ``d_env`` starts at no less than
+        this and learns the place's own level over ``mag_env_tau_s``.
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
@@ -268,6 +272,7 @@ class FusionSettings:
     mag_error_tau_s: float = 5.0
     mag_env_k: float = 0.3
     mag_env_tau_s: float = 30.0
+    mag_env_prior_uT: float = 5.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0

@@ -62,11 +62,6 @@ XFAIL_A: dict[str, tuple[str, bool]] = {
         False,
     ),
     "Thibaud_Nexus5_Dist_Texting": ("8.5° > 8.4° (madgwick_cal_gcal 6.4° + 2°)", False),
-    "Thibaud_iPhone4S_Dist_BackPocket": (
-        "5.4° > 5.2° (vqf_cal_gcal 3.2° + 2°); 25° of gyro drift over a 17-s disturbance",
-        False,
-    ),
-    "Thibaud_iPhone4S_NoDist_FrontPocket": ("5.63° > 5.62° (vqf_cal_gcal 3.6° + 2°)", False),
     "Thibaud_iPhone4S_NoDist_Phoning": (
         "6.5° > 5.4° (vqf_cal_gcal 3.4° + 2°); a recalibration requested mid-walk",
         True,
@@ -85,11 +80,6 @@ XFAIL_B: dict[str, tuple[str, bool]] = {
 }
 #: (walk, mode) → the share of its frames beyond 3σ today, strict
 XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {
-    ("Thibaud_Nexus5_Dist_AR", "a"): (
-        "14 % of the frames beyond 3σ: a turned field of normal strength and"
-        " dip before the first disturbance",
-        True,
-    ),
     ("Thibaud_iPhone5_Dist_AR", "b"): (
         "50 % of the frames beyond 3σ: online calibration in the disturbed area",
         True,

@@ -213,7 +213,7 @@ def _environment_step(s, dmin2, t, det, p):
     if np.isfinite(s.t_env):
         s.env_d2 += ew_alpha(t - s.t_env, p.mag_env_tau_s) * (dmin2 - s.env_d2)
     else:
-        s.env_d2 = dmin2
+        s.env_d2 = max(dmin2, p.mag_env_prior_uT**2)
     s.t_env = t
     if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
         s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))

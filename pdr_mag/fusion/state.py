@@ -117,6 +117,7 @@ PARAMS = np.dtype(
             "mag_error_tau_s",
             "mag_env_k",
             "mag_env_tau_s",
+            "mag_env_prior_uT",
             "mag_interval_s",
             "mag_gate",
             "reject_inflate_rad",
