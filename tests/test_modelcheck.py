@@ -179,13 +179,43 @@ def test_local_anomaly():
 
 
 def test_diagnosis_replays_in_the_simulator():
-    """Simulate with the found effect: the gap closes to the noise (the diagnosis can be replayed)."""
+    """The found model, simulated along the recording's true motion, reproduces what was measured down to
+    the noise; and a new recording simulated with the found values is diagnosed alike."""
+    from pdr_mag.sensor_model import SensorModel, predict_mag
+
     r, d = _cached("time_offset", "figure8", {"time_offset": 0.04})
-    found = d.final.estimate["time_offset"]["seconds"]
-    r2 = _sim("figure8", {"time_offset": 0.04}, duration=40.0)
-    d2 = diagnose(*r2.mag, *r2.gyro, *r2.accel, settings=None)
-    assert d2.missing_effect == "time_offset"
-    assert abs(d2.final.estimate["time_offset"]["seconds"] - found) < 1e-9  # same seed, same answer
+    est = d.final.estimate
+    found = est["time_offset"]["seconds"]
+    t_mag, mag = r.mag
+
+    def replay_rms(model):
+        return float(np.sqrt(np.mean((mag - predict_mag(model, t_mag, r.trajectory, r.field.field_w)) ** 2)))
+
+    hard_iron = est["hard_iron"]["uT"]
+    # noise 0.4 µT and quantisation 0.15/√12: 0.402 µT; the baseline model (no lag) replays at ≈ 1.4 µT
+    assert replay_rms(SensorModel({"hard_iron": hard_iron, "time_offset": found})) < 0.45
+    assert replay_rms(SensorModel({"hard_iron": d.baseline.estimate["hard_iron"]["uT"]})) > 1.0
+    # another recording (other motion, clocks and noise) made with the found values
+    r2 = _sim("figure8", {"time_offset": found}, seed=11)
+    d2 = _diag(r2)
+    assert d2.missing_effects == ("time_offset",)
+    est2 = d2.final.estimate["time_offset"]
+    assert abs(est2["seconds"] - found) <= 6 * np.hypot(est2["std"], est["time_offset"]["std"]) + 0.002
+
+
+def test_clock_far_from_zero_gives_the_same_diagnosis():
+    """A phone clock in Unix time (1.7·10⁹ s, where float64 steps are 0.24 µs): same effect, same value."""
+    r, d = _cached("time_offset", "figure8", {"time_offset": 0.04})
+    t0 = 1.7e9
+
+    def shift(s):
+        return s[0] + t0, s[1]
+
+    d2 = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel))
+    assert d2.missing_effects == d.missing_effects
+    a, b = d.final.estimate, d2.final.estimate
+    assert b["time_offset"]["seconds"] == pytest.approx(a["time_offset"]["seconds"], abs=2e-4)
+    assert b["hard_iron"]["t_ref"] == pytest.approx(a["hard_iron"]["t_ref"] + t0, abs=1e-3)
 
 
 def test_use_truth_mode_on_control():

@@ -89,6 +89,9 @@ class Problem:
         windows :func:`anomaly_support` found (it is *local*).
     offset_knots, offset_knot_free : ndarray
         The same for ``hard_iron_change`` (device frame).
+    t_origin : float
+        The recording's clock at time zero of the problem, s: every time above is relative to it (the
+        estimates report times on the recording's clock).
     prior_weight : float
         Weight of the priors on the nonlinear parameters, µT: the residual's σ × √τ_int, so that a prior
         counts as much against correlated residuals as it should against independent ones.
@@ -110,14 +113,17 @@ class Problem:
     anomaly_prior_uT: float = 100.0
     prior_weight: float = 1.0
     r_dw0: np.ndarray | None = None
+    t_origin: float = 0.0
 
     @property
     def n(self) -> int:
         return 3 * len(self.t)
 
 
-def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot_s: float = 1.0) -> Problem:
-    """A :class:`Problem` on the samples inside the track's time span."""
+def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot_s: float = 1.0,
+                 t_origin: float = 0.0) -> Problem:
+    """A :class:`Problem` on the samples inside the track's time span (``t`` and the track's times
+    relative to ``t_origin``)."""
     t = np.asarray(t, dtype=float)
     m = np.asarray(mag, dtype=float)
     keep = (t >= track.t[0]) & (t <= track.t[-1])
@@ -133,7 +139,7 @@ def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot
     nk = max(2, int(np.ceil(span / anomaly_knot_s)) + 1)
     knots = np.linspace(t[0], t[-1], nk)
     prob = Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
-                   knots=knots, knot_free=np.ones(len(knots), dtype=bool))
+                   knots=knots, knot_free=np.ones(len(knots), dtype=bool), t_origin=float(t_origin))
     return with_track(prob, track)
 
 
@@ -352,7 +358,8 @@ def n_params(problem: Problem, effects) -> int:
 
 
 def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
-    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters."""
+    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
+    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved)."""
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
     nl_names = [e for e in _NL_ORDER if e in effects]
@@ -375,7 +382,7 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
 
     nfev = 1
-    if nl_names:
+    if nl_names and max_nfev > 0:
         # Levenberg–Marquardt (MINPACK, QR): the priors keep the parameters sane, no bounds needed;
         # max_nfev counts Jacobian evaluations too, so it is per iteration × (n + 1)
         sol = least_squares(resid, p0, x_scale=np.asarray(scale), method="lm", diff_step=1e-6,
