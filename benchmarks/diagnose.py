@@ -15,8 +15,8 @@ orientation), which separates what the sensor model misses from what the orienta
 The sunsided breadboard gets its MPU6050 temperature channel (read here from ``mpu6050.csv``, since the
 reader does not expose it yet), which enables the ``temperature_offset`` candidate.
 
-    python benchmarks/diagnose.py --suite [--only SUBSTRING] [--json OUT]     # ~25 min on 2 busy cores
-    python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth]
+    python benchmarks/diagnose.py --suite [--only SUBSTRING|cost] [--json OUT]   # ~15 min on 2 busy cores
+    python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth] [--all-tyrex]
     python benchmarks/diagnose.py --synthetic                                  # one recording per effect
 
 Prints Markdown tables (those in benchmarks/RESULTS.md, section "Diagnose (issue 6)").
@@ -37,13 +37,24 @@ sys.path.insert(0, str(ROOT))
 DATA = (ROOT / ".." / "shared" / "datasets").resolve()
 
 
-def recordings() -> list[tuple[str, Path]]:
+#: The tyrex recordings of the table: the seven walks the pipeline was tuned on and the magnetometer
+#: calibrations of the same phones (``--all-tyrex``: every walk and calibration of the folder).
+TYREX = (
+    "Thibaud_Nexus5_Dist_FrontPocket", "Thibaud_Nexus5_Dist_Swinging", "Thibaud_Nexus5_Dist_Texting",
+    "Thibaud_Nexus5_NoDist_Swinging", "Thibaud_Nexus5_NoDist_Texting", "Thibaud_iPhone5_Dist_Texting",
+    "Thibaud_iPhone5_NoDist_Texting", "calib_mag_Nexus5_d1", "calib_mag_Nexus5_d2", "calib_mag_Nexus5_d3",
+    "calib_mag_Nexus5_d4", "calib_mag_iPhone5_d3",
+)
+
+
+def recordings(all_tyrex: bool = False) -> list[tuple[str, Path]]:
     out = []
     ty = DATA / "tyrex-pdrcsv"
     for name in sorted(p.name for p in ty.iterdir()) if ty.is_dir() else []:
         if name.startswith("calib_gyr"):
             continue  # static gyro calibrations: no rotation, nothing for the model check to see
-        out.append((f"tyrex/{name}", ty / name))
+        if all_tyrex or name in TYREX:
+            out.append((f"tyrex/{name}", ty / name))
     ss = DATA / "sunsided-marg" / "set-2"
     for name in sorted(p.name for p in ss.iterdir()) if ss.is_dir() else []:
         out.append((f"sunsided/{name}", ss / name))
@@ -214,8 +225,17 @@ HIDDEN = (
 #: The two hidden-effect suites: (first seed, clock offset s).
 SUITES = ((201, 1000.0), (301, 1.7e9))
 
+#: What the null costs: (scenario, duration s, seed, effect, value), each run with and without the null.
+COST = (
+    ("mixed", 120.0, 401, "soft_iron", SOFT_WEAK),
+    ("mixed", 120.0, 402, "local_anomaly", 15.0),
+    ("mixed", 600.0, 403, "soft_iron", SOFT_WEAK),
+    ("mixed", 2400.0, 404, "soft_iron", SOFT_WEAK),
+    ("mixed", 2400.0, 405, "local_anomaly", 15.0),
+)
 
-def _suite_run(scenario, duration, seed, t0, effect=None, value=None) -> dict:
+
+def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=None) -> dict:
     from pdr_mag.modelcheck import diagnose
     from pdr_mag.sim import simulate
 
@@ -227,12 +247,13 @@ def _suite_run(scenario, duration, seed, t0, effect=None, value=None) -> dict:
         return stream[0] + t0, stream[1]
 
     w0, c0 = time.perf_counter(), time.process_time()
-    d = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel))
+    d = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel), settings=settings)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     stopped = sorted({c.effect for rnd in d.rounds for c in rnd if c.null is not None and not c.null.passed})
+    n_tested = sum(c.null is not None for rnd in d.rounds for c in rnd)
     return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "effect": effect,
             "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "final_gap": d.final.gap,
-            "stopped_by_null": stopped, "wall_s": wall, "cpu_s": cpu}
+            "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall, "cpu_s": cpu}
 
 
 def suite(only: str = "") -> list[dict]:
@@ -267,8 +288,32 @@ def suite(only: str = "") -> list[dict]:
                   f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} "
                   f"| {r['baseline_gap'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
                   f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |", flush=True)
-    _suite_summary(out)
+    if out:
+        _suite_summary(out)
+    if not only or only == "cost":
+        out += cost()
     return out
+
+
+def cost() -> list[dict]:
+    """Wall and CPU time of ``diagnose`` with and without the null on the recordings of :data:`COST`."""
+    from pdr_mag.modelcheck import DiagnoseSettings, NullSettings
+
+    print("\n### What the null costs\n")
+    print("| hidden | length | found | candidates tested against the null | with the null: wall / CPU (s) "
+          "| fixed rules alone: wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    rows = []
+    off = DiagnoseSettings(null=NullSettings(replicates=0))
+    for scen, dur, seed, eff, val in COST:
+        r = _suite_run(scen, dur, seed, 0.0, eff, val)
+        r0 = _suite_run(scen, dur, seed, 0.0, eff, val, settings=off)
+        r.update(label="cost", wall_fixed_s=r0["wall_s"], cpu_fixed_s=r0["cpu_s"], found_fixed=r0["found"])
+        rows.append(r)
+        print(f"| {eff} | {dur / 60:.0f} min | {', '.join(r['found']) or 'null'} | {r['n_tested']} "
+              f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} | {r0['wall_s']:.1f} / {r0['cpu_s']:.1f} |",
+              flush=True)
+    return rows
 
 
 def _suite_summary(rows: list[dict]) -> None:
@@ -291,6 +336,7 @@ def main() -> int:
     ap.add_argument("--no-truth", action="store_true", help="skip the evaluation-mode runs")
     ap.add_argument("--synthetic", action="store_true", help="the simulator table (each effect hidden)")
     ap.add_argument("--suite", action="store_true", help="controls and the hidden-effect suites")
+    ap.add_argument("--all-tyrex", action="store_true", help="every tyrex walk, not only those of the table")
     args = ap.parse_args()
     if args.synthetic:
         synthetic()
@@ -302,9 +348,9 @@ def main() -> int:
         return 0
     rows, results = [], []
     print("| recording | s | orientation | baseline gap (µT) | missing effects (in order; key estimate) "
-          "| final gap (µT) | shrink | wall / CPU (s) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for label, path in recordings():
+          "| final gap (µT) | shrink | stopped by the null | wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for label, path in recordings(args.all_tyrex):
         if args.only not in label:
             continue
         modes = [False]
@@ -314,16 +360,18 @@ def main() -> int:
             try:
                 r = run_one(label, path, use_truth)
             except Exception as exc:  # report and go on: a benchmark, not a test
-                print(f"| {label} | | | failed: {type(exc).__name__}: {str(exc)[:80]} | | | | |")
+                print(f"| {label} | | | failed: {type(exc).__name__}: {str(exc)[:80]} | | | | | |")
                 continue
             results.append(r)
             fin = r["final"]["estimate"]
             eff = "; ".join(f"{e} ({_key_estimate(e, fin.get(e, {}))})" for e in r["missing_effects"])
             eff = eff or "none"
             orient = r["orientation"] + (" +T" if r["temperature"] else "")
+            stopped = sorted({c["effect"] for rnd in r["rounds"] for c in rnd
+                              if c.get("null") is not None and not c["null"]["passed"]})
             line = (f"| {label} | {r['duration_s']:.0f} | {orient} "
                     f"| {r['baseline']['gap']:.2f} | {eff} | {r['final']['gap']:.2f} "
-                    f"| {r['baseline']['gap'] / r['final']['gap']:.1f}× "
+                    f"| {r['baseline']['gap'] / r['final']['gap']:.1f}× | {', '.join(stopped) or '—'} "
                     f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
             rows.append(line)
             print(line, flush=True)

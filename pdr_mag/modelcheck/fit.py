@@ -336,6 +336,8 @@ class FitResult:
         Residual sum of squares, µT².
     k : int
         Number of fitted parameters (σ not counted; it is in every model).
+    penalty : float
+        The priors' share of the minimised cost, µT² (``cost = rss + penalty``).
     """
 
     effects: tuple[str, ...]
@@ -346,6 +348,12 @@ class FitResult:
     k: int
     nfev: int = 1
     std: dict = field(default_factory=dict)
+    penalty: float = 0.0
+
+    @property
+    def cost(self) -> float:
+        """What the fit minimises: residual sum of squares plus the priors' penalty, µT²."""
+        return self.rss + self.penalty
 
     @property
     def gap(self) -> float:
@@ -421,7 +429,7 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))
         std["_cov_nonlinear"] = cov_nl * s2
     return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
-                     k=k, nfev=nfev, std=std)
+                     k=k, nfev=nfev, std=std, penalty=float(np.sum((p * prior) ** 2)))
 
 
 def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:

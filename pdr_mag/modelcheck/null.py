@@ -18,9 +18,7 @@ which is ``R_dw`` for the baseline) and ``u = B / |B|``:
 
 * along ``u``: white noise of the recording's own σ (median absolute first difference / √2 · 1.4826 —
   insensitive to anything slow, which is what a missing effect would put there), and the second-order
-  shortening ``−|B|(1 − cos φ) ≈ −|s|² / 2|B|`` of the field that the error ``s`` across it implies, for
-  errors up to ``max_error_deg`` (the accelerometer bounds the tilt error of the estimate to a few
-  degrees; a larger burst across the field is not an orientation error);
+  shortening ``−|B|(1 − cos φ) ≈ −|s|² / 2|B|`` of the field that the error ``s`` across it implies;
 * perpendicular to ``u`` (2 components): the residual itself, re-drawn with random Fourier phases
   (phases shared by the two components, so their cross-spectrum is kept: Theiler et al. 1992, Prichard
   & Theiler 1994), in two parts:
@@ -30,7 +28,12 @@ which is ``R_dw`` for the baseline) and ``u = B / |B|``:
     bursts, and a local candidate fits a burst better than the same power spread evenly; the envelope
     keeps each burst's size and place, the phases its shape;
   - the rest, stationary: the slow part (its power stays, its timing does not, so a trend or a drift —
-    gyro bias, bias drift — is not copied into the null) and the fast part (noise).
+    gyro bias, bias drift — is not copied into the null) and the fast part (noise);
+
+  and ``|s|`` is clipped at ``|B| sin(max_error_deg)``: with nothing missing, the estimate errs in tilt
+  by a few degrees at most (the accelerometer bounds it) and in heading only as much as the gyro's
+  noise lets it wander — a heading drift is the ``gyro_bias`` candidate, and a larger burst across the
+  field is no orientation error (e.g. what a local candidate's windows could not hold).
 
 The perpendicular part of a genuine local anomaly is thereby copied into the null as well: the data
 cannot tell a field that only turns from an orientation error, so a local anomaly is named for what it
@@ -77,7 +80,8 @@ class NullSettings:
     envelope_s : float
         Moving-RMS length of the fast band's envelope, s.
     max_error_deg : float
-        Largest orientation error whose shortening of the field the surrogate adds, degrees.
+        Largest orientation error (other than a heading drift, which is the ``gyro_bias`` candidate) of
+        a gyro + accelerometer estimate, degrees: the accelerometer bounds its tilt error.
     seed : int
         Seed of the surrogates' phases (a diagnosis is reproducible).
     """
@@ -87,7 +91,7 @@ class NullSettings:
     max_rate_hz: float = 12.5
     band_hz: tuple[float, float] = (0.05, 2.0)
     envelope_s: float = 4.0
-    max_error_deg: float = 5.0
+    max_error_deg: float = 10.0
     seed: int = 0
 
 
@@ -154,10 +158,9 @@ def surrogate_residuals(problem: Problem, fit: FitResult, rng: np.random.Generat
     s_max = np.linalg.norm(b) * np.sin(np.radians(settings.max_error_deg))
     out = []
     for _ in range(n):
-        s = env[:, None] * _random_phases(mid / env[:, None], rng)
-        along = sigma * rng.standard_normal(len(s)) \
-            - np.minimum(np.sum(s**2, axis=1), s_max**2) / (2.0 * np.linalg.norm(b))
-        s += _random_phases(rest, rng)
+        s = env[:, None] * _random_phases(mid / env[:, None], rng) + _random_phases(rest, rng)
+        s *= np.minimum(1.0, s_max / np.maximum(np.linalg.norm(s, axis=1), 1e-12))[:, None]
+        along = sigma * rng.standard_normal(len(s)) - np.sum(s**2, axis=1) / (2.0 * np.linalg.norm(b))
         w = np.outer(along, u) + np.outer(s[:, 0], e1) + np.outer(s[:, 1], e2)
         out.append(np.einsum("nij,nj->ni", maps, w))
     return out

@@ -353,14 +353,17 @@ def _candidate(eff: str, problem: Problem, current: FitResult, added, settings: 
 
 
 def null_statistic(effect: str, problem: Problem, current: FitResult, candidate: FitResult) -> float:
-    """``ln(RSS_current / RSS_candidate)``, over the residual's component along the field for the effects
-    that change its strength (:data:`_STRENGTH`), over all of it for the others.
+    """``ln(RSS_current / RSS_candidate)`` over the residual's component along the field for the effects
+    that change its strength (:data:`_STRENGTH`); for the others ``ln(cost_current / cost_candidate)``
+    over all of it, the cost being what the fit minimises (RSS plus the priors' penalty).
 
     The first is centred near zero under the null (the fit minimises all of the residual, so along the
-    field it may also lose a little); the second is a nested fit's χ²-like gain, ≥ 0.
+    field it may also lose a little); the second is a nested fit's χ²-like gain, ≥ 0 (the RSS alone may
+    grow a little where the refit trades it for a smaller prior penalty on a parameter already in the
+    model).
     """
     if effect not in _STRENGTH:
-        return float(np.log(current.rss / max(candidate.rss, 1e-300)))
+        return float(np.log(current.cost / max(candidate.cost, 1e-300)))
     b = np.asarray(current.linear["field_w"], dtype=float)
     h = sample_matrices(problem, current.nonlinear) @ (b / np.linalg.norm(b))
     h /= np.linalg.norm(h, axis=1, keepdims=True)  # the predicted field's direction, per sample
