@@ -290,11 +290,21 @@ def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray
     return problem.t - (float(nl["time_offset"][0]) if "time_offset" in nl else 0.0)
 
 
-def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False):
+def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False,
+                 along: np.ndarray | None = None):
     """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps
-    (and the regularised normal matrix ``AᵀA`` with ``with_normal``)."""
+    (and the regularised normal matrix ``AᵀA`` with ``with_normal``).
+
+    ``along`` (N, 3) unit vectors: fit and return only the residual's component along them, per sample
+    (``h_iᵀ(y_i − A_i x̂)``, (N,)).
+    """
     a = design(problem, mats, measurement_times(problem, nl), layout)
     y = problem.mag.ravel()
+    if along is not None:
+        n = len(problem.t)
+        proj = sp.csr_matrix((np.asarray(along, dtype=float).ravel(),
+                              (np.repeat(np.arange(n), 3), np.arange(3 * n))), shape=(n, 3 * n))
+        a, y = proj @ a, proj @ y
     ata = (a.T @ a).tocsc()
     aty = a.T @ y
     diag = ata.diagonal()
@@ -365,11 +375,8 @@ def n_params(problem: Problem, effects) -> int:
     return k + sum(_NONLINEAR[e] for e in _NL_ORDER if e in effects)
 
 
-def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
-    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
-    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved)."""
-    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
-    layout = linear_layout(problem, effects)
+def _start(problem: Problem, effects, init: dict | None):
+    """Start values, scales and prior weights of the nonlinear parameters of ``effects``."""
     nl_names = [e for e in _NL_ORDER if e in effects]
     p0, scale, lo, hi = [], [], [], []
     for name in nl_names:
@@ -380,27 +387,35 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         lo.extend([-_NL_BOUND[name]] * size)
         hi.extend([_NL_BOUND[name]] * size)
     p0 = np.clip(np.asarray(p0, float), np.asarray(lo), np.asarray(hi))
-
     prior = problem.prior_weight * np.asarray(
         [1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])]
     )
+    return p0, np.asarray(scale), prior
+
+
+def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int):
+    """Levenberg–Marquardt (MINPACK, QR) from ``p0``: the priors keep the parameters sane, no bounds
+    needed; ``max_nfev`` counts Jacobian evaluations too, so it is per iteration × (n + 1).  No
+    parameters or ``max_nfev=0``: ``p0`` itself.  Returns (p, nfev, jacobian or None)."""
+    if len(p0) == 0 or max_nfev <= 0:
+        return p0, 1, None
+    sol = least_squares(resid, p0, x_scale=scale, method="lm", diff_step=1e-6,
+                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
+    return sol.x, int(sol.nfev), sol.jac
+
+
+def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
+    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
+    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved)."""
+    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
+    layout = linear_layout(problem, effects)
+    p0, scale, prior = _start(problem, effects, init)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
         return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
 
-    nfev = 1
-    if nl_names and max_nfev > 0:
-        # Levenberg–Marquardt (MINPACK, QR): the priors keep the parameters sane, no bounds needed;
-        # max_nfev counts Jacobian evaluations too, so it is per iteration × (n + 1)
-        sol = least_squares(resid, p0, x_scale=np.asarray(scale), method="lm", diff_step=1e-6,
-                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
-        p = sol.x
-        nfev = int(sol.nfev)
-        jac = sol.jac
-    else:
-        p = p0
-        jac = None
+    p, nfev, jac = _minimise(resid, p0, scale, max_nfev)
     nl = split_nonlinear(effects, p)
     mats = sample_matrices(problem, nl)
     x, r, ata = solve_linear(problem, nl, mats, layout, with_normal=True)
@@ -430,6 +445,28 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         std["_cov_nonlinear"] = cov_nl * s2
     return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
                      k=k, nfev=nfev, std=std, penalty=float(np.sum((p * prior) ** 2)))
+
+
+def fit_along(problem: Problem, effects, along: np.ndarray, init: dict | None = None,
+              max_nfev: int = 60) -> float:
+    """The least cost that baseline + ``effects`` reach on the residual's component along the unit
+    vectors ``along`` (N, 3) alone: ``Σ (h_iᵀ r_i)²`` plus the priors' penalty, µT².
+
+    What an effect explains of the measured field's *strength* (``along`` = the predicted field's
+    direction): nested models give nested costs, whatever the effect does across the field.
+    """
+    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
+    layout = linear_layout(problem, effects)
+    p0, scale, prior = _start(problem, effects, init)
+
+    def resid(p):
+        nl = split_nonlinear(effects, p)
+        r = solve_linear(problem, nl, sample_matrices(problem, nl), layout, along=along)[1]
+        return np.concatenate([r, p * prior])
+
+    p, _, _ = _minimise(resid, p0, scale, max_nfev)
+    r = resid(p)
+    return float(r @ r)
 
 
 def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:

@@ -35,17 +35,16 @@ which is ``R_dw`` for the baseline) and ``u = B / |B|``:
   noise lets it wander — a heading drift is the ``gyro_bias`` candidate, and a larger burst across the
   field is no orientation error (e.g. what a local candidate's windows could not hold).
 
-The perpendicular part of a genuine local anomaly is thereby copied into the null as well: the data
-cannot tell a field that only turns from an orientation error, so a local anomaly is named for what it
-adds beyond that (its change of field strength, its direction within the plane).
+The search draws the surrogates from the residual that is left *with* the candidate under test, so what
+the candidate explains is not copied into its own null (:func:`pdr_mag.modelcheck.select._null_tests`).
 
 Decision
 --------
-The statistic of a candidate is ``L = ln(RSS_current / RSS_candidate)`` (scale-free; ΔBIC without the
-penalty), taken alike on the recording and on each replicate — for an effect that changes the field's
-strength over the residual's component along the field only, which no orientation error reaches
-(:func:`pdr_mag.modelcheck.select.null_statistic`).  The candidate beats the null when its ``L`` exceeds
-the ``1 − false_alarm`` prediction bound of the replicates (:func:`null_threshold`).
+The statistic of a candidate is a nested fit's gain ``L = ln(cost_current / cost_candidate)`` (ΔBIC
+without the penalty), taken alike on the recording and on each replicate — for an effect that changes
+the field's strength on the residual's component along the field alone, which no orientation error
+reaches (:func:`pdr_mag.modelcheck.select._null_tests`).  The candidate beats the null when its ``L``
+exceeds the ``1 − false_alarm`` prediction bound of the replicates (:func:`null_threshold`).
 """
 
 from __future__ import annotations
@@ -190,9 +189,8 @@ def null_threshold(values, false_alarm: float, cube_root: bool = True) -> float:
     ``x̄ + t_{m−1}(1 − α) · s · √(1 + 1/m)`` with probability exactly α (Student's t with m − 1 degrees of
     freedom): the replicates' own randomness is included, so few replicates give a higher threshold, not
     a higher false-alarm rate.  ``cube_root``: the bound is taken on the cube roots — a statistic that is
-    χ²-like (a nested least-squares fit to correlated Gaussian noise, ≥ 0) has a nearly Gaussian cube
-    root (Wilson & Hilferty 1931); without it on the values themselves (a statistic centred near zero,
-    of either sign).
+    χ²-like (a nested least-squares fit's gain on correlated Gaussian noise, ≥ 0) has a nearly Gaussian
+    cube root (Wilson & Hilferty 1931); without it, on the values themselves.
     """
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]

@@ -39,6 +39,7 @@ from pdr_mag.modelcheck.fit import (
     CANDIDATES,
     FitResult,
     Problem,
+    fit_along,
     fit_model,
     integrated_autocorr_time,
     make_problem,
@@ -115,8 +116,9 @@ class DiagnoseSettings:
 
 @dataclass(frozen=True)
 class NullTest:
-    """A candidate against the recording's null: its statistic ``ln(RSS_current / RSS_candidate)`` on the
-    (subsampled) recording, the replicates' values and the threshold it had to beat."""
+    """A candidate against the recording's null: its statistic (a nested fit's gain
+    ``ln(cost_current / cost_candidate)``, see :func:`_null_tests`) on the subsampled recording, the
+    replicates' values and the threshold it had to beat."""
 
     statistic: float
     threshold: float
@@ -179,6 +181,7 @@ class Diagnosis:
     duration_s: float
     n_samples: int
     n_eff: float = float("nan")
+    rules: dict = field(default_factory=dict)
 
     @property
     def missing_effect(self) -> str | None:
@@ -197,6 +200,7 @@ class Diagnosis:
             "duration_s": _r(self.duration_s, 3),
             "n_samples": self.n_samples,
             "n_eff": _r(self.n_eff, 1),
+            "rules": self.rules,
         }
 
 
@@ -352,24 +356,11 @@ def _candidate(eff: str, problem: Problem, current: FitResult, added, settings: 
     return p, f
 
 
-def null_statistic(effect: str, problem: Problem, current: FitResult, candidate: FitResult) -> float:
-    """``ln(RSS_current / RSS_candidate)`` over the residual's component along the field for the effects
-    that change its strength (:data:`_STRENGTH`); for the others ``ln(cost_current / cost_candidate)``
-    over all of it, the cost being what the fit minimises (RSS plus the priors' penalty).
-
-    The first is centred near zero under the null (the fit minimises all of the residual, so along the
-    field it may also lose a little); the second is a nested fit's χ²-like gain, ≥ 0 (the RSS alone may
-    grow a little where the refit trades it for a smaller prior penalty on a parameter already in the
-    model).
-    """
-    if effect not in _STRENGTH:
-        return float(np.log(current.cost / max(candidate.cost, 1e-300)))
-    b = np.asarray(current.linear["field_w"], dtype=float)
-    h = sample_matrices(problem, current.nonlinear) @ (b / np.linalg.norm(b))
-    h /= np.linalg.norm(h, axis=1, keepdims=True)  # the predicted field's direction, per sample
-    rss_c = float(np.sum(np.einsum("ni,ni->n", current.residual, h) ** 2))
-    rss_e = float(np.sum(np.einsum("ni,ni->n", candidate.residual, h) ** 2))
-    return float(np.log(rss_c / max(rss_e, 1e-300)))
+def field_directions(problem: Problem, fit: FitResult) -> np.ndarray:
+    """Unit direction of the field that ``fit`` predicts, per sample, in magnetometer axes (N, 3)."""
+    b = np.asarray(fit.linear["field_w"], dtype=float)
+    h = sample_matrices(problem, fit.nonlinear) @ (b / np.linalg.norm(b))
+    return h / np.linalg.norm(h, axis=1, keepdims=True)
 
 
 def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fits: dict,
@@ -386,39 +377,49 @@ def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fi
     candidate: the residual of the fuller model holds the orientation error and the noise but not the
     effect, so a missing effect does not raise its own null (Davison & Hinkley 1997, §4.4: resample the
     residuals of the alternative, simulate under the null).  Recording and replicates are treated
-    alike: subsampled to ``null.max_rate_hz``, the current model's linear parameters refitted (its
-    nonlinear ones held: the candidate's fit frees them again, alike on both), the candidate fitted as in
-    the search and its :func:`null_statistic` taken — with two differences: a local effect is fitted in
-    the windows found on the recording (the question being what a field in *those* windows explains when
-    there is only orientation error and noise), and a gyro bias by its first-order heading drift only.
-    Re-estimating the orientation with a fitted bias also changes the tilt between the accelerometer's
-    corrections, a knob that can trim the recording's own tilt errors (which the surrogates, drawn
-    independently of the motion, cannot reproduce): on a simulated texting walk with no bias it shrank
-    the gap by 11 %.
+    alike — subsampled to ``null.max_rate_hz``, and the statistic is a nested fit's gain
+    ``ln(cost_current / cost_candidate)`` (cost: what the fit minimises, RSS plus the priors' penalty;
+    the current model's nonlinear parameters are held, the candidate's fit frees them):
+
+    * effects that change the field's strength (:data:`_STRENGTH`) are fitted to the residual's
+      component along the predicted field alone (:func:`~pdr_mag.modelcheck.fit.fit_along`): what no
+      orientation error reaches;
+    * the others (rotations) to all of it, a gyro bias by its first-order heading drift only:
+      re-estimating the orientation with a fitted bias also changes the tilt between the
+      accelerometer's corrections, a knob that can trim the recording's own tilt errors (which the
+      surrogates, drawn independently of the motion, cannot reproduce) — on a simulated texting walk
+      with no bias it shrank the gap by 11 %;
+    * a local effect is fitted in the windows found on the recording: the question is what a field in
+      *those* windows explains when there is only orientation error and noise.
     """
     ns = settings.null
     stride = stride_for(problem, ns.max_rate_hz)
     sub = subsample(problem, stride)
     prediction = problem.mag - current.residual
-    cur_sub = fit_model(sub, added, dict(current.nonlinear), 0)
+    along = field_directions(sub, current)
+    init = dict(current.nonlinear)
 
-    def statistic(eff: str, p: Problem, p_e: Problem, cur: FitResult | None = None) -> float:
-        cur = cur or fit_model(p, added, dict(current.nonlinear), 0)
+    def statistic(eff: str, p: Problem, p_e: Problem) -> float:
         if eff in _LOCAL:  # the recording's windows, in the recording and in every replicate alike
-            p = replace(p, knots=p_e.knots, knot_free=p_e.knot_free, offset_knots=p_e.offset_knots,
+            q = replace(p, knots=p_e.knots, knot_free=p_e.knot_free, offset_knots=p_e.offset_knots,
                         offset_knot_free=p_e.offset_knot_free)
-            fitted = (p, _fit(p, (*added, eff), cur, settings))
         else:
-            fitted = _candidate(eff, p, cur, list(added), settings)
-        return 0.0 if fitted is None else null_statistic(eff, p, cur, fitted[1])
+            q = p
+        if eff in _STRENGTH:
+            c0 = fit_along(p, added, along, init, 0)
+            c1 = fit_along(q, (*added, eff), along, init, settings.max_nfev)
+        else:
+            cur = fit_model(p, added, init, 0)
+            c0, c1 = cur.cost, _fit(q, (*added, eff), cur, settings).cost
+        return float(np.log(c0 / max(c1, 1e-300)))
 
     out = {}
     for eff, (p_e, f_e) in fits.items():
         rng = np.random.default_rng([ns.seed, rnd, CANDIDATES.index(eff)])
         reps = [statistic(eff, replace(sub, mag=(prediction + res)[::stride]), p_e)
                 for res in surrogate_residuals(p_e, f_e, rng, ns.replicates, ns)]
-        thr = null_threshold(reps, ns.false_alarm, cube_root=eff not in _STRENGTH)
-        out[eff] = NullTest(statistic(eff, sub, p_e, cur_sub), thr, tuple(reps), stride)
+        thr = null_threshold(reps, ns.false_alarm)
+        out[eff] = NullTest(statistic(eff, sub, p_e), thr, tuple(reps), stride)
         if out[eff].passed and not (eff == "hard_iron_change" and "local_anomaly" in fits):
             break
     return out
@@ -561,4 +562,6 @@ def diagnose(
         duration_s=float(problem.t[-1] - problem.t[0]),
         n_samples=len(problem.t),
         n_eff=float(n_eff),
+        rules={"score_threshold": settings.score_threshold, "min_gap_reduction": settings.min_gap_reduction,
+               "null_replicates": settings.null.replicates, "null_false_alarm": settings.null.false_alarm},
     )
