@@ -375,10 +375,11 @@ def n_params(problem: Problem, effects) -> int:
     return k + sum(_NONLINEAR[e] for e in _NL_ORDER if e in effects)
 
 
-def _start(problem: Problem, effects, init: dict | None):
-    """Start values, scales and prior weights of the nonlinear parameters of ``effects``."""
+def _start(problem: Problem, effects, init: dict | None, hold=()):
+    """Start values, scales, prior weights and free-parameter mask of the nonlinear parameters of
+    ``effects`` (those of the effects in ``hold`` are held at ``init``)."""
     nl_names = [e for e in _NL_ORDER if e in effects]
-    p0, scale, lo, hi = [], [], [], []
+    p0, scale, lo, hi, free = [], [], [], [], []
     for name in nl_names:
         size = _NONLINEAR[name]
         v = np.zeros(size) if init is None or name not in init else np.asarray(init[name], float)
@@ -386,36 +387,49 @@ def _start(problem: Problem, effects, init: dict | None):
         scale.extend([_NL_SCALE[name]] * size)
         lo.extend([-_NL_BOUND[name]] * size)
         hi.extend([_NL_BOUND[name]] * size)
+        free.extend([name not in hold] * size)
     p0 = np.clip(np.asarray(p0, float), np.asarray(lo), np.asarray(hi))
     prior = problem.prior_weight * np.asarray(
         [1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])]
     )
-    return p0, np.asarray(scale), prior
+    return p0, np.asarray(scale), prior, np.asarray(free, dtype=bool)
 
 
-def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int):
-    """Levenberg–Marquardt (MINPACK, QR) from ``p0``: the priors keep the parameters sane, no bounds
-    needed; ``max_nfev`` counts Jacobian evaluations too, so it is per iteration × (n + 1).  No
-    parameters or ``max_nfev=0``: ``p0`` itself.  Returns (p, nfev, jacobian or None)."""
-    if len(p0) == 0 or max_nfev <= 0:
+def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int, free: np.ndarray):
+    """Levenberg–Marquardt (MINPACK, QR) over the ``free`` parameters from ``p0``: the priors keep the
+    parameters sane, no bounds needed; ``max_nfev`` counts Jacobian evaluations too, so it is per
+    iteration × (n + 1).  No free parameters or ``max_nfev=0``: ``p0`` itself.  Returns (p, nfev,
+    Jacobian of the free parameters or None)."""
+    if not free.any() or max_nfev <= 0:
         return p0, 1, None
-    sol = least_squares(resid, p0, x_scale=scale, method="lm", diff_step=1e-6,
-                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
-    return sol.x, int(sol.nfev), sol.jac
+
+    def resid_free(q):
+        p = p0.copy()
+        p[free] = q
+        return resid(p)
+
+    sol = least_squares(resid_free, p0[free], x_scale=scale[free], method="lm", diff_step=1e-6, xtol=1e-8,
+                        ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (int(free.sum()) + 1) // 4)
+    p = p0.copy()
+    p[free] = sol.x
+    return p, int(sol.nfev), sol.jac
 
 
-def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
+def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60, hold=()) -> FitResult:
     """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
-    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved)."""
+    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved; ``hold``: those of
+    these effects are, and their uncertainties are not computed)."""
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
-    p0, scale, prior = _start(problem, effects, init)
+    p0, scale, prior, free = _start(problem, effects, init, hold)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
         return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
 
-    p, nfev, jac = _minimise(resid, p0, scale, max_nfev)
+    p, nfev, jac = _minimise(resid, p0, scale, max_nfev, free)
+    if not free.all():
+        jac = None
     nl = split_nonlinear(effects, p)
     mats = sample_matrices(problem, nl)
     x, r, ata = solve_linear(problem, nl, mats, layout, with_normal=True)
@@ -448,23 +462,24 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
 
 
 def fit_along(problem: Problem, effects, along: np.ndarray, init: dict | None = None,
-              max_nfev: int = 60) -> float:
+              max_nfev: int = 60, hold=()) -> float:
     """The least cost that baseline + ``effects`` reach on the residual's component along the unit
-    vectors ``along`` (N, 3) alone: ``Σ (h_iᵀ r_i)²`` plus the priors' penalty, µT².
+    vectors ``along`` (N, 3) alone: ``Σ (h_iᵀ r_i)²`` plus the priors' penalty, µT² (the nonlinear
+    parameters of the effects in ``hold`` held at ``init``).
 
     What an effect explains of the measured field's *strength* (``along`` = the predicted field's
     direction): nested models give nested costs, whatever the effect does across the field.
     """
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
-    p0, scale, prior = _start(problem, effects, init)
+    p0, scale, prior, free = _start(problem, effects, init, hold)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
         r = solve_linear(problem, nl, sample_matrices(problem, nl), layout, along=along)[1]
         return np.concatenate([r, p * prior])
 
-    p, _, _ = _minimise(resid, p0, scale, max_nfev)
+    p, _, _ = _minimise(resid, p0, scale, max_nfev, free)
     r = resid(p)
     return float(r @ r)
 

@@ -306,12 +306,12 @@ def _heading_drift_init(problem: Problem, fit: FitResult) -> np.ndarray:
     return np.clip(sol[:3], -0.4, 0.4)
 
 
-def _fit(problem: Problem, effects, current: FitResult, settings: DiagnoseSettings) -> FitResult:
+def _fit(problem: Problem, effects, current: FitResult, settings: DiagnoseSettings, hold=()) -> FitResult:
     init = dict(current.nonlinear)
-    best = fit_model(problem, effects, init, settings.max_nfev)
+    best = fit_model(problem, effects, init, settings.max_nfev, hold)
     if "gyro_bias" in effects and "gyro_bias" not in current.nonlinear:
         init2 = dict(init, gyro_bias=_heading_drift_init(problem, current))
-        alt = fit_model(problem, effects, init2, settings.max_nfev)
+        alt = fit_model(problem, effects, init2, settings.max_nfev, hold)
         if alt.rss < best.rss:
             best = alt
     return best
@@ -379,7 +379,8 @@ def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fi
     residuals of the alternative, simulate under the null).  Recording and replicates are treated
     alike — subsampled to ``null.max_rate_hz``, and the statistic is a nested fit's gain
     ``ln(cost_current / cost_candidate)`` (cost: what the fit minimises, RSS plus the priors' penalty;
-    the current model's nonlinear parameters are held, the candidate's fit frees them):
+    the current model's nonlinear parameters held in both, only the linear ones and the candidate's
+    refitted):
 
     * effects that change the field's strength (:data:`_STRENGTH`) are fitted to the residual's
       component along the predicted field alone (:func:`~pdr_mag.modelcheck.fit.fit_along`): what no
@@ -407,10 +408,10 @@ def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fi
             q = p
         if eff in _STRENGTH:
             c0 = fit_along(p, added, along, init, 0)
-            c1 = fit_along(q, (*added, eff), along, init, settings.max_nfev)
+            c1 = fit_along(q, (*added, eff), along, init, settings.max_nfev, hold=added)
         else:
             cur = fit_model(p, added, init, 0)
-            c0, c1 = cur.cost, _fit(q, (*added, eff), cur, settings).cost
+            c0, c1 = cur.cost, _fit(q, (*added, eff), cur, settings, hold=added).cost
         return float(np.log(c0 / max(c1, 1e-300)))
 
     out = {}
