@@ -72,12 +72,13 @@ class NullSettings:
         that already pass the ΔBIC and gap rules are tested.  A user running ``diagnose`` over a
         hundred recordings then meets a false name about once, not on every second recording.
     max_rate_hz : float
-        The null runs on every k-th magnetometer sample so that its rate is at most this (cost ∝ 1/k).
-        Fewer samples let a candidate fit more of the noise by chance, so the null only gets stricter.
+        The null runs on every k-th magnetometer sample so that its rate is at most this (cost ∝ 1/k);
+        the recording's own statistic is taken on the same samples, so the level holds — fewer samples
+        cost power, not false alarms.
     band_hz : (float, float)
         Frequency band of the bursts of orientation error across the field, Hz.
     envelope_s : float
-        Moving-RMS length of the fast band's envelope, s.
+        Moving-RMS length of the band's envelope, s.
     max_error_deg : float
         Largest orientation error (other than a heading drift, which is the ``gyro_bias`` candidate) of
         a gyro + accelerometer estimate, degrees: the accelerometer bounds its tilt error.
