@@ -1,15 +1,25 @@
-"""Benchmark of ``pdr-mag diagnose`` (issue 6) on the real recordings in ../shared/datasets.
+"""Benchmark of ``pdr-mag diagnose`` (issues 6 and 11): simulated suites and the real recordings.
 
-For each recording: the baseline gap (hard_iron + noise along the gyro + accelerometer orientation), the
+``--suite``: false alarms and detections on simulated recordings (:data:`CONTROLS`, :data:`HIDDEN`).
+Controls have nothing missing (hard iron + white noise only) in several motions and lengths, 1–40 min;
+the hidden-effect suite is two sets of 1.5–2.5-min recordings — 25 s of figure-8 calibration, then a
+texting walk with turns, clocks that do not start at zero (10³ s and 1.7·10⁹ s, a phone's uptime and Unix
+time) — each with one effect hidden (or none), at a typical and a weak strength.  Per recording: what
+``diagnose`` names, the gap before and after, which candidates passed the fixed ΔBIC and gap rules but not
+the recording's null, and the wall time.
+
+Real recordings: the baseline gap (hard_iron + noise along the gyro + accelerometer orientation), the
 missing effects in the order added with their key estimates, the final gap, how much it shrank, and the
 wall time.  The tyrex recordings are also run in evaluation mode (``use_truth``: along the mocap
 orientation), which separates what the sensor model misses from what the orientation estimate misses.
 The sunsided breadboard gets its MPU6050 temperature channel (read here from ``mpu6050.csv``, since the
 reader does not expose it yet), which enables the ``temperature_offset`` candidate.
 
-    python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth]
+    python benchmarks/diagnose.py --suite [--only SUBSTRING|cost] [--json OUT]   # ~15 min on 2 busy cores
+    python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth] [--all-tyrex]
+    python benchmarks/diagnose.py --synthetic                                  # one recording per effect
 
-Prints a Markdown table (the one in benchmarks/RESULTS.md, section "Diagnose (issue 6)").
+Prints Markdown tables (those in benchmarks/RESULTS.md, section "Diagnose (issue 6)").
 """
 
 from __future__ import annotations
@@ -27,13 +37,24 @@ sys.path.insert(0, str(ROOT))
 DATA = (ROOT / ".." / "shared" / "datasets").resolve()
 
 
-def recordings() -> list[tuple[str, Path]]:
+#: The tyrex recordings of the table: the seven walks the pipeline was tuned on and the magnetometer
+#: calibrations of the same phones (``--all-tyrex``: every walk and calibration of the folder).
+TYREX = (
+    "Thibaud_Nexus5_Dist_FrontPocket", "Thibaud_Nexus5_Dist_Swinging", "Thibaud_Nexus5_Dist_Texting",
+    "Thibaud_Nexus5_NoDist_Swinging", "Thibaud_Nexus5_NoDist_Texting", "Thibaud_iPhone5_Dist_Texting",
+    "Thibaud_iPhone5_NoDist_Texting", "calib_mag_Nexus5_d1", "calib_mag_Nexus5_d2", "calib_mag_Nexus5_d3",
+    "calib_mag_Nexus5_d4", "calib_mag_iPhone5_d3",
+)
+
+
+def recordings(all_tyrex: bool = False) -> list[tuple[str, Path]]:
     out = []
     ty = DATA / "tyrex-pdrcsv"
     for name in sorted(p.name for p in ty.iterdir()) if ty.is_dir() else []:
         if name.startswith("calib_gyr"):
             continue  # static gyro calibrations: no rotation, nothing for the model check to see
-        out.append((f"tyrex/{name}", ty / name))
+        if all_tyrex or name in TYREX:
+            out.append((f"tyrex/{name}", ty / name))
     ss = DATA / "sunsided-marg" / "set-2"
     for name in sorted(p.name for p in ss.iterdir()) if ss.is_dir() else []:
         out.append((f"sunsided/{name}", ss / name))
@@ -157,21 +178,179 @@ def synthetic() -> None:
               f"| {d.final.gap:.2f} | {score if score is not None else '—'} | {wall:.1f} |", flush=True)
 
 
+# ---------------------------------------------------------------------------------------------- suites
+
+HARD_IRON = (22.0, -31.0, 48.0)
+NOISE = 0.4
+SOFT = ((1.08, 0.03, -0.02), (0.03, 0.94, 0.02), (-0.02, 0.02, 1.0))
+SOFT_WEAK = ((1.04, 0.015, -0.01), (0.015, 0.97, 0.01), (-0.01, 0.01, 1.0))
+
+#: Controls: (scenario, duration s, seed, clock offset s); nothing hidden (mixed and chain without steel).
+CONTROLS = (
+    ("mixed", 90.0, 101, 1000.0),
+    ("mixed", 120.0, 102, 1.7e9),
+    ("mixed", 150.0, 103, 1000.0),
+    ("mixed", 135.0, 104, 1.7e9),
+    ("walk", 60.0, 105, 0.0),
+    ("figure8", 60.0, 106, 500.0),
+    ("swing", 120.0, 107, 0.0),
+    ("swing", 180.0, 3, 0.0),
+    ("pocket", 120.0, 108, 2000.0),
+    ("pocket", 180.0, 3, 0.0),
+    ("chain", 180.0, 109, 0.0),
+    ("walk", 600.0, 110, 1.7e9),
+    ("swing", 600.0, 111, 0.0),
+    ("pocket", 1200.0, 112, 0.0),
+    ("mixed", 2400.0, 113, 1.7e9),
+)
+
+#: Hidden effects (label, effect, value), each in two suites of calibration + texting walk recordings.
+HIDDEN = (
+    ("time_offset 40 ms", "time_offset", 0.04),
+    ("time_offset 15 ms", "time_offset", 0.015),
+    ("misalignment 3.9°", "mag_imu_misalignment", (3.0, -2.0, 1.5)),
+    ("misalignment 2.0°", "mag_imu_misalignment", (1.5, -1.0, 0.8)),
+    ("soft_iron ratio 1.15", "soft_iron", SOFT),
+    ("soft_iron ratio 1.08", "soft_iron", SOFT_WEAK),
+    ("bias_drift 7.8 µT/min", "bias_drift", (6.0, -4.0, 3.0)),
+    ("bias_drift 1.2 µT/min", "bias_drift", (0.7, -0.7, 0.7)),
+    ("gyro_bias 1.1 °/s", "gyro_bias", (0.01047, -0.01396, 0.00873)),
+    ("gyro_bias 0.3 °/s", "gyro_bias", (0.0, 0.0, 0.005)),
+    ("local_anomaly 30 µT", "local_anomaly", 30.0),
+    ("local_anomaly 15 µT", "local_anomaly", 15.0),
+    ("noise 1.5 µT (in the baseline)", "noise", 1.5),
+    ("control", None, None),
+    ("control", None, None),
+)
+#: The two hidden-effect suites: (first seed, clock offset s).
+SUITES = ((201, 1000.0), (301, 1.7e9))
+
+#: What the null costs: (scenario, duration s, seed, effect, value), each run with and without the null.
+COST = (
+    ("mixed", 120.0, 401, "soft_iron", SOFT_WEAK),
+    ("mixed", 120.0, 402, "local_anomaly", 15.0),
+    ("mixed", 600.0, 403, "soft_iron", SOFT_WEAK),
+    ("mixed", 2400.0, 404, "soft_iron", SOFT_WEAK),
+    ("mixed", 2400.0, 405, "local_anomaly", 15.0),
+)
+
+
+def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=None) -> dict:
+    from pdr_mag.modelcheck import diagnose
+    from pdr_mag.sim import simulate
+
+    effects = {"hard_iron": HARD_IRON, "noise": NOISE}
+    if effect is not None:
+        effects[effect] = value
+    r = simulate(scenario, seed=seed, duration_s=duration, effects=effects, defaults=False)
+    def shift(stream):
+        return stream[0] + t0, stream[1]
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    d = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel), settings=settings)
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    stopped = sorted({c.effect for rnd in d.rounds for c in rnd if c.null is not None and not c.null.passed})
+    n_tested = sum(c.null is not None for rnd in d.rounds for c in rnd)
+    return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "effect": effect,
+            "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "final_gap": d.final.gap,
+            "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall, "cpu_s": cpu}
+
+
+def suite(only: str = "") -> list[dict]:
+    """Run the controls and the hidden-effect suites; print both tables and a summary."""
+    out = []
+    print("### Controls (nothing hidden)\n")
+    print("| scenario | length | clock starts at (s) | found | gap (µT) | stopped by the null "
+          "| wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for scen, dur, seed, t0 in CONTROLS:
+        if only not in f"control {scen}":
+            continue
+        r = _suite_run(scen, dur, seed, t0)  # no default effects: no steel in mixed and chain
+        r["label"] = "control"
+        out.append(r)
+        print(f"| {scen} | {dur / 60:.0f} min | {t0:.3g} | {', '.join(r['found']) or 'null'} "
+              f"| {r['baseline_gap']:.2f} | {', '.join(r['stopped_by_null']) or '—'} "
+              f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |", flush=True)
+    print("\n### Hidden effects (calibration figure-8 + texting walk, 1.5–2.5 min)\n")
+    print("| hidden | suite | length (s) | found (in order) | gap before → after (µT) | shrink "
+          "| stopped by the null | wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for k, (seed0, t0) in enumerate(SUITES):
+        for i, (label, eff, val) in enumerate(HIDDEN):
+            if only not in label:
+                continue
+            dur = 90.0 + 60.0 * ((7 * i + 3 * k) % 13) / 12.0
+            r = _suite_run("mixed", dur, seed0 + i, t0, eff, val)  # steel only when it is the hidden effect
+            r["label"] = label
+            out.append(r)
+            print(f"| {label} | {'AB'[k]} | {dur:.0f} | {', '.join(r['found']) or 'null'} "
+                  f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} "
+                  f"| {r['baseline_gap'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
+                  f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |", flush=True)
+    if out:
+        _suite_summary(out)
+    if not only or only == "cost":
+        out += cost()
+    return out
+
+
+def cost() -> list[dict]:
+    """Wall and CPU time of ``diagnose`` with and without the null on the recordings of :data:`COST`."""
+    from pdr_mag.modelcheck import DiagnoseSettings, NullSettings
+
+    print("\n### What the null costs\n")
+    print("| hidden | length | found | candidates tested against the null | with the null: wall / CPU (s) "
+          "| fixed rules alone: wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    rows = []
+    off = DiagnoseSettings(null=NullSettings(replicates=0))
+    for scen, dur, seed, eff, val in COST:
+        r = _suite_run(scen, dur, seed, 0.0, eff, val)
+        r0 = _suite_run(scen, dur, seed, 0.0, eff, val, settings=off)
+        r.update(label="cost", wall_fixed_s=r0["wall_s"], cpu_fixed_s=r0["cpu_s"], found_fixed=r0["found"])
+        rows.append(r)
+        print(f"| {eff} | {dur / 60:.0f} min | {', '.join(r['found']) or 'null'} | {r['n_tested']} "
+              f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} | {r0['wall_s']:.1f} / {r0['cpu_s']:.1f} |",
+              flush=True)
+    return rows
+
+
+def _suite_summary(rows: list[dict]) -> None:
+    nulls = [r for r in rows if r["effect"] in (None, "noise")]
+    fa = [r for r in nulls if r["found"]]
+    hid = [r for r in rows if r["effect"] not in (None, "noise")]
+    named = [r for r in hid if r["found"][:1] == [r["effect"]]]
+    extra = [r for r in named if len(r["found"]) > 1]
+    shrink = [r["baseline_gap"] / r["final_gap"] for r in named]
+    print(f"\nfalse alarms: {len(fa)} of {len(nulls)} recordings with nothing missing; "
+          f"hidden effect named first: {len(named)} of {len(hid)} "
+          f"(with an extra effect: {len(extra)}), gap shrink median "
+          f"{np.median(shrink) if shrink else float('nan'):.2f}×")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write all results to this JSON file")
     ap.add_argument("--only", default="", help="only recordings whose label contains this")
     ap.add_argument("--no-truth", action="store_true", help="skip the evaluation-mode runs")
     ap.add_argument("--synthetic", action="store_true", help="the simulator table (each effect hidden)")
+    ap.add_argument("--suite", action="store_true", help="controls and the hidden-effect suites")
+    ap.add_argument("--all-tyrex", action="store_true", help="every tyrex walk, not only those of the table")
     args = ap.parse_args()
     if args.synthetic:
         synthetic()
         return 0
+    if args.suite:
+        rows = suite(args.only)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+        return 0
     rows, results = [], []
     print("| recording | s | orientation | baseline gap (µT) | missing effects (in order; key estimate) "
-          "| final gap (µT) | shrink | wall / CPU (s) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for label, path in recordings():
+          "| final gap (µT) | shrink | stopped by the null | wall / CPU (s) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for label, path in recordings(args.all_tyrex):
         if args.only not in label:
             continue
         modes = [False]
@@ -181,16 +360,18 @@ def main() -> int:
             try:
                 r = run_one(label, path, use_truth)
             except Exception as exc:  # report and go on: a benchmark, not a test
-                print(f"| {label} | | | failed: {type(exc).__name__}: {str(exc)[:80]} | | | | |")
+                print(f"| {label} | | | failed: {type(exc).__name__}: {str(exc)[:80]} | | | | | |")
                 continue
             results.append(r)
             fin = r["final"]["estimate"]
             eff = "; ".join(f"{e} ({_key_estimate(e, fin.get(e, {}))})" for e in r["missing_effects"])
             eff = eff or "none"
             orient = r["orientation"] + (" +T" if r["temperature"] else "")
+            stopped = sorted({c["effect"] for rnd in r["rounds"] for c in rnd
+                              if c.get("null") is not None and not c["null"]["passed"]})
             line = (f"| {label} | {r['duration_s']:.0f} | {orient} "
                     f"| {r['baseline']['gap']:.2f} | {eff} | {r['final']['gap']:.2f} "
-                    f"| {r['baseline']['gap'] / r['final']['gap']:.1f}× "
+                    f"| {r['baseline']['gap'] / r['final']['gap']:.1f}× | {', '.join(stopped) or '—'} "
                     f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
             rows.append(line)
             print(line, flush=True)

@@ -40,6 +40,11 @@ def test_diagnose_json_has_the_interface_keys_and_report(rec_dir, tmp_path, caps
     assert d["final"]["effects"][:2] == ["hard_iron", "noise"] and "time_offset" in d["final"]["effects"]
     assert d["final"]["gap"] < d["baseline"]["gap"] / 2
     assert abs(d["final"]["estimate"]["time_offset"]["seconds"] - 0.05) < 0.005
+    # the added effect beat the recording's own null; the rules that decided are in the JSON
+    added = next(c for c in d["candidates"] if c["effect"] == "time_offset")
+    assert added["significant"] and added["null"]["passed"]
+    assert added["null"]["statistic"] > added["null"]["threshold"] > added["null"]["null_mean"]
+    assert d["rules"]["null_replicates"] == added["null"]["replicates"] > 0
     assert "missing effects: time_offset" in capsys.readouterr().out
     assert "time_offset" in (rep / "report.md").read_text()
     for png in ("residual_vs_time.png", "residual_vs_heading.png", "residual_vs_strength.png",

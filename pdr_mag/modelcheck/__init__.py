@@ -13,6 +13,7 @@ only with ``use_truth=True`` (evaluation mode), and then the same ``B_w`` is sti
 """
 
 from pdr_mag.modelcheck.fit import BASELINE, CANDIDATES
+from pdr_mag.modelcheck.null import NullSettings
 from pdr_mag.modelcheck.orientation import OrientationSettings, estimate_orientation
 from pdr_mag.modelcheck.select import GAP_METRIC, Candidate, DiagnoseSettings, Diagnosis, diagnose
 
@@ -20,6 +21,7 @@ __all__ = [
     "BASELINE",
     "CANDIDATES",
     "GAP_METRIC",
+    "NullSettings",
     "Candidate",
     "DiagnoseSettings",
     "Diagnosis",

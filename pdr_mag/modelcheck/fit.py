@@ -89,6 +89,9 @@ class Problem:
         windows :func:`anomaly_support` found (it is *local*).
     offset_knots, offset_knot_free : ndarray
         The same for ``hard_iron_change`` (device frame).
+    t_origin : float
+        The recording's clock at time zero of the problem, s: every time above is relative to it (the
+        estimates report times on the recording's clock).
     prior_weight : float
         Weight of the priors on the nonlinear parameters, µT: the residual's σ × √τ_int, so that a prior
         counts as much against correlated residuals as it should against independent ones.
@@ -110,14 +113,17 @@ class Problem:
     anomaly_prior_uT: float = 100.0
     prior_weight: float = 1.0
     r_dw0: np.ndarray | None = None
+    t_origin: float = 0.0
 
     @property
     def n(self) -> int:
         return 3 * len(self.t)
 
 
-def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot_s: float = 1.0) -> Problem:
-    """A :class:`Problem` on the samples inside the track's time span."""
+def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot_s: float = 1.0,
+                 t_origin: float = 0.0) -> Problem:
+    """A :class:`Problem` on the samples inside the track's time span (``t`` and the track's times
+    relative to ``t_origin``)."""
     t = np.asarray(t, dtype=float)
     m = np.asarray(mag, dtype=float)
     keep = (t >= track.t[0]) & (t <= track.t[-1])
@@ -133,7 +139,7 @@ def make_problem(t, mag, track: OrientationTrack, temperature=None, anomaly_knot
     nk = max(2, int(np.ceil(span / anomaly_knot_s)) + 1)
     knots = np.linspace(t[0], t[-1], nk)
     prob = Problem(t=t, mag=m, track=track, t_ref=float(np.mean(t)), temperature=temp, temp_ref=temp_ref,
-                   knots=knots, knot_free=np.ones(len(knots), dtype=bool))
+                   knots=knots, knot_free=np.ones(len(knots), dtype=bool), t_origin=float(t_origin))
     return with_track(prob, track)
 
 
@@ -284,11 +290,21 @@ def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray
     return problem.t - (float(nl["time_offset"][0]) if "time_offset" in nl else 0.0)
 
 
-def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False):
+def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False,
+                 along: np.ndarray | None = None):
     """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps
-    (and the regularised normal matrix ``AᵀA`` with ``with_normal``)."""
+    (and the regularised normal matrix ``AᵀA`` with ``with_normal``).
+
+    ``along`` (N, 3) unit vectors: fit and return only the residual's component along them, per sample
+    (``h_iᵀ(y_i − A_i x̂)``, (N,)).
+    """
     a = design(problem, mats, measurement_times(problem, nl), layout)
     y = problem.mag.ravel()
+    if along is not None:
+        n = len(problem.t)
+        proj = sp.csr_matrix((np.asarray(along, dtype=float).ravel(),
+                              (np.repeat(np.arange(n), 3), np.arange(3 * n))), shape=(n, 3 * n))
+        a, y = proj @ a, proj @ y
     ata = (a.T @ a).tocsc()
     aty = a.T @ y
     diag = ata.diagonal()
@@ -330,6 +346,8 @@ class FitResult:
         Residual sum of squares, µT².
     k : int
         Number of fitted parameters (σ not counted; it is in every model).
+    penalty : float
+        The priors' share of the minimised cost, µT² (``cost = rss + penalty``).
     """
 
     effects: tuple[str, ...]
@@ -340,6 +358,12 @@ class FitResult:
     k: int
     nfev: int = 1
     std: dict = field(default_factory=dict)
+    penalty: float = 0.0
+
+    @property
+    def cost(self) -> float:
+        """What the fit minimises: residual sum of squares plus the priors' penalty, µT²."""
+        return self.rss + self.penalty
 
     @property
     def gap(self) -> float:
@@ -351,12 +375,11 @@ def n_params(problem: Problem, effects) -> int:
     return k + sum(_NONLINEAR[e] for e in _NL_ORDER if e in effects)
 
 
-def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60) -> FitResult:
-    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters."""
-    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
-    layout = linear_layout(problem, effects)
+def _start(problem: Problem, effects, init: dict | None, hold=()):
+    """Start values, scales, prior weights and free-parameter mask of the nonlinear parameters of
+    ``effects`` (those of the effects in ``hold`` are held at ``init``)."""
     nl_names = [e for e in _NL_ORDER if e in effects]
-    p0, scale, lo, hi = [], [], [], []
+    p0, scale, lo, hi, free = [], [], [], [], []
     for name in nl_names:
         size = _NONLINEAR[name]
         v = np.zeros(size) if init is None or name not in init else np.asarray(init[name], float)
@@ -364,27 +387,48 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         scale.extend([_NL_SCALE[name]] * size)
         lo.extend([-_NL_BOUND[name]] * size)
         hi.extend([_NL_BOUND[name]] * size)
+        free.extend([name not in hold] * size)
     p0 = np.clip(np.asarray(p0, float), np.asarray(lo), np.asarray(hi))
-
     prior = problem.prior_weight * np.asarray(
         [1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])]
     )
+    return p0, np.asarray(scale), prior, np.asarray(free, dtype=bool)
+
+
+def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int, free: np.ndarray):
+    """Levenberg–Marquardt (MINPACK, QR) over the ``free`` parameters from ``p0``: the priors keep the
+    parameters sane, no bounds needed; ``max_nfev`` counts Jacobian evaluations too, so it is per
+    iteration × (n + 1).  No free parameters or ``max_nfev=0``: ``p0`` itself.  Returns (p, nfev,
+    Jacobian of the free parameters or None)."""
+    if not free.any() or max_nfev <= 0:
+        return p0, 1, None
+
+    def resid_free(q):
+        p = p0.copy()
+        p[free] = q
+        return resid(p)
+
+    sol = least_squares(resid_free, p0[free], x_scale=scale[free], method="lm", diff_step=1e-6, xtol=1e-8,
+                        ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (int(free.sum()) + 1) // 4)
+    p = p0.copy()
+    p[free] = sol.x
+    return p, int(sol.nfev), sol.jac
+
+
+def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60, hold=()) -> FitResult:
+    """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
+    (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved; ``hold``: those of
+    these effects are, and their uncertainties are not computed)."""
+    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
+    layout = linear_layout(problem, effects)
+    p0, scale, prior, free = _start(problem, effects, init, hold)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
         return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
 
-    nfev = 1
-    if nl_names:
-        # Levenberg–Marquardt (MINPACK, QR): the priors keep the parameters sane, no bounds needed;
-        # max_nfev counts Jacobian evaluations too, so it is per iteration × (n + 1)
-        sol = least_squares(resid, p0, x_scale=np.asarray(scale), method="lm", diff_step=1e-6,
-                            xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev * (len(p0) + 1) // 4)
-        p = sol.x
-        nfev = int(sol.nfev)
-        jac = sol.jac
-    else:
-        p = p0
+    p, nfev, jac = _minimise(resid, p0, scale, max_nfev, free)
+    if not free.all():
         jac = None
     nl = split_nonlinear(effects, p)
     mats = sample_matrices(problem, nl)
@@ -414,7 +458,30 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))
         std["_cov_nonlinear"] = cov_nl * s2
     return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
-                     k=k, nfev=nfev, std=std)
+                     k=k, nfev=nfev, std=std, penalty=float(np.sum((p * prior) ** 2)))
+
+
+def fit_along(problem: Problem, effects, along: np.ndarray, init: dict | None = None,
+              max_nfev: int = 60, hold=()) -> float:
+    """The least cost that baseline + ``effects`` reach on the residual's component along the unit
+    vectors ``along`` (N, 3) alone: ``Σ (h_iᵀ r_i)²`` plus the priors' penalty, µT² (the nonlinear
+    parameters of the effects in ``hold`` held at ``init``).
+
+    What an effect explains of the measured field's *strength* (``along`` = the predicted field's
+    direction): nested models give nested costs, whatever the effect does across the field.
+    """
+    effects = tuple(dict.fromkeys([*BASELINE, *effects]))
+    layout = linear_layout(problem, effects)
+    p0, scale, prior, free = _start(problem, effects, init, hold)
+
+    def resid(p):
+        nl = split_nonlinear(effects, p)
+        r = solve_linear(problem, nl, sample_matrices(problem, nl), layout, along=along)[1]
+        return np.concatenate([r, p * prior])
+
+    p, _, _ = _minimise(resid, p0, scale, max_nfev, free)
+    r = resid(p)
+    return float(r @ r)
 
 
 def integrated_autocorr_time(res: np.ndarray, max_lag: int | None = None) -> float:

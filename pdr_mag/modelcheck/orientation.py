@@ -10,10 +10,14 @@ Model (batch, vectorised)
    the mean of consecutive samples, chained ``R_g(t_{i+1}) = R_g(t_i) ΔR_i`` by a log-depth parallel prefix
    product of quaternions (Hillis–Steele scan), starting from the accelerometer tilt at ``t_0``.
 2. Tilt from the accelerometer: the specific force rotated into the gyro frame, ``a_w = R_g a_d``, averaged
-   over a centred window of ``tilt_window_s`` (walking accelerations average out) must point up; the minimal
-   rotation ``C(t)`` (axis horizontal, no yaw) taking the average onto ``+z`` corrects the slow tilt drift:
+   over centred windows (walking accelerations average out) must point up; the minimal rotation ``C(t)``
+   (axis horizontal, no yaw) taking the average onto ``+z`` corrects the slow tilt drift:
    ``R_wd(t) = C(t) R_g(t)``.  This is a zero-phase complementary filter: high frequencies from the gyro,
-   tilt at low frequencies from the accelerometer.
+   tilt at low frequencies from the accelerometer.  The average is three moving averages in a row, of
+   ``tilt_window_s`` × (1, 3/4, 3/5): a single window of length W passes a periodic acceleration of
+   frequency f with gain |sinc(W f)|, up to 9 % above 0.8 Hz for W = 4 s — a hand swinging ±35° at the
+   stride frequency then tilts the estimate by ≈ 5° in step with the swing; the three windows' gains
+   multiply and their zeros fall at different frequencies, which leaves ≤ 0.06 % above 0.8 Hz.
 3. ``b_g`` is zero unless given (or, with ``bias_from_still``, the median gyro over still stretches); a
    bias left over shows as a heading drift ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
 """
@@ -35,7 +39,9 @@ class OrientationSettings:
     Attributes
     ----------
     tilt_window_s : float
-        Length of the centred averaging window of the world-frame specific force, s.
+        Length of the first centred averaging window of the world-frame specific force, s.
+    tilt_passes : tuple of float
+        Lengths of the successive moving averages, as multiples of ``tilt_window_s``.
     still_gyro : float
         Gyro norm below which (after removing the median) the device may be still, rad/s.
     still_accel : float
@@ -49,6 +55,7 @@ class OrientationSettings:
     """
 
     tilt_window_s: float = 4.0
+    tilt_passes: tuple[float, ...] = (1.0, 0.75, 0.6)
     still_gyro: float = 0.05
     still_accel: float = 0.3
     still_min_s: float = 1.0
@@ -190,7 +197,9 @@ def estimate_orientation(
     # tilt correction from the averaged world-frame specific force
     rot_g = Rotation.from_quat(q[:, [1, 2, 3, 0]])
     a_w = rot_g.apply(a_g)
-    a_w_mean = _window_mean(t, a_w, 0.5 * settings.tilt_window_s)
+    a_w_mean = a_w
+    for k in settings.tilt_passes:
+        a_w_mean = _window_mean(t, a_w_mean, 0.5 * k * settings.tilt_window_s)
     corr = _minimal_rotation_to_up(a_w_mean)
     q = quat_multiply(corr, q)
     q /= np.linalg.norm(q, axis=1, keepdims=True)

@@ -57,7 +57,7 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
 
     plots = []
     for key, xlabel, fname in (
-        ("t", "time (s)", "residual_vs_time.png"),
+        ("t", "time since the first magnetometer sample (s)", "residual_vs_time.png"),
         ("heading", "heading of the orientation track (deg, arbitrary reference)", "residual_vs_heading.png"),
         ("strength", "measured field strength |m − b| (µT)", "residual_vs_strength.png"),
         ("rate", "angular rate (rad/s)", "residual_vs_rate.png"),
@@ -78,7 +78,7 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
     ax.plot(after["t"], after["strength"], lw=0.8, color="k", label="measured")
     ax.plot(before["t"], before["strength_sim"], lw=0.8, color="tab:red", label="simulated, baseline")
     ax.plot(after["t"], after["strength_sim"], lw=0.8, color="tab:blue", label="simulated, final")
-    ax.set_xlabel("time (s)")
+    ax.set_xlabel("time since the first magnetometer sample (s)")
     ax.set_ylabel("|m − b| (µT)")
     ax.legend(loc="upper right")
     ax.grid(alpha=0.3)
@@ -100,15 +100,19 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
         "",
         "## Candidates by round",
         "",
-        "| round | effect | gap (µT) | score (ΔBIC) | significant | estimate |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| round | effect | gap (µT) | score (ΔBIC) | null: statistic / threshold | significant | estimate |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for rnd in d["rounds"]:
         for c in rnd:
             est = ", ".join(f"{k}={v}" for k, v in c["estimate"].items() if k != "windows_s")
-            lines.append(f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | "
+            null = "—" if c.get("null") is None else f"{c['null']['statistic']} / {c['null']['threshold']}"
+            lines.append(f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | {null} | "
                          f"{'yes' if c['significant'] else 'no'} | {est} |")
-    lines += ["", "## Final estimates", ""]
+    lines += ["", "Null: the candidate's statistic (ln RSS ratio; along the field for effects that change "
+              "its strength) on the recording, and the threshold it had to beat on surrogates of the "
+              "recording with nothing missing (orientation error and noise only).", "",
+              "## Final estimates", ""]
     for name, est in d["final"]["estimate"].items():
         lines.append(f"- `{name}`: {est}")
     lines += ["", "## Residuals before and after", ""]

@@ -118,6 +118,8 @@ def summary(d: dict, rec) -> str:
         if best is None:
             continue
         mark = "added" if best["significant"] else "not significant"
+        if not best["significant"] and best.get("null") and not best["null"]["passed"]:
+            mark = "not significant: it fits no more than on the recording's own null"
         lines.append(f"  round {best['round']}: best {best['effect']} (score {best['score']}, gap "
                      f"{best['gap']:.3f} µT) — {mark}")
     lines.append(f"  missing effects: {', '.join(d['missing_effects']) or 'none'}")
