@@ -16,13 +16,17 @@ prediction (:mod:`~pdr_mag.fusion.gyro`)
     ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``; ``c ← φ c`` (first-order Gauss–Markov); gaps add
     their unknown rotation to ``P``; a zero-rate update ``ω_m = b + δb + n`` while the device is still.
 accelerometer (:mod:`~pdr_mag.fusion.accel`)
-    tilt only: the direction of the specific force averaged in the world frame observes
-    ``(−δθ_y, δθ_x)`` as it was τ ago (hence also ``δb``); gated on ``||ā| − g|``.
+    tilt only: the direction of the specific force averaged in the world frame observes the window's mean
+    ``(−δθ_y, δθ_x)`` (hence also ``δb``); its noise grows with the measured dynamics and with clipped
+    samples; gated on ``||ā| − g|``; the tilt starts only once the gyroscope streams.
 magnetometer (:mod:`~pdr_mag.fusion.mag`)
     heading only: ``r = wrap(atan2(m_w,x, m_w,y) − D − c)`` observes ``h_t·δθ_xy + δθ_z + δc`` with the
     tilt errors as consider states; noise from the field's horizontal strength and the smallest
     disturbance that explains the detectors' deviations; skipped while the interference flag
-    (:mod:`pdr_mag.interference`) is up, when the caller disallows it or beyond a χ² gate.
+    (:mod:`pdr_mag.interference`) is up, when the caller disallows it or beyond a χ² gate.  The
+    stationary variance of ``c`` grows with the recent environment's disturbance level and with the
+    heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
+    the gate for ``reacquire_s`` re-acquires the heading (``heading_reset``).
 
 Modules
 -------

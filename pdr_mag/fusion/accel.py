@@ -1,6 +1,8 @@
 """Tilt from the accelerometer: the first sample sets it, later samples correct it.
 
-Start.  The first usable sample gives the tilt (up = a/|a| in device coordinates); the heading is then
+Start.  The first usable sample once the gyroscope streams gives the tilt (up = a/|a| in device
+coordinates; a tilt set before the first gyroscope sample could not be carried forward and would go stale
+as the phone turns — some phones start their gyroscope 0.3–0.7 s after the accelerometer); the heading is then
 arbitrary (device +y, or device −z for a phone held upright, projected on the horizontal plane points
 north) with variance π², the tilt variance ``tilt0_std²`` per axis, the bias ``bias0_std²`` per axis and
 ``c`` its stationary variance.
@@ -9,15 +11,24 @@ Averaged update (default, ``acc_tau_s > 0``).  The specific force is averaged in
 frame over **every** sample, ``ā_w ← ā_w + α (R a − ā_w)`` with ``α = 1 − exp(−Δt/τ)``: the mean linear
 acceleration of a walking, swinging or pocketed phone over τ is Δv/τ ≈ 0, so ``ā_w`` points up (single
 samples of a swinging arm point along the arm; gating them before averaging would bias the average).  At
-most every ``acc_interval_s`` the direction ``u_w = ā_w / |ā_w| ≈ e_z + (−δθ_y, δθ_x, 0)`` is observed,
-as it was τ ago (the mean delay of the exponential window): since ``δθ' = −R δb``,
-``δθ(t − τ) = δθ(t) + τ R δb``, so the two scalar updates have
+most every ``acc_interval_s`` the direction ``u_w = ā_w / |ā_w| ≈ e_z + (−δθ_y, δθ_x, 0)`` is observed:
+the window's mean tilt error.  Since ``δθ' = −R δb``, the error of the sample at ``t − s`` is
+``δθ(t) + ∫ R δb``, and its exponentially weighted mean over the window is ``δθ(t) + τ R̄ δb`` with ``R̄``
+the same weighted mean of ``R`` (kept beside ``ā_w``), so the two scalar updates have
 
-    u_w,x:  H = −e_δθy − τ (row y of R) on δb
-    u_w,y:  H = +e_δθx + τ (row x of R) on δb
+    u_w,x:  H = −e_δθy − τ (row y of R̄) on δb
+    u_w,y:  H = +e_δθx + τ (row x of R̄) on δb
 
 and the tilt drift of an unknown raw gyro offset (4–6 °/s on real phones) is read as bias instead of being
-smeared over the average.  Noise ``acc_avg_noise² + (acc_dyn · ||ā| − g| / g)²``; skipped when
+smeared over the average.  Noise::
+
+    acc_avg_noise² + (acc_dyn · ||ā| − g| / g)² + (acc_spread_k² · s² + (acc_clip_k · c)²) · τ / acc_interval_s
+
+with ``s²`` the weighted mean square of the horizontal specific force about ``ā_w`` over g² (the
+dynamics: ``ā_w``'s direction is off by ≈ 0.19 s rad per axis, measured with motion-capture attitude on
+42 walks — texting 1–2°, running in the hand ~15°) and ``c`` the weight of clipped samples in the window
+(their missing excess of about a g; the range is ``acc_range`` or found in the data); both count once per
+independent window, the updates being ``acc_interval_s`` apart in a window of τ.  Skipped when
 ``||ā| − g| > acc_gate · g``.  While the heading is unknown (no magnetometer yet) its errors are consider
 states of these updates: through the bias terms the linearised update would otherwise shrink its (capped,
 uniform) variance.
@@ -28,7 +39,8 @@ and vertical accelerations are correlated over a step, so dividing by |a| would 
 ``−E[a_h a_v] / g²``, ≈ 1° for ±2 m/s²), observing ``(−δθ_y, δθ_x)``; noise ``acc_noise² + (acc_dyn ·
 ||a| − g| / g)² + (acc_gyro |ω|)² + var(a)/g² · acc_corr_s / Δt_a`` (the linear acceleration's recent
 variance, correlated over ``acc_corr_s``, spread over the samples) ``+ (turn_speed · ω_up / g)² ·
-turn_corr_s / Δt_a`` (the centripetal acceleration of a turn); skipped when ``||a| − g| > acc_gate · g``.
+turn_corr_s / Δt_a`` (the centripetal acceleration of a turn); skipped when ``||a| − g| > acc_gate · g`` or
+when the sample is clipped.
 """
 
 from __future__ import annotations
