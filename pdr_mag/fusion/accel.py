@@ -22,7 +22,7 @@ the same weighted mean of ``R`` (kept beside ``ā_w``), so the two scalar update
 and the tilt drift of an unknown raw gyro offset (4–6 °/s on real phones) is read as bias instead of being
 smeared over the average.  Noise::
 
-    acc_avg_noise² + (acc_dyn · ||ā| − g| / g)² + (acc_spread_k² · s² + (acc_clip_k · c)²) · τ / acc_interval_s
+    acc_avg_noise² + (acc_dyn · ||ā| − g| / g)² + (acc_spread_k² s² + (acc_clip_k c)²) · τ / acc_interval_s
 
 with ``s²`` the weighted mean square of the horizontal specific force about ``ā_w`` over g² (the
 dynamics: ``ā_w``'s direction is off by ≈ 0.19 s rad per axis, measured with motion-capture attitude on
