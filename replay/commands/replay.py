@@ -27,32 +27,69 @@ from replay.errors import InputError
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
 def command(rec, calibration, out_csv, mcap, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
-    from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
+    from replay.run import load_calibration, summary_table
 
     cal = load_calibration(calibration) if calibration is not None else None
     if cal is not None and not cal.accepted:
         why = "; ".join(cal.reasons) or "no reason given"
         msg = f"pdr-mag: warning: {calibration}: this calibration was not accepted ({why}); using it"
         click.echo(msg, err=True)
-    sinks = []
+    summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, rrd=rrd, viewer=viewer,
+                  progress=progress)
+    if not quiet:
+        click.echo(summary_table(summary))
+    return 0
+
+
+def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, rrd=None, viewer=False, progress=None,
+        sinks=(), source=None) -> dict:
+    """What ``pdr-mag replay`` does with one recording: replay it into the requested files.
+
+    Parameters
+    ----------
+    rec : path or RecordingSource
+        The recording.
+    cal : MagCalibration or None
+        The device calibration (None: online calibration only).
+    out_csv, json_path, mcap, rrd : path or None
+        The ``--out-csv``, ``--json``, ``--mcap`` and ``--rrd`` files (their folders are created).
+    viewer : bool
+        Also stream to a live rerun viewer.
+    progress : bool or None
+        As :func:`replay.run.replay`.
+    sinks : sequence of Sink
+        More sinks fed with the same run (``pdr-mag batch``'s fleet-table metrics).
+    source : str, optional
+        The name the outputs give the recording (``source``), when ``rec`` is opened under another path.
+
+    Returns
+    -------
+    dict
+        The run summary (the ``replay --json`` object).
+    """
+    from replay.formats import open_recording
+    from replay.run import CsvSink, make_sink, replay
+
+    files = []
     if mcap is not None:
-        sinks.append(make_sink("mcap", mcap))
+        files.append(make_sink("mcap", mcap))
     if rrd is not None or viewer:
-        sinks.append(make_sink("rrd", rrd, spawn=viewer))
+        files.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
-        sinks.append(CsvSink(out_csv))
+        files.append(CsvSink(out_csv))
     for p in (out_csv, json_path, mcap, rrd):
         if p is not None and p.parent and not p.parent.exists():
             try:
                 p.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise InputError(p, f"cannot create the folder ({exc.strerror})") from None
-    summary = replay(rec, calibration=cal, sinks=sinks, progress=progress)
+    if source is not None:
+        rec = open_recording(rec)
+        rec.source = source
+    summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress)
     if json_path is not None:
         json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
-    if not quiet:
-        click.echo(summary_table(summary))
-    return 0
+    return summary
 
 
 def _clean(obj):
