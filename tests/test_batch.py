@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -245,3 +247,10 @@ def test_batch_bad_calibration_file_is_one_line(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"pdr-mag: {tmp_path / 'cal.json'}: ")
+
+
+def test_the_library_never_imports_the_engine():
+    code = ("import sys, pdr_mag, pdr_mag.pipeline, pdr_mag.modelcheck, replay.run, replay.cli; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
