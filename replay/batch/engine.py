@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import time
 import uuid
 from contextlib import contextmanager
@@ -140,11 +141,18 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         return
     log = logging.getLogger("distributed")
     level = log.level
-    log.setLevel(logging.ERROR)  # the cluster is ours: its routine warnings are noise on the terminal
+    log.setLevel(logging.CRITICAL)  # the cluster is ours: its logs (also at shutdown) are noise here
     cluster = client = None
     try:
-        cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+        # The worker processes inherit an ignored SIGINT: Ctrl-C on the terminal reaches the whole process
+        # group, and it is this process that stops the batch and the cluster (the workers go with it).
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        _quiet_resource_tracker()
+        try:
+            cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
+                                   processes=True, dashboard_address=None, silence_logs=logging.CRITICAL)
+        finally:
+            signal.signal(signal.SIGINT, handler)
         client = Client(cluster)
         yield client
     finally:
@@ -153,6 +161,42 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         if cluster is not None:
             cluster.close()
         log.setLevel(level)
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`execute`: ``n_done`` of ``n_tasks`` recordings had finished (their outputs are
+    complete; a next run skips them)."""
+
+    def __init__(self, n_done: int, n_tasks: int):
+        super().__init__(f"interrupted after {n_done} of {n_tasks} recordings")
+        self.n_done = n_done
+        self.n_tasks = n_tasks
+
+
+def _quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (if not running) with its stderr on /dev/null.
+
+    When a worker process dies (killed, out of memory) and the nanny starts another, the tracker prints
+    ``KeyError`` tracebacks about semaphores it no longer knows (a CPython quirk with spawned processes);
+    the batch itself handles the death (the recording is rescheduled), so they are noise on the terminal.
+    """
+    import sys
+    from multiprocessing import resource_tracker
+
+    if getattr(resource_tracker._resource_tracker, "_fd", None) is not None:
+        return
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stderr (captured): nothing to protect
+        return
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), fd)
+            resource_tracker.ensure_running()
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
 
 
 def _row_of(future, task: Task) -> dict:
@@ -236,6 +280,9 @@ def execute(tasks, client=None, workers: int | None = None, scheduler: str | Non
             bar.update(len(finished), n_ok, n_failed, running)
             if not finished:
                 time.sleep(0.2)
+    except KeyboardInterrupt:
+        client.cancel([f for f in futures if not f.done()])
+        raise Interrupted(sum(r is not None for r in rows), len(rows)) from None
     except BaseException:
         client.cancel([f for f in futures if not f.done()])
         raise

@@ -89,6 +89,7 @@ def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, repo
 def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler, force, progress,
          top) -> int:
     from replay.batch import execute, headline, plan, write_table
+    from replay.batch.engine import Interrupted
 
     if scheduler is not None and workers is not None:
         raise click.UsageError("--workers sets the local cluster; with --scheduler the cluster has its own")
@@ -100,8 +101,14 @@ def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler
     p = plan(command_name, inputs, out_dir, options=options, calibration=calibration, force=force)
     if not p.rows:
         raise InputError(" ".join(str(i) for i in inputs), "no recording found")
-    rows = p.table(execute(p.tasks, workers=workers, scheduler=scheduler, progress=progress,
-                           desc=f"batch {command_name}"))
+    try:
+        rows = p.table(execute(p.tasks, workers=workers, scheduler=scheduler, progress=progress,
+                               desc=f"batch {command_name}"))
+    except Interrupted as exc:
+        raise click.ClickException(
+            f"interrupted after {exc.n_done} of {exc.n_tasks} recordings had reported back; the same command "
+            f"does the rest (complete outputs are skipped)"
+        ) from None
     written = write_table(rows, p.out_dir)
     n_err = sum(r["status"] == "error" for r in rows)
     where = " + ".join(str(out_dir / w.name) for w in written)
