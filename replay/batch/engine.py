@@ -163,6 +163,13 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         log.setLevel(level)
 
 
+def _running(client) -> int:
+    """Tasks executing now: those assigned to each worker, up to its thread count (a worker also holds
+    tasks queued for it)."""
+    threads = client.nthreads()
+    return sum(min(len(keys), threads.get(w, 1)) for w, keys in client.processing().items())
+
+
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C during :func:`execute`: ``n_done`` of ``n_tasks`` recordings had finished (their outputs are
     complete; a next run skips them)."""
@@ -276,8 +283,7 @@ def execute(tasks, client=None, workers: int | None = None, scheduler: str | Non
                 else:
                     n_failed += 1
                 f.release()
-            running = sum(len(v) for v in client.processing().values()) if bar.bar is not None else 0
-            bar.update(len(finished), n_ok, n_failed, running)
+            bar.update(len(finished), n_ok, n_failed, _running(client) if bar.bar is not None else 0)
             if not finished:
                 time.sleep(0.2)
     except KeyboardInterrupt:
