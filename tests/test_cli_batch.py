@@ -152,10 +152,14 @@ def cluster(site, tmp_path_factory):
                 p.kill()
 
 
-def test_scheduler_gives_the_same_table_as_the_local_cluster(site, local, cluster, monkeypatch, capsys):
+def test_scheduler_gives_the_same_table_as_the_local_cluster(site, local, cluster, monkeypatch, capsys,
+                                                             tmp_path):
     rc, _ = _batch_here(site, monkeypatch, capsys, "replay", "in", "junk.bin", "--out", "out-remote",
-                        "--scheduler", cluster)
+                        "--scheduler", cluster, "--mcap")
     assert rc == 2
+    assert main(["replay", "in/walk", "--mcap", str(tmp_path / "walk.mcap"), "-q"]) == 0
+    assert (site / "out-remote" / "in" / "walk" / "replay.mcap").read_bytes() == \
+        (tmp_path / "walk.mcap").read_bytes()
     remote, here = read_csv(site / "out-remote" / "summary.csv"), read_csv(local[1] / "summary.csv")
     assert _strip(remote) == _strip(here)
     for label in GOOD:

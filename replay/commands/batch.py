@@ -113,7 +113,8 @@ def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler
     n_err = sum(r["status"] == "error" for r in rows)
     where = " + ".join(str(out_dir / w.name) for w in written)
     resumed = f" ({p.n_resumed} already done)" if p.n_resumed else ""
-    click.echo(f"batch {command_name}: {len(rows)} recordings, {len(rows) - n_err} ok{resumed}, "
+    plural = "s" if len(rows) != 1 else ""
+    click.echo(f"batch {command_name}: {len(rows)} recording{plural}, {len(rows) - n_err} ok{resumed}, "
                f"{n_err} error → {where}  [{time.perf_counter() - t_start:.1f} s]")
     if top:
         click.echo("worst first:\n" + headline(rows, command_name, top))
