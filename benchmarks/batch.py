@@ -8,19 +8,24 @@ once into ``--cache``.
 
 In one run:
 
-* **batch** — ``pdr-mag batch replay TYREX SIM HOUR --out DIR --workers W --force`` as one process; its wall
+* **one process** — the single command's code (:func:`replay.commands.replay.run`) in a loop in this
+  process: the serial work without a process start per recording;
+* **batch** — ``pdr-mag batch replay TYREX SIM HOUR --out DIR --workers W --force`` as one process, with one
+  worker (the engine's cost against the loop in one process) and with W (the parallel speed-up); its wall
   time, the fleet table's per-recording times (``elapsed_s``, measured in the workers) and the peak
   resident memory of each worker process (sampled every 0.2 s);
 * **serial** — ``pdr-mag replay REC --out-csv … --json …`` for each recording, one process after the other,
   as a shell loop does; its wall time;
 * **Dask overhead** — a local cluster of W workers started and stopped empty, and 2000 no-op tasks through
   it (the per-task cost of the engine);
-* the outputs of both compared (``heading.csv`` byte for byte).
+* the outputs of the four runs compared (``heading.csv`` byte for byte).
 
-The speed-up is serial wall / batch wall (target ≥ 0.8 × W). The per-task overhead of the batch is
-``(W · batch wall − Σ elapsed_s) / n``: what a recording costs beyond its own work (cluster start, imports
-in each worker, scheduling, idle workers at the end). A paper projection for 100 000 one-hour recordings
-on N workers uses the measured cost per hour of recording and the bytes read and written per hour.
+The speed-up is serial wall / batch wall (target ≥ 0.8 × W), against both serial loops (the shell loop
+also pays a process start, the imports and the kernels' loading per recording). The per-task overhead of
+the batch is ``(W · batch wall − Σ elapsed_s) / n``: what a recording costs beyond its own work (cluster
+start, imports in each worker, scheduling, idle workers at the end). A paper projection for 100 000
+one-hour recordings on N workers uses the measured cost per hour of recording and the bytes read and
+written per hour.
 
     python benchmarks/batch.py                       # 300 recordings, 2 one-hour walks, W = core count
     python benchmarks/batch.py --write               # ... and update benchmarks/RESULTS.md
@@ -123,6 +128,20 @@ class RssSampler(threading.Thread):
             time.sleep(0.2)
 
 
+def idle_share(seconds: float = 5.0) -> float:
+    """Share of the machine's CPU time left idle over ``seconds`` (/proc/stat): the spare capacity the
+    batch can use on a shared machine."""
+    def snap():
+        with open("/proc/stat") as fh:
+            v = [int(x) for x in fh.readline().split()[1:]]
+        return sum(v), v[3] + v[4]
+
+    t1, i1 = snap()
+    time.sleep(seconds)
+    t2, i2 = snap()
+    return (i2 - i1) / max(t2 - t1, 1)
+
+
 def run_batch(inputs: list[Path], out: Path, workers: int) -> dict:
     cmd = [str(BIN / "pdr-mag"), "batch", "replay", *map(str, inputs), "--out", str(out), "--workers",
            str(workers), "--force", "--no-progress", "--top", "0"]
@@ -220,23 +239,32 @@ def main() -> None:
     print(f"{len(recs)} recordings: {n_walks} tyrex walks, {len(tyrex) - n_walks} tyrex calibration, "
           f"{n_sim} simulated × {a.sim_duration:g} s, {a.hours} × 1 h; {workers} workers", flush=True)
     work = Path(tempfile.mkdtemp(prefix="pdr-mag-batch-"))
+    idle = idle_share()
+    print(f"idle CPU before the runs: {idle:.1%} of {os.cpu_count()} cores", flush=True)
     try:
         ovh = dask_overhead(workers)
         print(f"dask: local cluster up {ovh['start_s']:.2f} s, down {ovh['stop_s']:.2f} s, "
               f"{ovh['per_task_ms']:.2f} ms a no-op task", flush=True)
+        # the two shorter runs back to back (the load of a shared machine drifts), the long loop last
+        m = run_inprocess(recs, work / "inprocess")
+        print(f"in one process: {m['wall']:.1f} s (load {m['load'][0][0]:.1f} → {m['load'][1][0]:.1f})",
+              flush=True)
+        b1 = run_batch(inputs, work / "batch1", 1)
+        assert b1["rc"] == 0, b1["stderr"][-2000:]
+        print(f"batch, 1 worker: {b1['wall']:.1f} s (load {b1['load'][0][0]:.1f} → {b1['load'][1][0]:.1f})",
+              flush=True)
         b = run_batch(inputs, work / "batch", workers)
         assert b["rc"] == 0, b["stderr"][-2000:]
         print(f"batch: {b['wall']:.1f} s (load {b['load'][0][0]:.1f} → {b['load'][1][0]:.1f})", flush=True)
         s = run_serial(recs, work / "serial")
         print(f"serial: {s['wall']:.1f} s (load {s['load'][0][0]:.1f} → {s['load'][1][0]:.1f})", flush=True)
-        m = run_inprocess(recs, work / "inprocess")
-        print(f"in one process: {m['wall']:.1f} s (load {m['load'][0][0]:.1f} → {m['load'][1][0]:.1f})",
-              flush=True)
         same = sum((work / "serial" / k / "heading.csv").read_bytes()
                    == (work / "batch" / k / "heading.csv").read_bytes()
-                   == (work / "inprocess" / k / "heading.csv").read_bytes() for _, k in recs)
+                   == (work / "inprocess" / k / "heading.csv").read_bytes()
+                   == (work / "batch1" / k / "heading.csv").read_bytes() for _, k in recs)
         rows = b["rows"]
         elapsed = sum(float(r["elapsed_s"]) for r in rows)
+        elapsed1 = sum(float(r["elapsed_s"]) for r in b1["rows"])
         hour_rows = [r for r in rows if "/hour/" in r["recording"]]
         tyrex_rows = [r for r in rows if str(TYREX) in r["recording"]]
         per_hour = hour_rows or tyrex_rows
@@ -257,9 +285,11 @@ def main() -> None:
     speedup, speedup_m = s["wall"] / b["wall"], m["wall"] / b["wall"]
     overhead = (workers * b["wall"] - elapsed) / n
     proj = projection(cost_h, in_h, out_h, overhead)
-    load = (f"load average (1 min) {b['load'][0][0]:.1f} → {b['load'][1][0]:.1f} during the batch, "
-            f"{s['load'][0][0]:.1f} → {s['load'][1][0]:.1f} during the serial loop, "
-            f"{m['load'][0][0]:.1f} → {m['load'][1][0]:.1f} during the loop in one process")
+    load = (f"idle CPU {idle:.0%} before the runs; load average (1 min) {m['load'][0][0]:.1f} → "
+            f"{m['load'][1][0]:.1f} during the loop in one process, {b1['load'][0][0]:.1f} → "
+            f"{b1['load'][1][0]:.1f} during the 1-worker batch, {b['load'][0][0]:.1f} → "
+            f"{b['load'][1][0]:.1f} during the batch, "
+            f"{s['load'][0][0]:.1f} → {s['load'][1][0]:.1f} during the shell loop")
     lines = [
         SECTION,
         "",
@@ -271,15 +301,21 @@ def main() -> None:
         f"of `pdr-mag replay --out-csv --json`, in one run ({platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} cores shared with other jobs; {load}).",
         "",
-        f"| | wall | speed-up of the batch (target ≥ {0.8 * workers:.1f}) |",
+        f"| | wall | speed-up of `--workers {workers}` (target ≥ {0.8 * workers:.1f}) |",
         "| --- | ---: | ---: |",
         f"| serial loop of `pdr-mag replay` processes (a shell loop) | {s['wall']:.1f} s | "
         f"**{speedup:.2f}** |",
         f"| serial loop of the same code in one process (imports once) | {m['wall']:.1f} s | "
         f"**{speedup_m:.2f}** |",
+        f"| `pdr-mag batch replay --workers 1` | {b1['wall']:.1f} s | **{b1['wall'] / b['wall']:.2f}** |",
         f"| `pdr-mag batch replay --workers {workers}` | {b['wall']:.1f} s | |",
         "",
-        f"- Work inside the workers (Σ `elapsed_s`): {elapsed:.1f} s; per-task overhead "
+        f"- One worker: Σ `elapsed_s` {elapsed1:.1f} s against {m['wall']:.1f} s for the loop in one process "
+        f"(the same work), wall {b1['wall'] - elapsed1:.1f} s more than Σ elapsed "
+        f"(cluster start and stop, the worker's imports). {workers} workers: Σ `elapsed_s` {elapsed:.1f} s — "
+        f"a recording took {elapsed / elapsed1:.2f}× as long as with one worker, the share of the "
+        f"{os.cpu_count()} cores the other jobs left.",
+        f"- Per-task overhead with {workers} workers "
         f"(W · wall − Σ elapsed) / n = **{overhead * 1e3:.0f} ms** a recording (cluster start, imports and "
         f"kernel loading in each worker, idle workers at the end). The engine itself: a local cluster starts "
         f"in {ovh['start_s']:.1f} s and stops in {ovh['stop_s']:.1f} s, a no-op task costs "
@@ -287,7 +323,7 @@ def main() -> None:
         f"- The shell loop pays a process start, the imports and the compiled kernels' loading per "
         f"recording: {(s['wall'] - m['wall']) / n * 1e3:.0f} ms a recording more than the loop in one "
         "process.",
-        f"- Outputs: `heading.csv` byte-identical between the three runs for {same} of {n} recordings.",
+        f"- Outputs: `heading.csv` byte-identical between the four runs for {same} of {n} recordings.",
         f"- Worker peak resident memory: {', '.join(f'{mb:.0f}' for mb in b['worker_peak_mb'])} MB "
         f"(the recordings stream; {a.hours} of them one hour long).",
         "",

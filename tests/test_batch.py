@@ -254,3 +254,31 @@ def test_the_library_never_imports_the_engine():
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_output_folder_inside_an_input_folder_is_not_searched(tree, monkeypatch):
+    monkeypatch.chdir(tree)
+    shutil.copytree(DEMO / "figure8", tree / "in" / "results" / "in" / "a")  # a recording-like output
+    labels = [i.label for i in find_recordings(["in"], skip=["in/results"])]
+    assert labels == ["in/a", "in/bad", "in/deep/x/b"]
+
+
+def test_replay_task_with_a_calibration_file(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", str(DEMO / "figure8"), "--json", "cal.json"]) == 0
+    task = Task("replay", "walk", str(DEMO / "walk"), "walk", str(tmp_path / "out"),
+                {"mcap": False, "rrd": False}, "cal.json", str(tmp_path / "cal.json"))
+    row = run_task(task)
+    assert row["status"] == "ok" and row["calibration_file"] == "cal.json"
+    summary = json.loads((tmp_path / "out" / "walk" / "replay.json").read_text())
+    assert summary["calibration_given"] is True and summary["source"] == "walk"
+    assert row["cal_method"] == summary["calibrations"][-1]["method"]
+    assert row["cal_offset_x_uT"] == summary["calibrations"][-1]["offset_uT"][0]
+    assert row["n_outputs"] == summary["n_outputs"] and row["cal_state"] == summary["cal_state"]
+    kinds = [e["kind"] for e in summary["events"]]
+    assert row["n_events"] == len(kinds)
+    assert row["events_calibration_accepted"] == kinds.count("calibration_accepted")
+    # a calibration file that is not there: an error row naming it as given
+    bad = Task("replay", "walk", str(DEMO / "walk"), "walk2", str(tmp_path / "out"),
+               {"mcap": False, "rrd": False}, "nope.json", str(tmp_path / "nope.json"))
+    assert run_task(bad)["error"] == "nope.json: no such calibration file"

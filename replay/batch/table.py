@@ -3,7 +3,7 @@
 :data:`COLUMNS` is the contract (INTERFACE.md): the same columns for the three commands, in this order; a
 column that does not apply to the command, or that the recording cannot give (no truth, no phone
 attitude, an error), is empty (null in Parquet). Units are in the names (``_s``, ``_uT``, ``_deg``);
-shares are in [0, 1].
+shares are in [0, 1]. A ``DIR`` holds one batch: ``summary.csv`` is replaced by each run.
 """
 
 from __future__ import annotations
@@ -60,7 +60,8 @@ COLUMNS = (
     ("diag_missing_effects", "str", "diagnose: the missing effects named, in order, joined by '+'"),
     ("diag_baseline_gap_uT", "float", "diagnose: gap of the baseline model (hard_iron + noise), µT"),
     ("diag_final_gap_uT", "float", "diagnose: gap of the final model, µT"),
-    ("elapsed_s", "float", "wall time the recording took on its worker (reading, processing, writing), s"),
+    ("elapsed_s", "float", "wall time the recording took on its worker (reading, processing, writing; a "
+                           "worker's first recording also loads the compiled kernels), s"),
 )
 
 NAMES = tuple(name for name, _, _ in COLUMNS)
