@@ -16,6 +16,8 @@ In one run:
   resident memory of each worker process (sampled every 0.2 s);
 * **serial** — ``pdr-mag replay REC --out-csv … --json …`` for each recording, one process after the other,
   as a shell loop does; its wall time;
+* **the machine** — its idle CPU, and how much more a pure-Python loop gets done in ``W`` processes than in
+  one (the parallel capacity left by the other jobs of a shared machine);
 * **Dask overhead** — a local cluster of W workers started and stopped empty, and 2000 no-op tasks through
   it (the per-task cost of the engine);
 * the outputs of the four runs compared (``heading.csv`` byte for byte).
@@ -185,6 +187,31 @@ def run_inprocess(recs: list[tuple[Path, str]], out: Path) -> dict:
     return {"wall": time.perf_counter() - t0, "load": (load0, os.getloadavg())}
 
 
+def _burn(n: int) -> float:
+    """A pure-Python loop: the seconds it took."""
+    t = time.perf_counter()
+    s = 0
+    for i in range(n):
+        s += i * i
+    return time.perf_counter() - t
+
+
+def machine_scaling(workers: int, n: int = 5_000_000, tasks: int = 8) -> float:
+    """How many times more pure-Python work ``workers`` processes do than one in the same time, now: the
+    parallel capacity the machine offers (≈ ``workers`` when the cores are free)."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    out = []
+    for w in (1, workers):
+        with ctx.Pool(w) as pool:
+            pool.map(_burn, [1000] * w)  # started
+            t = time.perf_counter()
+            pool.map(_burn, [n] * tasks)
+            out.append(time.perf_counter() - t)
+    return out[0] / out[1]
+
+
 def _noop(i):
     return i
 
@@ -242,6 +269,9 @@ def main() -> None:
     idle = idle_share()
     print(f"idle CPU before the runs: {idle:.1%} of {os.cpu_count()} cores", flush=True)
     try:
+        scale = machine_scaling(workers)
+        print(f"machine: {workers} processes of a pure-Python loop do {scale:.2f}× the work of one",
+              flush=True)
         ovh = dask_overhead(workers)
         print(f"dask: local cluster up {ovh['start_s']:.2f} s, down {ovh['stop_s']:.2f} s, "
               f"{ovh['per_task_ms']:.2f} ms a no-op task", flush=True)
@@ -285,7 +315,8 @@ def main() -> None:
     speedup, speedup_m = s["wall"] / b["wall"], m["wall"] / b["wall"]
     overhead = (workers * b["wall"] - elapsed) / n
     proj = projection(cost_h, in_h, out_h, overhead)
-    load = (f"idle CPU {idle:.0%} before the runs; load average (1 min) {m['load'][0][0]:.1f} → "
+    load = (f"idle CPU {idle:.0%} before the runs, {workers} processes of a pure-Python loop did "
+            f"{scale:.2f}× the work of one; load average (1 min) {m['load'][0][0]:.1f} → "
             f"{m['load'][1][0]:.1f} during the loop in one process, {b1['load'][0][0]:.1f} → "
             f"{b1['load'][1][0]:.1f} during the 1-worker batch, {b['load'][0][0]:.1f} → "
             f"{b['load'][1][0]:.1f} during the batch, "

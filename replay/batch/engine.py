@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 import uuid
 from contextlib import contextmanager
@@ -146,13 +147,16 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     try:
         # The worker processes inherit an ignored SIGINT: Ctrl-C on the terminal reaches the whole process
         # group, and it is this process that stops the batch and the cluster (the workers go with it).
-        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # (Signal handlers can only be set from the main thread; elsewhere the workers keep the default.)
+        main = threading.current_thread() is threading.main_thread()
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
         _quiet_resource_tracker()
         try:
             cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
                                    processes=True, dashboard_address=None, silence_logs=logging.CRITICAL)
         finally:
-            signal.signal(signal.SIGINT, handler)
+            if main:
+                signal.signal(signal.SIGINT, handler)
         client = Client(cluster)
         yield client
     finally:
