@@ -1,4 +1,4 @@
-"""``pdr-mag``: simulate, calibrate, replay, diagnose.  Thin: parses, calls, prints.
+"""``pdr-mag``: simulate, calibrate, replay, diagnose, batch.  Thin: parses, calls, prints.
 
 Every command lives in ``replay/commands/<name>.py`` as a ``click`` command named ``command``.
 Bad input ends with exit code 2 and one line on stderr (``pdr-mag: FILE[:LINE]: problem``), never a
@@ -14,7 +14,7 @@ import click
 
 from replay.errors import InputError
 
-COMMANDS = ("simulate", "calibrate", "replay", "diagnose")
+COMMANDS = ("simulate", "calibrate", "replay", "diagnose", "batch")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

@@ -37,6 +37,9 @@ PROGRESS_MIN_BYTES = 8_000_000
 class CsvSink:
     """``replay --out-csv``: one row per output epoch, columns exactly :data:`CSV_COLUMNS`."""
 
+    #: The calibrated magnetometer samples are not written (a sink without this attribute gets them).
+    wants_mag_calibrated = False
+
     def __init__(self, path):
         self.path = Path(path)
         self._fh = None
@@ -168,7 +171,7 @@ def replay(
     if calibration is not None and not isinstance(calibration, MagCalibration):
         calibration = load_calibration(calibration)
     sinks = list(sinks)
-    if settings is None and any(not isinstance(s, CsvSink) for s in sinks):
+    if settings is None and any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
         settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
     try:
         pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta)

@@ -8,14 +8,19 @@ summary and writes the ``calibrate --json`` object of INTERFACE.md (also the ``r
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from replay.commands._output import writable_file
 from replay.errors import InputError
+
+if TYPE_CHECKING:
+    from pdr_mag.calibration.model import MagCalibration
+    from replay.recording import Recording
 
 _METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
 
@@ -29,14 +34,36 @@ _METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twoste
               help="Write the calibration (INTERFACE.md calibrate --json) to FILE.")
 def command(rec: Path, method: str, json_path: Path | None) -> int:
     """Calibrate the magnetometer of recording REC (hard and soft iron, quality, acceptance)."""
+    if json_path is not None:
+        writable_file(json_path)
+    fit = run(rec, method)
+    if json_path is not None:
+        write(fit.calibration, json_path)
+    click.echo(summary(fit.calibration, rec, fit.field))
+    return 0
+
+
+@dataclass(frozen=True)
+class CalibrateResult:
+    """What ``pdr-mag calibrate`` finds for one recording."""
+
+    #: The fit, with ``extra`` holding ``source``, the WMM field and the reader's dropped samples.
+    calibration: MagCalibration
+    #: The WMM field at the recording's position and date, or None.
+    field: object
+    #: The recording as read (its metadata and streams, for a caller's report).
+    recording: Recording
+
+
+def run(rec: Path, method: str = "auto", source: str | None = None) -> CalibrateResult:
+    """What ``pdr-mag calibrate`` does with one recording (``source``: the name ``extra.source`` gives it,
+    when it is read under another path); :class:`InputError` on bad input."""
     from pdr_mag.calibration import calibrate
     from pdr_mag.calibration.alignment import quasi_static_accel
     from pdr_mag.field import earth_field_from_meta
     from replay.formats import read_recording
 
     recording = read_recording(rec)
-    if json_path is not None:
-        writable_file(json_path)
     mag_file = rec / "mag.csv" if rec.is_dir() else rec
     mag = np.asarray(recording.mag.xyz, dtype=float)
     if mag.ndim != 2 or mag.shape[1] != 3 or len(mag) < 4:
@@ -56,20 +83,21 @@ def command(rec: Path, method: str, json_path: Path | None) -> int:
     except ValueError as exc:
         raise InputError(mag_file, f"calibration failed: {exc}") from None
     extra = dict(cal.extra)
-    extra["source"] = str(rec)
+    extra["source"] = str(rec) if source is None else source
     if field is not None:
         extra["wmm"] = {"strength_uT": field.strength, "inclination_deg": field.inclination_deg,
                         "declination_deg": field.declination_deg, "model": field.model}
     if recording.dropped:
         extra["dropped_samples"] = dict(recording.dropped)
-    cal = replace(cal, extra=extra)
-    if json_path is not None:
-        try:
-            cal.to_json(json_path)
-        except OSError as exc:
-            raise InputError(json_path, f"cannot write ({exc.strerror})") from None
-    click.echo(summary(cal, rec, field))
-    return 0
+    return CalibrateResult(replace(cal, extra=extra), field, recording)
+
+
+def write(cal: MagCalibration, json_path: Path) -> None:
+    """Write the ``calibrate --json`` file."""
+    try:
+        cal.to_json(json_path)
+    except OSError as exc:
+        raise InputError(json_path, f"cannot write ({exc.strerror})") from None
 
 
 def summary(cal, rec, field) -> str:

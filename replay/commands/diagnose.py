@@ -10,13 +10,18 @@ report with plots (needs matplotlib: the ``report`` extra).
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from replay.commands._output import writable_dir, writable_file
 from replay.errors import InputError
+
+if TYPE_CHECKING:
+    from replay.recording import Recording
 
 
 def _temperature(recording):
@@ -49,16 +54,53 @@ def _temperature(recording):
               help="Evaluation mode: predict along truth.csv, not the gyro + accelerometer orientation.")
 def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_truth: bool) -> int:
     """Compare the sensor model with recording REC, name the missing effects, refit."""
+    if report_dir is not None:
+        need_matplotlib()
+    if json_path is not None and str(json_path) != "-":
+        writable_file(json_path)
+    if report_dir is not None:
+        writable_dir(report_dir)
+    res = run(rec, use_truth=use_truth)
+    if json_path is not None:
+        if str(json_path) == "-":
+            click.echo(json_text(res.result))
+        else:
+            write_json(res.result, json_path)
+    if report_dir is not None:
+        write_report_dir(res, report_dir, title=str(rec))
+    if str(json_path) != "-":
+        click.echo(summary(res.result, rec))
+    return 0
+
+
+@dataclass(frozen=True)
+class DiagnoseResult:
+    """What ``pdr-mag diagnose`` finds for one recording."""
+
+    #: The :class:`pdr_mag.modelcheck.Diagnosis` (for the report).
+    diagnosis: object
+    #: Its ``diagnose --json`` object, with ``source``.
+    result: dict
+    #: The recording as read.
+    recording: Recording
+
+
+def need_matplotlib() -> None:
+    """A click error when ``--report`` cannot be written (matplotlib missing)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise click.ClickException(
+            "--report needs matplotlib, which is not installed (pip install 'pdr_mag[report]')"
+        ) from None
+
+
+def run(rec: Path, use_truth: bool = False, source: str | None = None) -> DiagnoseResult:
+    """What ``pdr-mag diagnose`` does with one recording (``source``: the name the result gives it, when it
+    is read under another path); :class:`InputError` on bad input."""
     from pdr_mag.modelcheck import diagnose
     from replay.formats import read_recording
 
-    if report_dir is not None:
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            raise click.ClickException(
-                "--report needs matplotlib, which is not installed (pip install 'pdr_mag[report]')"
-            ) from None
     recording = read_recording(rec)
     if use_truth:
         if recording.truth is None:
@@ -70,10 +112,6 @@ def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_trut
                 raise InputError(rec, f"no {name} stream: diagnose needs gyro and accel for the orientation")
     if len(recording.mag) < 50:
         raise InputError(rec, f"need at least 50 magnetometer samples, got {len(recording.mag)}")
-    if json_path is not None and str(json_path) != "-":
-        writable_file(json_path)
-    if report_dir is not None:
-        writable_dir(report_dir)
     g, a = recording.gyro, recording.accel
     try:
         diag = diagnose(
@@ -85,27 +123,32 @@ def command(rec: Path, json_path: Path | None, report_dir: Path | None, use_trut
     except ValueError as exc:
         raise InputError(rec, f"diagnose failed: {exc}") from None
     out = diag.to_dict()
-    out["source"] = str(rec)
+    out["source"] = str(rec) if source is None else source
     out["dropped_samples"] = dict(recording.dropped)
-    if json_path is not None:
-        text = json.dumps(out, indent=1, ensure_ascii=False)
-        if str(json_path) == "-":
-            click.echo(text)
-        else:
-            try:
-                json_path.write_text(text + "\n", encoding="utf-8")
-            except OSError as exc:
-                raise InputError(json_path, f"cannot write ({exc.strerror})") from None
-    if report_dir is not None:
-        from pdr_mag.modelcheck.report import write_report
+    return DiagnoseResult(diag, out, recording)
 
-        try:
-            write_report(diag, report_dir, title=str(rec))
-        except OSError as exc:
-            raise InputError(report_dir, f"cannot write the report ({exc.strerror})") from None
-    if str(json_path) != "-":
-        click.echo(summary(out, rec))
-    return 0
+
+def json_text(out: dict) -> str:
+    """The ``diagnose --json`` text (without the final newline)."""
+    return json.dumps(out, indent=1, ensure_ascii=False)
+
+
+def write_json(out: dict, json_path: Path) -> None:
+    """Write the ``diagnose --json`` file."""
+    try:
+        json_path.write_text(json_text(out) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise InputError(json_path, f"cannot write ({exc.strerror})") from None
+
+
+def write_report_dir(res: DiagnoseResult, report_dir: Path, title: str) -> None:
+    """Write ``report.md`` with plots into ``report_dir`` (needs matplotlib)."""
+    from pdr_mag.modelcheck.report import write_report
+
+    try:
+        write_report(res.diagnosis, report_dir, title=title)
+    except OSError as exc:
+        raise InputError(report_dir, f"cannot write the report ({exc.strerror})") from None
 
 
 def summary(d: dict, rec) -> str:

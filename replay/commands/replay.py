@@ -36,7 +36,7 @@ from replay.errors import InputError
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
 def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
-    from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
+    from replay.run import load_calibration, summary_table
 
     cal = load_calibration(calibration) if calibration is not None else None
     if cal is not None and not cal.accepted:
@@ -45,25 +45,65 @@ def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, 
         click.echo(msg, err=True)
     if mcap_rate is not None and mcap is None:
         raise click.UsageError("--mcap-rate needs --mcap FILE")
-    for path in (out_csv, json_path, mcap, rrd):
-        if path is not None:
-            writable_file(path)
-    sinks = []
+    summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate, rrd=rrd,
+                  viewer=viewer, progress=progress)
+    if not quiet:
+        click.echo(summary_table(summary))
+    return 0
+
+
+def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=None, rrd=None, viewer=False,
+        progress=None, sinks=(), source=None) -> dict:
+    """What ``pdr-mag replay`` does with one recording: replay it into the requested files.
+
+    Parameters
+    ----------
+    rec : path or RecordingSource
+        The recording.
+    cal : MagCalibration or None
+        The device calibration (None: online calibration only).
+    out_csv, json_path, mcap, rrd : path or None
+        The ``--out-csv``, ``--json``, ``--mcap`` and ``--rrd`` files (checked writable before the work, their
+        folders created).
+    mcap_rate : float or None
+        ``--mcap-rate``: the MCAP sink's rate limit of the high-rate topics, Hz.
+    viewer : bool
+        Also stream to a live rerun viewer.
+    progress : bool or None
+        As :func:`replay.run.replay`.
+    sinks : sequence of Sink
+        More sinks fed with the same run (``pdr-mag batch``'s fleet-table metrics).
+    source : str, optional
+        The name the outputs give the recording (``source``), when ``rec`` is opened under another path.
+
+    Returns
+    -------
+    dict
+        The run summary (the ``replay --json`` object).
+    """
+    from replay.formats import open_recording
+    from replay.run import CsvSink, make_sink, replay
+
+    for p in (out_csv, json_path, mcap, rrd):
+        if p is not None:
+            writable_file(p)
+    files = []
     if mcap is not None:
-        sinks.append(make_sink("mcap", mcap, rate_hz=mcap_rate))
+        files.append(make_sink("mcap", mcap, rate_hz=mcap_rate))
     if rrd is not None or viewer:
-        sinks.append(make_sink("rrd", rrd, spawn=viewer))
+        files.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
-        sinks.append(CsvSink(out_csv))
-    summary = replay(rec, calibration=cal, sinks=sinks, progress=progress)
+        files.append(CsvSink(out_csv))
+    if source is not None:
+        rec = open_recording(rec)
+        rec.source = source
+    summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress)
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
         except OSError as exc:
             raise InputError(json_path, f"cannot write ({exc.strerror})") from None
-    if not quiet:
-        click.echo(summary_table(summary))
-    return 0
+    return summary
 
 
 def _clean(obj):

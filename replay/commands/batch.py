@@ -1,0 +1,121 @@
+"""``pdr-mag batch {replay,calibrate,diagnose} INPUT... --out DIR``: many recordings at once, on Dask.
+
+INPUT: recordings, folders (searched recursively for recordings) and manifests (``*.manifest``: one
+recording a line, optionally with its calibration file) — :mod:`replay.batch.inputs`. Each recording's
+files go to its own folder under DIR, mirroring the input tree, the same files the single command
+writes; ``DIR/summary.csv`` (and ``summary.parquet`` with pyarrow) is the fleet table, one row per
+recording (:mod:`replay.batch.table`). A recording that fails is an ``error`` row and the others go on;
+the exit code is 2 when any failed. A second run skips recordings whose outputs are complete (``--force``
+redoes them).
+
+By default the recordings run on a local Dask cluster of ``--workers`` processes started and stopped here;
+``--scheduler tcp://HOST:8786`` sends them to an existing cluster (its workers need pdr_mag installed and
+the recordings and DIR on paths they share).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+
+from replay.errors import InputError
+
+
+def _common(f):
+    """The options every batch subcommand has."""
+    options = [
+        click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path)),
+        click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
+                     help="Output folder: one folder per recording, and summary.csv."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="Worker processes of the local cluster (default: the core count)."),
+        click.option("--scheduler", metavar="ADDRESS",
+                     help="Run on the Dask cluster at ADDRESS (tcp://HOST:8786) instead of a local one."),
+        click.option("--force", is_flag=True, help="Redo recordings whose outputs are complete."),
+        click.option("--progress/--no-progress", default=None,
+                     help="Progress bar over recordings (default: on a terminal)."),
+        click.option("--top", type=click.IntRange(min=0), default=10, show_default=True,
+                     help="Rows of the fleet table printed at the end (worst first)."),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
+@click.group()
+def command() -> None:
+    """Run replay, calibrate or diagnose over many recordings on Dask; write a fleet table."""
+
+
+@command.command("replay")
+@_common
+@click.option("--calibration", type=click.Path(path_type=Path),
+              help="calibrate --json file for every recording a manifest gives none.")
+@click.option("--mcap", is_flag=True, help="Also write replay.mcap per recording.")
+@click.option("--rrd", is_flag=True, help="Also write replay.rrd (rerun) per recording.")
+def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, calibration, mcap, rrd):
+    """Replay every recording: heading.csv and replay.json per recording (pdr-mag replay's files)."""
+    return _run("replay", inputs, out_dir, {"mcap": mcap, "rrd": rrd}, calibration, workers, scheduler,
+                force, progress, top)
+
+
+@command.command("calibrate")
+@_common
+@click.option("--method", type=click.Choice(("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9",
+                                             "twostep")),
+              default="auto", show_default=True, help="Estimator (as pdr-mag calibrate).")
+def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, method):
+    """Calibrate every recording: calibration.json per recording (pdr-mag calibrate --json)."""
+    return _run("calibrate", inputs, out_dir, {"method": method}, None, workers, scheduler, force, progress,
+                top)
+
+
+@command.command("diagnose")
+@_common
+@click.option("--report", is_flag=True, help="Also write report/ (report.md with plots) per recording.")
+@click.option("--use-truth", is_flag=True, help="Predict along truth.csv (as pdr-mag diagnose).")
+def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, report, use_truth):
+    """Diagnose every recording: diagnose.json per recording (pdr-mag diagnose --json)."""
+    if report:
+        from replay.commands.diagnose import need_matplotlib
+
+        need_matplotlib()
+    return _run("diagnose", inputs, out_dir, {"report": report, "use_truth": use_truth}, None, workers,
+                scheduler, force, progress, top)
+
+
+def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler, force, progress,
+         top) -> int:
+    from replay.batch import execute, headline, plan, write_table
+    from replay.batch.engine import Interrupted
+
+    if scheduler is not None and workers is not None:
+        raise click.UsageError("--workers sets the local cluster; with --scheduler the cluster has its own")
+    if calibration is not None:
+        from replay.run import load_calibration
+
+        load_calibration(calibration)  # a bad file stops the batch here, not once per recording
+    t_start = time.perf_counter()
+    p = plan(command_name, inputs, out_dir, options=options, calibration=calibration, force=force)
+    if not p.rows:
+        raise InputError(" ".join(str(i) for i in inputs), "no recording found")
+    try:
+        rows = p.table(execute(p.tasks, workers=workers, scheduler=scheduler, progress=progress,
+                               desc=f"batch {command_name}"))
+    except Interrupted as exc:
+        raise click.ClickException(
+            f"interrupted after {exc.n_done} of {exc.n_tasks} recordings had reported back; the same command "
+            f"does the rest (complete outputs are skipped)"
+        ) from None
+    written = write_table(rows, p.out_dir)
+    n_err = sum(r["status"] == "error" for r in rows)
+    where = " + ".join(str(out_dir / w.name) for w in written)
+    resumed = f" ({p.n_resumed} already done)" if p.n_resumed else ""
+    plural = "s" if len(rows) != 1 else ""
+    click.echo(f"batch {command_name}: {len(rows)} recording{plural}, {len(rows) - n_err} ok{resumed}, "
+               f"{n_err} error → {where}  [{time.perf_counter() - t_start:.1f} s]")
+    if top:
+        click.echo("worst first:\n" + headline(rows, command_name, top))
+    return 2 if n_err else 0
