@@ -378,21 +378,28 @@ class EpisodeFinder:
             )
 
     def _no_reference(self, t, used, err, std) -> None:
-        """Gaps between magnetometer corrections longer than ``no_reference_s``."""
-        s = self.settings
+        """Gaps between magnetometer corrections longer than ``no_reference_s``.
+
+        The gap ending at correction row ``u`` runs from the previous correction (or the first row) to
+        ``t[u]``; its peaks are those of the rows after the previous correction up to ``u`` (for the batch's
+        first gap, with the peaks carried over from the rows of earlier batches since the last correction).
+        Only the gaps long enough to be episodes need their peaks.
+        """
         idx = np.flatnonzero(used)
-        bounds = np.r_[0, idx + 1] if len(idx) else np.array([0])
-        for i, u in enumerate(idx):
-            lo = bounds[i]
+        lo = 0
+        if len(idx):
             start = self._last_used if np.isfinite(self._last_used) else self._t_first
-            self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo : u + 1])
-            self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo : u + 1])
-            gap = float(t[u]) - start
-            if gap > s.no_reference_s:
-                self._gap(start, float(t[u]))
-            self._last_used = float(t[u])
+            starts = np.r_[start, t[idx[:-1]]]
+            for i in np.flatnonzero(t[idx] - starts > self.settings.no_reference_s):
+                if i:
+                    lo = idx[i - 1] + 1
+                    self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
+                self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo : idx[i] + 1])
+                self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo : idx[i] + 1])
+                self._gap(float(starts[i]), float(t[idx[i]]))
+            self._last_used = float(t[idx[-1]])
             self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
-        lo = bounds[-1]
+            lo = idx[-1] + 1
         self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo:])
         self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo:])
 
