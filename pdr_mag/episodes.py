@@ -263,12 +263,16 @@ class EpisodeFinder:
         if truth is not None:
             t_tr = np.asarray(truth[0], dtype=float)
             q = np.asarray(truth[1], dtype=float).reshape(len(t_tr), 4)
-            ok = np.isfinite(t_tr) & np.all(np.isfinite(q), axis=1)
+            ok = np.isfinite(t_tr)
+            for component in q.T:  # (np.all(…, axis=1) over 4 columns is much slower)
+                ok &= np.isfinite(component)
             if ok.sum() >= 2:
                 t_tr, q = t_tr[ok], q[ok]
                 order = np.argsort(t_tr, kind="stable")
                 t_tr, q = t_tr[order], q[order]
                 self._truth = (t_tr, np.unwrap(heading_deg_from_quat(q), period=360.0))
+                wide = t_tr[1:] - t_tr[:-1] > self.settings.max_truth_gap_s
+                self._truth_holes = (t_tr[:-1][wide], t_tr[1:][wide])
         self._runs: dict[str, _Run | None] = {"error": None, "sigma": None}
         self._referenced = False  # a magnetometer correction has been seen
         self._t_first = np.nan
@@ -292,10 +296,24 @@ class EpisodeFinder:
             return np.full(len(t), np.nan)
         tt, hh = self._truth
         err = wrap_deg(np.asarray(heading_deg, dtype=float) - np.interp(t, tt, hh))
-        j = np.clip(np.searchsorted(tt, t), 1, len(tt) - 1)
+        if len(t) and not self._may_lack_truth(float(t.min()), float(t.max())):
+            return err
+        j = np.minimum(np.maximum(np.searchsorted(tt, t), 1), len(tt) - 1)
         near = np.minimum(np.abs(t - tt[j - 1]), np.abs(tt[j] - t))
         err[(near > self.settings.max_truth_gap_s) | (t < tt[0]) | (t > tt[-1])] = np.nan
         return err
+
+    def _may_lack_truth(self, t_min: float, t_max: float) -> bool:
+        """Whether a row in ``[t_min, t_max]`` may be farther than ``max_truth_gap_s`` from every truth
+        sample: the span leaves the truth's, or meets a hole (truth samples ``a < b`` more than
+        ``max_truth_gap_s`` apart, ``a < t_max`` and ``b ≥ t_min``).  A row ``t`` between truth samples
+        ``a < t ≤ b`` closer than that is within ``t − a ≤ b − a`` of one (NaN: True)."""
+        tt = self._truth[0]
+        if not (tt[0] <= t_min and t_max <= tt[-1]):
+            return True
+        starts, ends = self._truth_holes
+        k = int(np.searchsorted(ends, t_min))  # the first hole that ends at or after t_min
+        return k < len(ends) and starts[k] < t_max
 
     def update(self, batch, events=()) -> list[Episode]:
         """Take the next rows (an ``EstimateBatch``) and the events up to them; return the episodes closed."""
@@ -314,17 +332,17 @@ class EpisodeFinder:
         err = self.error_deg(t, batch.heading_deg)
         std = np.asarray(batch.heading_std_deg, dtype=float)
         used = np.asarray(batch.mag_used, dtype=bool)
-        cal = np.full(n, self._referenced)
-        if not self._referenced:
+        abs_err, std_cal = np.abs(err), std
+        if not self._referenced:  # rows before the first correction count for neither error nor sigma
             first = np.flatnonzero(used)
-            if len(first):
-                cal[first[0] :] = True
-                self._referenced = True
-        abs_err = np.where(cal, np.abs(err), np.nan)
-        std_cal = np.where(cal, std, np.nan)
+            k = first[0] if len(first) else n
+            self._referenced = k < n
+            abs_err[:k] = np.nan
+            std_cal = std.copy()
+            std_cal[:k] = np.nan
         with np.errstate(invalid="ignore"):
-            self._feed("error", t, abs_err > s.error_onset_deg, abs_err > s.error_deg, abs_err, err, std)
-            self._feed("sigma", t, std_cal > s.std_deg, std_cal > s.std_deg, std_cal, err, std)
+            self._feed("error", t, abs_err, s.error_onset_deg, s.error_deg, err, std)
+            self._feed("sigma", t, std_cal, s.std_deg, s.std_deg, err, std)
         self._no_reference(t, used, err, std)
         self._detector_rows(t, batch, err)
         self._t_now = float(t[-1])
@@ -346,14 +364,17 @@ class EpisodeFinder:
         return self._release()
 
     # ------------------------------------------------------------------ stretches
-    def _feed(self, kind, t, above, core, value, err, std) -> None:
-        """Hysteresis runs: rows above the onset level, merged across gaps < merge_s, kept if any is core."""
-        idx = np.flatnonzero(above)
+    def _feed(self, kind, t, value, onset, level, err, std) -> None:
+        """Hysteresis runs: rows with ``value`` above ``onset``, merged across gaps < merge_s, kept if any
+        is above ``level``."""
+        idx = np.flatnonzero(value > onset)
         if len(idx) == 0:
             return
         merge = self.settings.merge_s
-        cut = np.flatnonzero(np.diff(t[idx]) > merge) + 1
-        for seg in np.split(idx, cut):
+        ti = t[idx]
+        bounds = [0, *(np.flatnonzero(ti[1:] - ti[:-1] > merge) + 1).tolist(), len(idx)]
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            seg = idx[lo:hi]
             run = self._runs[kind]
             t0 = float(t[seg[0]])
             if run is not None and t0 - run.t_last > merge:
@@ -362,10 +383,11 @@ class EpisodeFinder:
             if run is None:
                 run = self._runs[kind] = _Run(t_start=t0, t_last=t0)
             run.t_last = float(t[seg[-1]])
-            run.reached = run.reached or bool(np.any(core[seg]))
-            k = seg[int(np.argmax(value[seg]))]
-            if value[k] > run.peak:
-                run.peak, run.t_peak = float(value[k]), float(t[k])
+            v = value[seg]
+            run.reached = run.reached or bool((v > level).any())
+            k = int(np.argmax(v))
+            if v[k] > run.peak:
+                run.peak, run.t_peak = float(v[k]), float(t[seg[k]])
             run.err = _signed_max(run.err, err[seg])
             run.std = _nanmax(run.std, std[seg])
 
@@ -389,14 +411,15 @@ class EpisodeFinder:
         lo = 0
         if len(idx):
             start = self._last_used if np.isfinite(self._last_used) else self._t_first
-            starts = np.r_[start, t[idx[:-1]]]
-            for i in np.flatnonzero(t[idx] - starts > self.settings.no_reference_s):
+            tu = t[idx]
+            gaps = tu - np.concatenate(([start], tu[:-1]))
+            for i in np.flatnonzero(gaps > self.settings.no_reference_s):
                 if i:
                     lo = idx[i - 1] + 1
                     self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
                 self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo : idx[i] + 1])
                 self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo : idx[i] + 1])
-                self._gap(float(starts[i]), float(t[idx[i]]))
+                self._gap(float(tu[i - 1]) if i else start, float(tu[i]))
             self._last_used = float(t[idx[-1]])
             self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
             lo = idx[-1] + 1
@@ -424,9 +447,10 @@ class EpisodeFinder:
             }
         for name, flags in rows.items():
             sig = self._signals[name]
-            prev = np.r_[sig.state, flags[:-1]]
-            for i in np.flatnonzero(flags != prev):
-                sig.trans.append(_Change(float(t[i]), bool(flags[i]), float(err[i])))
+            if flags.all() if sig.state else not flags.any():
+                continue  # no transition (the common case)
+            i = np.flatnonzero(flags != np.concatenate(([sig.state], flags[:-1])))
+            sig.trans += map(_Change, t[i].tolist(), flags[i].tolist(), err[i].tolist())
             sig.state = bool(flags[-1])
 
     def _release(self) -> list[Episode]:
