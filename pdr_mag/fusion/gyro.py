@@ -44,8 +44,8 @@ GAP_DT = 0.05
 #: largest tilt-error variance a gap may add up to, rad² (30°: the accelerometer linearisation holds)
 TILT_VAR_MAX = (np.pi / 6.0) ** 2
 
-#: Scratch space of :func:`predict` (a record of :func:`new_work`, made once per kernel call rather than
-#: arrays allocated per gyroscope sample): the blocks A, B, C of the old ``P``, the products ``G C`` and
+#: Scratch space of :func:`predict` (a one-record array made once per kernel call, rather than arrays
+#: allocated per gyroscope sample): the blocks A, B, C of the old ``P``, the products ``G C`` and
 #: ``G Bᵀ``, and the new cross terms with c.
 PREDICT_WORK = np.dtype(
     [
@@ -60,30 +60,25 @@ PREDICT_WORK = np.dtype(
 
 
 @njit(cache=True, error_model="numpy")
-def new_work():
-    """A :data:`PREDICT_WORK` record for :func:`gyro_step`."""
-    return np.empty(1, dtype=PREDICT_WORK)[0]
-
-
-@njit(cache=True, error_model="numpy")
 def predict(s, R, work, wx, wy, wz, dt, p):
     """Propagate record ``s`` by Δt = ``dt`` with the bias-corrected rate w (rad/s); ``R`` scratch 3×3,
-    ``work`` a :data:`PREDICT_WORK` record."""
+    ``work`` a one-record array of :data:`PREDICT_WORK`."""
     rotate_body(s.q, wx * dt, wy * dt, wz * dt)
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
     P = s.P
     # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
-    A = work.A
-    B = work.B
-    C = work.C
+    scratch = work[0]
+    A = scratch.A
+    B = scratch.B
+    C = scratch.C
     for i in range(3):
         for m in range(3):
             A[i, m] = P[i, m]
             B[i, m] = P[i, 3 + m]
             C[i, m] = P[3 + i, 3 + m]
-    GC = work.GC  # G C
-    GB = work.GB  # G Bᵀ
+    GC = scratch.GC  # G C
+    GB = scratch.GB  # G Bᵀ
     for i in range(3):
         for m in range(3):
             s1 = 0.0
@@ -97,7 +92,7 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     qb = p.bias_rw**2 * dt
     phi = np.exp(-dt / p.mag_error_tau_s)
     # cross terms with c (column 6), from the old P
-    pac = work.pac
+    pac = scratch.pac
     for i in range(3):
         s1 = 0.0
         for k in range(3):
@@ -171,7 +166,7 @@ def ew_stats_step(st, first, dt, x, y, z, tau):
 @njit(cache=True, error_model="numpy")
 def gyro_step(s, R, work, wx, wy, wz, t, p):
     """One gyroscope sample (rad/s) at time t: still statistics, prediction, zero-rate update; ``R`` scratch
-    3×3, ``work`` a :data:`PREDICT_WORK` record."""
+    3×3, ``work`` a one-record array of :data:`PREDICT_WORK`."""
     first = not (s.have_gyro and np.isfinite(s.t_gyro))
     ew_stats_step(s.gyro_stats, first, t - s.t_gyro, wx, wy, wz, p.still_tau_s)
     if s.init > 0 and s.have_gyro:
