@@ -414,9 +414,9 @@ class HeadingPipeline:
         if cal is not None and self._mag_matrix_t is not None:
             is_mag = kind == 2
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
+        # the filter over the span, keeping its state before each block (FusionCore.snapshots)
         starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
         batch = self.fusion._run(kind, t, data, allowed, starts, n_gyro, cal_state)
-        snaps = self.fusion.snapshots  # the filter before each block
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
@@ -435,7 +435,7 @@ class HeadingPipeline:
                 self._pend = rows[:0]
                 end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
                 if end < len(t):
-                    self.fusion._restore(snaps[int(starts.searchsorted(end))])
+                    self.fusion._restore(self.fusion.snapshots[int(starts.searchsorted(end))])
                     batch = batch.head(int(batch.t.searchsorted(t[end])))
                 self._use_calibration()  # after the filter's state (with its reference strength) is put back
             PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
