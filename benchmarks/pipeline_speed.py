@@ -10,7 +10,7 @@ same recording, best of ``--repeats`` (interleaved), the numba kernels loaded be
     the same pushed in 2-s slices of stream time with a poll after each (as a phone app might deliver).
 ``replay``
     ``replay.run.replay(rec)`` — what ``pdr-mag replay REC`` runs once the recording is read: the merge of
-    the recording's streams into slices of :data:`replay.run.SLICE_S` (10 s), the pipeline polled after
+    the recording's streams into slices of :data:`replay.run.SLICE_S` (30 s), the pipeline polled after
     each, events and the run summary; no sink.
 ``imufusion``
     ``imufusion.Ahrs`` exactly as ``benchmarks/heading.py`` runs it: the accelerometer interpolated and

@@ -197,7 +197,7 @@ class Episode:
 
     def to_dict(self) -> dict:
         """The ``replay --json`` form (``duration_s`` and ``unit`` added, detectors as objects)."""
-        d = asdict(self)
+        d = {f.name: getattr(self, f.name) for f in fields(self)}  # (the values are immutable)
         d["duration_s"] = self.t_end - self.t_start
         d["unit"] = KINDS[self.kind]
         d["detectors"] = [{"detector": n, "t": t} for n, t in self.detectors]

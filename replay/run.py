@@ -26,9 +26,10 @@ from replay.recording import Recording
 from replay.source import Merge, RecordingSource
 
 #: Stream time pushed between polls, s. A file needs no phone-like delivery (an app pushes every second or
-#: two); 10 s keeps the fixed cost of a poll (≈ 0.2 ms) small against that of the data (0.2–0.5 ms a second
-#: of 100–200 Hz sensors), and a slice in memory stays ≈ 5 000 samples at 200 Hz.
-SLICE_S = 10.0
+#: two); a poll has a fixed cost (≈ 0.13 ms: the filter's and the calibrator's calls for the slice's last
+#: span, the episode finder's batch) against ≈ 0.1–0.25 ms per second of 100–200 Hz data, so 30 s keeps it
+#: to a few per cent, and a slice in memory stays ≈ 15 000 samples at 200 Hz.
+SLICE_S = 30.0
 
 #: Recordings of more input bytes than this get a progress bar (≈ 200 000 samples of text).
 PROGRESS_MIN_BYTES = 8_000_000
