@@ -10,7 +10,7 @@ same recording, best of ``--repeats`` (interleaved), the numba kernels loaded be
     the same pushed in 2-s slices of stream time with a poll after each (as a phone app might deliver).
 ``replay``
     ``replay.run.replay(rec)`` — what ``pdr-mag replay REC`` runs once the recording is read: the merge of
-    the recording's streams into slices of :data:`replay.run.SLICE_S` (10 s), the pipeline polled after
+    the recording's streams into slices of :data:`replay.run.SLICE_S` (30 s), the pipeline polled after
     each, events and the run summary; no sink.
 ``imufusion``
     ``imufusion.Ahrs`` exactly as ``benchmarks/heading.py`` runs it: the accelerometer interpolated and
@@ -21,9 +21,10 @@ Throughput is counted as accelerometer + gyroscope + magnetometer samples of the
 wall time, the same count for both; ratio = imufusion time / pipeline time (≥ 1: the pipeline is faster).
 
 Synthetic hour (``--hour``): ``benchmarks/memory_pipeline.py``'s texting walk, accelerometer and gyroscope at
-200 Hz and magnetometer at 100 Hz, generated one second at a time and pushed/polled one second at a time;
-only the pipeline calls are timed; the resident set size is sampled every 10 minutes.  The same hour is then
-fed to imufusion (per gyro sample, magnetometer held) for the ratio.
+200 Hz and magnetometer at 100 Hz, generated one second at a time and pushed/polled one second at a time
+(as a phone app would); only the pipeline calls are timed; the resident set size is sampled every 10
+minutes.  The same hour is then fed to imufusion (per gyro sample, magnetometer held), and, kept in memory
+as a recording (no truth: the episode finder's error detector is idle), to ``replay.run.replay``.
 
 Usage::
 
@@ -149,8 +150,12 @@ def hour(minutes: float = 60.0) -> dict:
     rng = np.random.default_rng(0)
     ahrs = imufusion_ahrs(200.0)
     t_imu = 0.0
+    parts = {name: ([], []) for name in ("accel", "gyro", "mag")}
     for k in range(seconds):
         data = mp._second(k, field_w, rng)
+        for name, (t, x) in data.items():
+            parts[name][0].append(t)
+            parts[name][1].append(x)
         t0 = time.perf_counter()
         tg, gyr = data["gyro"]
         ta, acc = data["accel"]
@@ -163,6 +168,16 @@ def hour(minutes: float = 60.0) -> dict:
             ahrs.update(gd[i], acc[i], mag[i])
             q[i] = ahrs.get_quaternion()
         t_imu += time.perf_counter() - t0
+    from replay.recording import Recording, Stream
+    from replay.run import replay
+
+    rec = Recording(
+        meta=mp.META, **{name: Stream(np.concatenate(t), np.concatenate(x)) for name, (t, x) in parts.items()}
+    )
+    del parts
+    t0 = time.perf_counter()
+    replay(rec, progress=False)
+    t_replay = time.perf_counter() - t0
     return {
         "minutes": minutes,
         "samples": samples,
@@ -172,6 +187,9 @@ def hour(minutes: float = 60.0) -> dict:
         "imufusion_s": t_imu,
         "imufusion_per_s": samples / t_imu,
         "ratio": t_imu / t_pipe,
+        "replay_s": t_replay,
+        "replay_per_s": samples / t_replay,
+        "ratio_replay": t_imu / t_replay,
         "rss_mb": rss,
         "rss_growth_after_10min_mb": rss[-1][1] - rss[1][1] if len(rss) > 2 else None,
         "final_cal_state": pipe.cal_state,
@@ -206,8 +224,9 @@ def main(argv=None) -> int:
         res["hour"] = h
         print(
             f"synthetic {h['minutes']:g} min: {h['samples']} samples, pipeline {h['pipeline_s']:.2f} s "
-            f"({h['pipeline_per_s'] / 1e6:.2f} M/s), imufusion {h['imufusion_s']:.2f} s, "
-            f"ratio {h['ratio']:.2f}; RSS {h['rss_mb']}",
+            f"({h['pipeline_per_s'] / 1e6:.2f} M/s), replay {h['replay_s']:.2f} s, imufusion "
+            f"{h['imufusion_s']:.2f} s, ratio {h['ratio']:.2f} (replay {h['ratio_replay']:.2f}); "
+            f"RSS {h['rss_mb']}",
             file=sys.stderr,
         )
     print(json.dumps(res, indent=1))

@@ -344,7 +344,7 @@ class FusionCore:
         self._st = new_state()
         self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
         self._ref_strength: float | None = None
-        self.snapshots: list = []  # kept by process(snapshot_at=…)
+        self._snaps = (_NO_SNAPS, None)  # the states kept by the last run, and the reference strength
         self.field: EarthField | None = None
         self.set_field(field)
 
@@ -423,10 +423,7 @@ class FusionCore:
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
         k = kernel.run_cut(kind, t, xyz, allowed, self._st, self._p, self._ip, cuts, snaps, floats, q, flags)
-        ref = self._ref_strength
-        self.snapshots = (
-            [(raw, ref) for raw in snaps.view(np.uint8).reshape(len(cuts), -1)] if len(cuts) else []
-        )
+        self._snaps = (snaps, self._ref_strength)
         col = dict(zip(FLOAT_COLS, floats[:, :k], strict=True)) | dict(
             zip(FLAG_COLS, flags[:, :k], strict=True)
         )
@@ -461,6 +458,12 @@ class FusionCore:
             "state": state_to_json(self._st[0]),
             "reference_strength_uT": self._ref_strength,
         }
+
+    @property
+    def snapshots(self) -> list:
+        """The :meth:`_snapshot` s kept by the last :meth:`process` (``snapshot_at``), in order."""
+        snaps, ref = self._snaps
+        return [(raw, ref) for raw in snaps.view(np.uint8).reshape(len(snaps), -1)] if len(snaps) else []
 
     def _snapshot(self) -> tuple:
         """Cheap in-process snapshot for :meth:`_restore` (a copy of the state's bytes; not serialisable)."""

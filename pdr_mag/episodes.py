@@ -41,11 +41,12 @@ before the flag rises shows as a positive latency with a large ``error_at_flag_d
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
 
+from pdr_mag import _episode_kernel as K
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.estimates import Event
 
@@ -196,24 +197,11 @@ class Episode:
 
     def to_dict(self) -> dict:
         """The ``replay --json`` form (``duration_s`` and ``unit`` added, detectors as objects)."""
-        d = asdict(self)
+        d = {f.name: getattr(self, f.name) for f in fields(self)}  # (the values are immutable)
         d["duration_s"] = self.t_end - self.t_start
         d["unit"] = KINDS[self.kind]
         d["detectors"] = [{"detector": n, "t": t} for n, t in self.detectors]
         return d
-
-
-@dataclass
-class _Run:
-    """An open stretch above the onset level, and its peaks so far."""
-
-    t_start: float
-    t_last: float
-    reached: bool = False
-    peak: float = -np.inf
-    t_peak: float = np.nan
-    err: float = np.nan
-    std: float = np.nan
 
 
 class _Change(NamedTuple):
@@ -236,14 +224,6 @@ class _Closed(NamedTuple):
     std: float
 
 
-@dataclass
-class _Signal:
-    """A binary signal's transitions (:class:`_Change`), pruned to the finder's horizon."""
-
-    state: bool = False
-    trans: list = field(default_factory=list)
-
-
 class EpisodeFinder:
     """Find drift episodes in a run's rows, streaming.
 
@@ -254,7 +234,9 @@ class EpisodeFinder:
         True orientation (w-first quaternions, device → ENU), rows with NaN ignored.
 
     ``update(batch, events)`` with every batch and event of the run, in time order, returns the episodes
-    closed so far; ``finish()`` the rest (sorted by start).
+    closed so far; ``finish()`` the rest (sorted by start).  The rows go through a compiled scan
+    (:mod:`pdr_mag._episode_kernel`) that keeps the open stretches and the detectors' states; the
+    transitions of each detector are kept here, pruned to those a window still to come can need.
     """
 
     def __init__(self, settings: EpisodeSettings | None = None, truth=None):
@@ -263,20 +245,24 @@ class EpisodeFinder:
         if truth is not None:
             t_tr = np.asarray(truth[0], dtype=float)
             q = np.asarray(truth[1], dtype=float).reshape(len(t_tr), 4)
-            ok = np.isfinite(t_tr) & np.all(np.isfinite(q), axis=1)
+            ok = np.isfinite(t_tr)
+            for component in q.T:  # (np.all(…, axis=1) over 4 columns is much slower)
+                ok &= np.isfinite(component)
             if ok.sum() >= 2:
-                t_tr, q = t_tr[ok], q[ok]
-                order = np.argsort(t_tr, kind="stable")
-                t_tr, q = t_tr[order], q[order]
+                if not ok.all():
+                    t_tr, q = t_tr[ok], q[ok]
+                if np.any(t_tr[1:] < t_tr[:-1]):
+                    order = np.argsort(t_tr, kind="stable")
+                    t_tr, q = t_tr[order], q[order]
                 self._truth = (t_tr, np.unwrap(heading_deg_from_quat(q), period=360.0))
-        self._runs: dict[str, _Run | None] = {"error": None, "sigma": None}
-        self._referenced = False  # a magnetometer correction has been seen
-        self._t_first = np.nan
+                wide = t_tr[1:] - t_tr[:-1] > self.settings.max_truth_gap_s
+                self._truth_holes = (t_tr[:-1][wide], t_tr[1:][wide])
+        self._scan = K.new_scan()
+        self._levels = np.zeros(1, dtype=K.LEVELS)
+        for name in K.LEVELS.names:
+            self._levels[name] = getattr(self.settings, name)
         self._t_now = np.nan
-        self._last_used = np.nan  # time of the last magnetometer correction (NaN: none yet)
-        self._gap_peak_err = np.nan
-        self._gap_peak_std = np.nan
-        self._signals = {name: _Signal() for name in (*DETECTORS, "field_out")}
+        self._trans: dict[str, list[_Change]] = {name: [] for name in (*DETECTORS, "field_out")}
         self._pending: list[_Closed] = []
         self._done: list[Episode] = []
 
@@ -292,151 +278,88 @@ class EpisodeFinder:
             return np.full(len(t), np.nan)
         tt, hh = self._truth
         err = wrap_deg(np.asarray(heading_deg, dtype=float) - np.interp(t, tt, hh))
-        j = np.clip(np.searchsorted(tt, t), 1, len(tt) - 1)
+        if len(t) and not self._may_lack_truth(float(t.min()), float(t.max())):
+            return err
+        j = np.minimum(np.maximum(np.searchsorted(tt, t), 1), len(tt) - 1)
         near = np.minimum(np.abs(t - tt[j - 1]), np.abs(tt[j] - t))
         err[(near > self.settings.max_truth_gap_s) | (t < tt[0]) | (t > tt[-1])] = np.nan
         return err
 
+    def _may_lack_truth(self, t_min: float, t_max: float) -> bool:
+        """Whether a row in ``[t_min, t_max]`` may be farther than ``max_truth_gap_s`` from every truth
+        sample: the span leaves the truth's, or meets a hole (truth samples ``a < b`` more than
+        ``max_truth_gap_s`` apart, ``a < t_max`` and ``b ≥ t_min``).  A row ``t`` between truth samples
+        ``a < t ≤ b`` closer than that is within ``t − a ≤ b − a`` of one (NaN: True)."""
+        tt = self._truth[0]
+        if not (tt[0] <= t_min and t_max <= tt[-1]):
+            return True
+        starts, ends = self._truth_holes
+        k = int(np.searchsorted(ends, t_min))  # the first hole that ends at or after t_min
+        return k < len(ends) and starts[k] < t_max
+
     def update(self, batch, events=()) -> list[Episode]:
         """Take the next rows (an ``EstimateBatch``) and the events up to them; return the episodes closed."""
-        s = self.settings
-        n = len(batch)
         for ev in events:
             d = ev if isinstance(ev, dict) else ev.to_dict()
             if d["kind"] in ("recalibration_requested", "calibration_rejected"):
-                self._signals[d["kind"]].trans.append(_Change(float(d["t"]), True, np.nan))
-        if n == 0:
+                self._trans[d["kind"]].append(_Change(float(d["t"]), True, np.nan))
+        if len(batch) == 0:
             return self._release()
         t = np.asarray(batch.t, dtype=float)
-        if not np.isfinite(self._t_first):
-            self._t_first = float(t[0])
-            self._last_used = np.nan
-        err = self.error_deg(t, batch.heading_deg)
-        std = np.asarray(batch.heading_std_deg, dtype=float)
-        used = np.asarray(batch.mag_used, dtype=bool)
-        cal = np.full(n, self._referenced)
-        if not self._referenced:
-            first = np.flatnonzero(used)
-            if len(first):
-                cal[first[0] :] = True
-                self._referenced = True
-        abs_err = np.where(cal, np.abs(err), np.nan)
-        std_cal = np.where(cal, std, np.nan)
-        with np.errstate(invalid="ignore"):
-            self._feed("error", t, abs_err > s.error_onset_deg, abs_err > s.error_deg, abs_err, err, std)
-            self._feed("sigma", t, std_cal > s.std_deg, std_cal > s.std_deg, std_cal, err, std)
-        self._no_reference(t, used, err, std)
-        self._detector_rows(t, batch, err)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dev_f = _deviation(batch.diag, "field_strength_uT", "field_ref_uT", "strength_tol_uT", len(t))
+            dev_i = _deviation(batch.diag, "dip_deg", "dip_ref_deg", "dip_tol_deg", len(t))
+        closed, changes = K.scan(
+            t,
+            self.error_deg(t, batch.heading_deg),
+            np.asarray(batch.heading_std_deg, dtype=float),
+            np.asarray(batch.mag_used, dtype=bool),
+            np.asarray(batch.interference, dtype=bool),
+            dev_f,
+            dev_i,
+            self._scan,
+            self._levels,
+        )
+        self._take(closed)
+        for signal, t_change, up, err in changes.tolist():
+            self._trans[K.ROW_SIGNALS[signal]].append(_Change(t_change, up, err))
         self._t_now = float(t[-1])
-        for kind, run in self._runs.items():
-            if run is not None and self._t_now - run.t_last > s.merge_s:
-                self._close(kind)
         return self._release()
 
     def finish(self) -> list[Episode]:
         """Close what is open at the end of the run; return the remaining episodes."""
-        for kind in self._runs:
-            if self._runs[kind] is not None:
-                self._close(kind)
+        self._take(K.close_open(self._scan, self._levels))
         if np.isfinite(self._t_now):
-            start = self._last_used if np.isfinite(self._last_used) else self._t_first
-            gap = self._t_now - start
-            if gap > self.settings.no_reference_s:
-                self._gap(start, self._t_now)
+            s = self._scan[0]
+            start = float(s["last_used"] if np.isfinite(s["last_used"]) else s["t_first"])
+            if self._t_now - start > self.settings.no_reference_s:
+                self._pending.append(
+                    _Closed("no_reference", start, self._t_now, self._t_now - start, self._t_now,
+                            float(s["gap_err"]), float(s["gap_std"]))
+                )  # fmt: skip
         return self._release()
 
-    # ------------------------------------------------------------------ stretches
-    def _feed(self, kind, t, above, core, value, err, std) -> None:
-        """Hysteresis runs: rows above the onset level, merged across gaps < merge_s, kept if any is core."""
-        idx = np.flatnonzero(above)
-        if len(idx) == 0:
-            return
-        merge = self.settings.merge_s
-        cut = np.flatnonzero(np.diff(t[idx]) > merge) + 1
-        for seg in np.split(idx, cut):
-            run = self._runs[kind]
-            t0 = float(t[seg[0]])
-            if run is not None and t0 - run.t_last > merge:
-                self._close(kind)
-                run = None
-            if run is None:
-                run = self._runs[kind] = _Run(t_start=t0, t_last=t0)
-            run.t_last = float(t[seg[-1]])
-            run.reached = run.reached or bool(np.any(core[seg]))
-            k = seg[int(np.argmax(value[seg]))]
-            if value[k] > run.peak:
-                run.peak, run.t_peak = float(value[k]), float(t[k])
-            run.err = _signed_max(run.err, err[seg])
-            run.std = _nanmax(run.std, std[seg])
-
-    def _close(self, kind: str) -> None:
-        run = self._runs[kind]
-        self._runs[kind] = None
-        if run is not None and run.reached and run.t_last - run.t_start >= self.settings.min_duration_s:
-            self._pending.append(
-                _Closed(kind, run.t_start, run.t_last, run.peak, run.t_peak, run.err, run.std)
-            )
-
-    def _no_reference(self, t, used, err, std) -> None:
-        """Gaps between magnetometer corrections longer than ``no_reference_s``."""
-        s = self.settings
-        idx = np.flatnonzero(used)
-        bounds = np.r_[0, idx + 1] if len(idx) else np.array([0])
-        for i, u in enumerate(idx):
-            lo = bounds[i]
-            start = self._last_used if np.isfinite(self._last_used) else self._t_first
-            self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo : u + 1])
-            self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo : u + 1])
-            gap = float(t[u]) - start
-            if gap > s.no_reference_s:
-                self._gap(start, float(t[u]))
-            self._last_used = float(t[u])
-            self._gap_peak_err, self._gap_peak_std = np.nan, np.nan
-        lo = bounds[-1]
-        self._gap_peak_err = _signed_max(self._gap_peak_err, err[lo:])
-        self._gap_peak_std = _nanmax(self._gap_peak_std, std[lo:])
-
-    def _gap(self, start: float, end: float) -> None:
-        self._pending.append(
-            _Closed("no_reference", start, end, end - start, end, self._gap_peak_err, self._gap_peak_std)
-        )
-
-    # ------------------------------------------------------------------ detectors
-    def _detector_rows(self, t, batch, err) -> None:
-        """Transitions of the interference flag and of the field's bands in these rows."""
-        d = batch.diag
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dev_f = _deviation(d, "field_strength_uT", "field_ref_uT", "strength_tol_uT", len(t))
-            dev_i = _deviation(d, "dip_deg", "dip_ref_deg", "dip_tol_deg", len(t))
-            dev = np.fmax(dev_f, dev_i)
-            rows = {
-                "interference": np.asarray(batch.interference, dtype=bool),
-                "strength": dev_f >= 1.0,
-                "dip": dev_i >= 1.0,
-                "field_out": dev >= self.settings.field_band_frac,
-            }
-        for name, flags in rows.items():
-            sig = self._signals[name]
-            prev = np.r_[sig.state, flags[:-1]]
-            for i in np.flatnonzero(flags != prev):
-                sig.trans.append(_Change(float(t[i]), bool(flags[i]), float(err[i])))
-            sig.state = bool(flags[-1])
+    def _take(self, closed: np.ndarray) -> None:
+        """The scan's closed stretches (:data:`pdr_mag._episode_kernel.CLOSED`) to the pending ones."""
+        for kind, *rest in closed.tolist():
+            self._pending.append(_Closed(K.KIND_NAMES[kind], *rest))
 
     def _release(self) -> list[Episode]:
         """The episodes closed since the last call (their windows end at their ends, all seen); prune."""
         out = [self._episode(p) for p in self._pending]
         self._pending = []
         # transitions older than any window still to come are not needed (keep the last one for the state)
-        starts = [r.t_start for r in self._runs.values() if r is not None]
-        starts.append(self._last_used if np.isfinite(self._last_used) else self._t_first)
+        s = self._scan[0]
+        starts = [float(s[kind]["t_start"]) for kind in ("error", "sigma") if s[kind]["open"]]
+        starts.append(float(s["last_used"] if np.isfinite(s["last_used"]) else s["t_first"]))
         horizon = min([*starts, self._t_now]) - self.settings.lookback_s - self.settings.merge_s
         if np.isfinite(horizon):
-            for sig in self._signals.values():
+            for trans in self._trans.values():
                 k = 0
-                while k + 1 < len(sig.trans) and sig.trans[k + 1].t < horizon:
+                while k + 1 < len(trans) and trans[k + 1].t < horizon:
                     k += 1
                 if k:
-                    del sig.trans[:k]
+                    del trans[:k]
         out.sort(key=lambda e: (e.t_start, e.kind))
         self._done += out
         return out
@@ -444,11 +367,11 @@ class EpisodeFinder:
     def _episode(self, c: _Closed) -> Episode:
         s = self.settings
         kind, t_start, t_end = c.kind, c.t_start, c.t_end
-        interference = self._signals["interference"].trans
+        interference = self._trans["interference"]
         lo = max([t_start - s.lookback_s] + [c.t for c in interference if not c.up and c.t <= t_start])
         found = []
         for name in DETECTORS:
-            first = _first_rise(self._signals[name].trans, lo, t_end)
+            first = _first_rise(self._trans[name], lo, t_end)
             if first is not None:
                 found.append((name, first.t))
         found.sort(key=lambda x: x[1])
@@ -458,11 +381,11 @@ class EpisodeFinder:
             t_flag = flag.t
             err_flag = None if not np.isfinite(flag.err) else flag.err
             since = max([lo] + [c.t for c in interference if not c.up and c.t < t_flag])
-            t_out = _first_up(self._signals["field_out"].trans, since, t_flag)
+            t_out = _first_up(self._trans["field_out"], since, t_flag)
             if t_out is not None:
                 latency = t_flag - t_out
         else:
-            t_out = _first_up(self._signals["field_out"].trans, lo, t_end)
+            t_out = _first_up(self._trans["field_out"], lo, t_end)
         return Episode(
             kind=kind,
             t_start=float(t_start),
@@ -521,22 +444,3 @@ def _first_up(trans: list, lo: float, hi: float) -> float | None:
         return lo
     hit = _first_rise(trans, lo, hi)
     return None if hit is None else hit.t
-
-
-def _signed_max(current: float, values: np.ndarray) -> float:
-    """The value of largest magnitude among ``current`` and ``values`` (NaN ignored)."""
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
-    if len(v) == 0:
-        return current
-    k = v[int(np.argmax(np.abs(v)))]
-    return float(k) if not np.isfinite(current) or abs(k) > abs(current) else current
-
-
-def _nanmax(current: float, values: np.ndarray) -> float:
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
-    if len(v) == 0:
-        return current
-    m = float(v.max())
-    return m if not np.isfinite(current) else max(current, m)

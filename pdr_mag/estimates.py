@@ -133,6 +133,19 @@ class EstimateBatch:
             diag=diag,
         )
 
+    def head(self, n: int) -> EstimateBatch:
+        """The first ``n`` rows (views)."""
+        return EstimateBatch(
+            t=self.t[:n],
+            q_wd=self.q_wd[:n],
+            heading_deg=self.heading_deg[:n],
+            heading_std_deg=self.heading_std_deg[:n],
+            mag_used=self.mag_used[:n],
+            interference=self.interference[:n],
+            cal_state=self.cal_state[:n],
+            diag={k: v[:n] for k, v in self.diag.items()},
+        )
+
     def rows(self):
         """Iterate as :class:`HeadingEstimate` objects (slow path, for the API's single-epoch users)."""
         for i in range(len(self.t)):

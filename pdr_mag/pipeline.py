@@ -22,13 +22,13 @@ and counted), which only happens when a stream stalls.
 
 Speculative spans.  One call into the compiled filter and one into the calibrator per block would cost
 more in fixed per-call work than the block's fusion itself (a block is ~100 samples).  So the filter runs
-ahead over a span of blocks with the calibration in force, in one call; then the span's ended blocks go to
-the calibrator in one call, which stops at the end of the first block whose close changed the
-calibration.  Then the filter is put back to its state at the span's start and run again up to that
-block's end, and the next span starts after it with the new calibration.  Changes are rare (a few per
-recording, most while the calibration converges), so a span is short after a change and doubles after
-each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks).  The rows are those of block-by-block
-processing whatever the span length (tested).
+ahead over a span of blocks with the calibration in force, in one call that also keeps a copy of its state
+before each block; then the span's ended blocks go to the calibrator in one call, which stops at the end
+of the first block whose close changed the calibration.  Then the filter is put back to its state at that
+block's end and the rows after it are dropped, and the next span starts there with the new calibration.
+Changes are rare (a few per recording, most while the calibration converges), so a span is short after a
+change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks).  The rows are those
+of block-by-block processing whatever the span length (tested).
 
 Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data between polls (``push``
 processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
@@ -60,7 +60,6 @@ KINDS = {"accel": 0, "gyro": 1, "mag": 2}
 _NAMES = {v: k for k, v in KINDS.items()}
 STATE_VERSION = 2
 _NO_OFFSET = np.zeros(3)
-_NO_CUTS = np.empty(0, dtype=np.intp)  # FusionCore._run's snapshot indices: none
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
 #: (changes come in runs while the calibration converges), doubled after each span without one, up to the
 #: most.
@@ -175,7 +174,7 @@ class HeadingPipeline:
         and date, the WMM gives the reference field and the heading is true north.
     fusion : object, optional
         A fusion core to use instead of :class:`pdr_mag.attitude.FusionCore` (for tests; the pipeline uses
-        its ``_run``, ``_snapshot``/``_restore``, ``set_reference_strength``, ``get_state``/``set_state``).
+        its ``_run``, ``snapshots``, ``_restore``, ``set_reference_strength``, ``get_state``/``set_state``).
 
     Examples
     --------
@@ -415,8 +414,9 @@ class HeadingPipeline:
         if cal is not None and self._mag_matrix_t is not None:
             is_mag = kind == 2
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
-        snap = self.fusion._snapshot()
-        batch = self.fusion._run(kind, t, data, allowed, _NO_CUTS, n_gyro, cal_state)
+        # the filter over the span, keeping its state before each block (FusionCore.snapshots)
+        starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
+        batch = self.fusion._run(kind, t, data, allowed, starts, n_gyro, cal_state)
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
@@ -429,15 +429,14 @@ class HeadingPipeline:
             self._pend = rows[n_ended:]
             if self.online.calibration is not cal:
                 # the blocks after the one whose close changed the calibration are to be fused with the new
-                # one: the filter goes back to the span's start and runs again up to that block's end
+                # one: the filter goes back to its state at that block's end, and their rows are dropped
+                # (a block's samples are all later than the previous block's)
                 self._span = _SPAN_MIN
                 self._pend = rows[:0]
                 end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
                 if end < len(t):
-                    self.fusion._restore(snap)
-                    batch = self.fusion._run(
-                        kind[:end], t[:end], data[:end], allowed[:end], _NO_CUTS, n_gyro, cal_state
-                    )
+                    self.fusion._restore(self.fusion.snapshots[int(starts.searchsorted(end))])
+                    batch = batch.head(int(batch.t.searchsorted(t[end])))
                 self._use_calibration()  # after the filter's state (with its reference strength) is put back
             PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
         if len(batch):

@@ -234,8 +234,9 @@ def test_fusion_snapshot_restores_as_set_state(walk):
 
 
 def test_span_length_does_not_change_the_result(walk, monkeypatch):
-    """Fusion runs ahead over spans of blocks and is redone up to a calibration change: any span length
-    (one block: no speculation at all) gives the same rows, coverage, events and calibrations."""
+    """Fusion runs ahead over spans of blocks and goes back to its state at the end of the block whose close
+    changed the calibration: any span length (one block: no speculation at all) gives the same rows,
+    coverage, events and calibrations."""
     import pdr_mag.pipeline as pl
 
     streams = {k: walk[k] for k in ("accel", "gyro", "mag")}

@@ -44,25 +44,41 @@ GAP_DT = 0.05
 #: largest tilt-error variance a gap may add up to, rad² (30°: the accelerometer linearisation holds)
 TILT_VAR_MAX = (np.pi / 6.0) ** 2
 
+#: Scratch space of :func:`predict` (a one-record array made once per kernel call, rather than arrays
+#: allocated per gyroscope sample): the blocks A, B, C of the old ``P``, the products ``G C`` and
+#: ``G Bᵀ``, and the new cross terms with c.
+PREDICT_WORK = np.dtype(
+    [
+        ("A", np.float64, (3, 3)),
+        ("B", np.float64, (3, 3)),
+        ("C", np.float64, (3, 3)),
+        ("GC", np.float64, (3, 3)),
+        ("GB", np.float64, (3, 3)),
+        ("pac", np.float64, (3,)),
+    ]
+)
+
 
 @njit(cache=True, error_model="numpy")
-def predict(s, R, wx, wy, wz, dt, p):
-    """Propagate record ``s`` by Δt = ``dt`` with the bias-corrected rate w (rad/s); ``R`` scratch 3×3."""
+def predict(s, R, work, wx, wy, wz, dt, p):
+    """Propagate record ``s`` by Δt = ``dt`` with the bias-corrected rate w (rad/s); ``R`` scratch 3×3,
+    ``work`` a one-record array of :data:`PREDICT_WORK`."""
     rotate_body(s.q, wx * dt, wy * dt, wz * dt)
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
     P = s.P
     # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
-    A = np.empty((3, 3))
-    B = np.empty((3, 3))
-    C = np.empty((3, 3))
+    scratch = work[0]
+    A = scratch.A
+    B = scratch.B
+    C = scratch.C
     for i in range(3):
         for m in range(3):
             A[i, m] = P[i, m]
             B[i, m] = P[i, 3 + m]
             C[i, m] = P[3 + i, 3 + m]
-    GC = np.empty((3, 3))  # G C
-    GB = np.empty((3, 3))  # G Bᵀ
+    GC = scratch.GC  # G C
+    GB = scratch.GB  # G Bᵀ
     for i in range(3):
         for m in range(3):
             s1 = 0.0
@@ -76,7 +92,7 @@ def predict(s, R, wx, wy, wz, dt, p):
     qb = p.bias_rw**2 * dt
     phi = np.exp(-dt / p.mag_error_tau_s)
     # cross terms with c (column 6), from the old P
-    pac = np.empty(3)
+    pac = scratch.pac
     for i in range(3):
         s1 = 0.0
         for k in range(3):
@@ -148,8 +164,9 @@ def ew_stats_step(st, first, dt, x, y, z, tau):
 
 
 @njit(cache=True, error_model="numpy")
-def gyro_step(s, R, wx, wy, wz, t, p):
-    """One gyroscope sample (rad/s) at time t: still statistics, prediction, zero-rate update."""
+def gyro_step(s, R, work, wx, wy, wz, t, p):
+    """One gyroscope sample (rad/s) at time t: still statistics, prediction, zero-rate update; ``R`` scratch
+    3×3, ``work`` a one-record array of :data:`PREDICT_WORK`."""
     first = not (s.have_gyro and np.isfinite(s.t_gyro))
     ew_stats_step(s.gyro_stats, first, t - s.t_gyro, wx, wy, wz, p.still_tau_s)
     if s.init > 0 and s.have_gyro:
@@ -159,11 +176,11 @@ def gyro_step(s, R, wx, wy, wz, t, p):
             oy = 0.5 * (wy + s.w_gyro[1]) - s.b[1]
             oz = 0.5 * (wz + s.w_gyro[2]) - s.b[2]
             if dt <= p.max_dt:
-                predict(s, R, ox, oy, oz, dt, p)
+                predict(s, R, work, ox, oy, oz, dt, p)
                 if dt > GAP_DT:  # a gap: the rate in between is known to the recent motion level only
                     inflate_attitude(s.P, s.gyro_stats.var * (dt - GAP_DT) ** 2)
             else:  # too long to integrate: P only, and the unknown rotation meanwhile
-                predict(s, R, 0.0, 0.0, 0.0, dt, p)
+                predict(s, R, work, 0.0, 0.0, 0.0, dt, p)
                 inflate_attitude(s.P, (ox * ox + oy * oy + oz * oz + s.gyro_stats.var) * dt * dt)
         still = (s.gyro_stats.var < p.still_gyro**2) and (s.acc_stats.var < p.still_acc**2)
         if still:

@@ -23,7 +23,7 @@ from pdr_mag import _jit_cache, interference
 from pdr_mag.fusion import accel, eskf, gyro, mag, state
 from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_deg
-from pdr_mag.fusion.gyro import gyro_step
+from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.mag import mag_step
 from pdr_mag.fusion.state import TH_Z, Rows
 
@@ -34,6 +34,7 @@ def run(kind, t, xyz, allowed, st, p, ip, out, k0):
     ``st``, writing rows into the :class:`~pdr_mag.fusion.state.Rows` columns ``out`` from row ``k0`` on;
     returns the number of rows written."""
     R = np.empty((3, 3))
+    work = np.empty(1, dtype=PREDICT_WORK)  # gyro_step's scratch
     n_out = k0
     for i in range(len(t)):
         k = kind[i]
@@ -47,7 +48,7 @@ def run(kind, t, xyz, allowed, st, p, ip, out, k0):
         elif k == 1:
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                 continue
-            gyro_step(st, R, x, y, z, ti, p)
+            gyro_step(st, R, work, x, y, z, ti, p)
             if st.init == 0:
                 continue
             nxt = st.t_next_out
