@@ -405,21 +405,26 @@ def _best_of(peers: dict, suffix: str) -> str:
 
 
 def walk_table(results) -> list[str]:
-    core = any(r.get("core") for r in results)
-    head = ["walk", "a", "b", *(["core"] if core else []), "best _cal", "best _cal_gcal", "os",
-            "a ≤2σ", "a >3σ", "b ≤2σ", "b >3σ"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    """One row per way of carrying the phone (disturbed or not), one column per phone: ``a · b · peer ·
+    os`` — modes a and b, the best ``_cal_gcal`` peer, the phone's own fusion; † after a mode with more
+    than 10 % of its frames beyond 3σ."""
+    phones = sorted({r["walk"].split("_")[1] for r in results})
+    rows: dict[str, dict[str, str]] = {}
     for r in results:
+        _, phone, dist, motion = r["walk"].split("_", 3)
         p = r.get("peers", {})
-        cells = [r["walk"].removeprefix("Thibaud_"), _f(r["a"]["heading_err_mean"], FAIL[0]),
-                 _f(r["b"]["heading_err_mean"], FAIL[1])]
-        if core:
-            cells.append(_f((r.get("core") or {}).get("heading_err_mean")))
-        cells += [_best_of(p, "_cal"), _best_of(p, "_gcal"), _f(p.get("os"))]
-        for m in ("a", "b"):
+        cell = []
+        for m, fail in (("a", FAIL[0]), ("b", FAIL[1])):
             n = max(r[m]["n"], 1)
-            cells += [f"{r[m]['within_2sigma'] / n:.0%}", f"{r[m]['beyond_3sigma'] / n:.0%}"]
-        lines.append("| " + " | ".join(cells) + " |")
+            dagger = "†" if r[m]["beyond_3sigma"] / n > 0.10 else ""
+            cell.append(_f(r[m]["heading_err_mean"], fail) + dagger)
+        gcal = [v for k, v in p.items() if k.endswith("_gcal")]
+        cell += [_f(min(gcal)) if gcal else "—", _f(p.get("os"))]
+        rows.setdefault(f"{dist} {motion}", {})[phone] = " · ".join(cell)
+    lines = ["| walk | " + " | ".join(f"{ph}: a · b · peer · os" for ph in phones) + " |",
+             "|---|" + "---|" * len(phones)]
+    for key in sorted(rows, key=lambda k: (k.startswith("NoDist"), k)):
+        lines.append(f"| {key} | " + " | ".join(rows[key].get(ph, "") for ph in phones) + " |")
     return lines
 
 
@@ -442,7 +447,8 @@ def markdown(results, elapsed_s: float, cpu_s: float, jobs: int, peer_line: str,
         "",
         *summary_table(results),
         "",
-        "Per walk (a, b, core: mean |error|, bold: a > 20°, b > 45°; best peers of each kind; std honesty):",
+        "Per walk (mean |error|, bold: a > 20°, b > 45°; peer: the best `_cal_gcal` column; †: more than 10 %"
+        " of the frames beyond 3σ):",
         "",
         *walk_table(results),
         "",
