@@ -326,8 +326,8 @@ def main() -> None:
         f"`python benchmarks/batch.py{'' if a.n_total == 300 else f' --n-total {a.n_total}'}"
         f"{'' if a.hours == 2 else f' --hours {a.hours}'}` — {n} recordings ({n_walks} tyrex walks, "
         f"{len(tyrex) - n_walks} tyrex calibrations, {n_sim} simulated × {a.sim_duration:g} s, {a.hours} "
-        f"synthetic hours; {dur / 3600:.1f} h of data), `pdr-mag batch replay` on a local cluster of {workers} "
-        f"workers, in one run ({load}).",
+        f"synthetic hours; {dur / 3600:.1f} h of data), `pdr-mag batch replay` on a local cluster of "
+        f"{workers} workers, in one run ({load}).",
         "",
         f"| | wall | speed-up of `--workers {workers}` (target ≥ {0.8 * workers:.1f} against the first) |",
         "| --- | ---: | ---: |",
@@ -338,8 +338,8 @@ def main() -> None:
         "",
         f"Per-task overhead (W · wall − Σ elapsed) / n **{overhead * 1e3:.0f} ms** (local cluster up "
         f"{ovh['start_s']:.1f} s, down {ovh['stop_s']:.1f} s, a no-op task {ovh['per_task_ms']:.2f} ms); "
-        f"`heading.csv` byte-identical between the four runs for {same} of {n} recordings; worker peak memory "
-        f"{', '.join(f'{mb:.0f}' for mb in b['worker_peak_mb'])} MB. Projection for 100 000 one-hour "
+        f"`heading.csv` byte-identical between the four runs for {same} of {n} recordings; worker peak "
+        f"memory {', '.join(f'{mb:.0f}' for mb in b['worker_peak_mb'])} MB. Projection for 100 000 one-hour "
         f"recordings ({cost_h:.1f} s of worker time per hour of data, {overhead * 1e3:.0f} ms a recording, "
         f"{in_h:.0f} MB read and {out_h:.0f} MB written per hour):",
         "",

@@ -395,15 +395,6 @@ def _f(v, bold_above=None) -> str:
     return f"**{s}**" if bold_above is not None and v > bold_above else s
 
 
-def _best_of(peers: dict, suffix: str) -> str:
-    cols = [c for c in PEER_COLUMNS if c.endswith(suffix) and (suffix == "_gcal" or not c.endswith("_gcal"))]
-    cols = [c for c in cols if c in peers]
-    if not cols:
-        return "–"
-    c = min(cols, key=lambda k: peers[k])
-    return f"{peers[c]:.1f} {c.split('_')[0]}"
-
-
 def walk_table(results) -> list[str]:
     """One row per way of carrying the phone (disturbed or not), one column per phone: ``a · b · peer ·
     os`` — modes a and b, the best ``_cal_gcal`` peer, the phone's own fusion; † after a mode with more

@@ -185,61 +185,12 @@ def evaluate(settings=None, scenarios=SCENARIOS, seeds=(1, 2, 3), phones=PHONES,
 
 
 #: the same benchmark on the fusion before the fixes of issue 4's simulated-walk work (static record)
-BEFORE = (
-    "Before (commit 3177e3e, same benchmark, pdr_mag column): walk 2.1 / 1.5, swing 8.2 / 5.2, pocket"
-    " 2.8 / 1.6, mixed 4.7 / 2.3, figure8 0.2 / 0.3 (default phone); walk 2.3 / 1.6, swing 7.8 / 6.8, pocket"
-    " 3.4 / 3.5, mixed 2.2 / 2.3, figure8 1.9 / 1.5 (imu50); all 3.6 / 2.6; std coverage 76 % / 89 %."
-    " What was wrong, in the physics: (1) gyro gaps longer than 0.2 s (the simulated phone drops samples"
-    " and has 0.3-s gaps, as real phones do) were neither integrated nor added to P — a 0.21-s gap in a"
-    " figure-8 hid a 20° rotation, which the filter then took for gyro bias; (2) the accelerometer gate"
-    " removed single samples *before* the world-frame average (the large samples of a swinging arm point"
-    " along the arm), which biased the average — why the averaged tilt once did worse; (3) the average's lag"
-    " (τ) was not in the model, so a raw gyro offset was learnt from a delayed tilt; (4) the tilt"
-    " uncertainty entered the heading update as white noise, so the same tilt error, repeated in every"
-    " magnetometer update, ended in the heading × tan I ≈ 2.  Now: gaps integrated up to 0.5 s with"
-    " var(ω)·(Δt − 0.05 s)² added to P; the tilt corrected from the specific force averaged over 0.5 s in"
-    " the world frame (every sample, gate on the average) with ``δθ(t − τ) = δθ + τ R δb`` in H; the tilt"
-    " errors as Schmidt consider states of the magnetometer update (in H and P, never corrected by it)."
-    " The std is conservative on this clean simulated field (the magnetometer model allows for indoor"
-    " field errors of several degrees, which the tyrex walks have: 87 % / 98 % there)."
-)
 
 
 #: the bias-guard change of issue 4's follow-up (static record; the table above is the current code)
-GUARD = (
-    "Bias guard (after commit c910713): the heading initialised with its correlation to the field error of"
-    " its sample (``δθ_z = −(δc + h_t·δθ_xy + n)``), the consistency check against the gyro-propagated frame"
-    " (its mean direction rotated with every correction) and counting only beyond σ_b·W, initial bias std"
-    " 5.7 °/s per axis (was 10): all 0.79 / 0.76 → 0.76 / 0.76° (swing 1.1–1.2 → 1.0–1.1°, the rest ±0.05°)."
-    " Std coverage stays 100 % / 100 %: its floor here is the tilt variance (≈ 1° per axis, twice the tilt"
-    " error of these walks) × tan I ≈ 2 through the consider-tilt term of the heading update, not the"
-    " magnetometer noise — a windowed innovation scale of the magnetometer noise (λ² = ⟨r²/S⟩ over 20 s,"
-    " bounded by [0.1², 1]) brought λ to 0.2–0.3 on these walks and left the coverage at 99–100 % while"
-    " costing 0.05° here and 0.1° on the undisturbed real walks; the same scale on the averaged"
-    " accelerometer cost 2–6° on the online-mode walks. Not adopted."
-)
 
 
 #: what the std's floor is made of, and what was tried against it (static record)
-HONESTY = (
-    "Std floor (after fa66245): the bias-guard paragraph's diagnosis was half right. Medians over t > 5 s"
-    " (seed 1, default phone, walk / swing / pocket): heading std 4.6 / 4.9 / 4.9° against |error| 0.73 /"
-    " 1.03 / 0.50° (rms 1.0 / 1.6 / 0.8°); the magnetometer error state c alone has σ 4.9 / 5.1 / 5.0°"
-    " (its prior σ_c = 6°, τ 5 s: the filter cannot tell a slowly varying field error from heading error,"
-    " and sized for the tyrex walks' indoor fields), the tilt σ 1.1 / 1.3 / 1.1° per axis (actual tilt"
-    " error 0.8 / 1.2 / 1.0° mean). Both floors together: with σ_c 1° and the consider-tilt term off"
-    " (diagnostic only) the coverage is 67 / 69 / 78 %, with either alone 98–100 %. Tried, none adopted"
-    " (real = the 7 tyrex walks in mode (a), fusion core; before: 87.0 % / 98.3 %, Dist 4.81°, NoDist"
-    " 2.03°, here 0.76°, 100 %): σ_c 4 / 3 / 2° — real 79 / 75 / 69 % (1σ), Dist 5.01 / 5.21 / 5.44°"
-    " (FrontPocket 5.6 → 6.2 / 6.9 / 7.7°), NoDist 1.99 / 2.01 / 2.04°, here 99.6 / 99.2 / 98.9 %; σ_c"
-    " scaled to the observed field (λ² = the scatter of the magnetometer heading in the gyro-propagated"
-    " frame about an EW linear trend over 30 s, over the model's, in [0.2², 1]: λ → 0.23 here, 0.5–0.8 on"
-    " the real texting walks, 1 on the swinging and disturbed ones) — here 99.6 % (the tilt floor remains,"
-    " std ≈ 2°), 0.84°, real 86 %, NoDist 2.07°; the averaged accelerometer's noise 0.2 → 0.1 / 0.06 (tilt"
-    " variance down) — here 0.89 / 1.18°, real NoDist 2.56 / 3.51°. The accelerometer does not see the"
-    " simulated walks as cleaner than the real ones either: ⟨r²/S⟩ of its averaged updates 0.017 (walk) /"
-    " 0.058 (pocket) / 0.57 (swing) here, 0.014–0.034 (texting) / 0.19–0.22 (swinging) on the real walks."
-)
 
 
 def _mean(rows, col, k):
@@ -251,16 +202,11 @@ def markdown(rows, commit: str = "") -> str:
     lines = [
         SECTION,
         "",
-        "Simulated recordings with known truth (`python benchmarks/heading_sim.py --write-results`"
-        + (f", commit {commit}" if commit else "")
-        + "): scenarios × seeds 1–3 × two phones (default: IMU 100 Hz, magnetometer 50 Hz; `imu50`: IMU"
-        " and magnetometer 50 Hz), default effects (hard / soft iron, gyro offset (0.6, −0.8, 0.5) °/s,"
-        " 0.4 µT noise, gaps and drops; `mixed`: a 30-µT steel area), the magnetometer calibrated with the"
-        " phone's exact calibration. Every column in the same run on the same inputs; peers on a uniform"
-        " grid (they assume a fixed period), `raw` = raw gyro, `gb` = the true gyro offset removed first."
-        " Mean |heading error| / mean tilt error, degrees, t > 5 s, mean over the seeds. `compass`: the"
-        " heading error of a perfect-tilt compass from single calibrated samples — what the field noise"
-        " gives one sample (0.4 µT / B_h ≈ 1.1° σ; in `mixed` it includes the steel area).",
+        "`python benchmarks/heading_sim.py --write-results`" + (f" (commit {commit})" if commit else "")
+        + ": scenarios × seeds 1–3 × two phones (`imu50`: IMU and magnetometer at 50 Hz), gyro offset"
+        " (0.6, −0.8, 0.5) °/s, 0.4 µT noise, gaps and drops, the phone's exact magnetometer calibration;"
+        " peers on a uniform grid, `raw` gyro or `gb` with the true offset removed. Mean |heading error| /"
+        " mean tilt error, degrees, t > 5 s; `compass`: a perfect-tilt compass from single samples.",
         "",
         "| scenario | phone | " + " | ".join(cols) + " | compass |",
         "|---|---|" + "---|" * (len(cols) + 1),
@@ -284,12 +230,6 @@ def markdown(rows, commit: str = "") -> str:
         "",
         f"Honesty of `heading_std_deg` (pdr_mag, mean over the cases): truth within 1σ in {c1:.0%} of the"
         f" output rows, within 2σ in {c2:.0%} (Gaussian: 68 % / 95 %).",
-        "",
-        BEFORE,
-        "",
-        GUARD,
-        "",
-        HONESTY,
         "",
     ]
     return "\n".join(lines)
