@@ -119,6 +119,14 @@ class FusionSettings:
         (``acc_noise``, ``acc_corr_s``, ``acc_gyro``).
     acc_interval_s : float
         At most one averaged-accelerometer update per this interval, s.
+    tilt_reset_k, tilt_reset_tau_s, tilt_reset_min_deg : float
+        Tilt reset.  The specific force is also averaged in the world frame over ``tilt_reset_tau_s``
+        (several strides: a running arm's swing, which the short average passes at a quarter of its
+        amplitude, cancels); once that window is full, its average has ``||ā| − g| < 0.3 g`` and it is
+        farther from up than ``tilt_reset_min_deg`` and ``tilt_reset_k`` σ of the tilt error, the attitude
+        is turned so that it is up (a tilt started from one sample of a running arm can be 150° off, beyond
+        what a linearised update can correct, and its corrections would teach the gyro bias instead).
+        ``tilt_reset_k`` 0 = never.
     acc_avg_noise : float
         Noise of the averaged direction, per update (≈ rad); plus ``acc_dyn · ||ā| − g| / g``.
     acc_noise : float
@@ -249,6 +257,9 @@ class FusionSettings:
     tilt0_std: float = 0.2
     acc_tau_s: float = 0.5
     acc_interval_s: float = 0.05
+    tilt_reset_k: float = 4.0
+    tilt_reset_tau_s: float = 3.0
+    tilt_reset_min_deg: float = 30.0
     acc_avg_noise: float = 0.2
     acc_noise: float = 0.05
     acc_corr_s: float = 0.1

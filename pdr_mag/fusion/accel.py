@@ -33,6 +33,16 @@ independent window, the updates being ``acc_interval_s`` apart in a window of τ
 states of these updates: through the bias terms the linearised update would otherwise shrink its (capped,
 uniform) variance.
 
+No update is made from a part of a window (the first ``acc_tau_s`` after the average starts): it has not
+averaged out the dynamics, and a start during a run would teach the bias the arm's swing.
+
+Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
+can be 150° off, and correcting it would teach the bias instead.  The specific force is also averaged over
+``tilt_reset_tau_s`` (several strides: the swing cancels, where the short average passes a quarter of it);
+once that window is full and its average is farther from up than ``tilt_reset_min_deg`` and
+``tilt_reset_k`` σ of the tilt error, the attitude is turned about the horizontal axis that takes it to up
+(:func:`_tilt_reset`).
+
 Per-sample update (``acc_tau_s = 0``).  ``u_w = (R a)_h / g``, the horizontal specific force over g (not
 over |a|: a tilt error δ shows as g·δ whatever the vertical acceleration, and a walking hand's horizontal
 and vertical accelerations are correlated over a step, so dividing by |a| would bias the mean direction by
@@ -48,7 +58,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.eskf import inject, rotation_matrix, update, update_h
+from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update, update_h
 from pdr_mag.fusion.gyro import ew_stats_step
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import ew_alpha
@@ -184,7 +194,17 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
             for m in range(3):
                 Rb[i, m] = R[i, m]
         s.t_acc_update = t
+        s.t_acc_w0 = t
+        al = s.acc_w_long
+        al[0], al[1], al[2] = awx, awy, awz
+        s.acc_long_n = 1
         return
+    al = s.acc_w_long
+    s.acc_long_n += 1
+    b = max(ew_alpha(t - s.t_acc_prev, p.tilt_reset_tau_s), 1.0 / s.acc_long_n)
+    al[0] += b * (awx - al[0])
+    al[1] += b * (awy - al[1])
+    al[2] += b * (awz - al[2])
     a = ew_alpha(t - s.t_acc_prev, p.acc_tau_s)
     aw[0] += a * (awx - aw[0])
     aw[1] += a * (awy - aw[1])
@@ -195,10 +215,12 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     for i in range(3):
         for m in range(3):
             Rb[i, m] += a * (R[i, m] - Rb[i, m])
-    if t - s.t_acc_update < p.acc_interval_s:
-        return
+    if t - s.t_acc_update < p.acc_interval_s or t - s.t_acc_w0 < p.acc_tau_s:
+        return  # (a part of a window does not average out the dynamics)
     s.t_acc_update = t
     g = p.gravity
+    if _tilt_reset(s, t, p):
+        return
     na = np.sqrt(aw[0] ** 2 + aw[1] ** 2 + aw[2] ** 2)
     dev = abs(na - g) / g
     if dev > p.acc_gate:
@@ -219,3 +241,67 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)
     update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown)
     inject(s, dx)
+
+
+@njit(cache=True, error_model="numpy")
+def _tilt_reset(s, t, p):
+    """Turn the attitude so that the long average ``ā_long`` (``tilt_reset_tau_s``) is up, when that window
+    is full, ``||ā_long| − g| < 0.3 g`` (a clipping accelerometer shortens the average of a running arm by
+    up to a quarter; its direction holds) and ``ā_long`` is farther from up than ``tilt_reset_min`` and
+    ``tilt_reset_k`` σ of the tilt error.  Both averages and the window's mean R turn with the attitude;
+    the tilt variance restarts at ``tilt0_std²`` per axis, uncorrelated, and the bias variance at no less
+    than ``bias0_std²`` (the corrections of a tilt that far off went into the bias).  Returns whether it
+    did."""
+    if p.tilt_reset_k <= 0.0 or t - s.t_acc_w0 < p.tilt_reset_tau_s:
+        return False
+    al = s.acc_w_long
+    na = np.sqrt(al[0] * al[0] + al[1] * al[1] + al[2] * al[2])
+    if abs(na - p.gravity) > 0.3 * p.gravity:
+        return False
+    ang = np.arccos(min(max(al[2] / na, -1.0), 1.0))
+    P = s.P
+    if ang < p.tilt_reset_min_rad or ang * ang < p.tilt_reset_k**2 * (P[TH_X, TH_X] + P[TH_Y, TH_Y]):
+        return False
+    # the rotation taking ā_long to up: axis ā_long × e_z (horizontal), angle ang
+    hx, hy = al[1], -al[0]
+    hn = np.sqrt(hx * hx + hy * hy)
+    if hn <= 0.0:  # straight down: any horizontal axis
+        hx, hy, hn = 1.0, 0.0, 1.0
+    vx, vy = ang * hx / hn, ang * hy / hn
+    rotate_world(s.q, vx, vy, 0.0)
+    rotate_world(s.q_gyro, vx, vy, 0.0)
+    _turn_vector(al, vx, vy)
+    _turn_vector(s.acc_w, vx, vy)
+    Rb = s.R_bar
+    col = np.zeros(3)
+    for m in range(3):  # the columns of the window's mean R are world vectors
+        col[0], col[1], col[2] = Rb[0, m], Rb[1, m], Rb[2, m]
+        _turn_vector(col, vx, vy)
+        Rb[0, m], Rb[1, m], Rb[2, m] = col[0], col[1], col[2]
+    for i in range(NX):
+        for j in (TH_X, TH_Y):
+            P[i, j] = 0.0
+            P[j, i] = 0.0
+    P[TH_X, TH_X] = p.tilt0_std**2
+    P[TH_Y, TH_Y] = p.tilt0_std**2
+    for i in range(BIAS, BIAS + 3):
+        P[i, i] = max(P[i, i], p.bias0_std**2)
+    s.det.mw[0] = np.nan  # the detectors' mean field direction restarts in the turned world frame
+    s.tilt_resets += 1
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _turn_vector(v, vx, vy):
+    """``v ← Exp((vx, vy, 0)) v`` exactly (Rodrigues), for a rotation about a horizontal axis."""
+    ang = np.sqrt(vx * vx + vy * vy)
+    if ang <= 0.0:
+        return
+    kx, ky = vx / ang, vy / ang
+    c, sn = np.cos(ang), np.sin(ang)
+    x, y, z = v[0], v[1], v[2]
+    kv = kx * x + ky * y
+    cx, cy, cz = ky * z, -kx * z, kx * y - ky * x  # k × v
+    v[0] = x * c + cx * sn + kx * kv * (1.0 - c)
+    v[1] = y * c + cy * sn + ky * kv * (1.0 - c)
+    v[2] = z * c + cz * sn

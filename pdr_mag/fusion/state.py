@@ -58,6 +58,10 @@ STATE = np.dtype(
         ("acc_spread", np.float64),  # EW mean of |a_w,h − ā_w,h|², the horizontal spread about ā_w, (m/s²)²
         ("R_bar", np.float64, (3, 3)),  # EW mean of R (device → world) over the same window
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
+        ("t_acc_w0", np.float64),  # time the average ā_w (re)started, s
+        ("acc_w_long", np.float64, (3,)),  # the same average over tilt_reset_tau_s (whole strides), m/s²
+        ("acc_long_n", np.int64),  # samples in it (a running mean until the window is full)
+        ("tilt_resets", np.int64),  # tilt resets so far (the average far outside the tilt's uncertainty)
         # magnetometer
         ("declination", np.float64),  # D, rad (0: magnetic north)
         ("f_ref", np.float64),  # reference strength of the detectors, µT (NaN: unknown)
@@ -94,6 +98,9 @@ PARAMS = np.dtype(
             "tilt0_std",
             "acc_tau_s",
             "acc_interval_s",
+            "tilt_reset_k",
+            "tilt_reset_tau_s",
+            "tilt_reset_min_rad",
             "acc_avg_noise",
             "acc_noise",
             "acc_corr_s",
@@ -182,6 +189,7 @@ def new_state() -> np.ndarray:
         "t_acc_prev",
         "acc_w",
         "t_acc_update",
+        "t_acc_w0",
         "f_ref",
         "dip_ref",
         "t_mag_update",
