@@ -125,8 +125,9 @@ class FusionSettings:
         amplitude, cancels); once that window is full, its average has ``||ā| − g| < 0.3 g`` and it is
         farther from up than ``tilt_reset_min_deg`` and ``tilt_reset_k`` σ of the tilt error, the attitude
         is turned so that it is up (a tilt started from one sample of a running arm can be 150° off, beyond
-        what a linearised update can correct, and its corrections would teach the gyro bias instead).
-        ``tilt_reset_k`` 0 = never.
+        what a linearised update can correct, and its corrections would teach the gyro bias instead).  A
+        short-window average that far off (``tilt_reset_k`` σ of the tilt error and the update's noise) is
+        never an update.  ``tilt_reset_k`` 0 = neither.
     acc_avg_noise : float
         Noise of the averaged direction, per update (≈ rad); plus ``acc_dyn · ||ā| − g| / g``.
     acc_noise : float

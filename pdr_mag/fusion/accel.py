@@ -37,11 +37,12 @@ No update is made from a part of a window (the first ``acc_tau_s`` after the ave
 averaged out the dynamics, and a start during a run would teach the bias the arm's swing.
 
 Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
-can be 150° off, and correcting it would teach the bias instead.  The specific force is also averaged over
-``tilt_reset_tau_s`` (several strides: the swing cancels, where the short average passes a quarter of it);
-once that window is full and its average is farther from up than ``tilt_reset_min_deg`` and
-``tilt_reset_k`` σ of the tilt error, the attitude is turned about the horizontal axis that takes it to up
-(:func:`_tilt_reset`).
+can be 150° off, and correcting it would teach the bias instead.  So an average farther from up than
+``tilt_reset_min_deg`` and ``tilt_reset_k`` σ (tilt error and the update's noise) is never an update
+(:func:`_beyond_linear`).  The specific force is also averaged over ``tilt_reset_tau_s`` (several strides:
+the swing cancels, where the short average passes a quarter of it); once that window is full and its
+average is that far from up, the attitude is turned about the horizontal axis that takes it to up
+(:func:`_tilt_reset`), as the magnetometer's re-acquisition does for the heading.
 
 Per-sample update (``acc_tau_s = 0``).  ``u_w = (R a)_h / g``, the horizontal specific force over g (not
 over |a|: a tilt error δ shows as g·δ whatever the vertical acceleration, and a walking hand's horizontal
@@ -229,6 +230,8 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
     windows = tau / max(p.acc_interval_s, 1e-3)  # updates per independent window
     rv += (p.acc_spread_k**2 * s.acc_spread / (g * g) + (p.acc_clip_k * s.clip_share) ** 2) * windows
+    if _beyond_linear(s, aw[2] / na, rv, p):
+        return  # a tilt that far off is the reset's, never the bias's
     hx = np.zeros(NX)
     hy = np.zeros(NX)
     hx[TH_Y] = -1.0
@@ -241,6 +244,18 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)
     update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown)
     inject(s, dx)
+
+
+@njit(cache=True, error_model="numpy")
+def _beyond_linear(s, cos_up, rv, p):
+    """Whether the average's direction (``cos_up`` its cosine to up) is farther from up than
+    ``tilt_reset_min`` and ``tilt_reset_k`` σ of the tilt error and the update's noise ``rv`` per axis."""
+    if p.tilt_reset_k <= 0.0:
+        return False
+    ang = np.arccos(min(max(cos_up, -1.0), 1.0))
+    P = s.P
+    var = P[TH_X, TH_X] + P[TH_Y, TH_Y] + 2.0 * rv
+    return ang >= p.tilt_reset_min_rad and ang * ang >= p.tilt_reset_k**2 * var
 
 
 @njit(cache=True, error_model="numpy")
@@ -258,10 +273,10 @@ def _tilt_reset(s, t, p):
     na = np.sqrt(al[0] * al[0] + al[1] * al[1] + al[2] * al[2])
     if abs(na - p.gravity) > 0.3 * p.gravity:
         return False
+    if not _beyond_linear(s, al[2] / na, 0.0, p):
+        return False
     ang = np.arccos(min(max(al[2] / na, -1.0), 1.0))
     P = s.P
-    if ang < p.tilt_reset_min_rad or ang * ang < p.tilt_reset_k**2 * (P[TH_X, TH_X] + P[TH_Y, TH_Y]):
-        return False
     # the rotation taking ā_long to up: axis ā_long × e_z (horizontal), angle ang
     hx, hy = al[1], -al[0]
     hn = np.sqrt(hx * hx + hy * hy)
