@@ -1,0 +1,151 @@
+"""Heading when the filter starts late: every tyrex walk replayed from S seconds in (a backend restarted).
+
+The walks of ``../shared/datasets/tyrex-pdrcsv`` all start with the walker standing still in an undisturbed
+spot.  A PDR backend restarts its filter wherever its user is: running, swinging the phone, next to steel.
+Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 10, 20 s), in mode a
+(the day's calibration file, as a backend keeps it across restarts) and mode b (no calibration), and scored
+like ``heading.py`` (the shared scorer's error angles against motion capture) on the truth frames from
+``S + 5`` s to the end of the scorer's window (the same five seconds to settle as a start at 0).
+
+Per start and mode: mean / median over walks of the mean |heading error|, walks above 20° / 45°, the pooled
+share of frames within 2σ of ``heading_std_deg``, walks with more than 10 % of their frames beyond 3σ, and
+the frames more than 45° wrong while σ ≤ 20° (a user discarding rows with σ > 20° keeps these).
+
+Usage::
+
+    python benchmarks/heading_restart.py [--starts 0 5 10 20] [--walks PATTERN] [--jobs N] [--write-results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import load_scorer, write_section  # noqa: E402
+from heading import DATA, FAIL, discover_walks, make_day_files, trial_info  # noqa: E402
+
+SECTION = "## Heading after a late start (issue 10)"
+
+
+def run_walk(job: tuple[str, str, tuple[float, ...]]) -> list[dict]:
+    """Both modes at every start on one walk: per-frame errors and σ."""
+    from pdr_mag.estimates import EstimateBatch
+    from replay.formats import read_recording
+    from replay.recording import Stream
+    from replay.run import CsvSink, load_calibration, replay
+
+    walk, cal_json, starts = job
+    score = load_scorer()
+    d = DATA / walk
+    t_ref, q_ref = score.C.read_quat_csv(str(d / "truth.csv"))
+    ok = np.all(np.isfinite(q_ref), axis=1)
+    t_ref, q_ref = t_ref[ok], q_ref[ok]
+    t0, _ = score.truth_t0(str(d / "truth.csv"), t_ref)
+    t_end = t0 + score.WINDOW[1]
+    full = read_recording(d)
+    cal = load_calibration(cal_json)
+    out = []
+    for start in starts:
+        rec = read_recording(d) if start > 0 else full
+        t_start = full.t0 + start
+        for name in ("mag", "accel", "gyro"):
+            s = getattr(rec, name)
+            keep = s.t >= t_start
+            setattr(rec, name, Stream(s.t[keep], s.xyz[keep]))
+        for mode, c in (("a", cal), ("b", None)):
+            batches = []
+
+            class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
+                def __init__(self):
+                    pass
+
+                def open(self, meta):
+                    pass
+
+                def estimates(self, batch):
+                    batches.append(batch)
+
+                def close(self):
+                    pass
+
+            replay(rec, calibration=c, sinks=[Keep()], progress=False)
+            b = EstimateBatch.concat(batches)
+            w = (t_ref >= max(t_start, b.t[0]) + 5.0) & (t_ref <= min(t_end, b.t[-1]))
+            qi, valid = score.C.slerp_at(b.t, b.q_wd, t_ref[w])
+            _, head, _ = score.error_angles(qi[valid], q_ref[w][valid])
+            sd = np.interp(t_ref[w][valid], b.t, b.heading_std_deg)
+            out.append({"walk": walk, "start": start, "mode": mode, "err": np.abs(head), "std": sd})
+    return out
+
+
+def summarise(rows: list[dict]) -> dict:
+    means = np.array([np.mean(r["err"]) for r in rows])
+    err = np.concatenate([r["err"] for r in rows])
+    sd = np.concatenate([r["std"] for r in rows])
+    return {
+        "n": len(rows),
+        "mean": float(np.mean(means)),
+        "median": float(np.median(means)),
+        "over": [int(np.sum(means > f)) for f in FAIL],
+        "within_2sigma": float(np.mean(err <= 2.0 * sd)),
+        "beyond_3sigma_walks": int(sum(np.mean(r["err"] > 3.0 * r["std"]) > 0.10 for r in rows)),
+        "wrong_kept": int(np.sum((err > 45.0) & (sd <= 20.0))),
+    }
+
+
+def table(results: list[dict], starts) -> list[str]:
+    lines = [
+        "| start | mode | mean / median | walks > 20° / > 45° | within 2σ | walks > 10 % beyond 3σ |"
+        " frames > 45° off at σ ≤ 20° |",
+        "| ---: | --- | --- | --- | ---: | ---: | ---: |",
+    ]
+    for start in starts:
+        for mode in ("a", "b"):
+            s = summarise([r for r in results if r["start"] == start and r["mode"] == mode])
+            lines.append(
+                f"| {start:g} s | {mode} | {s['mean']:.1f} / {s['median']:.1f} | {s['over'][0]} / {s['over'][1]}"
+                f" | {100 * s['within_2sigma']:.0f} % | {s['beyond_3sigma_walks']} | {s['wrong_kept']} |"
+            )
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--starts", type=float, nargs="+", default=[0.0, 5.0, 10.0, 20.0])
+    ap.add_argument("--walks", default=None, help="comma-separated globs on the walk names")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--write-results", action="store_true")
+    a = ap.parse_args(argv)
+    walks = discover_walks(a.walks)
+    if not walks:
+        print(f"no walks found in {DATA}", file=sys.stderr)
+        return 2
+    t_wall = time.perf_counter()
+    infos = {w: trial_info(w) for w in walks}
+    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(a.jobs) as ex:
+        days = sorted({(i["calib"], i["calib_gyr"], tmp) for i in infos.values()})
+        cal_file = {c: p for c, p, _ in ex.map(make_day_files, days)}
+        jobs = [(w, cal_file[infos[w]["calib"]], tuple(a.starts)) for w in walks]
+        results = [r for rows in ex.map(run_walk, jobs) for r in rows]
+    wall = time.perf_counter() - t_wall
+    lines = table(results, a.starts)
+    print("\n".join(lines))
+    print(f"wall time {wall:.0f} s on {a.jobs} processes")
+    if a.write_results:
+        head = (
+            f"`python benchmarks/heading_restart.py --write-results` ({len(walks)} walks, {wall:.0f} s wall on"
+            f" {a.jobs} processes): each walk replayed from S s in, scored from S + 5 s (see the script)."
+        )
+        write_section(SECTION, "\n".join([head, "", *lines]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
