@@ -41,6 +41,19 @@ def run_walk(job: tuple[str, str, tuple[float, ...]]) -> list[dict]:
     from replay.recording import Stream
     from replay.run import CsvSink, load_calibration, replay
 
+    class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
+        def __init__(self):
+            self.batches = []
+
+        def open(self, meta):
+            pass
+
+        def estimates(self, batch):
+            self.batches.append(batch)
+
+        def close(self):
+            pass
+
     walk, cal_json, starts = job
     score = load_scorer()
     d = DATA / walk
@@ -60,23 +73,9 @@ def run_walk(job: tuple[str, str, tuple[float, ...]]) -> list[dict]:
             keep = s.t >= t_start
             setattr(rec, name, Stream(s.t[keep], s.xyz[keep]))
         for mode, c in (("a", cal), ("b", None)):
-            batches = []
-
-            class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
-                def __init__(self):
-                    pass
-
-                def open(self, meta):
-                    pass
-
-                def estimates(self, batch):
-                    batches.append(batch)
-
-                def close(self):
-                    pass
-
-            replay(rec, calibration=c, sinks=[Keep()], progress=False)
-            b = EstimateBatch.concat(batches)
+            sink = Keep()
+            replay(rec, calibration=c, sinks=[sink], progress=False)
+            b = EstimateBatch.concat(sink.batches)
             w = (t_ref >= max(t_start, b.t[0]) + 5.0) & (t_ref <= min(t_end, b.t[-1]))
             qi, valid = score.C.slerp_at(b.t, b.q_wd, t_ref[w])
             _, head, _ = score.error_angles(qi[valid], q_ref[w][valid])
@@ -110,8 +109,9 @@ def table(results: list[dict], starts) -> list[str]:
         for mode in ("a", "b"):
             s = summarise([r for r in results if r["start"] == start and r["mode"] == mode])
             lines.append(
-                f"| {start:g} s | {mode} | {s['mean']:.1f} / {s['median']:.1f} | {s['over'][0]} / {s['over'][1]}"
-                f" | {100 * s['within_2sigma']:.0f} % | {s['beyond_3sigma_walks']} | {s['wrong_kept']} |"
+                f"| {start:g} s | {mode} | {s['mean']:.1f} / {s['median']:.1f}"
+                f" | {s['over'][0]} / {s['over'][1]} | {100 * s['within_2sigma']:.0f} %"
+                f" | {s['beyond_3sigma_walks']} | {s['wrong_kept']} |"
             )
     return lines
 
@@ -140,8 +140,8 @@ def main(argv=None) -> int:
     print(f"wall time {wall:.0f} s on {a.jobs} processes")
     if a.write_results:
         head = (
-            f"`python benchmarks/heading_restart.py --write-results` ({len(walks)} walks, {wall:.0f} s wall on"
-            f" {a.jobs} processes): each walk replayed from S s in, scored from S + 5 s (see the script)."
+            f"`python benchmarks/heading_restart.py --write-results` ({len(walks)} walks, {wall:.0f} s wall"
+            f" on {a.jobs} processes): each walk replayed from S s in, scored from S + 5 s (see the script)."
         )
         write_section(SECTION, "\n".join([head, "", *lines]))
     return 0

@@ -454,9 +454,10 @@ def test_tilt_waits_for_the_gyroscope():
 def test_a_tilt_started_upside_down_is_reset_not_learnt_as_bias(scenario):
     """The first accelerometer sample is a jolt pointing down (a swinging, clipping arm gave 150° on a real
     Nexus 5 started mid-run): the tilt starts upside down.  A linearised update cannot correct that, and its
-    corrections teach the gyro bias (30–56 °/s here without the reset).  The average far off is never an
-    update; the 3-s average turns the attitude instead: from 6 to 20 s the tilt is within 10° (median) and
-    the bias within 1 °/s of the truth; with the reset off, the tilt is still tens of degrees off."""
+    corrections taught the gyro bias 30–56 °/s here.  Far off, the averages correct the tilt only (the bias
+    a consider state) and the 3-s average turns the attitude: from 4 to 10 s the tilt is within 10°
+    (median), from 6 to 20 s too, and the bias ends within 1 °/s of the truth.  Without the reset the
+    linearised updates alone take much longer on a still phone and a running one (> 15° from 4 to 10 s)."""
     from scipy.spatial.transform import Rotation
 
     from pdr_mag.sensor_model import quat_slerp
@@ -476,19 +477,18 @@ def test_a_tilt_started_upside_down_is_reset_not_learnt_as_bias(scenario):
         q_true = Rotation.from_quat(quat_slerp(*res.truth, b.t)[:, [1, 2, 3, 0]])
         up_est, up_true = q_est.inv().apply([0.0, 0.0, 1.0]), q_true.inv().apply([0.0, 0.0, 1.0])
         tilt = np.degrees(np.arccos(np.clip(np.sum(up_est * up_true, axis=1), -1.0, 1.0)))
-        late = (b.t > b.t[0] + 6.0) & (b.t < b.t[0] + 20.0)
-        return (
-            float(np.median(tilt[late])),
-            np.degrees(np.abs(core._st[0]["b"] - bias)),
-            int(core._st[0]["tilt_resets"]),
-        )
+        dt = b.t - b.t[0]
+        early = float(np.median(tilt[(dt > 4.0) & (dt < 10.0)]))
+        late = float(np.median(tilt[(dt > 6.0) & (dt < 20.0)]))
+        return early, late, np.degrees(np.abs(core._st[0]["b"] - bias)), int(core._st[0]["tilt_resets"])
 
-    tilt, bias_err, resets = run(FusionSettings())
+    early, late, bias_err, resets = run(FusionSettings())
     assert resets >= 1
-    assert tilt < 10.0
+    assert early < 10.0 and late < 10.0
     assert np.all(bias_err < 1.0)
-    tilt_off, _, resets_off = run(FusionSettings(tilt_reset_k=0.0))
-    assert resets_off == 0 and tilt_off > 10.0
+    if scenario in ("still", "run"):
+        early_off, _, _, resets_off = run(FusionSettings(tilt_reset_k=0.0))
+        assert resets_off == 0 and early_off > 15.0
 
 
 def test_lost_heading_is_reacquired_with_an_event(walk):

@@ -4,8 +4,9 @@ Start.  The first usable sample once the gyroscope streams gives the tilt (up = 
 coordinates; a tilt set before the first gyroscope sample could not be carried forward and would go stale
 as the phone turns — some phones start their gyroscope 0.3–0.7 s after the accelerometer); the heading is then
 arbitrary (device +y, or device −z for a phone held upright, projected on the horizontal plane points
-north) with variance π², the tilt variance ``tilt0_std²`` per axis, the bias ``bias0_std²`` per axis and
-``c`` its stationary variance.
+north) with variance π², the tilt variance ``tilt0_std² + (||a| − g| / g)²`` per axis (the sample's own
+acceleration turns it by at least that much), the bias ``bias0_std²`` per axis and ``c`` its stationary
+variance.
 
 Averaged update (default, ``acc_tau_s > 0``).  The specific force is averaged in the almost inertial world
 frame over **every** sample, ``ā_w ← ā_w + α (R a − ā_w)`` with ``α = 1 − exp(−Δt/τ)``: the mean linear
@@ -37,7 +38,8 @@ No update is made from a part of a window (the first ``acc_tau_s`` after the ave
 averaged out the dynamics, and a start during a run would teach the bias the arm's swing.
 
 Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
-can be 150° off, and correcting it would teach the bias instead.  So an average farther from up than
+can be 150° off, and correcting it would teach the bias instead.  An average farther from up than
+``LINEAR_RAD`` corrects the tilt only (the bias a consider state, its ``τ R̄`` terms dropped); one farther than
 ``tilt_reset_min_deg`` and ``tilt_reset_k`` σ (tilt error and the update's noise) is never an update
 (:func:`_beyond_linear`).  The specific force is also averaged over ``tilt_reset_tau_s`` (several strides:
 the swing cancels, where the short average passes a quarter of it); once that window is full and its
@@ -63,6 +65,11 @@ from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update, u
 from pdr_mag.fusion.gyro import ew_stats_step
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import ew_alpha
+
+#: the largest tilt error the averaged update treats as linear (its bias terms), rad
+LINEAR_RAD = 0.35
+#: largest starting tilt variance per axis, rad² (a quarter turn: the linearised updates say nothing beyond)
+TILT0_VAR_MAX = (np.pi / 2) ** 2
 
 
 @njit(cache=True, error_model="numpy")
@@ -106,7 +113,10 @@ def init_tilt(s, ax, ay, az, p):
     for i in range(NX):
         for m in range(NX):
             P[i, m] = 0.0
-    t0 = p.tilt0_std**2
+    # the sample's own acceleration turns its direction by up to ||a| − g| / g rad (a lower bound of the
+    # linear acceleration over g): a start in motion is that uncertain
+    da = abs(n - p.gravity) / p.gravity
+    t0 = min(p.tilt0_std**2 + da * da, TILT0_VAR_MAX)
     P[TH_X, TH_X] = t0
     P[TH_Y, TH_Y] = t0
     P[TH_Z, TH_Z] = np.pi**2
@@ -236,13 +246,17 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     hy = np.zeros(NX)
     hx[TH_Y] = -1.0
     hy[TH_X] = 1.0
-    for m in range(3):  # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R)
-        hx[BIAS + m] = -tau * Rb[1, m]
-        hy[BIAS + m] = tau * Rb[0, m]
+    # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R) — a linearisation that holds
+    # for small errors only: an average farther off than LINEAR_RAD is the tilt's, the bias a consider state
+    linear = aw[2] / na >= np.cos(LINEAR_RAD)
+    if linear:
+        for m in range(3):
+            hx[BIAS + m] = -tau * Rb[1, m]
+            hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
     unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
-    update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown)
-    update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown)
+    update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown, not linear)
+    update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown, not linear)
     inject(s, dx)
 
 

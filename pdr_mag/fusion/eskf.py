@@ -121,9 +121,10 @@ def update2(P, dx, j, s, j2, s2, r, rv):
 
 
 @njit(cache=True, error_model="numpy")
-def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False):
+def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
     """Scalar update with a general ``H = h``; with ``consider_tilt`` the tilt errors (δθ_x, δθ_y), with
-    ``consider_heading`` the heading errors (δθ_z and δc) are consider states (zero gain, Joseph form)."""
+    ``consider_heading`` the heading errors (δθ_z and δc), with ``consider_bias`` the gyro bias are consider
+    states (zero gain, Joseph form)."""
     col = np.empty(NX)
     for i in range(NX):
         v = 0.0
@@ -145,6 +146,10 @@ def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False):
     if consider_heading:
         k[TH_Z] = 0.0
         k[C_ERR] = 0.0
+    if consider_bias:
+        k[BIAS] = 0.0
+        k[BIAS + 1] = 0.0
+        k[BIAS + 2] = 0.0
     for i in range(NX):
         dx[i] += k[i] * r
     for i in range(NX):

@@ -12,7 +12,9 @@ declination, 0 for magnetic north) observes
 ``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag_tilt_k``).  The tilt
 errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
 field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
-accelerometer correction of the tilt carries over to the heading through ``P``.
+accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is less
+certain than a start at rest (``tr P_tilt > 2 tilt0_std²``: a start in motion, a tilt reset), the heading's
+changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
 
 Noise::
 
@@ -140,7 +142,9 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     dx = np.zeros(NX)
-    update_h(P, dx, h, r, rv, True)
+    # while the tilt is less certain than a start at rest (a start in motion, a tilt reset), the heading's
+    # changes say more about the tilt than about the gyroscope: the bias is a consider state
+    update_h(P, dx, h, r, rv, True, False, P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * p.tilt0_std**2)
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
