@@ -39,7 +39,8 @@ averaged out the dynamics, and a start during a run would teach the bias the arm
 
 Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
 can be 150° off, and correcting it would teach the bias instead.  An average farther from up than
-``LINEAR_RAD`` corrects the tilt only (the bias a consider state, its ``τ R̄`` terms dropped); one farther than
+``LINEAR_RAD``, while the tilt's own σ is that large too (a start in motion), corrects the tilt only (the
+bias a consider state, its ``τ R̄`` terms dropped); with a tilt known better it is dynamics.  One farther than
 ``tilt_reset_min_deg`` and ``tilt_reset_k`` σ (tilt error and the update's noise) is never an update
 (:func:`_beyond_linear`).  The specific force is also averaged over ``tilt_reset_tau_s`` (several strides:
 the swing cancels, where the short average passes a quarter of it); once that window is full and its
@@ -247,8 +248,10 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     hx[TH_Y] = -1.0
     hy[TH_X] = 1.0
     # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R) — a linearisation that holds
-    # for small errors only: an average farther off than LINEAR_RAD is the tilt's, the bias a consider state
-    linear = aw[2] / na >= np.cos(LINEAR_RAD)
+    # for small errors only: an average farther off than LINEAR_RAD while the tilt itself may be that far off
+    # (a start in motion) is the tilt's, the bias a consider state; with a tilt known better, it is dynamics
+    P = s.P
+    linear = aw[2] / na >= np.cos(LINEAR_RAD) or P[TH_X, TH_X] + P[TH_Y, TH_Y] < LINEAR_RAD**2
     if linear:
         for m in range(3):
             hx[BIAS + m] = -tau * Rb[1, m]
