@@ -160,33 +160,12 @@ def honesty(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
             "std_median_deg": float(np.median(std_deg)) if len(a) else float("nan")}
 
 
-def _collector():
-    """A sink keeping the estimate batches — a :class:`replay.run.CsvSink` that writes nothing, so
-    ``replay`` runs with the settings of ``pdr-mag replay --out-csv``."""
-    from replay.run import CsvSink
-
-    class Collect(CsvSink):
-        def __init__(self):
-            self.batches = []
-
-        def open(self, meta):
-            pass
-
-        def estimates(self, batch):
-            self.batches.append(batch)
-
-        def close(self):
-            pass
-
-    return Collect()
-
-
 def run_mode(walk_dir: Path, cal, truth: Truth) -> tuple[dict, dict]:
     """Replay one walk (``cal``: the calibration file, or None for mode b); figures and frame series."""
     from pdr_mag.estimates import EstimateBatch
-    from replay.run import replay
+    from replay.run import MemorySink, replay
 
-    sink = _collector()
+    sink = MemorySink()
     summary = replay(walk_dir, calibration=cal, sinks=[sink], progress=False)
     b = EstimateBatch.concat(sink.batches)
     fig = truth.figures(b.t, b.q_wd)

@@ -2,8 +2,8 @@
 
 The walks of ``../shared/datasets/tyrex-pdrcsv`` all start with the walker standing still in an undisturbed
 spot.  A PDR backend restarts its filter wherever its user is: running, swinging the phone, next to steel.
-Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 20 s by default), in mode a
-(the day's calibration file, as a backend keeps it across restarts) and mode b (no calibration), and scored
+Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 20 s by default), in
+mode a (the day's calibration file, as a backend keeps it across restarts) and mode b (no calibration), scored
 like ``heading.py`` (the shared scorer's error angles against motion capture) on the truth frames from
 ``S + 5`` s to the end of the scorer's window (the same five seconds to settle as a start at 0).
 
@@ -39,20 +39,7 @@ def run_walk(job: tuple[str, str, tuple[float, ...]]) -> list[dict]:
     from pdr_mag.estimates import EstimateBatch
     from replay.formats import read_recording
     from replay.recording import Stream
-    from replay.run import CsvSink, load_calibration, replay
-
-    class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
-        def __init__(self):
-            self.batches = []
-
-        def open(self, meta):
-            pass
-
-        def estimates(self, batch):
-            self.batches.append(batch)
-
-        def close(self):
-            pass
+    from replay.run import MemorySink, load_calibration, replay
 
     walk, cal_json, starts = job
     score = load_scorer()
@@ -73,7 +60,7 @@ def run_walk(job: tuple[str, str, tuple[float, ...]]) -> list[dict]:
             keep = s.t >= t_start
             setattr(rec, name, Stream(s.t[keep], s.xyz[keep]))
         for mode, c in (("a", cal), ("b", None)):
-            sink = Keep()
+            sink = MemorySink()
             replay(rec, calibration=c, sinks=[sink], progress=False)
             b = EstimateBatch.concat(sink.batches)
             w = (t_ref >= max(t_start, b.t[0]) + 5.0) & (t_ref <= min(t_end, b.t[-1]))

@@ -93,6 +93,24 @@ class CsvSink:
             self._fh = None
 
 
+class MemorySink(CsvSink):
+    """The estimate batches kept in memory (``batches``), nothing written: what a backend or a benchmark
+    embedding :func:`replay` collects.  The CSV sink's settings, so the rows are those of ``--out-csv``."""
+
+    def __init__(self):
+        super().__init__(Path("-"))
+        self.batches = []
+
+    def open(self, meta: dict) -> None:
+        pass
+
+    def estimates(self, batch) -> None:
+        self.batches.append(batch)
+
+    def close(self) -> None:
+        pass
+
+
 def load_calibration(path) -> MagCalibration:
     """Read a ``calibrate --json`` file; any problem is an :class:`InputError` naming the file."""
     p = Path(path)

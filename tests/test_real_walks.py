@@ -135,24 +135,11 @@ def peers() -> dict:
 def run(tmp_path_factory):
     """``run(walk, mode)`` → (mean |heading error|, share of frames beyond 3σ); each replay done once."""
     from replay.cli import main
-    from replay.run import CsvSink, replay
+    from replay.run import MemorySink, replay
 
     score = _scorer()
     tmp = tmp_path_factory.mktemp("day_calibrations")
     cache: dict = {}
-
-    class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
-        def __init__(self):
-            self.batches = []
-
-        def open(self, meta):
-            pass
-
-        def estimates(self, batch):
-            self.batches.append(batch)
-
-        def close(self):
-            pass
 
     def day_file(name: str) -> Path:
         path = tmp / f"{name}.json"
@@ -185,7 +172,7 @@ def run(tmp_path_factory):
             t_ref, q_ref = t_ref[ok], q_ref[ok]
             t0, _ = score.truth_t0(str(d / "truth.csv"), t_ref)
             for m, cal in (("a", day_file(json.loads((d / "trial.json").read_text())["calib"])), ("b", None)):
-                sink = Keep()
+                sink = MemorySink()
                 replay(rec, calibration=cal, sinks=[sink], progress=False)
                 cache[(walk, m)] = figures(EstimateBatch.concat(sink.batches), t_ref, q_ref, t0)
         return cache[(walk, mode)]
@@ -247,7 +234,7 @@ def test_a_replay_started_mid_run_stays_honest(walk, mode, tmp_path):
     from replay.cli import main
     from replay.formats import read_recording
     from replay.recording import Stream
-    from replay.run import CsvSink, replay
+    from replay.run import MemorySink, replay
 
     score = _scorer()
     d = dataset("tyrex-pdrcsv", walk)
@@ -264,20 +251,7 @@ def test_a_replay_started_mid_run_stays_honest(walk, mode, tmp_path):
         keep = s.t >= start
         setattr(rec, name, Stream(s.t[keep], s.xyz[keep]))
 
-    class Keep(CsvSink):  # the settings of `replay --out-csv`, nothing written
-        def __init__(self):
-            self.batches = []
-
-        def open(self, meta):
-            pass
-
-        def estimates(self, batch):
-            self.batches.append(batch)
-
-        def close(self):
-            pass
-
-    sink = Keep()
+    sink = MemorySink()
     replay(rec, calibration=cal, sinks=[sink], progress=False)
     b = EstimateBatch.concat(sink.batches)
     t_ref, q_ref = score.C.read_quat_csv(str(d / "truth.csv"))
