@@ -10,8 +10,9 @@ In short:
   so ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z]))`` grows while the magnetometer is rejected;
 * accelerometer: corrects tilt only, from the specific force averaged over ``acc_tau_s`` in the
   almost-inertial world frame (the mean linear acceleration of a walking, swinging or pocketed phone over
-  the window is ≈ 0); its noise grows with ``||ā| − g|`` and with the bias uncertainty × the lag of the
-  average; the average is gated beyond ``acc_gate``;
+  the window is ≈ 0); its noise grows with ``||ā| − g|``, the horizontal spread and the clipped share, and
+  the window's lag puts ``τ R̄`` on the bias in H; the average is gated beyond ``acc_gate``; a tilt farther
+  off than a linearised update holds is turned onto a longer average instead (``tilt_reset_*``);
 * magnetometer: corrects heading only, so a disturbed field can never corrupt the tilt; the tilt errors
   enter its H as consider states (Schmidt), so a tilt error (× tan I in the field's horizontal
   projection) is not taken for a heading error.  Gross disturbances are rejected by

@@ -39,8 +39,9 @@ averaged out the dynamics, and a start during a run would teach the bias the arm
 
 Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
 can be 150° off, and correcting it would teach the bias instead.  An average farther from up than
-``LINEAR_RAD``, while the tilt's own σ is that large too (a start in motion), corrects the tilt only (the
-bias a consider state, its ``τ R̄`` terms dropped); with a tilt known better it is dynamics.  One farther than
+``LINEAR_RAD`` while the tilt is unsettled too (its own σ that large: a start in motion,
+:func:`pdr_mag.fusion.eskf.tilt_unsettled`) corrects the tilt only (the bias a consider state, its ``τ R̄``
+terms dropped); with a tilt known better it is dynamics.  One farther than
 ``tilt_reset_min_deg`` and ``tilt_reset_k`` σ (tilt error and the update's noise) is never an update
 (:func:`_beyond_linear`).  The specific force is also averaged over ``tilt_reset_tau_s`` (several strides:
 the swing cancels, where the short average passes a quarter of it); once that window is full and its
@@ -62,7 +63,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update, update_h
+from pdr_mag.fusion.eskf import (
+    inject,
+    rotate_world,
+    rotation_matrix,
+    tilt_unsettled,
+    update,
+    update_h,
+)
 from pdr_mag.fusion.gyro import ew_stats_step
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import ew_alpha
@@ -209,15 +217,15 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
         s.t_acc_w0 = t
         al = s.acc_w_long
         al[0], al[1], al[2] = awx, awy, awz
-        s.acc_long_n = 1
         return
-    al = s.acc_w_long
-    s.acc_long_n += 1
-    b = max(ew_alpha(t - s.t_acc_prev, p.tilt_reset_tau_s), 1.0 / s.acc_long_n)
-    al[0] += b * (awx - al[0])
-    al[1] += b * (awy - al[1])
-    al[2] += b * (awz - al[2])
-    a = ew_alpha(t - s.t_acc_prev, p.acc_tau_s)
+    dt = t - s.t_acc_prev
+    if p.tilt_reset_k > 0.0:  # a running mean until the window is full, then exponentially weighted
+        al = s.acc_w_long
+        b = max(ew_alpha(dt, p.tilt_reset_tau_s), dt / (t - s.t_acc_w0 + dt))
+        al[0] += b * (awx - al[0])
+        al[1] += b * (awy - al[1])
+        al[2] += b * (awz - al[2])
+    a = ew_alpha(dt, p.acc_tau_s)
     aw[0] += a * (awx - aw[0])
     aw[1] += a * (awy - aw[1])
     aw[2] += a * (awz - aw[2])
@@ -248,10 +256,9 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     hx[TH_Y] = -1.0
     hy[TH_X] = 1.0
     # the window's mean tilt error: δθ(t) + τ R̄ δb (R̄ the window's mean of R) — a linearisation that holds
-    # for small errors only: an average farther off than LINEAR_RAD while the tilt itself may be that far off
-    # (a start in motion) is the tilt's, the bias a consider state; with a tilt known better, it is dynamics
-    P = s.P
-    linear = aw[2] / na >= np.cos(LINEAR_RAD) or P[TH_X, TH_X] + P[TH_Y, TH_Y] < LINEAR_RAD**2
+    # for small errors only: an average farther off than LINEAR_RAD while the tilt is unsettled is the
+    # tilt's, the bias a consider state; with a tilt known better, it is dynamics
+    linear = aw[2] / na >= np.cos(LINEAR_RAD) or not tilt_unsettled(s.P, p)
     if linear:
         for m in range(3):
             hx[BIAS + m] = -tau * Rb[1, m]

@@ -158,18 +158,27 @@ def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bi
 
 
 @njit(cache=True, error_model="numpy")
+def tilt_unsettled(P, p):
+    """Whether the tilt is less certain than a start at rest (``tr P_tilt > 2 tilt0_std²``): a start in
+    motion.  Then a far-off average is the tilt's, and the heading's changes are the tilt's, not the gyro
+    bias's (:mod:`pdr_mag.fusion.accel`, :mod:`pdr_mag.fusion.mag`)."""
+    return P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * p.tilt0_std**2
+
+
+@njit(cache=True, error_model="numpy")
 def inject(s, dx):
     """Apply the error estimate ``dx`` to the nominal state of record ``s`` and zero it.
 
-    The world-frame quantities the filter carries — the averaged specific force ``acc_w`` and the
-    detectors' mean field direction ``det.mw`` — turn with the attitude correction, so they stay in the
-    corrected frame (the consistency check then measures the field's motion against the gyro-propagated
-    frame, whatever the filter concluded from it).
+    The world-frame quantities the filter carries — the averaged specific force ``acc_w`` and
+    ``acc_w_long`` and the detectors' mean field direction ``det.mw`` — turn with the attitude correction,
+    so they stay in the corrected frame (the consistency check then measures the field's motion against
+    the gyro-propagated frame, whatever the filter concluded from it).
     """
     ex, ey, ez = dx[TH_X], dx[TH_Y], dx[TH_Z]
     rotate_world(s.q, ex, ey, ez)
     if np.isfinite(s.acc_w[0]):
         rotate_vector(s.acc_w, ex, ey, ez)
+        rotate_vector(s.acc_w_long, ex, ey, ez)
     if np.isfinite(s.det.mw[0]):
         rotate_vector(s.det.mw, ex, ey, ez)
     for i in range(3):

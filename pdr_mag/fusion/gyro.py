@@ -20,8 +20,9 @@ Gaps.  Up to ``GAP_DT`` the mean rate of the two ends is the rate in between.  L
 ``max_dt`` are integrated the same way, but the rate in between deviates from that mean by about the recent
 motion level, so each attitude variance grows by ``var(ω) (Δt − GAP_DT)²``; longer still, the interval is
 not integrated (only ``P`` is propagated) and the unknown rotation ``(|ω̄|² + var(ω)) Δt²`` is added — a
-0.25-s gap of a phone turning at 2 rad/s is 30° that must not be hidden from ``P``.  The tilt variances
-are capped at ``TILT_VAR_MAX`` (the accelerometer's linearisation holds), the heading's at π².
+0.25-s gap of a phone turning at 2 rad/s is 30° that must not be hidden from ``P``.  What a gap adds
+to the tilt variances is capped at ``TILT_VAR_MAX`` (a gap's rotation is not a tilt error beyond it), the
+heading's at π².
 
 Zero-rate update.  The still detector keeps exponentially weighted means and mean square deviations of
 gyroscope and accelerometer (time constant ``still_tau_s``).  While both deviations stay below
@@ -41,7 +42,7 @@ from pdr_mag.interference import ew_alpha
 
 #: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
 GAP_DT = 0.05
-#: largest tilt-error variance a gap may add up to, rad² (30°: the accelerometer linearisation holds)
+#: largest tilt-error variance a gap may add up to, rad² (30°)
 TILT_VAR_MAX = (np.pi / 6.0) ** 2
 
 #: Scratch space of :func:`predict` (a one-record array made once per kernel call, rather than arrays

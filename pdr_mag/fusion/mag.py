@@ -12,9 +12,9 @@ declination, 0 for magnetic north) observes
 ``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag_tilt_k``).  The tilt
 errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
 field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
-accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is less
-certain than a start at rest (``tr P_tilt > 2 tilt0_std²``: a start in motion, a tilt reset), the heading's
-changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
+accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is
+unsettled (``tr P_tilt > 2 tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion), the
+heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
 
 Noise::
 
@@ -62,7 +62,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, update_h, wrap
+from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, tilt_unsettled, update_h, wrap
 from pdr_mag.fusion.gyro import magerr_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of, ew_alpha
@@ -142,9 +142,9 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     dx = np.zeros(NX)
-    # while the tilt is less certain than a start at rest (a start in motion, a tilt reset), the heading's
-    # changes say more about the tilt than about the gyroscope: the bias is a consider state
-    update_h(P, dx, h, r, rv, True, False, P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * p.tilt0_std**2)
+    # while the tilt is unsettled (a start in motion), the heading's changes say more about the tilt than
+    # about the gyroscope: the bias is a consider state
+    update_h(P, dx, h, r, rv, True, False, tilt_unsettled(P, p))
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
@@ -239,13 +239,14 @@ def _first_fix(s, h, r, rv, t, p):
 @njit(cache=True, error_model="numpy")
 def _turn_world_frame(s, angle):
     """Turn the attitude about up by ``angle``; the world-frame quantities the filter carries turn with it
-    (the averaged specific force and its mean R) or restart (the detectors' mean field direction)."""
+    (the averaged specific force over both windows and their mean R) or restart (the detectors' mean field
+    direction)."""
     rotate_world(s.q, 0.0, 0.0, angle)
     c, sn = np.cos(angle), np.sin(angle)
-    aw = s.acc_w
-    if np.isfinite(aw[0]):
-        x0, y0 = aw[0], aw[1]
-        aw[0], aw[1] = c * x0 - sn * y0, sn * x0 + c * y0
+    if np.isfinite(s.acc_w[0]):
+        for aw in (s.acc_w, s.acc_w_long):
+            x0, y0 = aw[0], aw[1]
+            aw[0], aw[1] = c * x0 - sn * y0, sn * x0 + c * y0
     Rb = s.R_bar
     for m in range(3):
         x0, y0 = Rb[0, m], Rb[1, m]

@@ -60,7 +60,6 @@ STATE = np.dtype(
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
         ("t_acc_w0", np.float64),  # time the average ā_w (re)started, s
         ("acc_w_long", np.float64, (3,)),  # the same average over tilt_reset_tau_s (whole strides), m/s²
-        ("acc_long_n", np.int64),  # samples in it (a running mean until the window is full)
         ("tilt_resets", np.int64),  # tilt resets so far (the average far outside the tilt's uncertainty)
         # magnetometer
         ("declination", np.float64),  # D, rad (0: magnetic north)
