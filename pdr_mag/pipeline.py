@@ -478,16 +478,14 @@ class HeadingPipeline:
         return events, n, row_blk[:n][closed], cov[:n][closed]
 
     def _use_calibration(self, restored: bool = False) -> None:
-        """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = mag_to_imu · soft iron; None
+        """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = ``cal.matrix``; None
         for the identity) for the filter's input, and (unless ``restored`` with the fusion core's state) its
         radius as the detectors' reference strength and its offset covariance as a source of heading error."""
         cal = self.online.calibration
         self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
         self._mag_matrix_t = None
         if cal is not None:
-            a = cal.soft_iron_array
-            if cal.mag_to_imu is not None:
-                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
+            a = cal.matrix
             self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
         if not restored and cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
             if not self._calibrations:

@@ -19,8 +19,10 @@ it is now (:func:`offer`):
 
 :func:`coverage` is the online measure of how much of the sphere the samples cover: the share of 64
 near-uniform directions (a golden-angle spiral) with a sample direction, about a centre, within 30°.  The
-refit triggers (``sphere_coverage``, ``ellipsoid_coverage``) are set on it; the calibration core's
-equal-area :func:`pdr_mag.calibration.coverage.coverage` is what the full fit is judged on.
+refit triggers (``sphere_coverage``, ``ellipsoid_coverage``) are set on it; the full fit's further gate
+(``ellipsoid_precheck_frac``) uses the calibration core's equal-area
+:func:`pdr_mag.calibration.coverage.coverage`, and the fit is accepted by its heading bound
+(:func:`pdr_mag.calibration.coverage.accept`), not by a coverage.
 """
 
 from __future__ import annotations

@@ -189,8 +189,8 @@ def heading_bound(cal: MagCalibration, inclination_deg: float = DEFAULT_INCLINAT
     std = float(np.sqrt(max(lam.max(), 0.0)) / cos_i)
     cb = linv @ cov[:3, :3] @ linv.T
     off = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cb + cb.T))[-1], 0.0)) / cos_i)
-    # the calibrated offset error A δb, in device (IMU) axes
-    a = soft if cal.mag_to_imu is None else np.asarray(cal.mag_to_imu, dtype=float) @ soft
+    # the calibrated offset error M δb (M = cal.matrix), in device (IMU) axes
+    a = cal.matrix
     ca = a @ cov[:3, :3] @ a.T
     w, v = np.linalg.eigh(0.5 * (ca + ca.T))
     d = v[:, -1] * (1.0 if v[np.argmax(np.abs(v[:, -1])), -1] > 0 else -1.0)

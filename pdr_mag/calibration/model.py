@@ -109,6 +109,15 @@ class MagCalibration:
         return np.asarray(self.soft_iron, dtype=float)
 
     @property
+    def matrix(self) -> np.ndarray:
+        """The 3×3 matrix ``M`` taking an offset-corrected raw sample ``m_raw − offset`` into the device (IMU)
+        frame: ``mag_to_imu @ soft_iron``, or ``soft_iron`` when ``mag_to_imu`` is None (a new array)."""
+        a = self.soft_iron_array
+        if self.mag_to_imu is not None:
+            a = np.asarray(self.mag_to_imu, dtype=float) @ a
+        return a
+
+    @property
     def offset_covariance(self) -> np.ndarray | None:
         """Covariance of the offset, 3×3 µT²: the offset block of ``covariance`` (every fit puts the offset
         first), else ``diag(offset_std_uT²)``; None when neither is known."""
@@ -127,10 +136,7 @@ class MagCalibration:
         m = np.asarray(mag_raw, dtype=float)
         if m.shape[-1] != 3:
             raise ValueError(f"mag_raw: expected shape (…, 3) in µT, got {m.shape}")
-        a = self.soft_iron_array
-        if self.mag_to_imu is not None:
-            a = np.asarray(self.mag_to_imu, dtype=float) @ a
-        return (m - self.offset_array) @ a.T
+        return (m - self.offset_array) @ self.matrix.T
 
     # ------------------------------------------------------------------ JSON
     def to_dict(self) -> dict:

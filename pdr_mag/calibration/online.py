@@ -79,7 +79,7 @@ class OnlineSettings:
         1-σ of the WMM strength and inclination as priors of the gravity-aided fit (the local field
         indoors differs by a few µT / degrees); 0 fixes them.
     max_offset_std_uT : float
-        A gravity/sphere refit is accepted only when every offset σ is below this.
+        A refit (gravity-aided, sphere or full) is accepted only when every offset σ is below this.
     first_offset_std_uT : float
         The same bound for the very first calibration (none yet): a coarse offset early lets the filter
         align the heading and learn the gyro bias before the first disturbance; refits refine it.  Its σ
@@ -98,10 +98,11 @@ class OnlineSettings:
     ellipsoid_coverage : float
         Coverage from which the core's full (ellipsoid) fit is attempted.
     ellipsoid_precheck_frac : float
-        The full fit is attempted only when, besides, the buffer's coverage by the core's own measure (the
-        equal-area grid of :func:`pdr_mag.calibration.coverage.coverage`, on which the fit is judged) about
-        the current offset estimate reaches this share of the core's ``min_coverage``: the fit is judged about
-        its own centre, a few µT away, which moves a direction by a few degrees against cells of 22° × 45°.
+        The full fit is attempted only when, besides, the buffer's coverage on the equal-area grid of
+        :func:`pdr_mag.calibration.coverage.coverage`, about the current offset estimate, reaches this share
+        of ``AcceptanceSettings.min_coverage``: a cheap gate that spares full fits on a sparse buffer.  It is
+        not the acceptance rule: the fit is judged by the heading error its uncertainty allows
+        (:func:`pdr_mag.calibration.coverage.accept`), which well-spread samples can meet below the gate.
     sphere_coverage : float
         Coverage from which the sphere LLS fit is attempted.
     stale_window_s, stale_check_s, stale_min_frac, stale_min_shift_uT : float
@@ -158,6 +159,12 @@ class OnlineSettings:
 
 
 _EPISODE_EVENTS = {K.EPISODE_START: "rotation_episode_start", K.EPISODE_END: "rotation_episode_end"}
+
+#: Fields of the compiled loop's state that belong to the open block, with the block-start copies of the
+#: calibration and the buffer (``hint`` only speeds up the redundancy search): they are not saved, and
+#: a restored calibrator starts a new block at its next sample.
+_BLOCK_FIELDS = ("in_block", "cal_changed", "n_buf0", "n_old0", "hint")
+_SAVED_FIELDS = tuple(name for name in K.STATE.names if name not in _BLOCK_FIELDS)
 
 
 class OnlineCalibrator:
@@ -340,10 +347,7 @@ class OnlineCalibrator:
         c = self._cal[0]
         c["check"] = cal is not None and f is not None and cal_state not in ("none", "recalibrating")
         if cal is not None:
-            a = cal.soft_iron_array
-            if cal.mag_to_imu is not None:
-                a = np.asarray(cal.mag_to_imu, dtype=float) @ a
-            c["matrix"] = a
+            c["matrix"] = cal.matrix
             c["offset"] = cal.offset_array
         c["strength"] = np.nan if f is None else f
         c["strength_tol"] = np.nan if f is None else s.add_tol_frac * f
@@ -381,9 +385,11 @@ class OnlineCalibrator:
                 data = {"method": last.method, "reasons": list(last.reasons)}
                 events.append((t, "calibration_rejected", data))
             return
-        n = self._n_buf
-        if self.cal_state == "recalibrating":
-            cal = refit.with_dip(chosen, self._buf["m"][:n], self._buf["u"][:n])
+        recalibrating = self.cal_state == "recalibrating"
+        if not recalibrating and not refit.replaces(chosen, self.calibration, self.provided):
+            return
+        cal = refit.with_dip(chosen, self._buf["m"][:n], self._buf["u"][:n])
+        if recalibrating:
             rich = cal.method != "gravity" and bool(self._state[0]["episode_seen"])
             waited = np.isfinite(self._recal_t) and t - self._recal_t > self.settings.recal_fallback_s
             if not (rich or waited):
@@ -393,9 +399,6 @@ class OnlineCalibrator:
             self._recal_t = np.nan
             events.append((t, "recalibrated", {**refit.summary(cal), "figure8": bool(rich)}))
             return
-        if not refit.replaces(chosen, self.calibration, self.provided):
-            return
-        cal = refit.with_dip(chosen, self._buf["m"][:n], self._buf["u"][:n])
         self._use(cal, refit.state_of(cal))
         self._n_refits += 1
         events.append((t, "calibration_accepted", refit.summary(cal)))
@@ -429,13 +432,10 @@ class OnlineCalibrator:
         self._request_recalibration(t, found, len(window), events)
 
     def _request_recalibration(self, t: float, found: stale.Shift, n: int, events: list) -> None:
-        """Use the provisional offset ``b + M⁻¹δ`` (M = mag_to_imu · soft iron), clear the buffer and the
-        ring, and wait for a figure-8."""
+        """Use the provisional offset ``b + M⁻¹δ`` (M = :attr:`MagCalibration.matrix`), clear the buffer and
+        the ring, and wait for a figure-8."""
         cal = self.calibration
-        a_inv = np.linalg.inv(cal.soft_iron_array)
-        if cal.mag_to_imu is not None:
-            a_inv = a_inv @ np.asarray(cal.mag_to_imu, dtype=float).T
-        shift = a_inv @ found.delta
+        shift = np.linalg.inv(cal.matrix) @ found.delta
         provisional = MagCalibration.from_arrays(
             cal.offset_array + shift,
             cal.soft_iron_array,
@@ -480,7 +480,10 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ state
     def get_state(self) -> dict:
-        """JSON-serialisable state (:meth:`set_state` on a calibrator with the same settings resumes)."""
+        """JSON-serialisable state (:meth:`set_state` on a calibrator with the same settings resumes).
+
+        The open block's fields (:data:`_BLOCK_FIELDS`) are left out, as are the block-start copies.
+        """
         return {
             "calibration": None if self.calibration is None else self.calibration.to_dict(),
             "cal_state": self.cal_state,
@@ -488,13 +491,14 @@ class OnlineCalibrator:
             "recal_t": state_float(self._recal_t),
             "n_refits": self._n_refits,
             "last_reject_t": state_float(self._last_reject_t),
-            "loop": {name: _to_json(self._state[0][name]) for name in K.STATE.names},
+            "loop": {name: _to_json(self._state[0][name]) for name in _SAVED_FIELDS},
             "buffer": _to_json(self._buf[: self._n_buf].view(np.float64)),
             "ring": _to_json(self._ring.view(np.float64)),
         }
 
     def set_state(self, st: dict) -> None:
-        """Restore a :meth:`get_state` dict."""
+        """Restore a :meth:`get_state` dict; the next sample starts a new block.  The open block's fields
+        are reset; a state that includes them is accepted and their values are not read."""
         cal = None if st["calibration"] is None else MagCalibration.from_dict(st["calibration"])
         self._use(cal, st["cal_state"])
         self.provided = bool(st["provided"])
@@ -502,7 +506,9 @@ class OnlineCalibrator:
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = float(st["last_reject_t"])
         loop = self._state[0]
-        for name in K.STATE.names:
+        for name in _BLOCK_FIELDS:
+            loop[name] = 0  # False for the flags
+        for name in _SAVED_FIELDS:
             v = st["loop"][name]
             loop[name] = [float(x) for x in v] if isinstance(v, list) else v if type(v) is bool else float(v)
         buf = self._buf.view(np.float64)

@@ -8,9 +8,11 @@ Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vect
 * seed 003's linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
   the buffer's direction coverage about the gravity fit's offset reaches ``sphere_coverage``;
 * the calibration core's full fit (:func:`pdr_mag.calibration.select.calibrate`: model by BIC, geometric
-  ML; seeds 000/001/004) once the coverage reaches ``ellipsoid_coverage``, the core's own equal-area
-  coverage could accept it (``ellipsoid_precheck_frac``), and a figure-8 was seen (or nothing is calibrated
-  yet).
+  ML; seeds 000/001/004) once the coverage reaches ``ellipsoid_coverage``, the buffer's coverage on the
+  core's equal-area grid reaches ``ellipsoid_precheck_frac`` of ``AcceptanceSettings.min_coverage`` (a
+  cheap gate that spares full fits on a sparse buffer; it is not the acceptance rule, which is the heading
+  bound of :func:`pdr_mag.calibration.coverage.accept` and may pass fits the gate skips), and a figure-8 was
+  seen (or nothing is calibrated yet).
 
 Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravity, then the smallest offset
 σ) is the refit's result.  Whether it replaces the calibration in force is :func:`replaces`.
@@ -134,8 +136,7 @@ def gravity_fit_keeping_shape(
     """
     s = settings
     a = current.soft_iron_array if current is not None else np.eye(3)
-    r = None if current is None or current.mag_to_imu is None else np.asarray(current.mag_to_imu, dtype=float)
-    mm = a if r is None else r @ a
+    mm = current.matrix if current is not None else a
     shaped = not is_identity(mm, 1e-12)
     g = gravity_aided_offset(
         m @ mm.T if shaped else m, u, field_ref, sin_dip_ref if field_ref is not None else None,
@@ -169,13 +170,16 @@ def judge(
 ) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
-    The calibration core's rules (:func:`pdr_mag.calibration.coverage.accept`: sample count, radius against
-    the reference, residual, offset σ and range, soft-iron spread, conditioning — the coverage rules apply
-    where the fit recorded its coverage) are applied to every refit but the gravity-aided one, whose
-    geometry they do not describe; the online rules below are applied in any case: offset σ (below
-    ``max_offset_std_uT``, or ``first_offset_std_uT`` for the very first calibration), residual RMS relative
-    to F, offset magnitude, radius against the reference strength.  ``coverage`` given: the copy also gets
-    it (for the gravity-aided refit, whose rules do not read it).
+    The calibration core's rules (:func:`pdr_mag.calibration.coverage.accept` with its default settings and
+    ``field_ref`` as the reference strength) are applied to every refit but the gravity-aided one, whose
+    geometry they do not describe: enough samples, a finite radius and a positive-definite soft iron, a
+    residual RMS within the larger of a share of the field and a magnetometer's noise, a heading error that
+    the fit's uncertainty allows within the tolerance, a plausible offset, and, where the samples determine
+    them, a plausible soft-iron eigenvalue spread and a radius near the reference (coverage only explains a
+    heading refusal).  The online rules below are applied to every refit: offset σ below
+    ``max_offset_std_uT`` (for the very first calibration, ``first_offset_std_uT`` when larger), a finite
+    radius, residual RMS relative to F, offset magnitude, radius within 25 % of the reference strength.
+    ``coverage`` given: the copy also gets it (for the gravity-aided refit, whose rules do not read it).
     """
     reasons: list[str] = []
     if cal.method != "gravity":

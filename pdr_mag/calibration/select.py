@@ -33,8 +33,7 @@ def _admissible(cal: MagCalibration) -> bool:
     return bool(np.all(np.isfinite(std)) and np.isfinite(cal.field_uT) and cal.field_uT > 0)
 
 
-def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
-                 settings: AcceptanceSettings | None = None) -> MagCalibration:
+def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full")) -> MagCalibration:
     """Geometric ML fits of the nested models; the one with the smallest BIC (module docstring).
 
     Only *admissible* fits compete (a finite offset covariance and radius).  Plausibility is not part of
@@ -43,8 +42,7 @@ def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full"),
     blamed on the field.  With poor coverage an over-fitted richer model gains too little RSS to pay its
     BIC penalty, and one the samples do not determine is refused by the heading rule.  If none is
     admissible, the simplest model is returned (and the acceptance rules will say why it is not
-    accepted).  ``settings`` is accepted for symmetry with :func:`calibrate` and not used.
-    ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k", "admissible"}}`` and
+    accepted).  ``extra["model_selection"]`` lists ``{model: {"rss_uT2", "bic", "k", "admissible"}}`` and
     ``extra["model"]`` the choice.
     """
     m = _check_mag(mag, 10)
@@ -126,7 +124,7 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
         if len(m) < 10:
             cal = fit_sphere(m)
         elif method == "auto":
-            cal = select_model(m, settings=settings)
+            cal = select_model(m)
         else:
             fn = {"sphere": fit_sphere, "ellipsoid": fit_ellipsoid, "als": fit_als, "ml": fit_ml,
                   "radial": fit_radial_newton, "lm9": fit_lm9, "twostep": fit_twostep}[method]
