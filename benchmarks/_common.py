@@ -68,7 +68,8 @@ def rss_mb() -> float:
 
 
 def write_section(section: str, text: str, path: Path = RESULTS) -> None:
-    """Replace (or append) the section headed ``section`` of RESULTS.md, leaving the others untouched."""
+    """Replace (or append) the section headed ``section`` of ``path`` (RESULTS.md unless given), leaving the
+    others untouched; ``text`` is the whole section, its heading line first."""
     old = path.read_text() if path.exists() else "# Benchmark results\n\n"
     start = old.find(section)
     if start < 0:

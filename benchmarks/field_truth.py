@@ -19,7 +19,8 @@ Usage::
 
     python benchmarks/field_truth.py [--walks PATTERN] [--jobs N] [--write-notes]
 
-``--write-notes``: the summary table into ``benchmarks/NOTES.md`` (section "Field truth").
+``--write-notes``: the summary table into ``benchmarks/NOTES.md`` (section "Field truth"), replacing the
+whole section: the reading of the table written under it there goes too.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT  # noqa: E402
+from _common import ROOT, write_section  # noqa: E402
 from heading import DATA, discover_walks, make_day_files, trial_info  # noqa: E402
 
 NOTES = ROOT / "benchmarks" / "NOTES.md"
@@ -115,15 +116,9 @@ def table(rows: list[dict]) -> list[str]:
 
 
 def write_notes(lines: list[str]) -> None:
-    old = NOTES.read_text() if NOTES.exists() else "# Notes\n"
-    start = old.find(SECTION)
-    text = "\n".join([SECTION, "", *lines, ""])
-    if start >= 0:
-        nxt = old.find("\n## ", start + len(SECTION))
-        old = old[:start] + text + (old[nxt + 1 :] if nxt >= 0 else "")
-    else:
-        old = old.rstrip("\n") + "\n\n" + text
-    NOTES.write_text(old)
+    """Replace this script's section of ``benchmarks/NOTES.md`` (its heading, then ``lines``); the other
+    sections are left as they are."""
+    write_section(SECTION, "\n".join([SECTION, "", *lines, ""]), path=NOTES)
 
 
 def main(argv=None) -> int:

@@ -132,17 +132,20 @@ class Truth:
         self.t, self.q = t[ok], q[ok]
         self.t0, _ = score.truth_t0(str(walk_dir / "truth.csv"), self.t)
 
-    def figures(self, t_est, q_est) -> dict:
-        """The shared scorer's figures (``heading_err_mean`` etc.) of an estimate."""
+    def figures(self, t_est, q_est, window=None) -> dict:
+        """The shared scorer's figures (``heading_err_mean`` etc.) of an estimate; ``window``: s after
+        ``t0``, the scorer's ``WINDOW`` unless given."""
         t_est, q_est = np.asarray(t_est, float), np.asarray(q_est, float)
-        r = self.score.score_arrays(self.t, self.q, t_est, q_est, self.t0)
+        r = self.score.score_arrays(self.t, self.q, t_est, q_est, self.t0, window=window or self.score.WINDOW)
         return {k: r[k] for k in ("heading_err_mean", "heading_err_median", "heading_err_p95",
                                   "heading_err_max", "tilt_err_mean", "n_frames", "coverage") if k in r}
 
-    def frames(self, t_est, q_est, max_gap: float = 1.0):
-        """Scored truth times and the signed heading error there (the frames ``score_arrays`` scores)."""
+    def frames(self, t_est, q_est, max_gap: float = 1.0, window=None):
+        """Scored truth times and the signed heading error there (the frames ``score_arrays`` scores with
+        the same ``window``)."""
         C = self.score.C
-        lo, hi = self.t0 + self.score.WINDOW[0], self.t0 + self.score.WINDOW[1]
+        window = window or self.score.WINDOW
+        lo, hi = self.t0 + window[0], self.t0 + window[1]
         w = (self.t >= lo) & (self.t <= hi)
         tr, qr = self.t[w], self.q[w]
         qi, valid = C.slerp_at(t_est, q_est, tr)

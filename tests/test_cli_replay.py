@@ -202,44 +202,18 @@ def test_replay_demo_recording_mixed(tmp_path):
 
 def test_replay_real_tyrex_walk_online_only():
     """A real phone walk, no calibration given: online calibration converges; heading vs motion capture."""
-    from replay.run import replay
+    from pdr_mag.estimates import EstimateBatch
+    from replay.run import MemorySink, replay
 
     rec_dir = dataset("tyrex-pdrcsv", "Thibaud_Nexus5_NoDist_Texting")
-    out = []
-
-    class Keep:
-        def open(self, meta):
-            pass
-
-        def inputs(self, kind, t, xyz):
-            pass
-
-        def mag_calibrated(self, t, xyz):
-            pass
-
-        def estimates(self, batch):
-            out.append((batch.t, batch.q_wd))
-
-        def reference(self, name, t, q):
-            pass
-
-        def event(self, ev):
-            pass
-
-        def calibration(self, t, cal):
-            pass
-
-        def close(self):
-            pass
-
-    summary = replay(rec_dir, sinks=[Keep()])
+    sink = MemorySink()
+    summary = replay(rec_dir, sinks=[sink])
     assert summary["north"] == "true" and summary["cal_state"] in ("offset", "ellipsoid")
-    t = np.concatenate([a for a, _ in out])
-    q = np.concatenate([b for _, b in out])
+    b = EstimateBatch.concat(sink.batches)
     truth = np.loadtxt(Path(rec_dir) / "truth.csv", delimiter=",", skiprows=1)
     truth = truth[np.all(np.isfinite(truth), axis=1)]
     w = (truth[:, 0] > truth[0, 0] + 5) & (truth[:, 0] < truth[0, 0] + 120)
-    err = _heading_err_deg(t, q, truth[w, 0], truth[w, 1:5])
+    err = _heading_err_deg(b.t, b.q_wd, truth[w, 0], truth[w, 1:5])
     # the phone's own fusion reaches 3.3° here with its long-term calibration; online from nothing we
     # must at least stay well under a gross failure (the calibration converges within seconds)
     assert np.mean(err) < 10.0

@@ -263,39 +263,13 @@ def test_real_walk_episodes_agree_with_the_truth():
     rows and truth.csv — every row whose error exceeds the threshold lies in an error episode, each error
     episode is bounded by rows back under the onset level, every flag time is an interference_start event,
     and a no_reference episode has no correction inside."""
-    from replay.run import replay
+    from replay.run import MemorySink, replay
 
     rec = dataset("tyrex-pdrcsv", "Thibaud_Nexus5_Dist_Texting")
-    rows = []
-
-    class Keep:
-        def open(self, meta):
-            pass
-
-        def inputs(self, kind, t, xyz):
-            pass
-
-        def mag_calibrated(self, t, xyz):
-            pass
-
-        def estimates(self, batch):
-            rows.append(batch)
-
-        def reference(self, name, t, q):
-            pass
-
-        def event(self, ev):
-            pass
-
-        def calibration(self, t, cal):
-            pass
-
-        def close(self):
-            pass
-
-    summary = replay(rec, sinks=[Keep()])
+    sink = MemorySink()
+    summary = replay(rec, sinks=[sink])
     s = EpisodeSettings(**{k: v for k, v in summary["episode_settings"].items() if k != "truth"})
-    b = EstimateBatch.concat(rows)
+    b = EstimateBatch.concat(sink.batches)
     truth = np.loadtxt(Path(rec) / "truth.csv", delimiter=",", skiprows=1)
     truth = truth[np.all(np.isfinite(truth), axis=1)]
     h_true = np.unwrap(heading_deg_from_quat(truth[:, 1:5]), period=360.0)

@@ -151,14 +151,21 @@ def test_gravity_aided_degenerate_raises():
         gravity_aided_offset(m[:, :2], u, F, np.sin(INC))
 
 
-def _feed(cal: OnlineCalibrator, d, chunk=0.25):
-    """Feed the calibrator magnetometer samples with the true up vector and gyro rate."""
+def _rows(d):
+    """The calibrator's rows of a :func:`synth_walk`: the magnetometer times and samples, the true up vector
+    (device frame) and the gyro rate's norm at those times."""
     t, q = d["truth"]
     tm, mag = d["mag"]
     rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
     up = rot.inv().apply([0.0, 0.0, 1.0])
     tg, g = d["gyro"]
     rate = np.interp(tm, tg, np.linalg.norm(g, axis=1))
+    return tm, mag, up, rate
+
+
+def _feed(cal: OnlineCalibrator, d, chunk=0.25):
+    """Feed the calibrator magnetometer samples with the true up vector and gyro rate."""
+    tm, mag, up, rate = _rows(d)
     events = []
     edges = np.arange(0, tm[-1] + chunk, chunk)
     for a, b in zip(edges[:-1], edges[1:], strict=True):
@@ -304,12 +311,7 @@ def test_update_blocks_equals_update_per_block():
     """Several blocks in one call (the pipeline's path) == one call per block: it stops at the end of the
     block whose close changed the calibration; called again from there until every row is taken, the same
     events, coverage and state."""
-    d = synth_walk(duration=40.0, seed=9)
-    t, q = d["truth"]
-    tm, mag = d["mag"]
-    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
-    up = rot.inv().apply([0.0, 0.0, 1.0])
-    rate = np.interp(tm, d["gyro"][0], np.linalg.norm(d["gyro"][1], axis=1))
+    tm, mag, up, rate = _rows(synth_walk(duration=40.0, seed=9))
     blk = np.floor(tm / 0.5)
     ends = np.r_[blk[1:] != blk[:-1], True]
     a = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
@@ -354,22 +356,23 @@ def test_online_refits_are_judged_by_the_calibration_core_rules():
 
 
 def test_rows_with_nan_are_skipped():
-    """Rows with a NaN up vector (no attitude yet) or time are skipped: the same events, coverage and state
-    as without them, also when a block's last row is one."""
-    d = synth_walk(duration=30.0, seed=2)
-    t, q = d["truth"]
-    tm, mag = d["mag"]
-    rot = Rotation.from_quat(np.array([np.interp(tm, t, q[:, i]) for i in (1, 2, 3, 0)]).T)
-    up = rot.inv().apply([0.0, 0.0, 1.0])
-    rate = np.interp(tm, d["gyro"][0], np.linalg.norm(d["gyro"][1], axis=1))
+    """Rows with a NaN up vector (no attitude yet) or a NaN time are skipped, each on its own and both at
+    once: the same events, coverage and state as without them, also when a block's last row is one."""
+    tm, mag, up, rate = _rows(synth_walk(duration=30.0, seed=2))
     blk = np.floor(tm / 0.5)
     ends = np.r_[blk[1:] != blk[:-1], True]
-    bad = np.zeros(len(tm), dtype=bool)
-    bad[:30] = True  # whole blocks at the start
-    bad[np.flatnonzero(ends)[5::7]] = True  # some blocks' last rows
+    bad_up = np.zeros(len(tm), dtype=bool)
+    bad_up[:30] = True  # whole blocks at the start
+    bad_up[np.flatnonzero(ends)[5::7]] = True  # some blocks' last rows
+    bad_t = np.zeros(len(tm), dtype=bool)
+    bad_t[np.flatnonzero(bad_up)[::5]] = True  # rows whose up vector is NaN too
+    bad_t[np.flatnonzero(ends)[8::9]] = True  # blocks' last rows with a finite up vector
+    bad_t[np.arange(200, len(tm), 37)] = True  # rows inside blocks with a finite up vector
+    assert np.sum(bad_t & ~bad_up) > 20 and np.any(ends & bad_t & ~bad_up)
+    bad = bad_up | bad_t
     up_nan, t_nan = up.copy(), tm.copy()
-    up_nan[bad] = np.nan
-    t_nan[np.flatnonzero(bad)[::5]] = np.nan
+    up_nan[bad_up] = np.nan
+    t_nan[bad_t] = np.nan
     rate_nan = rate.copy()
     rate_nan[::11] = np.nan
 

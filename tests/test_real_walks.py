@@ -12,21 +12,28 @@ describes, on the same day's calibration file; vqf and ahrs are in the ``bench``
 
 Bounds (mean |heading error| per walk, degrees):
 
-* mode a ≤ max(best ``_cal_gcal`` peer + :data:`MARGIN_DEG`, :data:`FLOOR_DEG`).  The peers given the day's
-  magnetometer calibration *and* the day's gyro offset are the strongest reference on each walk; mode a
-  gets the magnetometer file only and must learn the gyro offset itself, which a filter with a bias state
-  can.  ``MARGIN_DEG`` = 2°: the motion-capture body is not exactly aligned with the phone (PEERS.md: a
-  1–2° floor), so two estimators that are equally right about the phone differ by up to that much.
-  ``FLOOR_DEG`` = 3°: that floor plus the residual phone/mocap clock offset (−30…+35 ms, PEERS.md), which
-  moves a walk's figure by up to 1.5° (mode a shifted by ±35 ms on six NoDist walks: 0.1–1.5°).
-* mode b ≤ max(``os``, best ``_cal`` peer) + ``MARGIN_DEG``: starting with no calibration at all, mode b
-  fails when it is worse than both the phone's own fusion (``os``: its own long-term calibration, no day
-  file) and every peer given the day's magnetometer file but a raw gyroscope.
+* mode a ≤ min(max(best ``_cal_gcal`` peer + :data:`MARGIN_DEG`, :data:`FLOOR_DEG`), :data:`FAIL_A_DEG`).
+  The peers given the day's magnetometer calibration *and* the day's gyro offset are the strongest
+  reference on each walk; mode a gets the magnetometer file only and must learn the gyro offset itself,
+  which a filter with a bias state can.  ``MARGIN_DEG`` = 2°: the motion-capture body is not exactly aligned
+  with the phone (PEERS.md: a 1–2° floor), so two estimators that are equally right about the phone differ
+  by up to that much.  ``FLOOR_DEG`` = 3°: that floor plus the residual phone/mocap clock offset
+  (−30…+35 ms, PEERS.md), which moves a walk's figure by up to 1.5° (mode a shifted by ±35 ms on six NoDist
+  walks: 0.1–1.5°).
+* mode b ≤ min(max(``os``, best ``_cal`` peer), :data:`FAIL_B_DEG`) + ``MARGIN_DEG``: starting with no
+  calibration at all, mode b fails when it is worse than both the phone's own fusion (``os``: its own
+  long-term calibration, no day file) and every peer given the day's magnetometer file but a raw gyroscope.
+* the caps are issue 10's failure lines (mode a: no walk above 20°, mode b: none above 45°).  Without them
+  the walks on which the phone's own fusion is broken (``os`` 62–114°) bound mode b at 64–116°, near or
+  beyond the 90° a random heading averages: bounds that cannot fail (and mode a's at 28° on one walk).
 * honesty, both modes: at most :data:`BEYOND_3SIGMA_MAX` of a walk's scored frames with |error| beyond
   3σ of ``heading_std_deg`` (a Gaussian gives 0.3 %; issue 10's target).
+* groups (:func:`test_the_groups_meet_issue_10s_targets`): mode a's mean over all / Dist / NoDist walks no
+  higher than the best ``_cal_gcal`` column's, mode b's mean and median per phone no higher than ``os``'s.
 
-Walks that fail a bound today are ``xfail`` naming issue 10 (strict unless within 15 % of the bound, see
-the lists below): a strict one flips (and fails) when the filter is fixed — then delete it from its list.
+Walks that fail a bound today are ``xfail`` naming issue 10, strict when their figure is 15 % or more beyond
+its bound (see the lists below): a strict one flips (and fails) when the filter is fixed — then delete it
+from its list.
 """
 
 from __future__ import annotations
@@ -48,13 +55,17 @@ SCORER = ROOT.parent / "shared" / "benchmarks" / "tyrex" / "score.py"
 FIXTURE = ROOT / "tests" / "fixtures" / "tyrex_peers.json"
 MARGIN_DEG = 2.0
 FLOOR_DEG = 3.0
+#: issue 10's lines for a failed walk, deg: mode a none above 20°, mode b none above 45°
+FAIL_A_DEG = 20.0
+FAIL_B_DEG = 45.0
 BEYOND_3SIGMA_MAX = 0.10
 ISSUE = "issue 10 (a heading that never fails): "
 
-#: Known failures: walk → (its figure against its bound today, strict).  Strict when the figure is clearly
-#: beyond its bound (≥ 15 % over, or ≥ 13 % of the frames beyond 3σ): such an xfail that starts passing
-#: means the filter changed, and the entry must go.  A figure within 15 % of its bound is a non-strict
-#: xfail: floating point differs across CPUs and may carry it either side of the bound.
+#: Known failures: walk → (its figure against its bound today, strict).  One rule: strict when the figure is
+#: 15 % or more beyond its bound (a mean ≥ 1.15 × its bound; a share of frames beyond 3σ ≥ 11.5 %, 1.15 ×
+#: :data:`BEYOND_3SIGMA_MAX`): such an xfail that starts passing means the filter changed, and the entry must
+#: go.  A figure within 15 % of its bound is a non-strict xfail: floating point differs across CPUs and may
+#: carry it either side of the bound.
 XFAIL_A: dict[str, tuple[str, bool]] = {
     "Thibaud_Nexus5_Dist_Phoning": (
         "11.5° > 11.1° (madgwick_cal_gcal 9.1° + 2°); the field left out"
@@ -132,21 +143,31 @@ def peers() -> dict:
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    """``run(walk, mode)`` → (mean |heading error|, share of frames beyond 3σ); each replay done once."""
+def day_file(tmp_path_factory):
+    """``day_file(walk)`` → the day's calibration file of a walk, written by ``pdr-mag calibrate`` on the
+    ``calib_mag_*`` recording its ``trial.json`` names; each day's file made once per module."""
     from replay.cli import main
-    from replay.run import MemorySink, replay
 
-    score = _scorer()
     tmp = tmp_path_factory.mktemp("day_calibrations")
-    cache: dict = {}
 
-    def day_file(name: str) -> Path:
+    def make(walk: str) -> Path:
+        name = json.loads((dataset("tyrex-pdrcsv", walk) / "trial.json").read_text())["calib"]
         path = tmp / f"{name}.json"
         if not path.exists():
             with contextlib.redirect_stdout(io.StringIO()):
                 assert main(["calibrate", str(dataset("tyrex-pdrcsv", name)), "--json", str(path)]) == 0
         return path
+
+    return make
+
+
+@pytest.fixture(scope="module")
+def run(day_file):
+    """``run(walk, mode)`` → (mean |heading error|, share of frames beyond 3σ); each replay done once."""
+    from replay.run import MemorySink, replay
+
+    score = _scorer()
+    cache: dict = {}
 
     def figures(b, t_ref, q_ref, t0):
         mean = score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0)["heading_err_mean"]
@@ -171,7 +192,7 @@ def run(tmp_path_factory):
             ok = np.all(np.isfinite(q_ref), axis=1)
             t_ref, q_ref = t_ref[ok], q_ref[ok]
             t0, _ = score.truth_t0(str(d / "truth.csv"), t_ref)
-            for m, cal in (("a", day_file(json.loads((d / "trial.json").read_text())["calib"])), ("b", None)):
+            for m, cal in (("a", day_file(walk)), ("b", None)):
                 sink = MemorySink()
                 replay(rec, calibration=cal, sinks=[sink], progress=False)
                 cache[(walk, m)] = figures(EstimateBatch.concat(sink.batches), t_ref, q_ref, t0)
@@ -187,6 +208,9 @@ def test_the_peer_fixture_covers_every_walk(peers):
     assert sorted(peers) == WALKS
     for walk, p in peers.items():
         assert {"os", "vqf_cal", "vqf_cal_gcal", "madgwick_cal_gcal", "imufusion_cal_gcal"} <= set(p), walk
+    named = set(XFAIL_A) | set(XFAIL_B) | {walk for walk, _ in XFAIL_STD}
+    assert named <= set(WALKS), f"xfail entries naming no walk: {sorted(named - set(WALKS))}"
+    assert {mode for _, mode in XFAIL_STD} <= {"a", "b"}
 
 
 def _best(p: dict, suffix: str) -> float:
@@ -196,7 +220,7 @@ def _best(p: dict, suffix: str) -> float:
 @pytest.mark.parametrize("walk", _params(XFAIL_A))
 def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run):
     mean, _ = run(walk, "a")
-    bound = max(_best(peers[walk], "_cal_gcal") + MARGIN_DEG, FLOOR_DEG)
+    bound = min(max(_best(peers[walk], "_cal_gcal") + MARGIN_DEG, FLOOR_DEG), FAIL_A_DEG)
     assert mean <= bound, f"{walk}: mode a {mean:.1f}° > {bound:.1f}°"
 
 
@@ -204,7 +228,7 @@ def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run)
 def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run):
     mean, _ = run(walk, "b")
     p = peers[walk]
-    bound = max(p["os"], _best(p, "_cal")) + MARGIN_DEG
+    bound = min(max(p["os"], _best(p, "_cal")), FAIL_B_DEG) + MARGIN_DEG
     assert mean <= bound, f"{walk}: mode b {mean:.1f}° > {bound:.1f}°"
 
 
@@ -217,21 +241,57 @@ def test_heading_std_warns_when_the_heading_is_wrong(walk, mode, run, request):
     assert beyond <= BEYOND_3SIGMA_MAX, f"{walk} mode {mode}: {beyond:.0%} of the frames beyond 3σ"
 
 
+def test_the_groups_meet_issue_10s_targets(peers, run):
+    """Issue 10's targets over groups of walks, which a per-walk bound with its margin cannot see: a
+    regression of a few degrees on every walk.  Mode a's mean of the walk means, over all / Dist / NoDist
+    walks, no higher than the best ``_cal_gcal`` column's over the same walks (best: the lowest such mean);
+    mode b's mean and median per phone no higher than the phone's own fusion's (``os``).  No margin: the
+    motion-capture misalignment costs every estimator the same on a walk.
+
+    Measured (42 walks, means over walks, deg): mode a all 4.33 vs vqf_cal_gcal 6.02, Dist 5.85 vs 9.05,
+    NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.  Mode b per phone, mean: Nexus5 6.29
+    vs os 12.35, iPhone4S 4.79 vs 27.66, iPhone5 6.79 vs 23.89 (only a gross regression fails these);
+    median: Nexus5 4.43 vs 4.57, iPhone4S 3.90 vs 20.36, iPhone5 4.84 vs 18.30 — 2° more on every walk fails
+    the Nexus5 median by 1.9°.  That median is the tightest figure (0.13° to spare): a few tenths of a degree
+    on the two middle Nexus5 walks carry it over."""
+    failed = []
+    groups = {"all": WALKS, "Dist": [w for w in WALKS if "_Dist_" in w],
+              "NoDist": [w for w in WALKS if "_NoDist_" in w]}
+    for group, walks in groups.items():
+        assert walks, group
+        cols = [c for c in peers[walks[0]] if c.endswith("_cal_gcal")]
+        col = min(cols, key=lambda c: np.mean([peers[w][c] for w in walks]))
+        mine = float(np.mean([run(w, "a")[0] for w in walks]))
+        theirs = float(np.mean([peers[w][col] for w in walks]))
+        if mine > theirs:
+            failed.append(f"mode a, {group}: mean {mine:.2f}° > {col} {theirs:.2f}°")
+    for phone in ("Nexus5", "iPhone4S", "iPhone5"):
+        walks = [w for w in WALKS if w.split("_")[1] == phone]
+        assert walks, phone
+        mine = np.array([run(w, "b")[0] for w in walks])
+        theirs = np.array([peers[w]["os"] for w in walks])
+        for name, f in (("mean", np.mean), ("median", np.median)):
+            if f(mine) > f(theirs):
+                failed.append(f"mode b, {phone}: {name} {f(mine):.2f}° > os {f(theirs):.2f}°")
+    assert not failed, ISSUE + "; ".join(failed)
+
+
 #: (walk, mode) whose first seconds are a run: a replay started 5 s in begins mid-stride
 MID_RUN = (("Thibaud_Nexus5_NoDist_RunningHand", "a"), ("Thibaud_Nexus5_NoDist_RunningHand", "b"))
 
 
 @pytest.mark.parametrize(("walk", "mode"), MID_RUN)
-def test_a_replay_started_mid_run_stays_honest(walk, mode, tmp_path):
+def test_a_replay_started_mid_run_stays_honest(walk, mode, day_file):
     """A backend (re)starts the filter while its user runs: the walk replayed from 5 s in, with the day's
     calibration (mode a, what a backend keeps across restarts) or none (mode b).  The tilt then starts from
     one sample of a swinging, clipping accelerometer (144–150° off here) and its corrections taught the gyro
     bias the swing: in mode b the heading was 62° off on average, 43 % of the frames beyond 3σ.  Scored from
-    5 s after the start: mean error below 20° (mode a's bound for every walk) and at most 10 % of the frames
-    beyond 3σ (issue 10).  (The iPhone 4S in a running pocket, restarted so, is left out: its bias is still
-    taught 0.28 rad/s from the clipped average in mode a, 25° — see benchmarks/heading_restart.py.)"""
+    5 s after the start to the end of the walk: mean error below 20° (issue 10's line for a failed walk in
+    mode a, held in both modes here) and at most 10 % of the frames beyond 3σ (issue 10).  Measured: 7.5° and
+    0.9 % in mode a, 9.7° and 0.4 % in mode b; the same frames of the replay from the walk's start: 6.1°,
+    6.4°.  (The iPhone 4S in a running pocket, restarted so, is left out: its bias is still taught 0.28 rad/s
+    from the clipped average in mode a, 25° — see benchmarks/heading_restart.py.)"""
     from pdr_mag.estimates import EstimateBatch
-    from replay.cli import main
     from replay.formats import read_recording
     from replay.recording import Stream
     from replay.run import MemorySink, replay
@@ -239,12 +299,7 @@ def test_a_replay_started_mid_run_stays_honest(walk, mode, tmp_path):
     score = _scorer()
     d = dataset("tyrex-pdrcsv", walk)
     rec = read_recording(d)
-    cal = None
-    if mode == "a":
-        cal = tmp_path / "day.json"
-        name = json.loads((d / "trial.json").read_text())["calib"]
-        with contextlib.redirect_stdout(io.StringIO()):
-            assert main(["calibrate", str(dataset("tyrex-pdrcsv", name)), "--json", str(cal)]) == 0
+    cal = day_file(walk) if mode == "a" else None
     start = rec.t0 + 5.0
     for name in ("mag", "accel", "gyro"):
         s = getattr(rec, name)
