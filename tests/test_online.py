@@ -202,10 +202,11 @@ def test_refits_fit_only_on_new_samples(monkeypatch):
     assert np.all(np.abs(diff) < 3 * std), (diff, std)
 
 
-def test_full_fit_only_when_the_core_could_accept_its_coverage():
-    """The core's ellipsoid fit is judged on its equal-area coverage (128 cells, ≥ 50 %): 50 samples spread
-    over the sphere pass the online trigger (30° caps) but can fill at most 39 % of the cells, so the fit
-    is not attempted (``ellipsoid_precheck_frac``); 300 are enough."""
+def test_full_fit_only_when_the_buffer_covers_the_sphere():
+    """The full (ellipsoid) fit is attempted only when the buffer's equal-area coverage (128 cells) reaches
+    ``ellipsoid_precheck_frac`` × 50 %, a cheap gate that spares full fits on a sparse buffer (acceptance
+    itself is the heading bound): 50 samples spread over the sphere pass the online trigger (30° caps) but
+    fill at most 39 % of the cells, so the fit is not attempted; 300 are enough."""
     from pdr_mag.calibration.refit import candidates
 
     rng = np.random.default_rng(3)
