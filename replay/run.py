@@ -93,19 +93,37 @@ class CsvSink:
             self._fh = None
 
 
-class MemorySink(CsvSink):
-    """The estimate batches kept in memory (``batches``), nothing written: what a backend or a benchmark
-    embedding :func:`replay` collects.  The CSV sink's settings, so the rows are those of ``--out-csv``."""
+class MemorySink:
+    """Keeps the estimate batches in memory (``batches``, in order) and writes nothing: what a backend or a
+    benchmark embedding :func:`replay` collects.  Like :class:`CsvSink` it does not want the calibrated
+    magnetometer samples, so :func:`replay` runs the pipeline with the same settings and the batches hold
+    the rows ``--out-csv`` writes."""
+
+    wants_mag_calibrated = False
 
     def __init__(self):
-        super().__init__(Path("-"))
-        self.batches = []
+        self.batches: list[EstimateBatch] = []
 
     def open(self, meta: dict) -> None:
         pass
 
-    def estimates(self, batch) -> None:
+    def inputs(self, kind, t, xyz) -> None:
+        pass
+
+    def mag_calibrated(self, t, xyz) -> None:
+        pass
+
+    def estimates(self, batch: EstimateBatch) -> None:
         self.batches.append(batch)
+
+    def reference(self, name, t, q_wd) -> None:
+        pass
+
+    def event(self, ev) -> None:
+        pass
+
+    def calibration(self, t, cal) -> None:
+        pass
 
     def close(self) -> None:
         pass

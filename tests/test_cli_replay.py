@@ -200,6 +200,24 @@ def test_replay_demo_recording_mixed(tmp_path):
     assert summary["cal_state"] in ("offset", "ellipsoid")
 
 
+def test_memory_sink_holds_the_rows_of_out_csv(tmp_path):
+    """replay.run.MemorySink writes nothing, yet its batches are the rows ``--out-csv`` writes: same
+    pipeline settings (neither wants the calibrated magnetometer samples)."""
+    from replay.run import CsvSink, MemorySink, replay
+
+    rec = ROOT / "recordings" / "mixed"
+    out_csv = tmp_path / "h.csv"
+    assert main(["replay", str(rec), "--out-csv", str(out_csv), "-q"]) == 0
+    sink = MemorySink()
+    replay(rec, sinks=[sink], progress=False)
+    again = CsvSink(tmp_path / "memory.csv")
+    again.open({})
+    for batch in sink.batches:
+        again.estimates(batch)
+    again.close()
+    assert again.path.read_bytes() == out_csv.read_bytes()
+
+
 def test_replay_real_tyrex_walk_online_only():
     """A real phone walk, no calibration given: online calibration converges; heading vs motion capture."""
     from pdr_mag.estimates import EstimateBatch

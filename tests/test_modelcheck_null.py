@@ -121,3 +121,32 @@ def test_subsample_to_the_null_rate(walk_fit):
     assert np.array_equal(s.t, p.t[::k]) and np.array_equal(s.mag, p.mag[::k])
     assert s.r_dw0.shape == (len(s.t), 3, 3)
     assert subsample(p, 1) is p
+
+
+def test_pick_asks_only_about_local_anomaly_after_a_winner():
+    """select._pick: after the first candidate that passes, only a local_anomaly ranked after a winning
+    hard_iron_change is asked about (each question is a null test); it displaces it within the margin."""
+    from pdr_mag.modelcheck.select import _LOCAL_MARGIN, _pick
+
+    def run(ranked, passing):
+        asked = []
+
+        def passes(eff):
+            asked.append(eff)
+            return eff in passing
+
+        return _pick(ranked, passes), asked
+
+    close = 2.0 * (1.0 - _LOCAL_MARGIN / 2)  # local_anomaly's gap within the margin of hard_iron_change's 2.0
+    ranked = {"time_offset": 1.0, "hard_iron_change": 2.0, "soft_iron": 2.0, "local_anomaly": close}
+    assert run(ranked, {"hard_iron_change", "soft_iron", "local_anomaly"}) == (
+        "local_anomaly", ["time_offset", "hard_iron_change", "local_anomaly"])
+    assert run(ranked, {"hard_iron_change", "soft_iron"}) == (
+        "hard_iron_change", ["time_offset", "hard_iron_change", "local_anomaly"])
+    far = dict(ranked, local_anomaly=3.0)
+    assert run(far, {"hard_iron_change", "local_anomaly"})[0] == "hard_iron_change"
+    assert run(ranked, {"time_offset", "hard_iron_change"}) == ("time_offset", ["time_offset"])
+    before = {"local_anomaly": close, "hard_iron_change": 2.0, "soft_iron": 2.0}
+    assert run(before, {"hard_iron_change", "soft_iron"}) == (
+        "hard_iron_change", ["local_anomaly", "hard_iron_change"])
+    assert run(ranked, set()) == (None, list(ranked))

@@ -418,7 +418,9 @@ def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int, free: np.
 def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int = 60, hold=()) -> FitResult:
     """Fit baseline + ``effects`` by variable projection; ``init`` warm-starts nonlinear parameters
     (``max_nfev=0``: they are held at ``init`` and only the linear ones are solved; ``hold``: those of
-    these effects are, and their uncertainties are not computed)."""
+    these effects are).  Uncertainties of the nonlinear parameters (and ``std["_cov_nonlinear"]``) come
+    from the Jacobian of a fit of all of them: with any held, or ``max_nfev=0``, ``std`` has the linear
+    ones' only."""
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
     p0, scale, prior, free = _start(problem, effects, init, hold)

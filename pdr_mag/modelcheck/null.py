@@ -55,6 +55,7 @@ import numpy as np
 from scipy import stats
 
 from pdr_mag.modelcheck.fit import FitResult, Problem, sample_matrices
+from pdr_mag.modelcheck.orientation import window_mean
 
 
 @dataclass(frozen=True)
@@ -93,14 +94,6 @@ class NullSettings:
     envelope_s: float = 4.0
     max_error_deg: float = 10.0
     seed: int = 0
-
-
-def _moving_mean(t: np.ndarray, x: np.ndarray, length_s: float) -> np.ndarray:
-    """Centred moving average of irregularly sampled ``x`` (N, d) over ``length_s`` (cumulative sums)."""
-    c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    lo = np.searchsorted(t, t - 0.5 * length_s, side="left")
-    hi = np.searchsorted(t, t + 0.5 * length_s, side="right")
-    return (c[hi] - c[lo]) / (hi - lo)[:, None]
 
 
 def _band(t: np.ndarray, x: np.ndarray, lo_hz: float, hi_hz: float) -> np.ndarray:
@@ -153,7 +146,8 @@ def surrogate_residuals(problem: Problem, fit: FitResult, rng: np.random.Generat
     sigma = robust_sigma(r_w @ u)
     mid = _band(problem.t, perp, *settings.band_hz)
     rest = perp - mid
-    env = np.sqrt(_moving_mean(problem.t, np.sum(mid**2, axis=1, keepdims=True), settings.envelope_s))[:, 0]
+    power = np.sum(mid**2, axis=1, keepdims=True)
+    env = np.sqrt(window_mean(problem.t, power, 0.5 * settings.envelope_s))[:, 0]  # RMS over envelope_s
     env = np.maximum(env, 1e-6 * max(float(env.max()), 1e-12))
     s_max = np.linalg.norm(b) * np.sin(np.radians(settings.max_error_deg))
     out = []

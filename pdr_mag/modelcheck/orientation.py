@@ -113,7 +113,7 @@ def _minimal_rotation_to_up(v: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def _window_mean(t: np.ndarray, x: np.ndarray, half_s: float) -> np.ndarray:
+def window_mean(t: np.ndarray, x: np.ndarray, half_s: float) -> np.ndarray:
     """Centred moving average over ±half_s of irregularly sampled x (N, d) — cumulative sums."""
     c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
     lo = np.searchsorted(t, t - half_s, side="left")
@@ -133,8 +133,8 @@ def still_gyro_bias(t, gyro, accel_on_gyro_t, settings: OrientationSettings = Or
     half = 0.5 * settings.still_min_s
 
     def wstd(x):
-        m = _window_mean(t, x, half)
-        m2 = _window_mean(t, x * x, half)
+        m = window_mean(t, x, half)
+        m2 = window_mean(t, x * x, half)
         return np.sqrt(np.clip(m2 - m * m, 0.0, None).sum(axis=1)), m
 
     sg, _ = wstd(g)
@@ -199,7 +199,7 @@ def estimate_orientation(
     a_w = rot_g.apply(a_g)
     a_w_mean = a_w
     for k in settings.tilt_passes:
-        a_w_mean = _window_mean(t, a_w_mean, 0.5 * k * settings.tilt_window_s)
+        a_w_mean = window_mean(t, a_w_mean, 0.5 * k * settings.tilt_window_s)
     corr = _minimal_rotation_to_up(a_w_mean)
     q = quat_multiply(corr, q)
     q /= np.linalg.norm(q, axis=1, keepdims=True)

@@ -54,10 +54,12 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
     after = _series(diagnosis.final)
     kw_b = dict(s=2, alpha=0.5, color="tab:red", label=f"baseline ({diagnosis.baseline.gap:.2f} µT)")
     kw_a = dict(s=2, alpha=0.5, color="tab:blue", label=f"final ({diagnosis.final.gap:.2f} µT)")
+    # the final estimates give absolute times (the recording's clock): the time axis names its origin
+    time_label = f"time since {diagnosis.baseline.problem.t_origin:.3f} s (first magnetometer sample), s"
 
     plots = []
     for key, xlabel, fname in (
-        ("t", "time since the first magnetometer sample (s)", "residual_vs_time.png"),
+        ("t", time_label, "residual_vs_time.png"),
         ("heading", "heading of the orientation track (deg, arbitrary reference)", "residual_vs_heading.png"),
         ("strength", "measured field strength |m − b| (µT)", "residual_vs_strength.png"),
         ("rate", "angular rate (rad/s)", "residual_vs_rate.png"),
@@ -78,7 +80,7 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
     ax.plot(after["t"], after["strength"], lw=0.8, color="k", label="measured")
     ax.plot(before["t"], before["strength_sim"], lw=0.8, color="tab:red", label="simulated, baseline")
     ax.plot(after["t"], after["strength_sim"], lw=0.8, color="tab:blue", label="simulated, final")
-    ax.set_xlabel("time since the first magnetometer sample (s)")
+    ax.set_xlabel(time_label)
     ax.set_ylabel("|m − b| (µT)")
     ax.legend(loc="upper right")
     ax.grid(alpha=0.3)

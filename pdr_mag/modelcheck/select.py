@@ -364,13 +364,13 @@ def field_directions(problem: Problem, fit: FitResult) -> np.ndarray:
 
 
 def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fits: dict,
-                settings: DiagnoseSettings, rnd: int) -> dict[str, NullTest]:
-    """The candidates of ``fits`` (effect → its problem and fit on the recording, best score first) on the
-    recording and on surrogates of it with nothing missing (a parametric bootstrap).
+                settings: DiagnoseSettings, rnd: int) -> tuple[str | None, dict[str, NullTest]]:
+    """The effect the search adds among ``fits`` (effect → its problem, fit and gap on the recording, best
+    score first) and the null tests that chose it: each candidate on the recording and on surrogates of
+    it with nothing missing (a parametric bootstrap).
 
-    They are tested in that order until one beats the null — the one the search adds; those after it
-    are left untested (and not significant), except ``local_anomaly`` after a ``hard_iron_change``
-    that beat the null, which it may still displace (:data:`_LOCAL_MARGIN`).
+    :func:`_pick` asks for the tests in its order; the candidates it does not ask about are left
+    untested (and not significant).
 
     A candidate's replicates are the current model's prediction (the null hypothesis) plus surrogates
     (:func:`~pdr_mag.modelcheck.null.surrogate_residuals`) of the residual that is left *with* the
@@ -414,16 +414,39 @@ def _null_tests(problem: Problem, current: FitResult, added: tuple[str, ...], fi
             c0, c1 = cur.cost, _fit(q, (*added, eff), cur, settings, hold=added).cost
         return float(np.log(c0 / max(c1, 1e-300)))
 
-    out = {}
-    for eff, (p_e, f_e) in fits.items():
+    out: dict[str, NullTest] = {}
+
+    def passes(eff: str) -> bool:
+        p_e, f_e, _ = fits[eff]
         rng = np.random.default_rng([ns.seed, rnd, CANDIDATES.index(eff)])
         reps = [statistic(eff, replace(sub, mag=(prediction + res)[::stride]), p_e)
                 for res in surrogate_residuals(p_e, f_e, rng, ns.replicates, ns)]
         thr = null_threshold(reps, ns.false_alarm)
         out[eff] = NullTest(statistic(eff, sub, p_e), thr, tuple(reps), stride)
-        if out[eff].passed and not (eff == "hard_iron_change" and "local_anomaly" in fits):
-            break
-    return out
+        return out[eff].passed
+
+    return _pick({eff: g for eff, (_, _, g) in fits.items()}, passes), out
+
+
+def _pick(ranked: dict[str, float], passes) -> str | None:
+    """The effect the search adds among ``ranked`` (effect → gap, best score first): the first for which
+    ``passes(effect)`` holds, except that a ``hard_iron_change`` gives way to a ``local_anomaly`` ranked
+    after it that passes too and whose gap is within :data:`_LOCAL_MARGIN` of its own — external fields
+    are the common case, so a body-fixed change must win clearly.  None when none passes.
+
+    ``passes`` is asked in rank order up to the first that holds, then only about that ``local_anomaly``:
+    with the null test every question costs the replicates' fits.  A ``local_anomaly`` ranked before
+    the winner was asked already and did not pass.
+    """
+    order = list(ranked)
+    for i, eff in enumerate(order):
+        if not passes(eff):
+            continue
+        if (eff == "hard_iron_change" and "local_anomaly" in order[i + 1:] and passes("local_anomaly")
+                and ranked[eff] >= ranked["local_anomaly"] * (1.0 - _LOCAL_MARGIN)):
+            return "local_anomaly"
+        return eff
+    return None
 
 
 def diagnose(
@@ -517,10 +540,13 @@ def diagnose(
             s = _score(current, f, n_eff)
             rules = bool(s > settings.score_threshold and g < (1.0 - settings.min_gap_reduction) * cur_gap)
             tried.append((eff, g, s, estimates(p, f, [eff]).get(eff, {}), rules, f, p))
+        winner: str | None = None
         tests: dict[str, NullTest] = {}
-        passing = {x[0]: (x[6], x[5]) for x in sorted(tried, key=lambda x: -x[2]) if x[4]}
+        passing = {x[0]: (x[6], x[5], x[1]) for x in sorted(tried, key=lambda x: -x[2]) if x[4]}
         if passing and settings.null.replicates > 0:
-            tests = _null_tests(cur_problem, current, tuple(added), passing, settings, rnd)
+            winner, tests = _null_tests(cur_problem, current, tuple(added), passing, settings, rnd)
+        elif passing:
+            winner = _pick({eff: g for eff, (_, _, g) in passing.items()}, lambda eff: True)
         judged = []
         for eff, g, s, est, rules, f, p in tried:
             test = tests.get(eff)
@@ -528,15 +554,9 @@ def diagnose(
             judged.append((Candidate(eff, g, s, est, rnd + 1, sig, test), f, p))
         tried = judged
         rounds.append(tuple(c for c, _, _ in tried))
-        sig = [x for x in tried if x[0].significant]
-        if not sig:
+        if winner is None:
             break
-        best = max(sig, key=lambda x: x[0].score)
-        if best[0].effect == "hard_iron_change":
-            # external fields are the common case: a body-fixed change must win clearly
-            la = [x for x in sig if x[0].effect == "local_anomaly"]
-            if la and best[0].gap >= la[0][0].gap * (1.0 - _LOCAL_MARGIN):
-                best = la[0]
+        best = next(x for x in tried if x[0].effect == winner)
         added.append(best[0].effect)
         current, cur_problem = best[1], best[2]
         if best[0].effect in _LOCAL:  # the other name for a local disturbance: how close did it come?

@@ -117,10 +117,6 @@ class PlotRanges:
     truth: bool = True
 
 
-def _name(entity: str) -> str:
-    return SERIES[entity][0]
-
-
 def drift_blueprint(ranges: PlotRanges | None = None):
     """The default layout (module docstring), with axes fitted to ``ranges``."""
     import rerun as rr

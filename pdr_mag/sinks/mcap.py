@@ -93,6 +93,7 @@ from mcap_ros2._dynamic import serialize_dynamic  # the encoder behind mcap_ros2
 from pdr_mag._json import jsonable
 from pdr_mag.conventions import heading_deg_from_quat
 from pdr_mag.estimates import DIAG_KEYS
+from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
 
 FORMAT_VERSION = 2
@@ -101,8 +102,7 @@ FORMAT_VERSION = 2
 INPUT_TOPICS = {"accel": "/imu/accel", "gyro": "/imu/gyro", "mag": "/mag/raw"}
 INPUT_UNITS = {"accel": "m/s^2", "gyro": "rad/s", "mag": "uT"}
 
-#: Event kinds logged as warnings in ``/pdr/events`` (all others are INFO).
-WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested", "drift_episode")
+#: foxglove.Log levels of ``/pdr/events``: the kinds in WARNING_EVENTS are warnings.
 _LOG_INFO, _LOG_WARNING = 2, 3
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}

@@ -63,11 +63,15 @@ from pathlib import Path
 import numpy as np
 
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._rerun_layout import (
+    BLUE,
     CAL_COLOR,
     CLOUD_RADIUS_UI,
+    GREEN,
     RAW_COLOR,
     RAW_FIT_COLOR,
+    RED,
     REJECTED_COLOR,
     SERIES,
     SPHERE_COLOR,
@@ -85,7 +89,6 @@ def _duration_ns(t: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(t, dtype=float) * 1e9).astype(np.int64).astype("timedelta64[ns]")
 
 
-WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested", "drift_episode")
 #: events that announce a calibration the sink also receives through ``calibration()``: one line for both.
 _CALIBRATION_EVENTS = ("calibration_accepted", "recalibrated")
 #: drift lane priority where episodes overlap (worst first).
@@ -215,7 +218,7 @@ class RerunSink:
                 static=True,
             )
         for kind in ("accel", "gyro", "mag"):
-            for axis, color in zip("xyz", ((214, 39, 40), (44, 160, 44), (31, 119, 180)), strict=True):
+            for axis, color in zip("xyz", (RED, GREEN, BLUE), strict=True):
                 style = rr.SeriesLines(colors=[color], names=[f"{kind} {axis}"])
                 rec.log(f"inputs/{kind}/{axis}", style, static=True)
         radius = rr.Radius.ui_points(CLOUD_RADIUS_UI)
