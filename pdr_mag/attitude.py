@@ -90,7 +90,7 @@ from pdr_mag.fusion.state import (
 from pdr_mag.interference import InterferenceSettings
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 4
+STATE_VERSION = 5
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -212,6 +212,16 @@ class FusionSettings:
         The environment level before anything is known of it, µT: a walk starts where the field may already
         be turned (indoor fields deviate from the model by several µT), so ``d_env`` starts at no less than
         this and learns the place's own level over ``mag_env_tau_s``.
+    std_env_k : float
+        The environment's turning of the horizontal field as the *reported* ``heading_std_deg`` counts it:
+        ``(std_env_k · d_env / B_h)²`` in c's stationary variance, against the filter's ``mag_env_k``.
+        ``d_min`` sees the two components of a disturbance that change strength and dip; the third, which
+        turns the horizontal field, is unseen, and a disturbance with no preferred direction has it as
+        large as the mean of the two: ``d_min / √2`` (the default 0.71).  The filter weighs the field with
+        the smaller ``mag_env_k`` (a field that passes the detectors in such a place is still informative);
+        the difference is noise the weighting leaves out, carried through the same gains in a consider
+        covariance ``U`` and added to the reported variance, ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  Not less
+        than ``mag_env_k`` (then the std is the filter's own).
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float
@@ -286,6 +296,8 @@ class FusionSettings:
     mag_env_k: float = 0.3
     mag_env_tau_s: float = 30.0
     mag_env_prior_uT: float = 5.0
+    std_env_k: float = 0.71
+    std_flag_k: float = 1.0
     mag_interval_s: float = 0.2
     mag_gate: float = 4.0
     reject_inflate_deg: float = 3.0

@@ -122,6 +122,7 @@ def init_tilt(s, ax, ay, az, p):
     for i in range(NX):
         for m in range(NX):
             P[i, m] = 0.0
+            s.U[i, m] = 0.0
     # the sample's own acceleration turns its direction by up to ||a| − g| / g rad (a lower bound of the
     # linear acceleration over g): a start in motion is that uncertain
     da = abs(n - p.gravity) / p.gravity
@@ -176,8 +177,8 @@ def accel_step(s, R, ax, ay, az, t, p):
     uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
     uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
     dx = np.zeros(NX)
-    update(s.P, dx, TH_Y, -1.0, uxw, rv)
-    update(s.P, dx, TH_X, 1.0, uyw, rv)
+    update(s.P, s.U, dx, TH_Y, -1.0, uxw, rv)
+    update(s.P, s.U, dx, TH_X, 1.0, uyw, rv)
     inject(s, dx)
 
 
@@ -265,8 +266,8 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
             hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
     unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
-    update_h(s.P, dx, hx, aw[0] / na, rv, False, unknown, not linear)
-    update_h(s.P, dx, hy, aw[1] / na, rv, False, unknown, not linear)
+    update_h(s.P, s.U, dx, hx, aw[0] / na, rv, False, unknown, not linear)
+    update_h(s.P, s.U, dx, hy, aw[1] / na, rv, False, unknown, not linear)
     inject(s, dx)
 
 
@@ -319,8 +320,9 @@ def _tilt_reset(s, t, p):
         Rb[0, m], Rb[1, m], Rb[2, m] = col[0], col[1], col[2]
     for i in range(NX):
         for j in (TH_X, TH_Y):
-            P[i, j] = 0.0
-            P[j, i] = 0.0
+            for M in (P, s.U):
+                M[i, j] = 0.0
+                M[j, i] = 0.0
     P[TH_X, TH_X] = p.tilt0_std**2
     P[TH_Y, TH_Y] = p.tilt0_std**2
     for i in range(BIAS, BIAS + 3):

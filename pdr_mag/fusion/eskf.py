@@ -9,6 +9,10 @@ Measurements are processed as scalars: with ``H`` one row, ``S = H P Hᵀ + r_v`
 one ``δx`` that is injected once) and ``P ← P − K H P``.  With *consider* states (Schmidt–Kalman) the gain
 of those states is set to zero and ``P`` follows the Joseph form for that gain,
 ``P ← P − k cᵀ − c kᵀ + S k kᵀ`` with ``c = P Hᵀ``, valid for any gain.
+
+Every update also carries the filter's second covariance ``U`` with the same gain,
+``U ← (I − k H) U (I − k H)ᵀ`` (:func:`carry`): ``U`` is the covariance of the error that noise the
+filter's weighting leaves out causes (:mod:`pdr_mag.fusion.gyro`); it never changes a gain.
 """
 
 from __future__ import annotations
@@ -97,34 +101,49 @@ def wrap(a):
 
 # ------------------------------------------------------------------------------------------ scalar updates
 @njit(cache=True, error_model="numpy")
-def update(P, dx, j, s, r, rv):
-    """Scalar update with ``H = s·e_j``; r the residual before this update, rv its noise variance."""
-    update2(P, dx, j, s, j, 0.0, r, rv)
-
-
-@njit(cache=True, error_model="numpy")
-def update2(P, dx, j, s, j2, s2, r, rv):
-    """Scalar update with ``H = s·e_j + s2·e_j2`` (j ≠ j2 or s2 = 0)."""
+def update(P, U, dx, j, s, r, rv):
+    """Scalar update with ``H = s·e_j``; r the residual before this update, rv its noise variance; ``U``
+    carried with the same gain."""
     col = np.empty(NX)
     for i in range(NX):
-        col[i] = s * P[i, j] + s2 * P[i, j2]
-    r = r - s * dx[j] - s2 * dx[j2]
-    S = s * col[j] + s2 * col[j2] + rv
+        col[i] = s * P[i, j]
+    r = r - s * dx[j]
+    S = s * col[j] + rv
     if S <= 0.0:
         return
+    k = np.empty(NX)
     for i in range(NX):
-        dx[i] += col[i] * r / S
+        k[i] = col[i] / S
+        dx[i] += k[i] * r
     for i in range(NX):
-        ci = col[i] / S
         for m in range(NX):
-            P[i, m] -= ci * col[m]
+            P[i, m] -= k[i] * col[m]
+    h = np.zeros(NX)
+    h[j] = s
+    carry(U, k, h)
 
 
 @njit(cache=True, error_model="numpy")
-def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
+def carry(U, k, h):
+    """``U ← (I − k hᵀ) U (I − k hᵀ)ᵀ``: the consider covariance through an update of gain k, row h."""
+    uh = np.empty(NX)
+    hu = 0.0
+    for i in range(NX):
+        v = 0.0
+        for m in range(NX):
+            v += U[i, m] * h[m]
+        uh[i] = v
+        hu += h[i] * v
+    for i in range(NX):
+        for m in range(NX):
+            U[i, m] += hu * k[i] * k[m] - k[i] * uh[m] - uh[i] * k[m]
+
+
+@njit(cache=True, error_model="numpy")
+def update_h(P, U, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
     """Scalar update with a general ``H = h``; with ``consider_tilt`` the tilt errors (δθ_x, δθ_y), with
     ``consider_heading`` the heading errors (δθ_z and δc), with ``consider_bias`` the gyro bias are consider
-    states (zero gain, Joseph form)."""
+    states (zero gain, Joseph form); ``U`` carried with the same gain."""
     col = np.empty(NX)
     for i in range(NX):
         v = 0.0
@@ -155,6 +174,7 @@ def update_h(P, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bi
     for i in range(NX):
         for m in range(NX):
             P[i, m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
+    carry(U, k, h)
 
 
 @njit(cache=True, error_model="numpy")
@@ -186,9 +206,9 @@ def inject(s, dx):
     s.c += dx[C_ERR]
     for i in range(NX):
         dx[i] = 0.0
-    P = s.P
-    for i in range(NX):  # keep P symmetric
-        for m in range(i + 1, NX):
-            v = 0.5 * (P[i, m] + P[m, i])
-            P[i, m] = v
-            P[m, i] = v
+    for P in (s.P, s.U):  # keep both covariances symmetric
+        for i in range(NX):
+            for m in range(i + 1, NX):
+                v = 0.5 * (P[i, m] + P[m, i])
+                P[i, m] = v
+                P[m, i] = v

@@ -7,12 +7,15 @@ Prediction, per gyroscope sample after an interval Δt::
     Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c)
     Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))
     c ← φ c
+    U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))
 
 with ``R = R(q)`` (the attitude error is in the world frame, the bias in the device frame, so a bias
 error turns the attitude by ``−R δb Δt``), σ_g ``gyro_noise``, σ_b ``bias_rw``, and ``c`` a first-order
 Gauss–Markov process (τ_c ``mag_error_tau_s``, stationary σ_c ``mag_error_std_deg``): the heading error
 of a calibrated magnetometer indoors — residual calibration error, the building's own field — is
 correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.
+``U`` is the consider covariance (:mod:`pdr_mag.fusion.eskf`): the error that the part ``V_u`` of c's
+stationary variance the filter's weighting leaves out causes (:func:`unmodelled_var`).
 An unknown heading is uniform: ``P[δθ_z, δθ_z]`` is capped at π² by scaling its row and column (which
 keeps ``P`` positive semi-definite).
 
@@ -67,7 +70,18 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     rotate_body(s.q, wx * dt, wy * dt, wz * dt)
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
-    P = s.P
+    phi = np.exp(-dt / p.mag_error_tau_s)
+    ph2 = 1.0 - phi * phi
+    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, magerr_var(s, p) * ph2)
+    # the consider covariance: the same Φ, driven only by the part of c's variance the filter leaves out
+    propagate(s.U, R, work, dt, phi, 0.0, 0.0, unmodelled_var(s, p) * ph2)
+    s.c *= phi
+
+
+@njit(cache=True, error_model="numpy")
+def propagate(P, R, work, dt, phi, qa, qb, qc):
+    """``P ← Φ P Φᵀ + diag(qa I, qb I, qc)`` with ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``; the
+    heading's variance capped at π² (an unknown heading is uniform)."""
     # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
     scratch = work[0]
     A = scratch.A
@@ -89,9 +103,6 @@ def predict(s, R, work, wx, wy, wz, dt, p):
                 s2 += R[i, k] * B[m, k]
             GC[i, m] = -dt * s1
             GB[i, m] = -dt * s2
-    qa = p.gyro_noise**2 * dt
-    qb = p.bias_rw**2 * dt
-    phi = np.exp(-dt / p.mag_error_tau_s)
     # cross terms with c (column 6), from the old P
     pac = scratch.pac
     for i in range(3):
@@ -104,8 +115,7 @@ def predict(s, R, work, wx, wy, wz, dt, p):
         P[6, 3 + i] = P[3 + i, 6]
         P[i, 6] = pac[i]
         P[6, i] = pac[i]
-    P[6, 6] = phi * phi * P[6, 6] + magerr_var(s, p) * (1.0 - phi * phi)
-    s.c *= phi
+    P[6, 6] = phi * phi * P[6, 6] + qc
     for i in range(3):
         for m in range(3):
             gcg = 0.0
@@ -136,6 +146,23 @@ def magerr_var(s, p):
     if p.mag_env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
         v += p.mag_env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
     return v
+
+
+@njit(cache=True, error_model="numpy")
+def unmodelled_var(s, p):
+    """The part of c's stationary variance the filter's weighting leaves out, rad², carried in ``U``:
+    ``V_u = [(std_env_k² − mag_env_k²) d_env² + std_flag_k · s_flag · d_tol² / 2] / B_h²``
+    (``FusionSettings.std_env_k``, ``std_flag_k``; ``s_flag`` the recent share of flagged samples, ``d_tol``
+    the detectors' tolerance as a disturbance)."""
+    if not s.bh_ref > 0.0:
+        return 0.0
+    v = 0.0
+    k2 = p.std_env_k**2 - p.mag_env_k**2
+    if k2 > 0.0 and s.env_d2 > 0.0:
+        v += k2 * s.env_d2
+    if p.std_flag_k > 0.0 and s.flag_share > 0.0:
+        v += p.std_flag_k * s.flag_share * 0.5 * s.flag_d2
+    return v / (s.bh_ref * s.bh_ref)
 
 
 @njit(cache=True, error_model="numpy")
@@ -191,9 +218,9 @@ def gyro_step(s, R, work, wx, wy, wz, t, p):
                 dx = np.zeros(NX)
                 dtg = min(max(t - s.t_gyro, 1e-4), 0.1) if np.isfinite(s.t_gyro) else 0.01
                 rv = p.zupt_noise**2 / dtg  # a noise density: the same information per second at any rate
-                update(s.P, dx, BIAS, 1.0, wx - s.b[0], rv)
-                update(s.P, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
-                update(s.P, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
+                update(s.P, s.U, dx, BIAS, 1.0, wx - s.b[0], rv)
+                update(s.P, s.U, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
+                update(s.P, s.U, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
                 inject(s, dx)
         else:
             s.still_since = np.nan

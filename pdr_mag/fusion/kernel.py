@@ -7,7 +7,7 @@ next is in that record, so a chunked run equals a single run.
 
 Output rows: one per gyroscope sample once the tilt is known, decimated to a grid of ``out_dt_s`` anchored
 at the first such sample (a row at the first gyroscope sample at or after each grid time; ``out_dt_s = 0``
-gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√P[δθ_z, δθ_z])``, whether
+gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√(P + U)[δθ_z, δθ_z])``, whether
 the magnetometer corrected the heading and whether the interference flag was up since the previous row,
 and the diagnostics (:data:`~pdr_mag.fusion.state.DIAG_NAMES`).
 """
@@ -71,7 +71,8 @@ def _write_row(st, ti, out, n):
     out.t[n] = ti
     for c in range(4):
         out.q[n, c] = st.q[c]
-    out.heading_std_deg[n] = np.degrees(np.sqrt(max(st.P[TH_Z, TH_Z], 0.0)))
+    var = min(st.P[TH_Z, TH_Z] + st.U[TH_Z, TH_Z], np.pi**2)  # the filter's and the consider covariance's
+    out.heading_std_deg[n] = np.degrees(np.sqrt(max(var, 0.0)))
     out.mag_used[n] = st.mag_used
     out.interference[n] = st.det.flag or st.interference_seen
     st.mag_used = False

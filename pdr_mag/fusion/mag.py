@@ -54,7 +54,8 @@ heading error *is* that sample's correlated field error, and
     P[δθ_z, δθ_z] = σ_ψ² + P_cc + h_t P_tilt h_tᵀ + 2 h_t P[δθ_xy, c]
 
 so a later field with the same offset — a disturbance present since the start — is not read as drift
-(that is, as gyro bias about up).
+(that is, as gyro bias about up).  The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the
+same form with its own c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, tilt_unsettled, update_h, wrap
-from pdr_mag.fusion.gyro import magerr_var
+from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
@@ -90,6 +91,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     flag = detect_step(det, f, dip, mwx, mwy, mwz, t, s.f_ref, s.dip_ref, np.degrees(sb), ip)
     if flag:
         s.interference_seen = True
+    _flag_share_step(s, flag, f, t, det, p)
     # --- gates
     if not allowed:
         return
@@ -144,7 +146,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     dx = np.zeros(NX)
     # while the tilt is unsettled (a start in motion), the heading's changes say more about the tilt than
     # about the gyroscope: the bias is a consider state
-    update_h(P, dx, h, r, rv, True, False, tilt_unsettled(P, p))
+    update_h(P, s.U, dx, h, r, rv, True, False, tilt_unsettled(P, p))
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
@@ -183,7 +185,8 @@ def _reacquire(s, R, jump, h, rv, t, p):
     for i in range(3):
         for m in range(3):
             P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
-    _heading_from_field(s, h, rv)
+    _heading_from_field(s.P, h, rv)
+    _heading_from_field(s.U, h, 0.0)
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     s.reset_jump += jump
@@ -224,13 +227,32 @@ def _environment_step(s, dmin2, t, det, p):
 
 
 @njit(cache=True, error_model="numpy")
+def _flag_share_step(s, flag, f, t, det, p):
+    """The share of flagged samples, EW over ``mag_env_tau_s`` and normalised by the weight of the samples
+    seen (so the first seconds give the share of what was seen, not a mean pulled towards the first
+    sample), and the disturbance the detectors' tolerance stands for, ``tol_F² + (F tol_I)²`` (they set
+    the consider covariance's part of c, :func:`pdr_mag.fusion.gyro.unmodelled_var`)."""
+    if np.isfinite(s.t_flag):
+        a = ew_alpha(t - s.t_flag, p.mag_env_tau_s)
+        w = s.flag_w + a * (1.0 - s.flag_w)
+        x = 1.0 if flag else 0.0
+        if w > 0.0:
+            s.flag_share += a * (x - s.flag_share) / w
+        s.flag_w = w
+    s.t_flag = t
+    s.flag_d2 = det.tol_f**2 + (f * np.radians(det.tol_dip)) ** 2
+
+
+@njit(cache=True, error_model="numpy")
 def _first_fix(s, h, r, rv, t, p):
     """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
     P = s.P
     P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], magerr_var(s, p))  # a coarse calibration's error from the start
+    s.U[C_ERR, C_ERR] = max(s.U[C_ERR, C_ERR], unmodelled_var(s, p))  # and the place's, from the start too
     rotate_world(s.q_gyro, 0.0, 0.0, r)
     _turn_world_frame(s, r)
-    _heading_from_field(s, h, rv)
+    _heading_from_field(P, h, rv)
+    _heading_from_field(s.U, h, 0.0)
     s.init = 2
     s.t_mag_update = t
     s.mag_used = True
@@ -255,10 +277,10 @@ def _turn_world_frame(s, angle):
 
 
 @njit(cache=True, error_model="numpy")
-def _heading_from_field(s, h, rv):
-    """Covariance after a heading taken from the field: the residual is then zero, so
-    ``δθ_z = −(δc + h_t·δθ_xy + n)``, uncorrelated with anything else (the module docstring)."""
-    P = s.P
+def _heading_from_field(P, h, rv):
+    """Covariance ``P`` after a heading taken from the field: the residual is then zero, so
+    ``δθ_z = −(δc + h_t·δθ_xy + n)``, uncorrelated with anything else (the module docstring); rv = 0 for
+    the consider covariance ``U`` (the noise the weighting leaves out is all in its c)."""
     x, y, z = TH_X, TH_Y, TH_Z
     for i in range(NX):
         P[z, i] = 0.0

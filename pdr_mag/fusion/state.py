@@ -7,8 +7,8 @@ columns of a :data:`Rows` tuple.  A numpy record is what numba compiles against 
 fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
-Error state (the rows and columns of ``P``): ``δθ`` (3, world frame; ``δθ_z`` is the heading error),
-``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag.fusion` for the model.
+Error state (the rows and columns of ``P`` and ``U``): ``δθ`` (3, world frame; ``δθ_z`` is the heading
+error), ``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag.fusion` for the model.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ STATE = np.dtype(
         ("b", np.float64, (3,)),  # gyroscope bias, device frame, rad/s
         ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
         ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
+        ("U", np.float64, (NX, NX)),  # consider covariance: the part of the error the weighting leaves out
         ("init", np.int64),  # 0 nothing yet, 1 tilt from the accelerometer, 2 heading from the magnetometer
         ("q_gyro", np.float64, (4,)),  # gyroscope-only attitude from the same start (diagnostics)
         # gyroscope
@@ -74,6 +75,10 @@ STATE = np.dtype(
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
+        ("flag_share", np.float64),  # EW share of flagged samples over mag_env_tau_s (of the weight seen)
+        ("flag_w", np.float64),  # the EW weight of the samples seen so far (1 − e^(−T/τ) at uniform rate)
+        ("flag_d2", np.float64),  # the detectors' tolerance as a disturbance, tol_F² + (F tol_I)², µT²
+        ("t_flag", np.float64),  # time of the last sample in flag_share, s
         ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
         ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.interference)
         # output rows
@@ -124,6 +129,8 @@ PARAMS = np.dtype(
             "mag_env_k",
             "mag_env_tau_s",
             "mag_env_prior_uT",
+            "std_env_k",
+            "std_flag_k",
             "mag_interval_s",
             "mag_gate",
             "reject_inflate_rad",
@@ -195,6 +202,7 @@ def new_state() -> np.ndarray:
         "t_reject",
         "t_reject_start",
         "t_env",
+        "t_flag",
         "bh_ref",
         "t_next_out",
     ):
