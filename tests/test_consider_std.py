@@ -1,0 +1,70 @@
+"""The consider covariance of the reported std (:mod:`pdr_mag.fusion.gyro`, ``FusionSettings.std_env_k`` /
+``std_flag_k``): the place's disturbance that the filter's weighting leaves out is carried into
+``heading_std_deg`` through the same gains, so it never changes the estimate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pdr_mag.attitude import FusionCore, FusionSettings
+from pdr_mag.sensor_model import quat_slerp
+from pdr_mag.sim import simulate
+from test_attitude import merge, twist_error_deg
+
+#: the filter's own std: no consider part (std_env_k = mag_env_k, no flagged-share term)
+OWN = FusionSettings(std_env_k=FusionSettings().mag_env_k, std_flag_k=0.0)
+
+
+def _steel_area(seed: int):
+    """A simulated walk through a steel area from 15 to 45 s: the field there is turned about up by up to 35°
+    (strength and dip kept, slowly: the detectors pass it) and every 5 s a 40-µT spike for 2 s (flagged) —
+    the iPhone 5 AR walk's situation, where the detectors pass a turned field between flagged spots."""
+    w = simulate("walk", seed=seed, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)})
+    tm, m = w.mag
+    tt, qt = w.truth
+    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    t0 = tm[0]
+    area = (tm > t0 + 15.0) & (tm < t0 + 45.0)
+    a = np.where(area, np.radians(35.0) * np.sin(np.pi * np.clip((tm - t0 - 15.0) / 30.0, 0.0, 1.0)) ** 2, 0.0)
+    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
+    md = (rt.inv() * turn * rt).apply(m)
+    spike = area & (((tm - t0 - 15.0) % 5.0) < 2.0)
+    md[spike] += rt[spike].inv().apply(np.array([0.0, 40.0, 0.0]))
+    return w, md, t0
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_the_std_covers_a_turned_field_the_detectors_pass(seed):
+    """From the steel area's start to 15 s after it: with the filter's own std the truth is beyond 3σ in
+    10–17 % of the rows on these seeds and within 2σ in 62–64 % (measured); with the consider part the std
+    covers it — none beyond 3σ, ≥ 95 % within 2σ — and the estimate is the same, bit for bit (one run)."""
+    w, md, t0 = _steel_area(seed)
+    kind, t, xyz = merge(w, mag=md)
+    b_own = FusionCore(OWN, field=w.field).process(kind, t, xyz)
+    b = FusionCore(field=w.field).process(kind, t, xyz)
+    assert np.array_equal(b.q_wd, b_own.q_wd)
+    assert np.all(b.heading_std_deg >= b_own.heading_std_deg - 1e-9)
+    tr, err, sd = twist_error_deg(b, w.truth)
+    _, _, sd_own = twist_error_deg(b_own, w.truth)
+    s = (tr > t0 + 15.0) & (tr < t0 + 60.0)
+    assert b.interference[(b.t > t0 + 15.0) & (b.t < t0 + 45.0)].mean() > 0.3  # a flag-heavy place
+    assert np.mean(np.abs(err[s]) > 3.0 * sd_own[s]) > 0.05  # the filter's own std is overconfident here
+    assert np.mean(np.abs(err[s]) > 3.0 * sd[s]) == 0.0
+    assert np.mean(np.abs(err[s]) <= 2.0 * sd[s]) >= 0.95
+
+
+def test_no_consider_part_on_a_clean_walk_without_flags():
+    """An undisturbed simulated walk: no sample is flagged, so only the d_env part adds to the std — at most
+    the unseen component of the detectors' small deviations (measured: median +0.9°, at most +3.1°, on a
+    std of 4.7°)."""
+    w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)})
+    kind, t, xyz = merge(w)
+    b_own = FusionCore(OWN, field=w.field).process(kind, t, xyz)
+    b = FusionCore(field=w.field).process(kind, t, xyz)
+    assert not b.interference.any()
+    assert np.array_equal(b.q_wd, b_own.q_wd)
+    late = b.t > b.t[0] + 10.0
+    extra = b.heading_std_deg[late] - b_own.heading_std_deg[late]
+    assert np.all(extra >= -1e-9) and np.median(extra) < 2.0
