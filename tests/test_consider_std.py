@@ -68,3 +68,34 @@ def test_no_consider_part_on_a_clean_walk_without_flags():
     late = b.t > b.t[0] + 10.0
     extra = b.heading_std_deg[late] - b_own.heading_std_deg[late]
     assert np.all(extra >= -1e-9) and np.median(extra) < 2.0
+
+
+def test_the_pending_prediction_of_u_equals_its_steps():
+    """``U`` is propagated once per update: the steps' Φ_k = [[I, −R_k Δt_k, 0], [0, I, 0], [0, 0, φ_k]]
+    multiply exactly to one Φ, and c's noise sums to V_u (1 − Πφ²).  Against the per-step propagation of
+    :func:`pdr_mag.fusion.gyro.propagate` (20 random steps, a random positive definite U), to 1e-12."""
+    from pdr_mag.fusion.eskf import heading_var_u, settle_u
+    from pdr_mag.fusion.gyro import PREDICT_WORK, propagate
+    from pdr_mag.fusion.state import NX, new_state
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(NX, NX))
+    u0 = a @ a.T * 1e-3
+    st = new_state()
+    st[0]["U"] = u0
+    st[0]["u_var"] = 0.02
+    ref = u0.copy()
+    work = np.zeros(1, dtype=PREDICT_WORK)
+    for _ in range(20):
+        R = Rotation.random(random_state=rng).as_matrix()
+        dt = rng.uniform(0.002, 0.02)
+        phi = np.exp(-dt / 5.0)
+        propagate(ref, R, work, dt, phi, 0.0, 0.0, 0.02 * (1.0 - phi * phi))
+        st[0]["u_G"] -= R * dt
+        st[0]["u_phi"] *= phi
+        st[0]["u_pending"] = True
+    rec = st[0]
+    assert abs(heading_var_u(rec) - ref[2, 2]) < 1e-12
+    settle_u(rec)
+    assert np.allclose(st[0]["U"], ref, rtol=0.0, atol=1e-12)
+    assert not st[0]["u_pending"] and st[0]["u_phi"] == 1.0 and not st[0]["u_G"].any()

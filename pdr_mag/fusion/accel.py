@@ -67,6 +67,7 @@ from pdr_mag.fusion.eskf import (
     inject,
     rotate_world,
     rotation_matrix,
+    settle_u,
     tilt_unsettled,
     update,
     update_h,
@@ -123,6 +124,11 @@ def init_tilt(s, ax, ay, az, p):
         for m in range(NX):
             P[i, m] = 0.0
             s.U[i, m] = 0.0
+    for i in range(3):
+        for m in range(3):
+            s.u_G[i, m] = 0.0
+    s.u_phi = 1.0
+    s.u_pending = False
     # the sample's own acceleration turns its direction by up to ||a| − g| / g rad (a lower bound of the
     # linear acceleration over g): a start in motion is that uncertain
     da = abs(n - p.gravity) / p.gravity
@@ -177,8 +183,8 @@ def accel_step(s, R, ax, ay, az, t, p):
     uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
     uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
     dx = np.zeros(NX)
-    update(s.P, s.U, dx, TH_Y, -1.0, uxw, rv)
-    update(s.P, s.U, dx, TH_X, 1.0, uyw, rv)
+    update(s, dx, TH_Y, -1.0, uxw, rv)
+    update(s, dx, TH_X, 1.0, uyw, rv)
     inject(s, dx)
 
 
@@ -266,8 +272,8 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
             hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
     unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
-    update_h(s.P, s.U, dx, hx, aw[0] / na, rv, False, unknown, not linear)
-    update_h(s.P, s.U, dx, hy, aw[1] / na, rv, False, unknown, not linear)
+    update_h(s, dx, hx, aw[0] / na, rv, False, unknown, not linear)
+    update_h(s, dx, hy, aw[1] / na, rv, False, unknown, not linear)
     inject(s, dx)
 
 
@@ -318,6 +324,7 @@ def _tilt_reset(s, t, p):
         col[0], col[1], col[2] = Rb[0, m], Rb[1, m], Rb[2, m]
         _turn_vector(col, vx, vy)
         Rb[0, m], Rb[1, m], Rb[2, m] = col[0], col[1], col[2]
+    settle_u(s)
     for i in range(NX):
         for j in (TH_X, TH_Y):
             for M in (P, s.U):

@@ -11,8 +11,9 @@ of those states is set to zero and ``P`` follows the Joseph form for that gain,
 ``P ← P − k cᵀ − c kᵀ + S k kᵀ`` with ``c = P Hᵀ``, valid for any gain.
 
 Every update also carries the filter's second covariance ``U`` with the same gain,
-``U ← (I − k H) U (I − k H)ᵀ`` (:func:`carry`): ``U`` is the covariance of the error that noise the
-filter's weighting leaves out causes (:mod:`pdr_mag.fusion.gyro`); it never changes a gain.
+``U ← (I − k H) U (I − k H)ᵀ`` (:func:`carry`), after the prediction pending on it (:func:`settle_u`):
+``U`` is the covariance of the error that noise the filter's weighting leaves out causes
+(:mod:`pdr_mag.fusion.gyro`); it never changes a gain.
 """
 
 from __future__ import annotations
@@ -101,14 +102,16 @@ def wrap(a):
 
 # ------------------------------------------------------------------------------------------ scalar updates
 @njit(cache=True, error_model="numpy")
-def update(P, U, dx, j, s, r, rv):
-    """Scalar update with ``H = s·e_j``; r the residual before this update, rv its noise variance; ``U``
-    carried with the same gain."""
+def update(s, dx, j, a, r, rv):
+    """Scalar update of record ``s`` with ``H = a·e_j``; r the residual before this update, rv its noise
+    variance; ``U`` carried with the same gain."""
+    settle_u(s)
+    P = s.P
     col = np.empty(NX)
     for i in range(NX):
-        col[i] = s * P[i, j]
-    r = r - s * dx[j]
-    S = s * col[j] + rv
+        col[i] = a * P[i, j]
+    r = r - a * dx[j]
+    S = a * col[j] + rv
     if S <= 0.0:
         return
     k = np.empty(NX)
@@ -119,8 +122,8 @@ def update(P, U, dx, j, s, r, rv):
         for m in range(NX):
             P[i, m] -= k[i] * col[m]
     h = np.zeros(NX)
-    h[j] = s
-    carry(U, k, h)
+    h[j] = a
+    carry(s.U, k, h)
 
 
 @njit(cache=True, error_model="numpy")
@@ -140,10 +143,12 @@ def carry(U, k, h):
 
 
 @njit(cache=True, error_model="numpy")
-def update_h(P, U, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
-    """Scalar update with a general ``H = h``; with ``consider_tilt`` the tilt errors (δθ_x, δθ_y), with
-    ``consider_heading`` the heading errors (δθ_z and δc), with ``consider_bias`` the gyro bias are consider
-    states (zero gain, Joseph form); ``U`` carried with the same gain."""
+def update_h(s, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
+    """Scalar update of record ``s`` with a general ``H = h``; with ``consider_tilt`` the tilt errors
+    (δθ_x, δθ_y), with ``consider_heading`` the heading errors (δθ_z and δc), with ``consider_bias`` the gyro
+    bias are consider states (zero gain, Joseph form); ``U`` carried with the same gain."""
+    settle_u(s)
+    P = s.P
     col = np.empty(NX)
     for i in range(NX):
         v = 0.0
@@ -174,7 +179,52 @@ def update_h(P, U, dx, h, r, rv, consider_tilt, consider_heading=False, consider
     for i in range(NX):
         for m in range(NX):
             P[i, m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
-    carry(U, k, h)
+    carry(s.U, k, h)
+
+
+@njit(cache=True, error_model="numpy")
+def settle_u(s):
+    """Bring ``U`` up to date: the prediction steps since it last was, ``Φ_k = [[I, G_k, 0], [0, I, 0],
+    [0, 0, φ_k]]`` with ``G_k = −R_k Δt_k``, multiply to ``Φ = [[I, ΣG_k, 0], [0, I, 0], [0, 0, Πφ_k]]``
+    exactly, and c's unmodelled noise over them sums to ``V_u (1 − Πφ_k²)``: so ``U`` is propagated once per
+    update rather than per gyroscope sample (its noise enters through c alone)."""
+    if not s.u_pending:
+        return
+    phi = s.u_phi
+    G = s.u_G
+    U = s.U
+    for m in range(NX):  # U ← Φ U (rows of δb unchanged, so in place)
+        for i in range(3):
+            U[i, m] += G[i, 0] * U[3, m] + G[i, 1] * U[4, m] + G[i, 2] * U[5, m]
+        U[6, m] *= phi
+    for m in range(NX):  # … Φᵀ
+        for i in range(3):
+            U[m, i] += U[m, 3] * G[i, 0] + U[m, 4] * G[i, 1] + U[m, 5] * G[i, 2]
+        U[m, 6] *= phi
+    U[6, 6] += s.u_var * (1.0 - phi * phi)
+    if U[TH_Z, TH_Z] > np.pi**2:  # an unknown heading is uniform
+        fs = np.pi / np.sqrt(U[TH_Z, TH_Z])
+        for i in range(NX):
+            U[TH_Z, i] *= fs
+            U[i, TH_Z] *= fs
+    for i in range(3):
+        for m in range(3):
+            G[i, m] = 0.0
+    s.u_phi = 1.0
+    s.u_pending = False
+
+
+@njit(cache=True, error_model="numpy")
+def heading_var_u(s):
+    """``U[δθ_z, δθ_z]`` with the pending prediction applied (for an output row; ``U`` itself untouched):
+    ``U_zz + 2 g·U[δb, δθ_z] + g U_bb gᵀ``, g row z of ``ΣG_k``."""
+    U = s.U
+    g0, g1, g2 = s.u_G[2, 0], s.u_G[2, 1], s.u_G[2, 2]
+    v = U[2, 2] + 2.0 * (g0 * U[3, 2] + g1 * U[4, 2] + g2 * U[5, 2])
+    v += g0 * (g0 * U[3, 3] + g1 * U[3, 4] + g2 * U[3, 5])
+    v += g1 * (g0 * U[4, 3] + g1 * U[4, 4] + g2 * U[4, 5])
+    v += g2 * (g0 * U[5, 3] + g1 * U[5, 4] + g2 * U[5, 5])
+    return v
 
 
 @njit(cache=True, error_model="numpy")

@@ -7,7 +7,7 @@ Prediction, per gyroscope sample after an interval Δt::
     Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c)
     Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))
     c ← φ c
-    U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))
+    U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))    (at its next use: pdr_mag.fusion.eskf.settle_u)
 
 with ``R = R(q)`` (the attitude error is in the world frame, the bias in the device frame, so a bias
 error turns the attitude by ``−R δb Δt``), σ_g ``gyro_noise``, σ_b ``bias_rw``, and ``c`` a first-order
@@ -71,10 +71,13 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
     phi = np.exp(-dt / p.mag_error_tau_s)
-    ph2 = 1.0 - phi * phi
-    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, magerr_var(s, p) * ph2)
-    # the consider covariance: the same Φ, driven only by the part of c's variance the filter leaves out
-    propagate(s.U, R, work, dt, phi, 0.0, 0.0, unmodelled_var(s, p) * ph2)
+    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, magerr_var(s, p) * (1.0 - phi * phi))
+    # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)
+    for i in range(3):
+        for m in range(3):
+            s.u_G[i, m] -= R[i, m] * dt
+    s.u_phi *= phi
+    s.u_pending = True
     s.c *= phi
 
 
@@ -218,9 +221,9 @@ def gyro_step(s, R, work, wx, wy, wz, t, p):
                 dx = np.zeros(NX)
                 dtg = min(max(t - s.t_gyro, 1e-4), 0.1) if np.isfinite(s.t_gyro) else 0.01
                 rv = p.zupt_noise**2 / dtg  # a noise density: the same information per second at any rate
-                update(s.P, s.U, dx, BIAS, 1.0, wx - s.b[0], rv)
-                update(s.P, s.U, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
-                update(s.P, s.U, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
+                update(s, dx, BIAS, 1.0, wx - s.b[0], rv)
+                update(s, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
+                update(s, dx, BIAS + 2, 1.0, wz - s.b[2], rv)
                 inject(s, dx)
         else:
             s.still_since = np.nan

@@ -22,7 +22,7 @@ from numba import njit
 from pdr_mag import _jit_cache, interference
 from pdr_mag.fusion import accel, eskf, gyro, mag, state
 from pdr_mag.fusion.accel import accel_step
-from pdr_mag.fusion.eskf import heading_deg
+from pdr_mag.fusion.eskf import heading_deg, heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.mag import mag_step
 from pdr_mag.fusion.state import TH_Z, Rows
@@ -71,7 +71,7 @@ def _write_row(st, ti, out, n):
     out.t[n] = ti
     for c in range(4):
         out.q[n, c] = st.q[c]
-    var = min(st.P[TH_Z, TH_Z] + st.U[TH_Z, TH_Z], np.pi**2)  # the filter's and the consider covariance's
+    var = min(st.P[TH_Z, TH_Z] + heading_var_u(st), np.pi**2)  # the filter's and the consider covariance's
     out.heading_std_deg[n] = np.degrees(np.sqrt(max(var, 0.0)))
     out.mag_used[n] = st.mag_used
     out.interference[n] = st.det.flag or st.interference_seen

@@ -63,7 +63,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, tilt_unsettled, update_h, wrap
+from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, settle_u, tilt_unsettled, update_h, wrap
 from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of, ew_alpha
@@ -146,7 +146,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     dx = np.zeros(NX)
     # while the tilt is unsettled (a start in motion), the heading's changes say more about the tilt than
     # about the gyroscope: the bias is a consider state
-    update_h(P, s.U, dx, h, r, rv, True, False, tilt_unsettled(P, p))
+    update_h(s, dx, h, r, rv, True, False, tilt_unsettled(P, p))
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
@@ -186,6 +186,7 @@ def _reacquire(s, R, jump, h, rv, t, p):
         for m in range(3):
             P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
     _heading_from_field(s.P, h, rv)
+    settle_u(s)
     _heading_from_field(s.U, h, 0.0)
     s.t_reject = np.nan
     s.t_reject_start = np.nan
@@ -224,6 +225,7 @@ def _environment_step(s, dmin2, t, det, p):
     s.t_env = t
     if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
         s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))
+    s.u_var = unmodelled_var(s, p)
 
 
 @njit(cache=True, error_model="numpy")
@@ -241,6 +243,7 @@ def _flag_share_step(s, flag, f, t, det, p):
         s.flag_w = w
     s.t_flag = t
     s.flag_d2 = det.tol_f**2 + (f * np.radians(det.tol_dip)) ** 2
+    s.u_var = unmodelled_var(s, p)
 
 
 @njit(cache=True, error_model="numpy")
@@ -248,7 +251,8 @@ def _first_fix(s, h, r, rv, t, p):
     """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
     P = s.P
     P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], magerr_var(s, p))  # a coarse calibration's error from the start
-    s.U[C_ERR, C_ERR] = max(s.U[C_ERR, C_ERR], unmodelled_var(s, p))  # and the place's, from the start too
+    settle_u(s)
+    s.U[C_ERR, C_ERR] = max(s.U[C_ERR, C_ERR], s.u_var)  # and the place's, from the start too
     rotate_world(s.q_gyro, 0.0, 0.0, r)
     _turn_world_frame(s, r)
     _heading_from_field(P, h, rv)

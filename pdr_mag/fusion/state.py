@@ -38,6 +38,10 @@ STATE = np.dtype(
         ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
         ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
         ("U", np.float64, (NX, NX)),  # consider covariance: the part of the error the weighting leaves out
+        ("u_G", np.float64, (3, 3)),  # prediction not yet applied to U: −Σ R Δt over the steps since
+        ("u_phi", np.float64),  # … and Π φ over them (pdr_mag.fusion.eskf.settle_u)
+        ("u_pending", np.bool_),  # such steps exist
+        ("u_var", np.float64),  # V_u, the part of c's stationary variance the weighting leaves out, rad²
         ("init", np.int64),  # 0 nothing yet, 1 tilt from the accelerometer, 2 heading from the magnetometer
         ("q_gyro", np.float64, (4,)),  # gyroscope-only attitude from the same start (diagnostics)
         # gyroscope
@@ -207,6 +211,7 @@ def new_state() -> np.ndarray:
         "t_next_out",
     ):
         st[name] = np.nan
+    st["u_phi"] = 1.0
     st["det"] = new_detector_state()
     return st
 
