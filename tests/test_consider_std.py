@@ -7,12 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_attitude import merge, twist_error_deg
 
 from pdr_mag.attitude import FusionCore, FusionSettings
 from pdr_mag.sensor_model import quat_slerp
 from pdr_mag.sim import simulate
-from test_attitude import merge, twist_error_deg
 
+#: calibrated magnetometer, raw gyro offsets like a real phone
+EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}
 #: the filter's own std: no consider part (std_env_k = mag_env_k, no flagged-share term)
 OWN = FusionSettings(std_env_k=FusionSettings().mag_env_k, std_flag_k=0.0)
 
@@ -21,13 +23,14 @@ def _steel_area(seed: int):
     """A simulated walk through a steel area from 15 to 45 s: the field there is turned about up by up to 35°
     (strength and dip kept, slowly: the detectors pass it) and every 5 s a 40-µT spike for 2 s (flagged) —
     the iPhone 5 AR walk's situation, where the detectors pass a turned field between flagged spots."""
-    w = simulate("walk", seed=seed, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)})
+    w = simulate("walk", seed=seed, effects=EFFECTS)
     tm, m = w.mag
     tt, qt = w.truth
     rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
     t0 = tm[0]
     area = (tm > t0 + 15.0) & (tm < t0 + 45.0)
-    a = np.where(area, np.radians(35.0) * np.sin(np.pi * np.clip((tm - t0 - 15.0) / 30.0, 0.0, 1.0)) ** 2, 0.0)
+    ramp = np.sin(np.pi * np.clip((tm - t0 - 15.0) / 30.0, 0.0, 1.0)) ** 2
+    a = np.where(area, np.radians(35.0) * ramp, 0.0)
     turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
     md = (rt.inv() * turn * rt).apply(m)
     spike = area & (((tm - t0 - 15.0) % 5.0) < 2.0)
@@ -59,7 +62,7 @@ def test_no_consider_part_on_a_clean_walk_without_flags():
     """An undisturbed simulated walk: no sample is flagged, so only the d_env part adds to the std — at most
     the unseen component of the detectors' small deviations (measured: median +0.9°, at most +3.1°, on a
     std of 4.7°)."""
-    w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)})
+    w = simulate("walk", seed=11, effects=EFFECTS)
     kind, t, xyz = merge(w)
     b_own = FusionCore(OWN, field=w.field).process(kind, t, xyz)
     b = FusionCore(field=w.field).process(kind, t, xyz)

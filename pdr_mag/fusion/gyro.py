@@ -71,7 +71,8 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
     phi = np.exp(-dt / p.mag_error_tau_s)
-    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, magerr_var(s, p) * (1.0 - phi * phi))
+    qc = magerr_var(s, p) * (1.0 - phi * phi)
+    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, qc)
     # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)
     for i in range(3):
         for m in range(3):

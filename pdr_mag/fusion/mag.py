@@ -63,7 +63,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.eskf import inject, rotate_world, rotation_matrix, settle_u, tilt_unsettled, update_h, wrap
+from pdr_mag.fusion.eskf import (
+    inject,
+    rotate_world,
+    rotation_matrix,
+    settle_u,
+    tilt_unsettled,
+    update_h,
+    wrap,
+)
 from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 from pdr_mag.interference import detect_step, dip_of, ew_alpha
