@@ -155,11 +155,20 @@ class Truth:
         return tr[valid], head
 
 
+#: the row filter of issue 10's "an uncertainty that warns": a user who keeps rows with σ ≤ 20° must never
+#: keep one that is 45° wrong
+KEEP_STD, WRONG = 20.0, 45.0
+
+
 def honesty(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
-    """Counts of scored frames with |error| ≤ 2σ and > 3σ of the reported std."""
+    """Counts of scored frames with |error| ≤ 1σ, ≤ 2σ and > 3σ of the reported std; frames a user keeping
+    σ ≤ 20° keeps (and of those, the ones more than 45° off)."""
     a = np.abs(err_deg)
-    return {"n": int(len(a)), "within_2sigma": int(np.sum(a <= 2.0 * std_deg)),
+    kept = std_deg <= KEEP_STD
+    return {"n": int(len(a)), "within_1sigma": int(np.sum(a <= std_deg)),
+            "within_2sigma": int(np.sum(a <= 2.0 * std_deg)),
             "beyond_3sigma": int(np.sum(a > 3.0 * std_deg)),
+            "kept": int(np.sum(kept)), "kept_wrong": int(np.sum(kept & (a > WRONG))),
             "std_median_deg": float(np.median(std_deg)) if len(a) else float("nan")}
 
 
@@ -342,17 +351,25 @@ def _stats(vals) -> str:
 
 
 def _honest(rs, mode) -> str:
-    n = sum(r[mode]["n"] for r in rs)
+    """Pooled ≤1σ / ≤2σ | walks with > 10 % beyond 3σ | frames kept at σ ≤ 20° that are > 45° off | the
+    median of the walks' median σ / the pooled share of frames with σ > 20°."""
+    n = max(sum(r[mode]["n"] for r in rs), 1)
+    w1 = sum(r[mode].get("within_1sigma", 0) for r in rs)
     w2 = sum(r[mode]["within_2sigma"] for r in rs)
     bad = sum(r[mode]["beyond_3sigma"] > BEYOND_3SIGMA_MAX * max(r[mode]["n"], 1) for r in rs)
-    return f"{w2 / max(n, 1):.0%} | {bad}"
+    wrong = sum(r[mode].get("kept_wrong", 0) for r in rs)
+    over = 1.0 - sum(r[mode].get("kept", 0) for r in rs) / n
+    sd = np.median([r[mode]["std_median_deg"] for r in rs])
+    return f"{w1 / n:.0%} / {w2 / n:.0%} | {bad} | {wrong} | {sd:.0f}° / {over:.0%}"
 
 
 def summary_table(results) -> list[str]:
     best = best_peer_column(results)
     has_os = all("os" in r.get("peers", {}) for r in results)
-    head = ["group", "n", "a: mean / median", "a: >20° / >45°", "a: ≤2σ", "a: >3σ walks",
-            "b: mean / median", "b: >20° / >45°", "b: ≤2σ", "b: >3σ walks"]
+    head = ["group", "n"]
+    for m in ("a", "b"):
+        head += [f"{m}: mean / median", f"{m}: >20° / >45°", f"{m}: ≤1σ / ≤2σ", f"{m}: >3σ walks",
+                 f"{m}: 45° kept", f"{m}: σ / >20°"]
     if best:
         head += [f"{best}: mean / median", ">20° / >45°"]
     if has_os:
@@ -413,10 +430,12 @@ def markdown(results, elapsed_s: float, cpu_s: float, jobs: int, peer_line: str,
         f" `../shared/datasets/tyrex-pdrcsv`, {elapsed_s:.0f} s wall on {jobs} processes, {cpu_s:.0f} s CPU"
         + (f", commit {commit}" if commit else "") + "). Mean |heading error| per walk (shared scorer,"
         " 5–120 s), degrees; group cells: mean / median over walks, and walks above 20° / 45°. Mode a ="
-        " `replay` with the day's `pdr-mag calibrate` file; mode b = no calibration. ≤2σ: pooled share of"
-        " scored frames with |error| ≤ 2σ of `heading_std_deg` (Gaussian 95 %); >3σ walks: walks with more"
-        " than 10 % of their frames beyond 3σ. Peers as in PEERS.md, fed the same day's calibration"
-        f" (best column in this run shown). {peer_line}.{speed}",
+        " `replay` with the day's `pdr-mag calibrate` file; mode b = no calibration. ≤1σ / ≤2σ: pooled share"
+        " of scored frames with |error| ≤ 1σ / 2σ of `heading_std_deg` (Gaussian 68 / 95 %); >3σ walks: walks"
+        " with more than 10 % of their frames beyond 3σ; 45° kept: frames with σ ≤ 20° more than 45° off"
+        " (what a user keeping σ ≤ 20° would keep wrongly); σ / >20°: median of the walks' median σ, and the"
+        " share of frames with σ > 20° (what that user would drop). Peers as in PEERS.md, fed the same day's"
+        f" calibration (best column in this run shown). {peer_line}.{speed}",
         "",
         *summary_table(results),
         "",
