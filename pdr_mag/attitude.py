@@ -7,7 +7,7 @@ In short:
 
 * gyroscope: propagates ``q`` (device → ENU) with the bias-corrected rate (across gaps up to ``max_dt``,
   whose unknown rotation is added to ``P``); ``P`` grows with the gyro noise and the bias uncertainty,
-  so ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z]))`` grows while the magnetometer is rejected;
+  so ``heading_std_deg`` grows while the magnetometer is rejected;
 * accelerometer: corrects tilt only, from the specific force averaged over ``acc_tau_s`` in the
   almost-inertial world frame (the mean linear acceleration of a walking, swinging or pocketed phone over
   the window is ≈ 0); its noise grows with ``||ā| − g|``, the horizontal spread and the clipped share, and
@@ -25,9 +25,14 @@ In short:
   offsets of real phone gyroscopes (4–6 °/s);
 * magnetometer heading error ``c``: the errors of a calibrated magnetometer indoors are correlated over
   seconds (residual calibration, the building's field); modelling them keeps the bias estimate from
-  absorbing them and keeps ``heading_std_deg`` honest (measured on the tyrex walks: the truth lies within
-  1σ / 2σ in ≈ 87 % / 98 % of the frames; on simulated walks with a clean field it is conservative:
-  benchmarks/heading_sim.py).
+  absorbing them;
+* reported uncertainty: ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z] + U[δθ_z, δθ_z]))``.  ``U`` is a
+  consider covariance propagated and updated with the filter's own gains: the place's disturbance that the
+  weighting leaves out (``std_env_k``, ``std_flag_k``: the unseen, heading-turning component of the
+  deviations the detectors measure, and of the disturbances that raise their flag) — a field that passes
+  the detectors in a steel-heavy place is still weighed as informative, and the std still says how far it
+  may be turned.  Measured on the 42 tyrex walks (benchmarks/RESULTS.md): no walk with more than 10 % of
+  its frames beyond 3σ; conservative on most frames (truth within 1σ in ≈ 95 %).
 
 Interface for :class:`pdr_mag.pipeline.HeadingPipeline`
 -------------------------------------------------------
@@ -220,8 +225,17 @@ class FusionSettings:
         large as the mean of the two: ``d_min / √2`` (the default 0.71).  The filter weighs the field with
         the smaller ``mag_env_k`` (a field that passes the detectors in such a place is still informative);
         the difference is noise the weighting leaves out, carried through the same gains in a consider
-        covariance ``U`` and added to the reported variance, ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  Not less
-        than ``mag_env_k`` (then the std is the filter's own).
+        covariance ``U`` and added to the reported variance, ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  At most
+        ``mag_env_k`` leaves this part out.
+    std_flag_k : float
+        Weight of the flagged share in that consider part: where a share ``s_flag`` of the recent samples
+        (exponentially weighted over ``mag_env_tau_s``, normalised by the weight seen, so a start counts
+        what it saw) was flagged, the disturbances there are at least the detectors' tolerance
+        ``d_tol² = tol_F² + (F tol_I)²``, and a field that passes between them is turned by such a
+        disturbance's unseen component as often: ``std_flag_k · s_flag · d_tol² / 2`` is added to c's
+        unmodelled variance (× 1/B_h²).  0 = off.  Together with ``std_env_k`` the truth lies beyond 3σ in
+        at most 2 % of any tyrex walk's frames, at the price of a conservative std in disturbed buildings
+        (median 18–20° there; the variants measured are in benchmarks/NOTES.md).
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     mag_gate : float

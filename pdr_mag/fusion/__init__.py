@@ -10,7 +10,8 @@ nominal state
     device frame, rad/s; ``c`` the slowly varying error of the magnetometer heading, rad.
 error state ``δx = (δθ, δb, δc)``, 7 values
     ``R_true = Exp(δθ) R`` with ``δθ`` in the world frame (so ``δθ_z`` is the heading error and
-    ``heading_std = √P[δθ_z, δθ_z]``), ``b_true = b + δb``, ``c_true = c + δc``.
+    ``heading_std = √(P + U)[δθ_z, δθ_z]``, ``U`` the consider covariance below), ``b_true = b + δb``,
+    ``c_true = c + δc``.
 prediction (:mod:`~pdr_mag.fusion.gyro`)
     ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``;
     ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``; ``c ← φ c`` (first-order Gauss–Markov); gaps add
@@ -27,6 +28,12 @@ magnetometer (:mod:`~pdr_mag.fusion.mag`)
     stationary variance of ``c`` grows with the recent environment's disturbance level and with the
     heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
     the gate for ``reacquire_s`` re-acquires the heading (``heading_reset``).
+consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gyro`)
+    the same Φ and the same gains as ``P`` (Joseph form), driven only by the part of c's stationary
+    variance that the weighting leaves out, ``V_u = [(std_env_k² − mag_env_k²) d_env² + std_flag_k s_flag
+    d_tol² / 2] / B_h²`` (the unseen turning component of the detectors' deviations and of the
+    disturbances behind the recent flagged share ``s_flag``); it never changes the estimate, only the
+    reported std.
 
 Modules
 -------
