@@ -121,22 +121,16 @@ def update(s, dx, j, a, r, rv):
     for i in range(NX):
         for m in range(NX):
             P[i, m] -= k[i] * col[m]
-    h = np.zeros(NX)
-    h[j] = a
-    carry(s.U, k, h)
+    U = s.U
+    for i in range(NX):  # col, no longer needed, takes U h
+        col[i] = a * U[i, j]
+    carry(U, k, col, a * col[j])
 
 
 @njit(cache=True, error_model="numpy")
-def carry(U, k, h):
-    """``U ← (I − k hᵀ) U (I − k hᵀ)ᵀ``: the consider covariance through an update of gain k, row h."""
-    uh = np.empty(NX)
-    hu = 0.0
-    for i in range(NX):
-        v = 0.0
-        for m in range(NX):
-            v += U[i, m] * h[m]
-        uh[i] = v
-        hu += h[i] * v
+def carry(U, k, uh, hu):
+    """``U ← (I − k hᵀ) U (I − k hᵀ)ᵀ``: the consider covariance through an update of gain k and row h,
+    given ``uh = U h`` and ``hu = hᵀ U h``."""
     for i in range(NX):
         for m in range(NX):
             U[i, m] += hu * k[i] * k[m] - k[i] * uh[m] - uh[i] * k[m]
@@ -179,7 +173,15 @@ def update_h(s, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bi
     for i in range(NX):
         for m in range(NX):
             P[i, m] += S * k[i] * k[m] - k[i] * col[m] - col[i] * k[m]
-    carry(s.U, k, h)
+    U = s.U
+    hu = 0.0
+    for i in range(NX):  # col, no longer needed, takes U h
+        v = 0.0
+        for m in range(NX):
+            v += U[i, m] * h[m]
+        col[i] = v
+        hu += h[i] * v
+    carry(U, k, col, hu)
 
 
 @njit(cache=True, error_model="numpy")
