@@ -95,7 +95,7 @@ from pdr_mag.fusion.state import (
 from pdr_mag.interference import InterferenceSettings
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 5
+STATE_VERSION = 6
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -414,6 +414,18 @@ class FusionCore:
         if c.shape != (3, 3) or not np.all(np.isfinite(c)):
             raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
         self._st["cal_cov"] = 0.5 * (c + c.T)
+
+    def note_calibration_change(self, dm_uT) -> None:
+        """The calibration in force changed the calibrated field by ``dm`` (device frame, µT; for an offset
+        change ``M (b_old − b_new)``).  The heading so far was taken from fields with the old calibration,
+        so it carries the heading error ``g · dm`` that the change removes from the fields from now on
+        (``g = ∂ψ/∂m_d`` at the next sample's orientation): that variance joins the heading's at the next
+        magnetometer sample, and a field the new calibration turns by tens of degrees is then within the
+        gate rather than rejected until a re-acquisition."""
+        d = np.asarray(dm_uT, dtype=float)
+        if d.shape != (3,) or not np.all(np.isfinite(d)):
+            raise ValueError(f"dm_uT: expected a finite 3-vector in µT, got {dm_uT!r}")
+        self._st["cal_jump"] = self._st["cal_jump"][0] + d
 
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:

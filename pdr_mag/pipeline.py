@@ -225,6 +225,7 @@ class HeadingPipeline:
         self._coverage = 0.0  # the calibrator's buffer coverage after the last closed block
         self._interf = False  # the interference flag of the last output row
         self._calibrations: list[tuple[float, MagCalibration]] = []
+        self._cal_in_use: MagCalibration | None = None  # the calibration the filter's input was made with
         self._n_out = 0
         self._t_first = np.nan
         self._t_last = np.nan
@@ -482,6 +483,11 @@ class HeadingPipeline:
         for the identity) for the filter's input, and (unless ``restored`` with the fusion core's state) its
         radius as the detectors' reference strength and its offset covariance as a source of heading error."""
         cal = self.online.calibration
+        old = self._cal_in_use
+        if not restored and cal is not None and old is not None and cal is not old:
+            # the fields change by M (b_old − b_new): the heading taken from the old ones carries that
+            self.fusion.note_calibration_change(cal.matrix @ (old.offset_array - cal.offset_array))
+        self._cal_in_use = cal
         self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
         self._mag_matrix_t = None
         if cal is not None:

@@ -111,6 +111,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     if bh < 1e-3:
         return
     _calibration_variance(s, R, mwx * f, mwy * f)
+    _calibration_jump(s, R, mwx * f, mwy * f)
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
@@ -220,6 +221,23 @@ def _calibration_variance(s, R, ex, ny):
         + g1 * (C[1, 0] * g0 + C[1, 1] * g1 + C[1, 2] * g2)
         + g2 * (C[2, 0] * g0 + C[2, 1] * g1 + C[2, 2] * g2)
     )
+
+
+@njit(cache=True, error_model="numpy")
+def _calibration_jump(s, R, ex, ny):
+    """A calibration change ``dm`` noted since the last sample: the heading variance grows by ``(g · dm)²``
+    (g as in :func:`_calibration_variance`), capped at π²; once the heading is known."""
+    d = s.cal_jump
+    if d[0] == 0.0 and d[1] == 0.0 and d[2] == 0.0:
+        return
+    bh2 = ex * ex + ny * ny
+    if s.init >= 2 and bh2 > 0.0:
+        v = 0.0
+        for m in range(3):
+            v += (ny * R[0, m] - ex * R[1, m]) / bh2 * d[m]
+        P = s.P
+        P[TH_Z, TH_Z] = min(P[TH_Z, TH_Z] + v * v, np.pi**2)
+    d[0], d[1], d[2] = 0.0, 0.0, 0.0
 
 
 @njit(cache=True, error_model="numpy")

@@ -77,6 +77,7 @@ STATE = np.dtype(
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
+        ("cal_jump", np.float64, (3,)),  # change of the calibrated field at a calibration change, µT (device)
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
         ("flag_share", np.float64),  # EW share of flagged samples over mag_env_tau_s (of the weight seen)
