@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import dataset
+from test_attitude import merge, twist_error_deg
+
 from pdr_mag.attitude import FusionCore
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.sim import simulate
-from test_attitude import merge, twist_error_deg
 
 EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}
 
@@ -40,7 +40,7 @@ def test_a_noted_calibration_change_lets_the_right_field_in():
     / 8.9°)."""
     with_note = [_after_switch(s, True) for s in (11, 12, 13)]
     without = [_after_switch(s, False) for s in (11, 12, 13)]
-    assert all(a <= b + 1.0 for a, b in zip(with_note, without))
+    assert all(a <= b + 1.0 for a, b in zip(with_note, without, strict=True))
     assert np.mean(with_note) < 20.0 < 60.0 < np.mean(without)
 
 
