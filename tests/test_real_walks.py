@@ -73,10 +73,6 @@ XFAIL_A: dict[str, tuple[str, bool]] = {
         False,
     ),
     "Thibaud_Nexus5_Dist_Texting": ("8.7° > 8.4° (madgwick_cal_gcal 6.4° + 2°)", False),
-    "Thibaud_iPhone4S_NoDist_Phoning": (
-        "5.6° > 5.4° (vqf_cal_gcal 3.4° + 2°); a recalibration requested mid-walk",
-        False,
-    ),
     "Thibaud_iPhone5_Dist_BackPocket": (
         "7.2° > 6.1° (madgwick_cal_gcal 4.1° + 2°); the field left out for up to 20 s in the disturbed area",
         True,
@@ -84,11 +80,15 @@ XFAIL_A: dict[str, tuple[str, bool]] = {
 }
 #: walk → its mode-b figure against its bound today, strict
 XFAIL_B: dict[str, tuple[str, bool]] = {
+    "Thibaud_Nexus5_NoDist_BackPocket": (
+        "4.84° ≤ 4.9° (os 2.9° + 2°) today, 0.06° to spare: non-strict, either side of its bound is within"
+        " reach of another CPU's rounding through the gate",
+        False,
+    ),
     "Thibaud_iPhone4S_NoDist_Texting": (
-        "8.8° > 6.4° (os 4.4° + 2°): the first online calibrations of the 590-µT offset are 5–15 µT off",
+        "8.9° > 6.4° (os 4.4° + 2°): the first online calibrations of the 590-µT offset are 5–15 µT off",
         True,
     ),
-    "Thibaud_Nexus5_NoDist_BackPocket": ("5.2° > 4.9° (os 2.9° + 2°): the first online calibrations", False),
     "Thibaud_Nexus5_NoDist_RunningHand": ("6.8° > 6.7° (os 4.7° + 2°): the first online calibrations", False),
 }
 #: (walk, mode) → the share of its frames beyond 3σ today, strict (none today: Thibaud_iPhone5_Dist_AR
@@ -244,10 +244,10 @@ def test_the_groups_meet_issue_10s_targets(peers, run):
     motion-capture misalignment costs every estimator the same on a walk.
 
     Measured (42 walks, means over walks, deg): mode a all 4.33 vs vqf_cal_gcal 6.02, Dist 5.85 vs 9.05,
-    NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.  Mode b per phone, mean: Nexus5 6.29
-    vs os 12.35, iPhone4S 4.79 vs 27.66, iPhone5 6.79 vs 23.89 (only a gross regression fails these);
-    median: Nexus5 4.43 vs 4.57, iPhone4S 3.90 vs 20.36, iPhone5 4.84 vs 18.30 — 2° more on every walk fails
-    the Nexus5 median by 1.9°.  That median is the tightest figure (0.13° to spare): a few tenths of a degree
+    NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.  Mode b per phone, mean: Nexus5 6.26
+    vs os 12.35, iPhone4S 4.84 vs 27.66, iPhone5 6.76 vs 23.89 (only a gross regression fails these);
+    median: Nexus5 4.42 vs 4.57, iPhone4S 3.94 vs 20.36, iPhone5 4.79 vs 18.30 — 2° more on every walk fails
+    the Nexus5 median by 1.9°.  That median is the tightest figure (0.15° to spare): a few tenths of a degree
     on the two middle Nexus5 walks carry it over."""
     failed = []
     groups = {"all": WALKS, "Dist": [w for w in WALKS if "_Dist_" in w],
