@@ -34,7 +34,7 @@ from _common import write_section  # noqa: E402
 from _peers import on_gyro_grid, run_imufusion, run_vqf  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "broad" / "data_mat"
-SECTION = "## Heading on BROAD (a lab IMU with optical truth, no calibration)"
+SECTION = "## Heading on BROAD (a lab IMU with optical truth)"
 
 
 def twist_deg(t_est, q_est, t_true, q_true) -> tuple[np.ndarray, np.ndarray]:
