@@ -130,10 +130,12 @@ def update(s, dx, j, a, r, rv):
 @njit(cache=True, error_model="numpy")
 def carry(U, k, uh, hu):
     """``U ← (I − k hᵀ) U (I − k hᵀ)ᵀ``: the consider covariance through an update of gain k and row h,
-    given ``uh = U h`` and ``hu = hᵀ U h``."""
+    given ``uh = U h`` and ``hu = hᵀ U h`` (symmetric: the upper triangle, mirrored)."""
     for i in range(NX):
-        for m in range(NX):
-            U[i, m] += hu * k[i] * k[m] - k[i] * uh[m] - uh[i] * k[m]
+        for m in range(i, NX):
+            v = U[i, m] + hu * k[i] * k[m] - k[i] * uh[m] - uh[i] * k[m]
+            U[i, m] = v
+            U[m, i] = v
 
 
 @njit(cache=True, error_model="numpy")
