@@ -219,14 +219,16 @@ class FusionSettings:
         this and learns the place's own level over ``mag_env_tau_s``.
     std_env_k : float
         The environment's turning of the horizontal field as the *reported* ``heading_std_deg`` counts it:
-        ``(std_env_k · d_env / B_h)²`` in c's stationary variance, against the filter's ``mag_env_k``.
+        ``(std_env_k · d_seen / B_h)²`` in c's stationary variance, against the filter's
+        ``(mag_env_k · d_env / B_h)²`` (``d_seen²`` the same mean of ``d_min²`` over the samples seen, without
+        the filter's prior ``mag_env_prior_uT``: a start in a disturbed place counts what it saw).
         ``d_min`` sees the two components of a disturbance that change strength and dip; the third, which
         turns the horizontal field, is unseen, and a disturbance with no preferred direction has it as
         large as the mean of the two: ``d_min / √2`` (the default 0.71).  The filter weighs the field with
         the smaller ``mag_env_k`` (a field that passes the detectors in such a place is still informative);
         the difference is noise the weighting leaves out, carried through the same gains in a consider
-        covariance ``U`` and added to the reported variance, ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  At most
-        ``mag_env_k`` leaves this part out.
+        covariance ``U`` and added to the reported variance, ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  0 leaves
+        this part out.
     std_flag_k : float
         Weight of the flagged share in that consider part: where a share ``s_flag`` of the recent samples
         (exponentially weighted over ``mag_env_tau_s``, normalised by the weight seen, so a start counts

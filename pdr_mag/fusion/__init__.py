@@ -30,9 +30,9 @@ magnetometer (:mod:`~pdr_mag.fusion.mag`)
     the gate for ``reacquire_s`` re-acquires the heading (``heading_reset``).
 consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gyro`)
     the same Φ and the same gains as ``P`` (Joseph form), driven only by the part of c's stationary
-    variance that the weighting leaves out, ``V_u = [(std_env_k² − mag_env_k²) d_env² + std_flag_k s_flag
-    d_tol² / 2] / B_h²`` (the unseen turning component of the detectors' deviations and of the
-    disturbances behind the recent flagged share ``s_flag``); it never changes the estimate, only the
+    variance that the weighting leaves out, ``V_u = [max(std_env_k² d_seen² − mag_env_k² d_env², 0) +
+    std_flag_k s_flag d_tol² / 2] / B_h²`` (the unseen turning component of the detectors' deviations and
+    of the disturbances behind the recent flagged share ``s_flag``); it never changes the estimate, only the
     reported std.
 
 Modules

@@ -155,15 +155,13 @@ def magerr_var(s, p):
 @njit(cache=True, error_model="numpy")
 def unmodelled_var(s, p):
     """The part of c's stationary variance the filter's weighting leaves out, rad², carried in ``U``:
-    ``V_u = [(std_env_k² − mag_env_k²) d_env² + std_flag_k · s_flag · d_tol² / 2] / B_h²``
-    (``FusionSettings.std_env_k``, ``std_flag_k``; ``s_flag`` the recent share of flagged samples, ``d_tol``
-    the detectors' tolerance as a disturbance)."""
+    ``V_u = [max(std_env_k² d_seen² − mag_env_k² d_env², 0) + std_flag_k · s_flag · d_tol² / 2] / B_h²``
+    (``FusionSettings.std_env_k``, ``std_flag_k``; ``d_seen²`` the environment level of the samples seen,
+    ``d_env²`` the filter's, which starts from a prior; ``s_flag`` the recent share of flagged samples,
+    ``d_tol`` the detectors' tolerance as a disturbance)."""
     if not s.bh_ref > 0.0:
         return 0.0
-    v = 0.0
-    k2 = p.std_env_k**2 - p.mag_env_k**2
-    if k2 > 0.0 and s.env_d2 > 0.0:
-        v += k2 * s.env_d2
+    v = max(p.std_env_k**2 * s.env_seen2 - p.mag_env_k**2 * s.env_d2, 0.0)
     if p.std_flag_k > 0.0 and s.flag_share > 0.0:
         v += p.std_flag_k * s.flag_share * 0.5 * s.flag_d2
     return v / (s.bh_ref * s.bh_ref)

@@ -242,10 +242,17 @@ def _calibration_jump(s, R, ex, ny):
 
 @njit(cache=True, error_model="numpy")
 def _environment_step(s, dmin2, t, det, p):
-    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s``, and the local
+    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s`` (from the prior
+    ``mag_env_prior_uT``: the filter's weighting) and the same over the samples seen only, normalised by
+    their weight (the reported std's, :func:`pdr_mag.fusion.gyro.unmodelled_var`), and the local
     reference's horizontal strength ``B_h = F_loc cos I_loc`` (they set the stationary variance of c)."""
     if np.isfinite(s.t_env):
-        s.env_d2 += ew_alpha(t - s.t_env, p.mag_env_tau_s) * (dmin2 - s.env_d2)
+        a = ew_alpha(t - s.t_env, p.mag_env_tau_s)
+        s.env_d2 += a * (dmin2 - s.env_d2)
+        w = s.env_w + a * (1.0 - s.env_w)
+        if w > 0.0:
+            s.env_seen2 += a * (dmin2 - s.env_seen2) / w
+        s.env_w = w
     else:
         s.env_d2 = max(dmin2, p.mag_env_prior_uT**2)
     s.t_env = t

@@ -80,6 +80,8 @@ STATE = np.dtype(
         ("cal_jump", np.float64, (3,)),  # change of the calibrated field at a calibration change, µT (device)
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
+        ("env_seen2", np.float64),  # the same mean over the samples seen only (no prior), µT²
+        ("env_w", np.float64),  # its EW weight of the samples seen (1 − e^(−T/τ) at a uniform rate)
         ("flag_share", np.float64),  # EW share of flagged samples over mag_env_tau_s (of the weight seen)
         ("flag_w", np.float64),  # the EW weight of the samples seen so far (1 − e^(−T/τ) at uniform rate)
         ("flag_d2", np.float64),  # the detectors' tolerance as a disturbance, tol_F² + (F tol_I)², µT²
