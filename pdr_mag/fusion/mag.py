@@ -253,8 +253,9 @@ def _environment_step(s, dmin2, t, det, p):
         if w > 0.0:
             s.env_seen2 += a * (dmin2 - s.env_seen2) / w
         s.env_w = w
-    else:
+    else:  # the first sample is the level seen until the next (its weight is nil)
         s.env_d2 = max(dmin2, p.mag_env_prior_uT**2)
+        s.env_seen2 = dmin2
     s.t_env = t
     if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
         s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))
@@ -267,13 +268,15 @@ def _flag_share_step(s, flag, f, t, det, p):
     seen (so the first seconds give the share of what was seen, not a mean pulled towards the first
     sample), and the disturbance the detectors' tolerance stands for, ``tol_F² + (F tol_I)²`` (they set
     the consider covariance's part of c, :func:`pdr_mag.fusion.gyro.unmodelled_var`)."""
+    x = 1.0 if flag else 0.0
     if np.isfinite(s.t_flag):
         a = ew_alpha(t - s.t_flag, p.mag_env_tau_s)
         w = s.flag_w + a * (1.0 - s.flag_w)
-        x = 1.0 if flag else 0.0
         if w > 0.0:
             s.flag_share += a * (x - s.flag_share) / w
         s.flag_w = w
+    else:  # the first sample is the share seen until the next (its weight is nil)
+        s.flag_share = x
     s.t_flag = t
     s.flag_d2 = det.tol_f**2 + (f * np.radians(det.tol_dip)) ** 2
     s.u_var = unmodelled_var(s, p)
