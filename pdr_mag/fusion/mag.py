@@ -56,6 +56,11 @@ heading error *is* that sample's correlated field error, and
 so a later field with the same offset — a disturbance present since the start — is not read as drift
 (that is, as gyro bias about up).  The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the
 same form with its own c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
+
+Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
+:meth:`pdr_mag.attitude.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
+``g · dm`` in heading (``g = ∂ψ/∂m_d``, see :func:`_calibration_variance`): at the next usable sample that
+variance joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once.
 """
 
 from __future__ import annotations
