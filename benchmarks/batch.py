@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import datetime
 import os
 import shutil
 import subprocess
@@ -195,12 +196,14 @@ def _burn(n: int) -> float:
     return time.perf_counter() - t
 
 
-def machine_scaling(workers: int, n: int = 5_000_000, tasks: int = 8) -> float:
+def machine_scaling(workers: int, n: int = 5_000_000, rounds: int = 4) -> float:
     """How many times more pure-Python work ``workers`` processes do than one in the same time, now: the
-    parallel capacity the machine offers (≈ ``workers`` when the cores are free)."""
+    parallel capacity the machine offers (≈ ``workers`` when the cores are free).  ``rounds × workers``
+    equal tasks, so every process has the same share."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
+    tasks = rounds * workers
     out = []
     for w in (1, workers):
         with ctx.Pool(w) as pool:
@@ -251,6 +254,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None, help="local cluster size (default: core count)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "pdr-mag-bench-batch")
     ap.add_argument("--write", action="store_true", help="update benchmarks/RESULTS.md")
+    ap.add_argument("--commit", default="", help="commit to name in the section")
     a = ap.parse_args()
     from replay.batch import default_workers
 
@@ -299,14 +303,14 @@ def main() -> None:
         per_hour = hour_rows or tyrex_rows
         cost_h = 3600 * sum(float(r["elapsed_s"]) for r in per_hour) / sum(
             float(r["duration_s"]) for r in per_hour)
-        in_b = sum(_size(Path(p)) for p, _ in recs)
-        out_b = sum(_size(work / "batch" / k) for _, k in recs)
         dur = sum(float(r["duration_s"]) for r in rows)
         if hour_rows:
             keys = [k for p, k in recs if "/hour/" in str(p)]
             in_h = sum(_size(p) for p, k in recs if "/hour/" in str(p)) / len(keys) / 2**20
             out_h = sum(_size(work / "batch" / k) for k in keys) / len(keys) / 2**20
         else:
+            in_b = sum(_size(Path(p)) for p, _ in recs)
+            out_b = sum(_size(work / "batch" / k) for _, k in recs)
             in_h, out_h = in_b / dur * 3600 / 2**20, out_b / dur * 3600 / 2**20
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -314,12 +318,9 @@ def main() -> None:
     speedup, speedup_m = s["wall"] / b["wall"], m["wall"] / b["wall"]
     overhead = (workers * b["wall"] - elapsed) / n
     proj = projection(cost_h, in_h, out_h, overhead)
+    loads = [run["load"][k][0] for run in (m, b1, b, s) for k in (0, 1)]  # 1-min load before / after each
     load = (f"idle CPU {idle:.0%} before the runs, {workers} processes of a pure-Python loop did "
-            f"{scale:.2f}× the work of one; load average (1 min) {m['load'][0][0]:.1f} → "
-            f"{m['load'][1][0]:.1f} during the loop in one process, {b1['load'][0][0]:.1f} → "
-            f"{b1['load'][1][0]:.1f} during the 1-worker batch, {b['load'][0][0]:.1f} → "
-            f"{b['load'][1][0]:.1f} during the batch, "
-            f"{s['load'][0][0]:.1f} → {s['load'][1][0]:.1f} during the shell loop")
+            f"{scale:.2f}× the work of one; load {min(loads):.1f}–{max(loads):.1f}")
     lines = [
         SECTION,
         "",
@@ -327,7 +328,8 @@ def main() -> None:
         f"{'' if a.hours == 2 else f' --hours {a.hours}'}` — {n} recordings ({n_walks} tyrex walks, "
         f"{len(tyrex) - n_walks} tyrex calibrations, {n_sim} simulated × {a.sim_duration:g} s, {a.hours} "
         f"synthetic hours; {dur / 3600:.1f} h of data), `pdr-mag batch replay` on a local cluster of "
-        f"{workers} workers, in one run ({load}).",
+        f"{workers} workers, in one run ({load}), {datetime.date.today()}"
+        + (f", {a.commit}" if a.commit else "") + ".",
         "",
         f"| | wall | speed-up of `--workers {workers}` (target ≥ {0.8 * workers:.1f} against the first) |",
         "| --- | ---: | ---: |",
@@ -341,11 +343,10 @@ def main() -> None:
         f"`heading.csv` byte-identical between the four runs for {same} of {n} recordings; worker peak "
         f"memory {', '.join(f'{mb:.0f}' for mb in b['worker_peak_mb'])} MB. Projection for 100 000 one-hour "
         f"recordings ({cost_h:.1f} s of worker time per hour of data, {overhead * 1e3:.0f} ms a recording, "
-        f"{in_h:.0f} MB read and {out_h:.0f} MB written per hour):",
-        "",
-        "| workers N | wall (h) | storage throughput needed (MB/s) |",
-        "| ---: | ---: | ---: |",
-        *[f"| {nw} | {h:.1f} | {mb:.0f} |" for nw, h, mb in proj[:4]],
+        f"{in_h:.0f} MB read and {out_h:.0f} MB written per hour): "
+        + " / ".join(str(nw) for nw, _, _ in proj[:4]) + " workers take "
+        + " / ".join(f"{h:.1f}" for _, h, _ in proj[:4]) + " h and need "
+        + " / ".join(f"{mb:.0f}" for _, _, mb in proj[:4]) + " MB/s of storage throughput.",
     ]
     text = "\n".join(lines) + "\n"
     print(text)

@@ -20,6 +20,7 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
+from pdr_mag.sinks import QuietSink
 from replay.errors import InputError
 from replay.formats import open_recording
 from replay.recording import Recording
@@ -35,11 +36,8 @@ SLICE_S = 30.0
 PROGRESS_MIN_BYTES = 8_000_000
 
 
-class CsvSink:
+class CsvSink(QuietSink):
     """``replay --out-csv``: one row per output epoch, columns exactly :data:`CSV_COLUMNS`."""
-
-    #: The calibrated magnetometer samples are not written (a sink without this attribute gets them).
-    wants_mag_calibrated = False
 
     def __init__(self, path):
         self.path = Path(path)
@@ -49,12 +47,6 @@ class CsvSink:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh = self.path.open("w", encoding="utf-8", newline="\n")
         self._fh.write(",".join(CSV_COLUMNS) + "\n")
-
-    def inputs(self, kind, t, xyz) -> None:
-        pass
-
-    def mag_calibrated(self, t, xyz) -> None:
-        pass
 
     def estimates(self, batch: EstimateBatch) -> None:
         if not len(batch):
@@ -78,55 +70,23 @@ class CsvSink:
         ]
         self._fh.writelines(lines)
 
-    def reference(self, name, t, q_wd) -> None:
-        pass
-
-    def event(self, ev) -> None:
-        pass
-
-    def calibration(self, t, cal) -> None:
-        pass
-
     def close(self) -> None:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
 
 
-class MemorySink:
+class MemorySink(QuietSink):
     """Keeps the estimate batches in memory (``batches``, in order) and writes nothing: what a backend or a
     benchmark embedding :func:`replay` collects.  Like :class:`CsvSink` it does not want the calibrated
     magnetometer samples, so :func:`replay` runs the pipeline with the same settings and the batches hold
     the rows ``--out-csv`` writes."""
 
-    wants_mag_calibrated = False
-
     def __init__(self):
         self.batches: list[EstimateBatch] = []
 
-    def open(self, meta: dict) -> None:
-        pass
-
-    def inputs(self, kind, t, xyz) -> None:
-        pass
-
-    def mag_calibrated(self, t, xyz) -> None:
-        pass
-
     def estimates(self, batch: EstimateBatch) -> None:
         self.batches.append(batch)
-
-    def reference(self, name, t, q_wd) -> None:
-        pass
-
-    def event(self, ev) -> None:
-        pass
-
-    def calibration(self, t, cal) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def load_calibration(path) -> MagCalibration:

@@ -16,6 +16,10 @@ A sink receives, in time order and in chunks, what the replay drives through the
     :class:`pdr_mag.estimates.Event` and each new :class:`pdr_mag.calibration.MagCalibration`.
 ``close()``
     flush and finish the file.
+
+A sink with ``wants_mag_calibrated = False`` does not get the calibrated samples, and the replay may then
+run the pipeline without collecting them (a sink without the attribute gets them).  :class:`QuietSink`
+ignores every call: a sink that wants only some of them derives from it and overrides those.
 """
 
 from __future__ import annotations
@@ -44,3 +48,34 @@ class Sink(Protocol):
     def calibration(self, t: float, cal) -> None: ...
 
     def close(self) -> None: ...
+
+
+class QuietSink:
+    """A sink that ignores every call and does not want the calibrated magnetometer samples; derive from it
+    and override what the sink uses."""
+
+    wants_mag_calibrated = False
+
+    def open(self, meta: dict) -> None:
+        pass
+
+    def inputs(self, kind: str, t: np.ndarray, xyz: np.ndarray) -> None:
+        pass
+
+    def mag_calibrated(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        pass
+
+    def estimates(self, batch) -> None:
+        pass
+
+    def reference(self, name: str, t: np.ndarray, q_wd: np.ndarray) -> None:
+        pass
+
+    def event(self, ev) -> None:
+        pass
+
+    def calibration(self, t: float, cal) -> None:
+        pass
+
+    def close(self) -> None:
+        pass

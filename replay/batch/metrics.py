@@ -27,11 +27,11 @@ Quantiles
 from __future__ import annotations
 
 import math
-from collections import Counter
 
 import numpy as np
 
-from pdr_mag.conventions import quat_multiply, quat_slerp
+from pdr_mag.conventions import quat_multiply, quat_slerp, wrap_deg
+from pdr_mag.sinks import QuietSink
 
 #: Histogram bin width, deg: quantiles are given to within half of it.
 BIN_DEG = 0.01
@@ -77,7 +77,7 @@ def heading_error_deg(q_est: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     """Signed heading error, deg: the twist about Up of ``e = q_est ⊗ q_ref⁻¹`` (w-first), in [-180, 180)."""
     conj = np.asarray(q_ref, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])
     e = quat_multiply(q_est, conj)
-    return np.mod(np.degrees(2.0 * np.arctan2(e[:, 3], e[:, 0])) + 180.0, 360.0) - 180.0
+    return wrap_deg(np.degrees(2.0 * np.arctan2(e[:, 3], e[:, 0])))
 
 
 class _Reference:
@@ -108,13 +108,10 @@ class _Reference:
         self.errors.add(np.abs(heading_error_deg(qs[near], q_ref)))
 
 
-class FleetMetrics:
+class FleetMetrics(QuietSink):
     """A replay sink (:class:`pdr_mag.sinks.Sink`) that keeps what a fleet-table row needs: output rows,
     the share flagged as interference and corrected by the magnetometer, quantiles of ``heading_std_deg``
-    and of the heading error against each reference, and event counts by kind."""
-
-    #: It reads estimates only: the pipeline need not keep the calibrated magnetometer for it.
-    wants_mag_calibrated = False
+    and of the heading error against each reference (the event counts are the replay summary's)."""
 
     def __init__(self):
         self.meta: dict = {}
@@ -123,16 +120,9 @@ class FleetMetrics:
         self.n_mag_used = 0
         self.heading_std = Histogram()
         self.references: dict[str, _Reference] = {}
-        self.events: Counter = Counter()
 
     def open(self, meta: dict) -> None:
         self.meta = dict(meta)
-
-    def inputs(self, kind, t, xyz) -> None:
-        pass
-
-    def mag_calibrated(self, t, xyz) -> None:
-        pass
 
     def estimates(self, batch) -> None:
         n = len(batch)
@@ -150,15 +140,6 @@ class FleetMetrics:
     def reference(self, name, t, q_wd) -> None:
         if name in REFERENCES:
             self.references[name] = _Reference(t, q_wd)
-
-    def event(self, ev) -> None:
-        self.events[ev.kind] += 1
-
-    def calibration(self, t, cal) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
     def share(self, count: int) -> float | None:
         """``count`` as a share of the output rows (None without rows)."""

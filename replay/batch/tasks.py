@@ -32,7 +32,8 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import asdict, dataclass, field
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from replay.batch.table import EVENT_COLUMNS, empty_row, error_row
@@ -247,8 +248,9 @@ def _run_replay(task: Task, stage: Path) -> dict:
     row["heading_std_median_deg"] = metrics.heading_std.quantile(0.5)
     row["heading_std_p95_deg"] = metrics.heading_std.quantile(0.95)
     row["n_events"] = len(summary["events"])
+    kinds = Counter(e["kind"] for e in summary["events"])
     for kind, col in EVENT_COLUMNS.items():
-        row[col] = metrics.events.get(kind, 0)
+        row[col] = kinds.get(kind, 0)
     for name in ("truth", "os"):
         row[f"heading_err_{name}_median_deg"] = metrics.error_quantile(name, 0.5)
         row[f"heading_err_{name}_p95_deg"] = metrics.error_quantile(name, 0.95)
@@ -284,8 +286,3 @@ def _run_diagnose(task: Task, stage: Path) -> dict:
 
 
 _RUNNERS = {"replay": _run_replay, "calibrate": _run_calibrate, "diagnose": _run_diagnose}
-
-
-def task_dict(task: Task) -> dict:
-    """The task as plain data (for logs and a backend's own bookkeeping)."""
-    return asdict(task)

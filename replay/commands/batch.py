@@ -20,6 +20,7 @@ from pathlib import Path
 
 import click
 
+from replay.commands.calibrate import METHODS
 from replay.errors import InputError
 
 
@@ -63,8 +64,7 @@ def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, calibr
 
 @command.command("calibrate")
 @_common
-@click.option("--method", type=click.Choice(("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9",
-                                             "twostep")),
+@click.option("--method", type=click.Choice(METHODS),
               default="auto", show_default=True, help="Estimator (as pdr-mag calibrate).")
 def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, method):
     """Calibrate every recording: calibration.json per recording (pdr-mag calibrate --json)."""

@@ -22,12 +22,13 @@ if TYPE_CHECKING:
     from pdr_mag.calibration.model import MagCalibration
     from replay.recording import Recording
 
-_METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
+#: the estimators `--method` accepts (also `pdr-mag batch calibrate`)
+METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
 
 
 @click.command()
 @click.argument("rec", type=click.Path(path_type=Path))
-@click.option("--method", type=click.Choice(_METHODS), default="auto", show_default=True,
+@click.option("--method", type=click.Choice(METHODS), default="auto", show_default=True,
               help="Estimator: auto (geometric ML, model by BIC), sphere, ellipsoid, als, ml; "
                    "also radial (seed 000), lm9 (seed 001), twostep.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False),
