@@ -236,7 +236,7 @@ class FusionSettings:
         ``d_tol² = tol_F² + (F tol_I)²``, and a field that passes between them is turned by such a
         disturbance's unseen component as often: ``std_flag_k · s_flag · d_tol² / 2`` is added to c's
         unmodelled variance (× 1/B_h²).  0 = off.  Together with ``std_env_k`` the truth lies beyond 3σ in
-        at most 2 % of any tyrex walk's frames, at the price of a conservative std in disturbed buildings
+        at most 3.4 % of any tyrex walk's frames, at the price of a conservative std in disturbed buildings
         (median 18–20° there; the variants measured are in benchmarks/NOTES.md).
     mag_interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
@@ -417,17 +417,25 @@ class FusionCore:
             raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
         self._st["cal_cov"] = 0.5 * (c + c.T)
 
-    def note_calibration_change(self, dm_uT) -> None:
-        """The calibration in force changed the calibrated field by ``dm`` (device frame, µT; for an offset
-        change ``M (b_old − b_new)``).  The heading so far was taken from fields with the old calibration,
-        so it carries the heading error ``g · dm`` that the change removes from the fields from now on
-        (``g = ∂ψ/∂m_d`` at the next sample's orientation): that variance joins the heading's at the next
-        magnetometer sample, and a field the new calibration turns by tens of degrees is then within the
-        gate rather than rejected until a re-acquisition."""
-        d = np.asarray(dm_uT, dtype=float)
-        if d.shape != (3,) or not np.all(np.isfinite(d)):
-            raise ValueError(f"dm_uT: expected a finite 3-vector in µT, got {dm_uT!r}")
-        self._st["cal_jump"] = self._st["cal_jump"][0] + d
+    def note_calibration_change(self, matrix_old, offset_old, matrix_new, offset_new) -> None:
+        """The calibration in force changed from ``m = M_old (r − b_old)`` to ``m = M_new (r − b_new)`` (r the
+        raw field).  A field calibrated with the new one, ``m``, was ``m − dm`` with the old, where
+        ``dm = D m + e``, ``D = I − M_old M_new⁻¹``, ``e = M_old (b_old − b_new)``.  The heading so far was
+        taken from the old fields, so it carries the heading error ``g · dm`` that the change removes
+        (``g = ∂ψ/∂m_d``): at the next usable magnetometer sample that variance joins the heading's, and a
+        field the new calibration turns by tens of degrees is then within the gate rather than rejected until
+        a re-acquisition.  Changes before that sample add up (to first order)."""
+        arrays = []
+        for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
+                               ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
+            a = np.asarray(v, dtype=float)
+            if a.shape != shape or not np.all(np.isfinite(a)):
+                raise ValueError(f"{name}: expected finite values of shape {shape}, got {v!r}")
+            arrays.append(a)
+        m_old, b_old, m_new, b_new = arrays
+        st = self._st[0]
+        st["cal_jump_d"] += np.eye(3) - m_old @ np.linalg.inv(m_new)
+        st["cal_jump_e"] += m_old @ (b_old - b_new)
 
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:

@@ -485,8 +485,8 @@ class HeadingPipeline:
         cal = self.online.calibration
         old = self._cal_in_use
         if not restored and cal is not None and old is not None and cal is not old:
-            # the fields change by M (b_old − b_new): the heading taken from the old ones carries that
-            self.fusion.note_calibration_change(cal.matrix @ (old.offset_array - cal.offset_array))
+            # the heading taken from the fields of the old calibration carries what the change removes
+            self.fusion.note_calibration_change(old.matrix, old.offset_array, cal.matrix, cal.offset_array)
         self._cal_in_use = cal
         self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
         self._mag_matrix_t = None

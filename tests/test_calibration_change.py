@@ -26,7 +26,7 @@ def _after_switch(seed: int, note: bool) -> float:
     core = FusionCore(field=w.field)
     b1 = core.process(kind[first], t[first], xyz[first])
     if note:
-        core.note_calibration_change(-dm)
+        core.note_calibration_change(np.eye(3), -dm, np.eye(3), np.zeros(3))
     b2 = core.process(kind[~first], t[~first], right[~first])
     tr, err, _ = twist_error_deg(EstimateBatch.concat([b1, b2]), w.truth)
     after = (tr > ts + 5.0) & (tr < ts + 15.0)
@@ -46,8 +46,8 @@ def test_a_noted_calibration_change_lets_the_right_field_in():
 
 def test_a_bad_calibration_change_is_rejected():
     core = FusionCore()
-    with pytest.raises(ValueError, match="dm_uT"):
-        core.note_calibration_change([1.0, np.nan, 0.0])
+    with pytest.raises(ValueError, match="offset_old"):
+        core.note_calibration_change(np.eye(3), [1.0, np.nan, 0.0], np.eye(3), np.zeros(3))
 
 
 def test_broad_recalibration_recovers_the_heading_at_once():
@@ -69,3 +69,18 @@ def test_broad_recalibration_recovers_the_heading_at_once():
     tr, err, _ = twist_error_deg(b, (tt[ok], qt[ok]))
     after = (tr > recal[0] + 5.0) & (tr < recal[0] + 15.0)
     assert np.max(np.abs(err[after])) < 10.0
+
+
+def test_the_noted_change_is_the_fields_change_with_soft_iron_too():
+    """``dm = D m + e`` is exactly the change of the calibrated field of any raw sample, when the soft-iron
+    matrix changes as well as the offset (a full fit replacing an offset-only one)."""
+    rng = np.random.default_rng(3)
+    m_old, b_old = np.eye(3), np.array([10.0, -4.0, 30.0])
+    a = np.eye(3) + 0.05 * rng.normal(size=(3, 3))
+    m_new, b_new = 0.5 * (a + a.T), np.array([12.0, -1.0, 27.0])
+    core = FusionCore()
+    core.note_calibration_change(m_old, b_old, m_new, b_new)
+    st = core._st[0]
+    for raw in rng.normal(scale=50.0, size=(5, 3)):
+        new, old = m_new @ (raw - b_new), m_old @ (raw - b_old)
+        assert np.allclose(st["cal_jump_d"] @ new + st["cal_jump_e"], new - old, rtol=0.0, atol=1e-9)

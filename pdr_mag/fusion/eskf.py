@@ -206,6 +206,9 @@ def settle_u(s):
             U[m, i] += U[m, 3] * G[i, 0] + U[m, 4] * G[i, 1] + U[m, 5] * G[i, 2]
         U[m, 6] *= phi
     U[6, 6] += s.u_var * (1.0 - phi * phi)
+    for i in range(NX):  # the row and column passes agree but for rounding: keep U exactly symmetric
+        for m in range(i + 1, NX):
+            U[m, i] = U[i, m]
     if U[TH_Z, TH_Z] > np.pi**2:  # an unknown heading is uniform
         fs = np.pi / np.sqrt(U[TH_Z, TH_Z])
         for i in range(NX):
@@ -260,9 +263,9 @@ def inject(s, dx):
     s.c += dx[C_ERR]
     for i in range(NX):
         dx[i] = 0.0
-    for P in (s.P, s.U):  # keep both covariances symmetric
-        for i in range(NX):
-            for m in range(i + 1, NX):
-                v = 0.5 * (P[i, m] + P[m, i])
-                P[i, m] = v
-                P[m, i] = v
+    P = s.P
+    for i in range(NX):  # keep P symmetric (U is kept so by carry and settle_u)
+        for m in range(i + 1, NX):
+            v = 0.5 * (P[i, m] + P[m, i])
+            P[i, m] = v
+            P[m, i] = v

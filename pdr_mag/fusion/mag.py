@@ -59,8 +59,9 @@ same form with its own c and no white noise, ``U_cc`` starting at the place's un
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
 :meth:`pdr_mag.attitude.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
-``g · dm`` in heading (``g = ∂ψ/∂m_d``, see :func:`_calibration_variance`): at the next usable sample that
-variance joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once.
+``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next usable sample that
+variance joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once.  (A change
+of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
 """
 
 from __future__ import annotations
@@ -115,8 +116,10 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     bh = np.sqrt(mwx * mwx + mwy * mwy) * f
     if bh < 1e-3:
         return
-    _calibration_variance(s, R, mwx * f, mwy * f)
-    _calibration_jump(s, R, mwx * f, mwy * f)
+    g = np.empty(3)
+    _heading_gradient(R, mwx * f, mwy * f, g)
+    _calibration_variance(s, g)
+    _calibration_jump(s, g, mx, my, mz)
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
@@ -210,39 +213,43 @@ def _reacquire(s, R, jump, h, rv, t, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _calibration_variance(s, R, ex, ny):
-    """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
-    (device frame) causes at this orientation, ``g = ∂ψ/∂m_d = (m_y R_x − m_x R_y) / B_h²`` (rows x, y of
-    R; ``m_x, m_y`` the field's east and north components)."""
+def _heading_gradient(R, ex, ny, g):
+    """``g ← ∂ψ/∂m_d = (m_y R_x − m_x R_y) / B_h²`` (rows x, y of R; ``m_x, m_y`` the field's east and
+    north components): how the heading turns with the calibrated field in the device frame."""
     bh2 = ex * ex + ny * ny
-    if bh2 <= 0.0:
-        return
-    g0 = (ny * R[0, 0] - ex * R[1, 0]) / bh2
-    g1 = (ny * R[0, 1] - ex * R[1, 1]) / bh2
-    g2 = (ny * R[0, 2] - ex * R[1, 2]) / bh2
-    C = s.cal_cov
-    s.cal_var = (
-        g0 * (C[0, 0] * g0 + C[0, 1] * g1 + C[0, 2] * g2)
-        + g1 * (C[1, 0] * g0 + C[1, 1] * g1 + C[1, 2] * g2)
-        + g2 * (C[2, 0] * g0 + C[2, 1] * g1 + C[2, 2] * g2)
-    )
+    for m in range(3):
+        g[m] = (ny * R[0, m] - ex * R[1, m]) / bh2 if bh2 > 0.0 else 0.0
 
 
 @njit(cache=True, error_model="numpy")
-def _calibration_jump(s, R, ex, ny):
-    """A calibration change ``dm`` noted since the last sample: the heading variance grows by ``(g · dm)²``
-    (g as in :func:`_calibration_variance`), capped at π²; once the heading is known."""
-    d = s.cal_jump
-    if d[0] == 0.0 and d[1] == 0.0 and d[2] == 0.0:
+def _calibration_variance(s, g):
+    """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
+    (device frame) causes at this orientation (g from :func:`_heading_gradient`)."""
+    C = s.cal_cov
+    v = 0.0
+    for i in range(3):
+        v += g[i] * (C[i, 0] * g[0] + C[i, 1] * g[1] + C[i, 2] * g[2])
+    s.cal_var = v
+
+
+@njit(cache=True, error_model="numpy")
+def _calibration_jump(s, g, mx, my, mz):
+    """A calibration change noted since the last usable sample (``dm = D m + e``, m this calibrated sample,
+    :meth:`pdr_mag.attitude.FusionCore.note_calibration_change`): the heading variance grows by
+    ``(g · dm)²``, capped at π², once the heading is known."""
+    D, e = s.cal_jump_d, s.cal_jump_e
+    if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0 and not np.any(D != 0.0):
         return
-    bh2 = ex * ex + ny * ny
-    if s.init >= 2 and bh2 > 0.0:
+    if s.init >= 2:
         v = 0.0
-        for m in range(3):
-            v += (ny * R[0, m] - ex * R[1, m]) / bh2 * d[m]
+        for i in range(3):
+            v += g[i] * (D[i, 0] * mx + D[i, 1] * my + D[i, 2] * mz + e[i])
         P = s.P
         P[TH_Z, TH_Z] = min(P[TH_Z, TH_Z] + v * v, np.pi**2)
-    d[0], d[1], d[2] = 0.0, 0.0, 0.0
+    for i in range(3):
+        e[i] = 0.0
+        for m in range(3):
+            D[i, m] = 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -254,10 +261,7 @@ def _environment_step(s, dmin2, t, det, p):
     if np.isfinite(s.t_env):
         a = ew_alpha(t - s.t_env, p.mag_env_tau_s)
         s.env_d2 += a * (dmin2 - s.env_d2)
-        w = s.env_w + a * (1.0 - s.env_w)
-        if w > 0.0:
-            s.env_seen2 += a * (dmin2 - s.env_seen2) / w
-        s.env_w = w
+        s.env_seen2, s.env_w = _ew_seen(s.env_seen2, s.env_w, dmin2, a)
     else:  # the first sample is the level seen until the next (its weight is nil)
         s.env_d2 = max(dmin2, p.mag_env_prior_uT**2)
         s.env_seen2 = dmin2
@@ -268,6 +272,17 @@ def _environment_step(s, dmin2, t, det, p):
 
 
 @njit(cache=True, error_model="numpy")
+def _ew_seen(mean, w, x, a):
+    """One sample x into an exponentially weighted mean of the samples seen (weight ``a`` of this one):
+    ``w ← w + a (1 − w)``, ``mean ← mean + a (x − mean) / w`` — normalised by the weight seen, so it is
+    not pulled towards a start value.  Returns ``(mean, w)``."""
+    w = w + a * (1.0 - w)
+    if w > 0.0:
+        mean += a * (x - mean) / w
+    return mean, w
+
+
+@njit(cache=True, error_model="numpy")
 def _flag_share_step(s, flag, f, t, det, p):
     """The share of flagged samples, EW over ``mag_env_tau_s`` and normalised by the weight of the samples
     seen (so the first seconds give the share of what was seen, not a mean pulled towards the first
@@ -275,11 +290,7 @@ def _flag_share_step(s, flag, f, t, det, p):
     the consider covariance's part of c, :func:`pdr_mag.fusion.gyro.unmodelled_var`)."""
     x = 1.0 if flag else 0.0
     if np.isfinite(s.t_flag):
-        a = ew_alpha(t - s.t_flag, p.mag_env_tau_s)
-        w = s.flag_w + a * (1.0 - s.flag_w)
-        if w > 0.0:
-            s.flag_share += a * (x - s.flag_share) / w
-        s.flag_w = w
+        s.flag_share, s.flag_w = _ew_seen(s.flag_share, s.flag_w, x, ew_alpha(t - s.t_flag, p.mag_env_tau_s))
     else:  # the first sample is the share seen until the next (its weight is nil)
         s.flag_share = x
     s.t_flag = t

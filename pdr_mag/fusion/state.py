@@ -77,11 +77,12 @@ STATE = np.dtype(
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
-        ("cal_jump", np.float64, (3,)),  # change of the calibrated field at a calibration change, µT (device)
+        ("cal_jump_d", np.float64, (3, 3)),  # a calibration change: the old field is m − (D m + e), m the new
+        ("cal_jump_e", np.float64, (3,)),  # … (µT, device frame; both zero: no change pending)
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
         ("env_seen2", np.float64),  # the same mean over the samples seen only (no prior), µT²
-        ("env_w", np.float64),  # its EW weight of the samples seen (1 − e^(−T/τ) at a uniform rate)
+        ("env_w", np.float64),  # its EW weight of the samples seen (1 − e^(−(t − t_first)/τ))
         ("flag_share", np.float64),  # EW share of flagged samples over mag_env_tau_s (of the weight seen)
         ("flag_w", np.float64),  # the EW weight of the samples seen so far (1 − e^(−T/τ) at uniform rate)
         ("flag_d2", np.float64),  # the detectors' tolerance as a disturbance, tol_F² + (F tol_I)², µT²
