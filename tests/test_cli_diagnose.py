@@ -77,3 +77,22 @@ def test_bad_input_is_exit_2_one_line(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "gyro" in err
     assert main(["diagnose", str(d), "--use-truth"]) == 2
     assert "truth" in capsys.readouterr().err
+
+
+def test_the_summary_names_the_effect_added_not_the_top_score():
+    """A round whose top-scoring candidate failed the recording's own null and whose second was added: the
+    round's line names the one added; the last round, which added nothing, names its best score."""
+    from replay.commands.diagnose import summary
+
+    def cand(rnd, effect, score, passed):
+        return {"round": rnd, "effect": effect, "score": score, "gap": 1.0, "significant": passed,
+                "null": {"passed": passed}}
+
+    d = {"n_samples": 10, "duration_s": 1.0, "orientation": "fusion",
+         "baseline": {"effects": ["hard_iron"], "gap": 2.0},
+         "final": {"effects": ["hard_iron", "b"], "gap": 1.0},
+         "missing_effects": ["b"],
+         "rounds": [[cand(1, "a", 9.0, False), cand(1, "b", 5.0, True)], [cand(2, "c", 3.0, False)]]}
+    lines = summary(d, "rec").splitlines()
+    assert "round 1: b (score 5.0" in lines[2] and lines[2].endswith("— added")
+    assert "round 2: best c" in lines[3] and "own null" in lines[3]

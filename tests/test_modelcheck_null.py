@@ -76,13 +76,13 @@ def test_surrogate_keeps_noise_along_the_field_and_power_across_it(walk_fit):
     for s in reps:
         s_par = _along(s, h)
         # along the field: white noise of the residual's own σ (the sample σ of 3000 draws: ±1.3 %)
-        assert np.std(s_par) == pytest.approx(robust_sigma(par), rel=0.08)
+        assert np.std(s_par) == pytest.approx(robust_sigma(par), rel=0.05)
         assert abs(np.corrcoef(s_par[1:], s_par[:-1])[0, 1]) < 0.08  # white
         power.append(np.mean(np.sum(s**2, axis=1) - s_par**2))
         # not the residual itself
         assert abs(np.corrcoef(s[:, 0], f.residual[:, 0])[0, 1]) < 0.5
     # across it: the residual's power on average (random phases keep the amplitude spectrum; the
-    # envelope of the band of bursts makes a replicate's power vary by ≈ 15 %)
+    # envelope of the band of bursts makes a replicate's power vary, by ≈ 8 % here)
     assert np.mean(power) == pytest.approx(np.mean(perp2), rel=0.2)
 
 

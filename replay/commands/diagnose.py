@@ -156,15 +156,20 @@ def summary(d: dict, rec) -> str:
     lines = [f"diagnose {rec}: {d['n_samples']} mag samples, {d['duration_s']:.1f} s, orientation "
              f"from {d['orientation']}",
              f"  baseline {'+'.join(d['baseline']['effects'])}: gap {d['baseline']['gap']:.3f} µT"]
-    for rnd in d["rounds"]:
-        best = max(rnd, key=lambda c: c["score"] if c["score"] is not None else -np.inf, default=None)
+    added = d["missing_effects"]
+    for i, rnd in enumerate(d["rounds"]):
+        # the round's line names the effect added in it (chosen after the null test, not always the top
+        # score); a round that added nothing names its best score
+        pick = [c for c in rnd if i < len(added) and c["effect"] == added[i]]
+        best = pick[0] if pick else max(
+            rnd, key=lambda c: c["score"] if c["score"] is not None else -np.inf, default=None)
         if best is None:
             continue
-        mark = "added" if best["significant"] else "not significant"
-        if not best["significant"] and best.get("null") and not best["null"]["passed"]:
+        mark = "added" if pick else "not significant"
+        if not pick and best.get("null") and not best["null"]["passed"]:
             mark = "not significant: it fits no more than on the recording's own null"
-        lines.append(f"  round {best['round']}: best {best['effect']} (score {best['score']}, gap "
-                     f"{best['gap']:.3f} µT) — {mark}")
+        lines.append(f"  round {best['round']}: {'' if pick else 'best '}{best['effect']} (score "
+                     f"{best['score']}, gap {best['gap']:.3f} µT) — {mark}")
     lines.append(f"  missing effects: {', '.join(d['missing_effects']) or 'none'}")
     lines.append(f"  final {'+'.join(d['final']['effects'])}: gap {d['final']['gap']:.3f} µT")
     return "\n".join(lines)
