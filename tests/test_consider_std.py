@@ -42,7 +42,8 @@ def _steel_area(seed: int):
 def test_the_std_covers_a_turned_field_the_detectors_pass(seed):
     """From the steel area's start to 15 s after it: with the filter's own std the truth is beyond 3σ in
     9.5–17 % of the rows on these seeds and within 2σ in 62–64 % (measured); with the consider part the std
-    covers it — none beyond 3σ, ≥ 95 % within 2σ — and the estimate is the same, bit for bit (one run)."""
+    covers it — none beyond 3σ, ≥ 95 % within 2σ, σ at most 25° (measured; < 30° asserted) — and the
+    estimate is the same, bit for bit (one run)."""
     w, md, t0 = _steel_area(seed)
     kind, t, xyz = merge(w, mag=md)
     b_own = FusionCore(OWN, field=w.field).process(kind, t, xyz)
@@ -56,6 +57,7 @@ def test_the_std_covers_a_turned_field_the_detectors_pass(seed):
     assert np.mean(np.abs(err[s]) > 3.0 * sd_own[s]) > 0.05  # the filter's own std is overconfident here
     assert np.mean(np.abs(err[s]) > 3.0 * sd[s]) == 0.0
     assert np.mean(np.abs(err[s]) <= 2.0 * sd[s]) >= 0.95
+    assert np.max(sd[s]) < 30.0  # covering it by a std that says nothing would pass the two above
 
 
 def test_no_consider_part_on_a_clean_walk_without_flags():
@@ -70,7 +72,7 @@ def test_no_consider_part_on_a_clean_walk_without_flags():
     assert np.array_equal(b.q_wd, b_own.q_wd)
     late = b.t > b.t[0] + 10.0
     extra = b.heading_std_deg[late] - b_own.heading_std_deg[late]
-    assert np.all(extra >= -1e-9) and np.median(extra) < 0.5
+    assert np.all(extra >= -1e-9) and np.median(extra) < 0.15
 
 
 def test_the_pending_prediction_of_u_equals_its_steps():

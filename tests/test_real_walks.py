@@ -117,8 +117,16 @@ def _xfail(entry: tuple[str, bool]):
     )
 
 
-def _params(xfails: dict):
-    return [pytest.param(w, marks=_xfail(xfails[w])) if w in xfails else w for w in WALKS]
+def _known_miss(request, xfails: dict, walk: str, mean: float, bound: float, ceiling: float) -> None:
+    """A listed walk is an expected failure, but not a free pass: a non-strict entry (within 15 % of its
+    bound, either side within reach of another CPU's rounding) must stay within 1.15 × its bound, a strict
+    one within issue 10's line (``ceiling``); beyond that it fails as a regression."""
+    entry = xfails.get(walk)
+    if entry is None:
+        return
+    limit = ceiling if entry[1] else 1.15 * bound
+    assert mean <= limit, f"{walk}: {mean:.1f}° beyond even its known miss ({limit:.1f}°)"
+    request.applymarker(_xfail(entry))
 
 
 # ------------------------------------------------------------------------------------------ machinery
@@ -212,18 +220,20 @@ def _best(p: dict, suffix: str) -> float:
     return min(v for k, v in p.items() if k.endswith(suffix))
 
 
-@pytest.mark.parametrize("walk", _params(XFAIL_A))
-def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run):
+@pytest.mark.parametrize("walk", WALKS)
+def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run, request):
     mean, _ = run(walk, "a")
     bound = min(max(_best(peers[walk], "_cal_gcal") + MARGIN_DEG, FLOOR_DEG), FAIL_A_DEG)
+    _known_miss(request, XFAIL_A, walk, mean, bound, FAIL_A_DEG)
     assert mean <= bound, f"{walk}: mode a {mean:.1f}° > {bound:.1f}°"
 
 
-@pytest.mark.parametrize("walk", _params(XFAIL_B))
-def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run):
+@pytest.mark.parametrize("walk", WALKS)
+def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run, request):
     mean, _ = run(walk, "b")
     p = peers[walk]
-    bound = min(max(p["os"], _best(p, "_cal")), FAIL_B_DEG) + MARGIN_DEG
+    bound = min(max(p["os"], _best(p, "_cal")) + MARGIN_DEG, FAIL_B_DEG)
+    _known_miss(request, XFAIL_B, walk, mean, bound, FAIL_B_DEG)
     assert mean <= bound, f"{walk}: mode b {mean:.1f}° > {bound:.1f}°"
 
 
