@@ -4,8 +4,8 @@ What the heading filter has to assume — a constant Earth field of the World Ma
 inclination I, and one hard-iron offset for the walk — is measured here against the walks themselves.  For
 every walk of ``../shared/datasets/tyrex-pdrcsv`` with the day's calibration (``pdr-mag calibrate`` on its
 ``calib_mag_*`` recording, as ``heading.py`` makes it), each magnetometer sample ``m_i`` is calibrated,
-``y_i = A (m_i − b)``, and turned into the mocap (ENU) frame with the truth attitude ``R_i`` (nearest truth
-frame): ``B_i = R_i y_i``.  Per walk:
+``y_i = A (m_i − b)``, and turned into the mocap (ENU) frame with the truth attitude ``R_i`` (the truth
+frame at or after the sample, 60 Hz): ``B_i = R_i y_i``.  Per walk:
 
 * the strength ``|B_i|`` and the inclination ``I_i = asin(−B_z / |B|)``: median and 10–90 % range, against
   the WMM of ``trial.json``;
@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, write_section  # noqa: E402
-from heading import DATA, discover_walks, make_day_files, trial_info  # noqa: E402
+from heading import DATA, day_files, discover_walks, trial_info  # noqa: E402
 
 NOTES = ROOT / "benchmarks" / "NOTES.md"
 SECTION = "## Field truth: what the tyrex walks' field really was"
@@ -85,11 +85,9 @@ def walk_field(job: tuple[str, str]) -> dict:
 
 
 def run(walks: list[str], jobs: int) -> list[dict]:
-    infos = {w: trial_info(w) for w in walks}
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(jobs) as ex:
-        days = sorted({(i["calib"], i["calib_gyr"], tmp) for i in infos.values()})
-        cal_file = {c: p for c, p, _ in ex.map(make_day_files, days)}
-        return list(ex.map(walk_field, [(w, cal_file[infos[w]["calib"]]) for w in walks]))
+        made = day_files(walks, ex, tmp)
+        return list(ex.map(walk_field, [(w, made[w][0]) for w in walks]))
 
 
 def table(rows: list[dict]) -> list[str]:

@@ -10,8 +10,9 @@ peers vqf and imufusion run on the same streams with the raw (factory-calibrated
 ``benchmarks/_peers.py`` feeds them.  The truth's north is the lab's magnetic north, as is ours without
 a location and the peers'.
 
-Heading error: the twist about up of ``q_est q_true⁻¹`` at the truth's samples (NaN rows dropped), over the
-whole trial after the first 5 s of our output (rest phases included: a heading must hold at rest too);
+Heading error: the shared tyrex scorer's (the twist about up of ``q_est q_true⁻¹``, interpolated at the
+truth's samples, NaN rows and gaps of more than 1 s between estimates left out), over the whole trial after
+the first 5 s of our output (rest phases included: a heading must hold at rest too);
 our honesty over the same frames: within 1σ / 2σ of ``heading_std_deg``, the share beyond 3σ, and frames
 more than 45° off while σ ≤ 20°.
 
@@ -27,27 +28,28 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_section  # noqa: E402
+from _common import SHARED, load_scorer, write_section  # noqa: E402
 from _peers import on_gyro_grid, run_imufusion, run_vqf  # noqa: E402
+from heading import honesty  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "broad" / "data_mat"
+DATA = SHARED / "datasets" / "broad" / "data_mat"
 SECTION = "## Heading on BROAD (a lab IMU with optical truth)"
 
 
-def twist_deg(t_est, q_est, t_true, q_true) -> tuple[np.ndarray, np.ndarray]:
-    """Signed heading error at the truth's times inside the estimate's span: the twist about up of
-    ``q_est q_true⁻¹`` (w-first quaternions), deg; and the mask of those times."""
-    inside = (t_true >= t_est[0]) & (t_true <= t_est[-1])
-    sl = Slerp(t_est, Rotation.from_quat(np.asarray(q_est)[:, [1, 2, 3, 0]]))
-    e = (sl(t_true[inside]) * Rotation.from_quat(q_true[inside][:, [1, 2, 3, 0]]).inv()).as_quat()
-    h = np.degrees(2.0 * np.arctan2(e[:, 2], e[:, 3]))
-    return (h + 180.0) % 360.0 - 180.0, inside
+def twist_deg(score, t_est, q_est, t_true, q_true) -> tuple[np.ndarray, np.ndarray]:
+    """Signed heading error at the truth's times, deg, as the shared scorer measures it (``slerp_at`` and
+    ``error_angles``; times outside the estimate's span or across a gap of more than 1 s between its rows
+    left out), and the mask of the times kept."""
+    qi, valid = score.C.slerp_at(t_est, q_est, t_true)
+    idx = np.clip(np.searchsorted(t_est, t_true, side="right") - 1, 0, len(t_est) - 2)
+    valid &= (t_est[idx + 1] - t_est[idx]) <= 1.0
+    _, head, _ = score.error_angles(qi[valid], q_true[valid])
+    return head, valid
 
 
-def _ours(rec, tt, qt, calibration) -> tuple[dict, float]:
+def _ours(score, rec, tt, qt, calibration) -> tuple[dict, float]:
     """Replay with ``calibration`` (None: none given); the figures, and our first output time."""
     from pdr_mag.estimates import EstimateBatch
     from replay.run import MemorySink, replay
@@ -55,18 +57,19 @@ def _ours(rec, tt, qt, calibration) -> tuple[dict, float]:
     sink = MemorySink()
     summary = replay(rec, calibration=calibration, sinks=[sink], progress=False)
     b = EstimateBatch.concat(sink.batches)
-    err, inside = twist_deg(b.t, b.q_wd, tt, qt)
-    ts = tt[inside]
-    keep = ts >= b.t[0] + 5.0
-    err, ts = np.abs(err[keep]), ts[keep]
-    sd = np.interp(ts, b.t, b.heading_std_deg)
+    err, kept = twist_deg(score, b.t, b.q_wd, tt, qt)
+    ts = tt[kept]
+    late = ts >= b.t[0] + 5.0
+    err, ts = np.abs(err[late]), ts[late]
+    h = honesty(err, np.interp(ts, b.t, b.heading_std_deg))
+    n = max(h["n"], 1)
     return {
         "mean": float(np.mean(err)),
         "p95": float(np.percentile(err, 95)),
-        "in1": float(np.mean(err <= sd)),
-        "in2": float(np.mean(err <= 2.0 * sd)),
-        "out3": float(np.mean(err > 3.0 * sd)),
-        "kept_wrong": int(np.sum((err > 45.0) & (sd <= 20.0))),
+        "in1": h["within_1sigma"] / n,
+        "in2": h["within_2sigma"] / n,
+        "out3": h["beyond_3sigma"] / n,
+        "kept_wrong": h["kept_wrong"],
         "recalibrations": sum(e["kind"] == "recalibrated" for e in summary["events"]),
     }, float(b.t[0])
 
@@ -79,15 +82,16 @@ def run_trial(path: Path) -> dict:
     tt, qt = rec.truth
     ok = np.all(np.isfinite(qt), axis=1)
     tt, qt = tt[ok], qt[ok]
+    score = load_scorer()
     row = {"trial": path.stem}
-    row["b"], t_first = _ours(rec, tt, qt, None)
+    row["b"], t_first = _ours(score, rec, tt, qt, None)
     # the factory calibration the peers are given: offset 0, no soft iron
-    row["a"], _ = _ours(rec, tt, qt, MagCalibration.from_arrays([0.0, 0.0, 0.0], method="factory"))
+    row["a"], _ = _ours(score, rec, tt, qt, MagCalibration.from_arrays([0.0, 0.0, 0.0], method="factory"))
     tg, gyr, acc, mag = on_gyro_grid(rec, rec.mag.xyz)
     for name, run in (("vqf", run_vqf), ("imufusion", run_imufusion)):
         q = run(tg, gyr, acc, mag)
-        e, inside = twist_deg(tg, q, tt, qt)
-        e = np.abs(e[tt[inside] >= t_first + 5.0])
+        e, kept = twist_deg(score, tg, q, tt, qt)
+        e = np.abs(e[tt[kept] >= t_first + 5.0])
         row[name] = float(np.mean(e))
     return row
 

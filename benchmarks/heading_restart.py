@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_scorer, write_section  # noqa: E402
-from heading import DATA, FAIL, Truth, discover_walks, make_day_files, trial_info  # noqa: E402
+from heading import BEYOND_3SIGMA_MAX, DATA, FAIL, KEEP_STD, WRONG, Truth, day_files, discover_walks  # noqa: E402
 
 SECTION = "## Heading after a late start (issue 10)"
 
@@ -83,8 +83,8 @@ def summarise(rows: list[dict]) -> dict:
         "median": float(np.median(means)),
         "over": [int(np.sum(means > f)) for f in FAIL],
         "within_2sigma": float(np.mean(err <= 2.0 * sd)),
-        "beyond_3sigma_walks": int(sum(np.mean(r["err"] > 3.0 * r["std"]) > 0.10 for r in rows)),
-        "wrong_kept": int(np.sum((err > 45.0) & (sd <= 20.0))),
+        "beyond_3sigma_walks": int(sum(np.mean(r["err"] > 3.0 * r["std"]) > BEYOND_3SIGMA_MAX for r in rows)),
+        "wrong_kept": int(np.sum((err > WRONG) & (sd <= KEEP_STD))),
     }
 
 
@@ -117,11 +117,9 @@ def main(argv=None) -> int:
         print(f"no walks found in {DATA}", file=sys.stderr)
         return 2
     t_wall = time.perf_counter()
-    infos = {w: trial_info(w) for w in walks}
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(a.jobs) as ex:
-        days = sorted({(i["calib"], i["calib_gyr"], tmp) for i in infos.values()})
-        cal_file = {c: p for c, p, _ in ex.map(make_day_files, days)}
-        jobs = [(w, cal_file[infos[w]["calib"]], tuple(a.starts)) for w in walks]
+        made = day_files(walks, ex, tmp)
+        jobs = [(w, made[w][0], tuple(a.starts)) for w in walks]
         results = [r for rows in ex.map(run_walk, jobs) for r in rows]
     wall = time.perf_counter() - t_wall
     lines = table(results, a.starts)

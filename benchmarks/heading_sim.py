@@ -184,15 +184,6 @@ def evaluate(settings=None, scenarios=SCENARIOS, seeds=(1, 2, 3), phones=PHONES,
     return rows
 
 
-#: the same benchmark on the fusion before the fixes of issue 4's simulated-walk work (static record)
-
-
-#: the bias-guard change of issue 4's follow-up (static record; the table above is the current code)
-
-
-#: what the std's floor is made of, and what was tried against it (static record)
-
-
 def _mean(rows, col, k):
     return float(np.mean([r[col][k] if isinstance(r[col], tuple) else r[col] for r in rows]))
 
