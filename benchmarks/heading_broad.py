@@ -113,6 +113,21 @@ def table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def reading(rows: list[dict]) -> list[str]:
+    """One line of what the table says, counted from it."""
+    n = len(rows)
+    honest = {m: sum(r[m]["out3"] <= 0.10 for r in rows) for m in ("a", "b")}
+    ahead = sum(r["a"]["mean"] < r["imufusion"] for r in rows)
+    ahead_vqf = sum(r["a"]["mean"] < r["vqf"] for r in rows)
+    worst = max(rows, key=lambda r: r["b"]["mean"])
+    return [
+        f"Mode a: at most 10 % of the frames beyond 3σ on {honest['a']} of {n} trials; below imufusion on"
+        f" {ahead} and below vqf on {ahead_vqf} of {n}.  Mode b: {honest['b']} of {n} within that honesty"
+        f" line; its worst trial is {worst['trial']} ({worst['b']['mean']:.1f}°).",
+        "",
+    ]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--write-results", action="store_true")
@@ -136,6 +151,7 @@ def main(argv=None) -> int:
             "",
             *table(rows),
             "",
+            *reading(rows),
         ]
     )
     print(text)
