@@ -49,10 +49,12 @@ functions for arrays (:func:`strength_score`, :func:`dip_deg`, :func:`windowed_v
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+
+from pdr_mag._records import settings_dtype, settings_record
 
 
 @dataclass(frozen=True)
@@ -130,15 +132,12 @@ class InterferenceSettings:
 
     def as_params(self) -> np.ndarray:
         """The thresholds as the compiled detectors read them: a one-element array of :data:`PARAMS`."""
-        p = np.zeros(1, dtype=PARAMS)
-        for name in PARAMS.names:
-            p[name] = getattr(self, name)
-        return p
+        return settings_record(self)
 
 
 #: the thresholds as the compiled detectors read them: one float64 field per :class:`InterferenceSettings`
-#: attribute, same name and unit
-PARAMS = np.dtype([(f.name, np.float64) for f in fields(InterferenceSettings)])
+#: attribute, same name and unit (:func:`pdr_mag._records.settings_dtype`)
+PARAMS = settings_dtype(InterferenceSettings)
 
 
 # ----------------------------------------------------------------------------------------------- scalar

@@ -30,8 +30,10 @@ import numpy as np
 from numba import njit
 
 from pdr_mag import _jit_cache
+from pdr_mag._records import settings_dtype
 from pdr_mag.calibration import diversity
 from pdr_mag.calibration.diversity import buffer_coverage, offer, put, redundant
+from pdr_mag.calibration.online_settings import OnlineSettings
 
 STATE = np.dtype(
     [
@@ -78,22 +80,8 @@ CAL = np.dtype(
     ]
 )
 
-PARAMS = np.dtype(
-    [
-        ("buffer_size", np.int64),
-        ("cos_up", np.float64),  # cos(min_sep_up_deg)
-        ("refresh_s", np.float64),
-        ("ring_dt", np.float64),  # 1 / stale_rate_hz
-        ("episode_rate", np.float64),
-        ("min_samples", np.int64),
-        ("refit_min_new", np.float64),
-        ("refit_new_frac", np.float64),
-        ("refit_backoff", np.float64),
-        ("stale_check_s", np.float64),
-        ("stale_window_s", np.float64),
-        ("stale_min_frac", np.float64),
-    ]
-)
+#: the settings as the loop reads them (:class:`~pdr_mag.calibration.online_settings.OnlineSettings`)
+PARAMS = settings_dtype(OnlineSettings)
 
 # what scan returns for
 DONE = 0  # every sample taken in

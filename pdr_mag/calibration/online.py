@@ -26,136 +26,19 @@ Its state is JSON-serialisable (:meth:`OnlineCalibrator.get_state` / :meth:`~Onl
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from pdr_mag._json import state_float
+from pdr_mag._records import settings_record
 from pdr_mag.calibration import _online_kernel as K
 from pdr_mag.calibration import diversity, refit, stale
 from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.online_settings import OnlineSettings
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
 
 
-@dataclass(frozen=True)
-class OnlineSettings:
-    """Settings of the online calibrator (defaults suit 20–200 Hz phone magnetometers).
-
-    Attributes
-    ----------
-    buffer_size : int
-        Maximum number of samples in the diversity buffer.
-    min_sep_frac : float
-        A new sample closer than ``min_sep_frac · F`` (raw µT) to a kept one with a similar gravity
-        direction is redundant.
-    min_sep_up_deg : float
-        Gravity directions closer than this count as similar.
-    refresh_s : float
-        A redundant new sample replaces its kept neighbour when that one is older than this.
-    refit_period_s : float
-        Stream time between refit attempts (before the first acceptance: ``refit_period_s / 2``).
-    refit_min_new, refit_new_frac : float
-        Once calibrated (and not recalibrating), a refit attempt fits only when the buffer took in at least
-        ``max(refit_min_new, refit_new_frac · n)`` samples since the last fit (n: samples in the buffer);
-        otherwise the last fit's verdict stands.  The fitted offset's covariance scales as 1/n, so k new
-        samples shrink its σ by ≈ k/(2n) and move it by ≈ σ·√(k/n): far less than the 20 % shrink or
-        2 σ shift a new fit needs to replace the calibration (:func:`pdr_mag.calibration.refit.replaces`).
-        A change of the calibration, a rotation episode's start or end and a cleared buffer make the next
-        attempt fit.
-    refit_backoff : float
-        A buffer that stopped growing changes only by replacement (an old sample refreshed by a close new
-        one, the most redundant one evicted when full): while it does not grow, each fit that leaves the
-        calibration as it was multiplies the number of new samples the next fit needs by this, up to n (the
-        whole buffer renewed); growth, a change of calibration or any of the events above starts over.
-    min_samples : int
-        Fewer samples in the buffer: no refit.
-    sigma_strength_uT : float
-        1-σ of the strength equation (noise + unmodelled soft iron), µT.
-    sigma_tilt_deg : float
-        1-σ of the gravity direction, deg (the dip equation's σ is ``F · sin(sigma_tilt)``).
-    prior_strength_std_uT, prior_dip_std_deg : float
-        1-σ of the WMM strength and inclination as priors of the gravity-aided fit (the local field
-        indoors differs by a few µT / degrees); 0 fixes them.
-    max_offset_std_uT : float
-        A refit (gravity-aided, sphere or full) is accepted only when every offset σ is below this.
-    first_offset_std_uT : float
-        The same bound for the very first calibration (none yet): a coarse offset early lets the filter
-        align the heading and learn the gyro bias before the first disturbance; refits refine it.  Its σ
-        (scaled for correlated errors, ``field_corr_s``) goes with it to the fusion filter, which weighs the
-        field by it: 8 µT against a horizontal field of ~20 µT is a ~20° heading, better than none.
-    max_rms_frac : float
-        Accepted only when the robust residual RMS is below ``max_rms_frac · F``.
-    max_offset_uT : float
-        Offsets beyond this are implausible.
-    strength_tol_frac : float
-        After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
-        and count as deviating in the stale test.
-    add_tol_frac, add_dip_tol_deg : float
-        Once calibrated, a sample enters the buffer only when its strength is within ``add_tol_frac · F`` and
-        its dip within ``add_dip_tol_deg`` of the reference (no disturbed samples in the fits).
-    ellipsoid_coverage : float
-        Coverage from which the core's full (ellipsoid) fit is attempted.
-    ellipsoid_precheck_frac : float
-        The full fit is attempted only when, besides, the buffer's coverage on the equal-area grid of
-        :func:`pdr_mag.calibration.coverage.coverage`, about the current offset estimate, reaches this share
-        of ``AcceptanceSettings.min_coverage``: a cheap gate that spares full fits on a sparse buffer.  It is
-        not the acceptance rule: the fit is judged by the heading error its uncertainty allows
-        (:func:`pdr_mag.calibration.coverage.accept`), which well-spread samples can meet below the gate.
-    sphere_coverage : float
-        Coverage from which the sphere LLS fit is attempted.
-    stale_window_s, stale_check_s, stale_min_frac, stale_min_shift_uT : float
-        Stale test: recent window length, check period, share of deviating samples in the last third of the
-        window needed to run the test, and the least offset shift (also ≥ 4 σ) that counts.
-    stale_rate_hz : float
-        Decimation of the recent window.
-    stale_confirm_s : float
-        The same offset shift must be found again this much later (the deviation persisting in between)
-        before a recalibration is requested.
-    episode_rate : float
-        Smoothed gyro rate (rad/s) above which a rotation-rich episode (figure-8) is on; off below half.
-    recal_fallback_s : float
-        While recalibrating without a figure-8, an accepted gravity-aided refit on the new buffer older
-        than this ends the recalibration.
-    field_corr_s : float
-        Time over which the errors of buffered samples stay correlated (the local field of the place, the
-        priors' error), s: a gravity-aided fit's offset covariance is scaled by ``N / N_eff``,
-        ``N_eff = min(N, 1 + span / field_corr_s)`` (:func:`.refit.with_correlated_errors`).
-    """
-
-    buffer_size: int = 400
-    min_sep_frac: float = 0.12
-    min_sep_up_deg: float = 6.0
-    refresh_s: float = 120.0
-    refit_period_s: float = 2.0
-    refit_min_new: float = 2.0
-    refit_new_frac: float = 0.1
-    refit_backoff: float = 2.0
-    min_samples: int = 8
-    sigma_strength_uT: float = 1.0
-    sigma_tilt_deg: float = 3.0
-    prior_strength_std_uT: float = 3.0
-    prior_dip_std_deg: float = 3.0
-    max_offset_std_uT: float = 3.0
-    first_offset_std_uT: float = 8.0
-    max_rms_frac: float = 0.08
-    max_offset_uT: float = 2000.0
-    strength_tol_frac: float = 0.15
-    add_tol_frac: float = 0.06
-    add_dip_tol_deg: float = 4.0
-    ellipsoid_coverage: float = 0.6
-    ellipsoid_precheck_frac: float = 0.8
-    sphere_coverage: float = 0.4
-    stale_window_s: float = 30.0
-    stale_check_s: float = 2.0
-    stale_min_frac: float = 0.5
-    stale_min_shift_uT: float = 6.0
-    stale_confirm_s: float = 10.0
-    stale_rate_hz: float = 10.0
-    episode_rate: float = 1.5
-    recal_fallback_s: float = 20.0
-    field_corr_s: float = 2.0
 
 
 _EPISODE_EVENTS = {K.EPISODE_START: "rotation_episode_start", K.EPISODE_END: "rotation_episode_end"}
@@ -207,20 +90,7 @@ class OnlineCalibrator:
         self._n_refits = 0
         self._last_reject_t = -np.inf  # last calibration_rejected event (at most one per 30 s)
         # the compiled loop's records (one-element structured arrays) and sample arrays
-        self._params = np.zeros(1, K.PARAMS)
-        p = self._params[0]
-        p["buffer_size"] = s.buffer_size
-        p["cos_up"] = float(np.cos(np.radians(s.min_sep_up_deg)))
-        p["refresh_s"] = s.refresh_s
-        p["ring_dt"] = 1.0 / s.stale_rate_hz
-        p["episode_rate"] = s.episode_rate
-        p["min_samples"] = s.min_samples
-        p["refit_min_new"] = s.refit_min_new
-        p["refit_new_frac"] = s.refit_new_frac
-        p["refit_backoff"] = s.refit_backoff
-        p["stale_check_s"] = s.stale_check_s
-        p["stale_window_s"] = s.stale_window_s
-        p["stale_min_frac"] = s.stale_min_frac
+        self._params = settings_record(s)
         self._state = np.zeros(1, K.STATE)
         st = self._state[0]
         st["ring_last_t"] = -np.inf

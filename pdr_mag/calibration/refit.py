@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,11 +31,9 @@ from pdr_mag.calibration.coverage import coverage as core_coverage
 from pdr_mag.calibration.diversity import direction_coverage
 from pdr_mag.calibration.gravity import gravity_aided_offset
 from pdr_mag.calibration.model import _EYE, MagCalibration
+from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
-
-if TYPE_CHECKING:
-    from pdr_mag.calibration.online import OnlineSettings
 
 #: Preference among accepted refits: the full fit's methods (ellipsoid, ml, …) rank 2.
 _RANK = {"gravity": 0, "sphere": 1}

@@ -18,14 +18,12 @@ while later, the recalibration request) is the calibrator's state machine
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from pdr_mag.calibration.gravity import FitModel, fit_offset
-
-if TYPE_CHECKING:
-    from pdr_mag.calibration.online import OnlineSettings
+from pdr_mag.calibration.online_settings import OnlineSettings
 
 
 class Shift(NamedTuple):
