@@ -61,7 +61,11 @@ _EXPORTS = {
     "gravity_aided_offset": "pdr_mag.calibration.online",
     # detection, fusion, pipeline
     "InterferenceSettings": "pdr_mag.interference",
-    "FusionSettings": "pdr_mag.attitude",
+    "FusionSettings": "pdr_mag.fusion.settings",
+    "GyroSettings": "pdr_mag.fusion.settings",
+    "AccelSettings": "pdr_mag.fusion.settings",
+    "MagSettings": "pdr_mag.fusion.settings",
+    "UncertaintySettings": "pdr_mag.fusion.settings",
     "FusionCore": "pdr_mag.attitude",
     "PipelineSettings": "pdr_mag.pipeline",
     "HeadingPipeline": "pdr_mag.pipeline",

@@ -43,7 +43,7 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -54,6 +54,7 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
+from pdr_mag.fusion.settings import FusionSettings
 
 #: Stream names and their ``kind`` codes in the merged sample stream.
 KINDS = {"accel": 0, "gyro": 1, "mag": 2}
@@ -70,16 +71,12 @@ _SPAN_MAX = 32
 def _fusion_settings(settings, meta: dict):
     """The fusion settings (defaults when None), with the accelerometer range the recording states
     (``meta["accel_range_m_s2"]``, per axis) unless the settings give one."""
-    from dataclasses import replace
-
-    from pdr_mag.attitude import FusionSettings
-
     settings = settings or FusionSettings()
     rng = meta.get("accel_range_m_s2")
-    if settings.acc_range == 0.0 and rng is not None:
+    if settings.accel.range == 0.0 and rng is not None:
         if not (isinstance(rng, int | float) and math.isfinite(rng) and rng > 0):
             raise ValueError(f"meta: accel_range_m_s2: expected a positive number of m/s², got {rng!r}")
-        settings = replace(settings, acc_range=float(rng))
+        settings = replace(settings, accel=replace(settings.accel, range=float(rng)))
     return settings
 
 

@@ -180,7 +180,7 @@ def replay(
         "format": src.format,
         "north": pipe.north,
         "t0": merge.t0,
-        "mag_interval_s": pipe.fusion.settings.mag_interval_s,
+        "mag_interval_s": pipe.fusion.settings.mag.interval_s,
     }
     if pipe.field is not None:
         meta["field"] = {

@@ -8,9 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from pdr_mag.attitude import FusionCore, FusionSettings
+from pdr_mag._records import settings_record
+from pdr_mag.attitude import FusionCore
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import EarthField
+from pdr_mag.fusion.settings import AccelSettings, FusionSettings, GyroSettings, MagSettings
 from pdr_mag.sim import simulate
 
 DEG = np.pi / 180.0
@@ -247,16 +249,27 @@ def test_output_columns_are_named_in_order():
 
 
 def test_every_setting_reaches_the_kernel():
-    """Each FusionSettings attribute fills one PARAMS field (``*_deg`` in rad, the rate as a period) and
-    each PARAMS field comes from one setting."""
+    """Each setting of each FusionSettings group fills one field of the group's nested PARAMS record
+    (``*_deg`` in rad, the rate as a period) and each PARAMS field comes from one setting."""
+    from dataclasses import fields, is_dataclass
+
     from pdr_mag.fusion.state import PARAMS
 
-    names = [f for f in FusionSettings.__dataclass_fields__ if f != "interference"]
-    kernel_names = {n[:-4] + "_rad" if n.endswith("_deg") else n for n in names}
-    kernel_names = {"out_dt_s" if n == "output_rate_hz" else n for n in kernel_names}
-    assert kernel_names == set(PARAMS.names)
-    p = FusionSettings(mag_noise_deg=3.0, output_rate_hz=20.0, max_dt=0.7).as_params()[0]
-    assert p["mag_noise_rad"] == np.radians(3.0) and p["out_dt_s"] == 1.0 / 20.0 and p["max_dt"] == 0.7
+    def kernel_names(cls, dtype):
+        names = set()
+        for f in fields(cls):
+            name = f.metadata["kernel"][0] if "kernel" in f.metadata else f.name
+            kind = getattr(cls(), f.name)
+            if is_dataclass(kind):
+                kernel_names(type(kind), dtype[name])
+            names.add(name)
+        assert names == set(dtype.names), cls.__name__
+
+    kernel_names(FusionSettings, PARAMS)
+    s = FusionSettings(mag=MagSettings(noise_deg=3.0), gyro=GyroSettings(max_dt=0.7), output_rate_hz=20.0)
+    p = settings_record(s)[0]
+    assert p["mag"]["noise_rad"] == np.radians(3.0) and p["out_dt_s"] == 1.0 / 20.0
+    assert p["gyro"]["max_dt"] == 0.7 and p["accel"]["gravity"] == 9.80665
 
 
 # ------------------------------------------------------------------------------------------ north
@@ -299,8 +312,8 @@ def test_nan_magnetometer_rows_are_skipped(walk):
 
 
 def test_settings_validation():
-    with pytest.raises(ValueError, match="gyro_noise"):
-        FusionSettings(gyro_noise=-1.0)
+    with pytest.raises(ValueError, match=r"GyroSettings\.noise"):
+        GyroSettings(noise=-1.0)
     with pytest.raises(ValueError, match="kind"):
         FusionCore().process(np.zeros(3, np.int8), np.zeros(3), np.zeros((3, 2)))
     with pytest.raises(ValueError, match="strength_uT"):
@@ -368,7 +381,7 @@ def _coverage_band(p: float, duration_s: float) -> float:
     """Three binomial standard deviations of a coverage fraction p measured on ``duration_s`` of output whose
     heading errors are correlated over ``mag_error_tau_s`` (the magnetometer error's correlation time): about
     one independent sample per correlation time."""
-    n_eff = duration_s / FusionSettings().mag_error_tau_s
+    n_eff = duration_s / FusionSettings().mag.error_tau_s
     return 3.0 * np.sqrt(p * (1.0 - p) / n_eff)
 
 
@@ -487,7 +500,7 @@ def test_a_tilt_started_upside_down_is_reset_not_learnt_as_bias(scenario):
     assert early < 10.0 and late < 10.0
     assert np.all(bias_err < 1.0)
     if scenario in ("still", "run"):
-        early_off, _, _, resets_off = run(FusionSettings(tilt_reset_k=0.0))
+        early_off, _, _, resets_off = run(FusionSettings(accel=AccelSettings(tilt_reset_k=0.0)))
         assert resets_off == 0 and early_off > 15.0
 
 
@@ -513,12 +526,12 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     events = heading_reset_events(b)
     assert len(events) == 1
     ev = events[0]
-    assert tm[0] + 40.0 < ev.t < tm[0] + 40.0 + 2 * settings.reacquire_s
+    assert tm[0] + 40.0 < ev.t < tm[0] + 40.0 + 2 * settings.mag.reacquire_s
     assert abs(abs(ev.data["jump_deg"]) - 90.0) < 10.0
     t_err, err, _ = twist_error_deg(b, walk.truth)
     after = t_err > ev.t + 5.0
     assert np.mean(np.abs(err[after])) < 3.0
-    off = FusionCore(FusionSettings(reacquire_s=0.0), field=walk.field).process(kind, t, xyz)
+    off = FusionCore(FusionSettings(mag=MagSettings(reacquire_s=0.0)), field=walk.field).process(kind, t, xyz)
     assert not heading_reset_events(off)
     _, err_off, _ = twist_error_deg(off, walk.truth)
     assert np.mean(np.abs(err_off[(t_err > ev.t) & (t_err < ev.t + 10.0)])) > 20.0
@@ -538,7 +551,7 @@ def test_accelerometer_range_is_found_in_the_data():
     core = FusionCore(field=walk.field)
     core.process(*merge(walk))
     assert core._st[0]["clip_share"] == 0.0 and core._st[0]["acc_peak"] < 1.5 * 9.80665
-    given = FusionCore(FusionSettings(acc_range=0.5 * 9.80665), field=walk.field)
+    given = FusionCore(FusionSettings(accel=AccelSettings(range=0.5 * 9.80665)), field=walk.field)
     given.process(*merge(walk))
     assert given._st[0]["clip_share"] > 0.5  # every sample of a walk is above half a g on some axis
 

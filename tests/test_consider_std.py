@@ -1,5 +1,5 @@
-"""The consider covariance of the reported std (:mod:`pdr_mag.fusion.gyro`, ``FusionSettings.std_env_k`` /
-``std_flag_k``): the place's disturbance that the filter's weighting leaves out is carried into
+"""The consider covariance of the reported std (:mod:`pdr_mag.fusion.gyro`, ``UncertaintySettings.env_k`` /
+``flag_k``): the place's disturbance that the filter's weighting leaves out is carried into
 ``heading_std_deg`` through the same gains, so it never changes the estimate."""
 
 from __future__ import annotations
@@ -9,14 +9,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_attitude import merge, twist_error_deg
 
-from pdr_mag.attitude import FusionCore, FusionSettings
+from pdr_mag.attitude import FusionCore
+from pdr_mag.fusion.settings import FusionSettings, UncertaintySettings
 from pdr_mag.sensor_model import quat_slerp
 from pdr_mag.sim import simulate
 
 #: calibrated magnetometer, raw gyro offsets like a real phone
 EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}
 #: the filter's own std: no consider part
-OWN = FusionSettings(std_env_k=0.0, std_flag_k=0.0)
+OWN = FusionSettings(uncertainty=UncertaintySettings(env_k=0.0, flag_k=0.0))
 
 
 def _steel_area(seed: int):

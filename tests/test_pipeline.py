@@ -260,11 +260,11 @@ def test_span_length_does_not_change_the_result(walk, monkeypatch):
 
 def test_accelerometer_range_from_the_recording():
     """``meta["accel_range_m_s2"]`` reaches the filter unless its settings give one; a bad one is named."""
-    from pdr_mag.attitude import FusionSettings
+    from pdr_mag.fusion.settings import AccelSettings, FusionSettings
 
-    assert HeadingPipeline(meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.acc_range == 19.6
-    given = PipelineSettings(fusion=FusionSettings(acc_range=39.2))
-    assert HeadingPipeline(given, meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.acc_range == 39.2
+    assert HeadingPipeline(meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.accel.range == 19.6
+    given = PipelineSettings(fusion=FusionSettings(accel=AccelSettings(range=39.2)))
+    assert HeadingPipeline(given, meta={**META, "accel_range_m_s2": 19.6}).fusion.settings.accel.range == 39.2
     with pytest.raises(ValueError, match="accel_range_m_s2"):
         HeadingPipeline(meta={**META, "accel_range_m_s2": -1})
 

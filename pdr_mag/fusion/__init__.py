@@ -27,13 +27,14 @@ magnetometer (:mod:`~pdr_mag.fusion.mag`)
     (:mod:`pdr_mag.interference`) is up, when the caller disallows it or beyond a χ² gate.  The
     stationary variance of ``c`` grows with the recent environment's disturbance level and with the
     heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
-    the gate for ``reacquire_s`` re-acquires the heading (``heading_reset``).
+    the gate for ``mag.reacquire_s`` re-acquires the heading (``heading_reset``).
 consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gyro`)
     the same Φ and the same gains as ``P`` (Joseph form), driven only by the part of c's stationary
-    variance that the weighting leaves out, ``V_u = [max(std_env_k² d_seen² − mag_env_k² d_env², 0) +
-    std_flag_k s_flag d_tol² / 2] / B_h²`` (the unseen turning component of the detectors' deviations and
-    of the disturbances behind the recent flagged share ``s_flag``); it never changes the estimate, only the
-    reported std.
+    variance that the weighting leaves out,
+    ``V_u = [max(k_u² d_seen² − k_e² d_env², 0) + k_f s_flag d_tol² / 2] / B_h²``
+    (``k_u, k_f`` the ``uncertainty`` settings, ``k_e`` ``mag.env_k``: the unseen turning
+    component of the detectors' deviations and of the disturbances behind the recent flagged share
+    ``s_flag``); it never changes the estimate, only the reported std.
 
 Modules
 -------

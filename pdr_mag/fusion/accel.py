@@ -8,11 +8,11 @@ north) with variance π², the tilt variance ``tilt0_std² + (||a| − g| / g)²
 acceleration turns it by at least that much), the bias ``bias0_std²`` per axis and ``c`` its stationary
 variance.
 
-Averaged update (default, ``acc_tau_s > 0``).  The specific force is averaged in the almost inertial world
+Averaged update (default, ``accel.tau_s > 0``).  The specific force is averaged in the almost inertial world
 frame over **every** sample, ``ā_w ← ā_w + α (R a − ā_w)`` with ``α = 1 − exp(−Δt/τ)``: the mean linear
 acceleration of a walking, swinging or pocketed phone over τ is Δv/τ ≈ 0, so ``ā_w`` points up (single
 samples of a swinging arm point along the arm; gating them before averaging would bias the average).  At
-most every ``acc_interval_s`` the direction ``u_w = ā_w / |ā_w| ≈ e_z + (−δθ_y, δθ_x, 0)`` is observed:
+most every ``accel.interval_s`` the direction ``u_w = ā_w / |ā_w| ≈ e_z + (−δθ_y, δθ_x, 0)`` is observed:
 the window's mean tilt error.  Since ``δθ' = −R δb``, the error of the sample at ``t − s`` is
 ``δθ(t) + ∫ R δb``, and its exponentially weighted mean over the window is ``δθ(t) + τ R̄ δb`` with ``R̄``
 the same weighted mean of ``R`` (kept beside ``ā_w``), so the two scalar updates have
@@ -23,18 +23,18 @@ the same weighted mean of ``R`` (kept beside ``ā_w``), so the two scalar update
 and the tilt drift of an unknown raw gyro offset (4–6 °/s on real phones) is read as bias instead of being
 smeared over the average.  Noise::
 
-    acc_avg_noise² + (acc_dyn · ||ā| − g| / g)² + (acc_spread_k² s² + (acc_clip_k c)²) · τ / acc_interval_s
+    avg_noise² + (dyn · ||ā| − g| / g)² + (spread_k² s² + (clip_k c)²) · τ / interval_s     (accel.*)
 
 with ``s²`` the weighted mean square of the horizontal specific force about ``ā_w`` over g² (the
 dynamics: ``ā_w``'s direction is off by ≈ 0.19 s rad per axis, measured with motion-capture attitude on
 42 walks — texting 1–2°, running in the hand ~15°) and ``c`` the weight of clipped samples in the window
-(their missing excess of about a g; the range is ``acc_range`` or found in the data); both count once per
-independent window, the updates being ``acc_interval_s`` apart in a window of τ.  Skipped when
-``||ā| − g| > acc_gate · g``.  While the heading is unknown (no magnetometer yet) its errors are consider
+(their missing excess of about a g; the range is ``accel.range`` or found in the data); both count once per
+independent window, the updates being ``accel.interval_s`` apart in a window of τ.  Skipped when
+``||ā| − g| > accel.gate · g``.  While the heading is unknown (no magnetometer yet) its errors are consider
 states of these updates: through the bias terms the linearised update would otherwise shrink its (capped,
 uniform) variance.
 
-No update is made from a part of a window (the first ``acc_tau_s`` after the average starts): it has not
+No update is made from a part of a window (the first ``accel.tau_s`` after the average starts): it has not
 averaged out the dynamics, and a start during a run would teach the bias the arm's swing.
 
 Tilt reset.  The linearised update corrects small errors; a tilt started from one sample of a running arm
@@ -42,20 +42,20 @@ can be 150° off, and correcting it would teach the bias instead.  An average fa
 ``LINEAR_RAD`` while the tilt is unsettled too (its own σ that large: a start in motion,
 :func:`pdr_mag.fusion.eskf.tilt_unsettled`) corrects the tilt only (the bias a consider state, its ``τ R̄``
 terms dropped); with a tilt known better it is dynamics.  One farther than
-``tilt_reset_min_deg`` and ``tilt_reset_k`` σ (tilt error and the update's noise) is never an update
-(:func:`_beyond_linear`).  The specific force is also averaged over ``tilt_reset_tau_s`` (several strides:
-the swing cancels, where the short average passes a quarter of it); once that window is full and its
-average is that far from up, the attitude is turned about the horizontal axis that takes it to up
+``accel.tilt_reset_min_deg`` and ``accel.tilt_reset_k`` σ (tilt error and the update's noise) is never an
+update (:func:`_beyond_linear`).  The specific force is also averaged over ``accel.tilt_reset_tau_s``
+(several strides: the swing cancels, where the short average passes a quarter of it); once that window is full
+and its average is that far from up, the attitude is turned about the horizontal axis that takes it to up
 (:func:`_tilt_reset`), as the magnetometer's re-acquisition does for the heading.
 
-Per-sample update (``acc_tau_s = 0``).  ``u_w = (R a)_h / g``, the horizontal specific force over g (not
+Per-sample update (``accel.tau_s = 0``).  ``u_w = (R a)_h / g``, the horizontal specific force over g (not
 over |a|: a tilt error δ shows as g·δ whatever the vertical acceleration, and a walking hand's horizontal
 and vertical accelerations are correlated over a step, so dividing by |a| would bias the mean direction by
-``−E[a_h a_v] / g²``, ≈ 1° for ±2 m/s²), observing ``(−δθ_y, δθ_x)``; noise ``acc_noise² + (acc_dyn ·
-||a| − g| / g)² + (acc_gyro |ω|)² + var(a)/g² · acc_corr_s / Δt_a`` (the linear acceleration's recent
-variance, correlated over ``acc_corr_s``, spread over the samples) ``+ (turn_speed · ω_up / g)² ·
-turn_corr_s / Δt_a`` (the centripetal acceleration of a turn); skipped when ``||a| − g| > acc_gate · g`` or
-when the sample is clipped.
+``−E[a_h a_v] / g²``, ≈ 1° for ±2 m/s²), observing ``(−δθ_y, δθ_x)``; noise ``accel.noise² + (accel.dyn ·
+||a| − g| / g)² + (accel.rate_k |ω|)² + var(a)/g² · accel.corr_s / Δt_a`` (the linear acceleration's recent
+variance, correlated over ``accel.corr_s``, spread over the samples) ``+ (accel.turn_speed · ω_up / g)² ·
+accel.turn_corr_s / Δt_a`` (the centripetal acceleration of a turn); skipped when
+``||a| − g| > accel.gate · g`` or when the sample is clipped.
 """
 
 from __future__ import annotations
@@ -131,15 +131,15 @@ def init_tilt(s, ax, ay, az, p):
     s.u_pending = False
     # the sample's own acceleration turns its direction by up to ||a| − g| / g rad (a lower bound of the
     # linear acceleration over g): a start in motion is that uncertain
-    da = abs(n - p.gravity) / p.gravity
-    t0 = min(p.tilt0_std**2 + da * da, TILT0_VAR_MAX)
+    da = abs(n - p.accel.gravity) / p.accel.gravity
+    t0 = min(p.accel.tilt0_std**2 + da * da, TILT0_VAR_MAX)
     P[TH_X, TH_X] = t0
     P[TH_Y, TH_Y] = t0
     P[TH_Z, TH_Z] = np.pi**2
-    b0 = p.bias0_std**2
+    b0 = p.gyro.bias0_std**2
     for i in range(BIAS, BIAS + 3):
         P[i, i] = b0
-    P[C_ERR, C_ERR] = p.mag_error_std_rad**2
+    P[C_ERR, C_ERR] = p.mag.error_std_rad**2
     s.c = 0.0
     s.init = 1
 
@@ -148,7 +148,7 @@ def init_tilt(s, ax, ay, az, p):
 def accel_step(s, R, ax, ay, az, t, p):
     """One accelerometer sample (m/s², device frame) at time t; ``R`` scratch 3×3."""
     first = not (s.have_acc and np.isfinite(s.t_acc))
-    ew_stats_step(s.acc_stats, first, t - s.t_acc, ax, ay, az, p.still_tau_s)
+    ew_stats_step(s.acc_stats, first, t - s.t_acc, ax, ay, az, p.gyro.still_tau_s)
     s.t_acc_prev = s.t_acc
     s.t_acc = t
     s.have_acc = True
@@ -160,26 +160,26 @@ def accel_step(s, R, ax, ay, az, t, p):
         if s.have_gyro:  # before the gyroscope streams, nothing would carry the tilt forward
             init_tilt(s, ax, ay, az, p)
         return
-    g = p.gravity
+    g = p.accel.gravity
     da = abs(n - g) / g
     rotation_matrix(s.q, R)
-    if p.acc_tau_s > 0.0:
+    if p.accel.tau_s > 0.0:
         _averaged_update(s, R, ax, ay, az, t, clipped, p)
         return
-    if da > p.acc_gate or clipped:
+    if da > p.accel.gate or clipped:
         return
     wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
     wn = np.sqrt(wx * wx + wy * wy + wz * wz)
     dta = t - s.t_acc_prev if np.isfinite(s.t_acc_prev) else 0.01
     dta = min(max(dta, 1e-4), 0.1)
     rv = (
-        p.acc_noise**2
-        + (p.acc_dyn * da) ** 2
-        + (p.acc_gyro * wn) ** 2
-        + s.acc_stats.var / (g * g) * p.acc_corr_s / dta
+        p.accel.noise**2
+        + (p.accel.dyn * da) ** 2
+        + (p.accel.rate_k * wn) ** 2
+        + s.acc_stats.var / (g * g) * p.accel.corr_s / dta
     )
     wup = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz
-    rv += (p.turn_speed * wup / g) ** 2 * p.turn_corr_s / dta
+    rv += (p.accel.turn_speed * wup / g) ** 2 * p.accel.turn_corr_s / dta
     uxw = (R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az) / g
     uyw = (R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az) / g
     dx = np.zeros(NX)
@@ -191,29 +191,29 @@ def accel_step(s, R, ax, ay, az, t, p):
 @njit(cache=True, error_model="numpy")
 def _clipped(s, ax, ay, az, p):
     """Whether this sample has an axis at the accelerometer's range (given, or found in the data: the
-    settings' ``acc_range``); keeps the running peak and its hits."""
+    settings' ``accel.range``); keeps the running peak and its hits."""
     m = max(abs(ax), max(abs(ay), abs(az)))
-    if p.acc_range > 0.0:
-        return m >= (1.0 - p.acc_clip_band) * p.acc_range
+    if p.accel.range > 0.0:
+        return m >= (1.0 - p.accel.clip_band) * p.accel.range
     if m > s.acc_peak:
-        if m > s.acc_peak * (1.0 + p.acc_clip_band):
+        if m > s.acc_peak * (1.0 + p.accel.clip_band):
             s.acc_peak_hits = 0  # a new, higher level: the old one was no range
         s.acc_peak = m
-    near = m >= (1.0 - p.acc_clip_band) * s.acc_peak
+    near = m >= (1.0 - p.accel.clip_band) * s.acc_peak
     if near:
         s.acc_peak_hits += 1
-    return near and s.acc_peak_hits >= p.acc_clip_min_hits and s.acc_peak > 1.5 * p.gravity
+    return near and s.acc_peak_hits >= p.accel.clip_min_hits and s.acc_peak > 1.5 * p.accel.gravity
 
 
 @njit(cache=True, error_model="numpy")
 def _averaged_update(s, R, ax, ay, az, t, clipped, p):
-    """The world-frame average ``ā_w``; at most every ``acc_interval_s``, the update from its direction."""
+    """The world-frame average ``ā_w``; at most every ``accel.interval_s``, the update from its direction."""
     aw = s.acc_w
     awx = R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az
     awy = R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az
     awz = R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az
     Rb = s.R_bar
-    if not np.isfinite(aw[0]) or not np.isfinite(s.t_acc_update) or t - s.t_acc_update > 10.0 * p.acc_tau_s:
+    if not np.isfinite(aw[0]) or not np.isfinite(s.t_acc_update) or t - s.t_acc_update > 10.0 * p.accel.tau_s:
         aw[0], aw[1], aw[2] = awx, awy, awz
         s.acc_spread = 0.0
         s.clip_share = 1.0 if clipped else 0.0
@@ -226,13 +226,13 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
         al[0], al[1], al[2] = awx, awy, awz
         return
     dt = t - s.t_acc_prev
-    if p.tilt_reset_k > 0.0:  # a running mean until the window is full, then exponentially weighted
+    if p.accel.tilt_reset_k > 0.0:  # a running mean until the window is full, then exponentially weighted
         al = s.acc_w_long
-        b = max(ew_alpha(dt, p.tilt_reset_tau_s), dt / (t - s.t_acc_w0 + dt))
+        b = max(ew_alpha(dt, p.accel.tilt_reset_tau_s), dt / (t - s.t_acc_w0 + dt))
         al[0] += b * (awx - al[0])
         al[1] += b * (awy - al[1])
         al[2] += b * (awz - al[2])
-    a = ew_alpha(dt, p.acc_tau_s)
+    a = ew_alpha(dt, p.accel.tau_s)
     aw[0] += a * (awx - aw[0])
     aw[1] += a * (awy - aw[1])
     aw[2] += a * (awz - aw[2])
@@ -242,20 +242,20 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
     for i in range(3):
         for m in range(3):
             Rb[i, m] += a * (R[i, m] - Rb[i, m])
-    if t - s.t_acc_update < p.acc_interval_s or t - s.t_acc_w0 < p.acc_tau_s:
+    if t - s.t_acc_update < p.accel.interval_s or t - s.t_acc_w0 < p.accel.tau_s:
         return  # (a part of a window does not average out the dynamics)
     s.t_acc_update = t
-    g = p.gravity
+    g = p.accel.gravity
     if _tilt_reset(s, t, p):
         return
     na = np.sqrt(aw[0] ** 2 + aw[1] ** 2 + aw[2] ** 2)
     dev = abs(na - g) / g
-    if dev > p.acc_gate:
+    if dev > p.accel.gate:
         return
-    tau = p.acc_tau_s
-    rv = p.acc_avg_noise**2 + (p.acc_dyn * dev) ** 2
-    windows = tau / max(p.acc_interval_s, 1e-3)  # updates per independent window
-    rv += (p.acc_spread_k**2 * s.acc_spread / (g * g) + (p.acc_clip_k * s.clip_share) ** 2) * windows
+    tau = p.accel.tau_s
+    rv = p.accel.avg_noise**2 + (p.accel.dyn * dev) ** 2
+    windows = tau / max(p.accel.interval_s, 1e-3)  # updates per independent window
+    rv += (p.accel.spread_k**2 * s.acc_spread / (g * g) + (p.accel.clip_k * s.clip_share) ** 2) * windows
     if _beyond_linear(s, aw[2] / na, rv, p):
         return  # a tilt that far off is the reset's, never the bias's
     hx = np.zeros(NX)
@@ -280,29 +280,30 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
 @njit(cache=True, error_model="numpy")
 def _beyond_linear(s, cos_up, rv, p):
     """Whether the average's direction (``cos_up`` its cosine to up) is farther from up than
-    ``tilt_reset_min`` and ``tilt_reset_k`` σ of the tilt error and the update's noise ``rv`` per axis."""
-    if p.tilt_reset_k <= 0.0:
+    ``accel.tilt_reset_min_deg`` and ``accel.tilt_reset_k`` σ of the tilt error and the update's noise ``rv``
+    per axis."""
+    if p.accel.tilt_reset_k <= 0.0:
         return False
     ang = np.arccos(min(max(cos_up, -1.0), 1.0))
     P = s.P
     var = P[TH_X, TH_X] + P[TH_Y, TH_Y] + 2.0 * rv
-    return ang >= p.tilt_reset_min_rad and ang * ang >= p.tilt_reset_k**2 * var
+    return ang >= p.accel.tilt_reset_min_rad and ang * ang >= p.accel.tilt_reset_k**2 * var
 
 
 @njit(cache=True, error_model="numpy")
 def _tilt_reset(s, t, p):
-    """Turn the attitude so that the long average ``ā_long`` (``tilt_reset_tau_s``) is up, when that window
-    is full, ``||ā_long| − g| < 0.3 g`` (a clipping accelerometer shortens the average of a running arm by
-    up to a quarter; its direction holds) and ``ā_long`` is farther from up than ``tilt_reset_min`` and
-    ``tilt_reset_k`` σ of the tilt error.  Both averages and the window's mean R turn with the attitude;
+    """Turn the attitude so that the long average ``ā_long`` (``accel.tilt_reset_tau_s``) is up, when that
+    window is full, ``||ā_long| − g| < 0.3 g`` (a clipping accelerometer shortens the average of a running arm
+    by up to a quarter; its direction holds) and ``ā_long`` is farther from up than ``tilt_reset_min`` and
+    ``accel.tilt_reset_k`` σ of the tilt error.  Both averages and the window's mean R turn with the attitude;
     the tilt variance restarts at ``tilt0_std²`` per axis, uncorrelated, and the bias variance at no less
     than ``bias0_std²`` (the corrections of a tilt that far off went into the bias).  Returns whether it
     did."""
-    if p.tilt_reset_k <= 0.0 or t - s.t_acc_w0 < p.tilt_reset_tau_s:
+    if p.accel.tilt_reset_k <= 0.0 or t - s.t_acc_w0 < p.accel.tilt_reset_tau_s:
         return False
     al = s.acc_w_long
     na = np.sqrt(al[0] * al[0] + al[1] * al[1] + al[2] * al[2])
-    if abs(na - p.gravity) > 0.3 * p.gravity:
+    if abs(na - p.accel.gravity) > 0.3 * p.accel.gravity:
         return False
     if not _beyond_linear(s, al[2] / na, 0.0, p):
         return False
@@ -330,10 +331,10 @@ def _tilt_reset(s, t, p):
             for M in (P, s.U):
                 M[i, j] = 0.0
                 M[j, i] = 0.0
-    P[TH_X, TH_X] = p.tilt0_std**2
-    P[TH_Y, TH_Y] = p.tilt0_std**2
+    P[TH_X, TH_X] = p.accel.tilt0_std**2
+    P[TH_Y, TH_Y] = p.accel.tilt0_std**2
     for i in range(BIAS, BIAS + 3):
-        P[i, i] = max(P[i, i], p.bias0_std**2)
+        P[i, i] = max(P[i, i], p.gyro.bias0_std**2)
     s.det.mw[0] = np.nan  # the detectors' mean field direction restarts in the turned world frame
     s.tilt_resets += 1
     return True

@@ -239,7 +239,7 @@ def tilt_unsettled(P, p):
     """Whether the tilt is less certain than a start at rest (``tr P_tilt > 2 tilt0_std²``): a start in
     motion.  Then a far-off average is the tilt's, and the heading's changes are the tilt's, not the gyro
     bias's (:mod:`pdr_mag.fusion.accel`, :mod:`pdr_mag.fusion.mag`)."""
-    return P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * p.tilt0_std**2
+    return P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * p.accel.tilt0_std**2
 
 
 @njit(cache=True, error_model="numpy")

@@ -10,8 +10,8 @@ Prediction, per gyroscope sample after an interval Δt::
     U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))    (at its next use: pdr_mag.fusion.eskf.settle_u)
 
 with ``R = R(q)`` (the attitude error is in the world frame, the bias in the device frame, so a bias
-error turns the attitude by ``−R δb Δt``), σ_g ``gyro_noise``, σ_b ``bias_rw``, and ``c`` a first-order
-Gauss–Markov process (τ_c ``mag_error_tau_s``, stationary σ_c ``mag_error_std_deg``): the heading error
+error turns the attitude by ``−R δb Δt``), σ_g ``gyro.noise``, σ_b ``gyro.bias_rw``, and ``c`` a first-order
+Gauss–Markov process (τ_c ``mag.error_tau_s``, stationary σ_c ``mag.error_std_deg``): the heading error
 of a calibrated magnetometer indoors — residual calibration error, the building's own field — is
 correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.
 ``U`` is the consider covariance (:mod:`pdr_mag.fusion.eskf`): the error that the part ``V_u`` of c's
@@ -20,18 +20,18 @@ An unknown heading is uniform: ``P[δθ_z, δθ_z]`` is capped at π² by scalin
 keeps ``P`` positive semi-definite).
 
 Gaps.  Up to ``GAP_DT`` the mean rate of the two ends is the rate in between.  Longer intervals up to
-``max_dt`` are integrated the same way, but the rate in between deviates from that mean by about the recent
-motion level, so each attitude variance grows by ``var(ω) (Δt − GAP_DT)²``; longer still, the interval is
-not integrated (only ``P`` is propagated) and the unknown rotation ``(|ω̄|² + var(ω)) Δt²`` is added — a
+``gyro.max_dt`` are integrated the same way, but the rate in between deviates from that mean by about the
+recent motion level, so each attitude variance grows by ``var(ω) (Δt − GAP_DT)²``; longer still, the interval
+is not integrated (only ``P`` is propagated) and the unknown rotation ``(|ω̄|² + var(ω)) Δt²`` is added — a
 0.25-s gap of a phone turning at 2 rad/s is 30° that must not be hidden from ``P``.  What a gap adds
 to the tilt variances is capped at ``TILT_VAR_MAX`` (a gap's rotation is not a tilt error beyond it), the
 heading's at π².
 
 Zero-rate update.  The still detector keeps exponentially weighted means and mean square deviations of
-gyroscope and accelerometer (time constant ``still_tau_s``).  While both deviations stay below
-``still_gyro`` / ``still_acc`` for ``still_min_s``, every gyroscope sample observes the bias directly,
-``ω_m = b + δb + n`` (three scalar updates), with per-sample noise ``zupt_noise² / Δt`` — a noise density,
-so the information per second does not depend on the gyroscope's rate.
+gyroscope and accelerometer (time constant ``gyro.still_tau_s``).  While both deviations stay below
+``gyro.still_gyro`` / ``gyro.still_acc`` for ``gyro.still_min_s``, every gyroscope sample observes the bias
+directly, ``ω_m = b + δb + n`` (three scalar updates), with per-sample noise ``gyro.zupt_noise² / Δt`` — a
+noise density, so the information per second does not depend on the gyroscope's rate.
 """
 
 from __future__ import annotations
@@ -70,9 +70,9 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     rotate_body(s.q, wx * dt, wy * dt, wz * dt)
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
-    phi = np.exp(-dt / p.mag_error_tau_s)
+    phi = np.exp(-dt / p.mag.error_tau_s)
     qc = magerr_var(s, p) * (1.0 - phi * phi)
-    propagate(s.P, R, work, dt, phi, p.gyro_noise**2 * dt, p.bias_rw**2 * dt, qc)
+    propagate(s.P, R, work, dt, phi, p.gyro.noise**2 * dt, p.gyro.bias_rw**2 * dt, qc)
     # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)
     for i in range(3):
         for m in range(3):
@@ -143,27 +143,27 @@ def propagate(P, R, work, dt, phi, qa, qb, qc):
 
 @njit(cache=True, error_model="numpy")
 def magerr_var(s, p):
-    """Stationary variance of c, rad²: ``σ_c² + (mag_env_k · d_env / B_h)² + g Σ_b gᵀ`` (the environment's
+    """Stationary variance of c, rad²: ``σ_c² + (mag.env_k · d_env / B_h)² + g Σ_b gᵀ`` (the environment's
     recent disturbance level ``d_env`` and the calibration's offset covariance ``Σ_b`` seen in the heading
     at the latest sample, see :mod:`pdr_mag.fusion.mag`)."""
-    v = p.mag_error_std_rad**2 + s.cal_var
-    if p.mag_env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
-        v += p.mag_env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
+    v = p.mag.error_std_rad**2 + s.cal_var
+    if p.mag.env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
+        v += p.mag.env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
     return v
 
 
 @njit(cache=True, error_model="numpy")
 def unmodelled_var(s, p):
     """The part of c's stationary variance the filter's weighting leaves out, rad², carried in ``U``:
-    ``V_u = [max(std_env_k² d_seen² − mag_env_k² d_env², 0) + std_flag_k · s_flag · d_tol² / 2] / B_h²``
-    (``FusionSettings.std_env_k``, ``std_flag_k``; ``d_seen²`` the environment level of the samples seen,
-    ``d_env²`` the filter's, which starts from a prior; ``s_flag`` the recent share of flagged samples,
-    ``d_tol`` the detectors' tolerance as a disturbance)."""
+    ``V_u = [max(k_u² d_seen² − k_e² d_env², 0) + k_f · s_flag · d_tol² / 2] / B_h²`` (``k_u``, ``k_f``
+    ``uncertainty.env_k``, ``uncertainty.flag_k``, ``k_e`` ``mag.env_k``; ``d_seen²`` the environment level of
+    the samples seen, ``d_env²`` the filter's, which starts from a prior; ``s_flag`` the recent share of
+    flagged samples, ``d_tol`` the detectors' tolerance as a disturbance)."""
     if not s.bh_ref > 0.0:
         return 0.0
-    v = max(p.std_env_k**2 * s.env_seen2 - p.mag_env_k**2 * s.env_d2, 0.0)
-    if p.std_flag_k > 0.0 and s.flag_share > 0.0:
-        v += p.std_flag_k * s.flag_share * 0.5 * s.flag_d2
+    v = max(p.uncertainty.env_k**2 * s.env_seen2 - p.mag.env_k**2 * s.env_d2, 0.0)
+    if p.uncertainty.flag_k > 0.0 and s.flag_share > 0.0:
+        v += p.uncertainty.flag_k * s.flag_share * 0.5 * s.flag_d2
     return v / (s.bh_ref * s.bh_ref)
 
 
@@ -198,28 +198,28 @@ def gyro_step(s, R, work, wx, wy, wz, t, p):
     """One gyroscope sample (rad/s) at time t: still statistics, prediction, zero-rate update; ``R`` scratch
     3×3, ``work`` a one-record array of :data:`PREDICT_WORK`."""
     first = not (s.have_gyro and np.isfinite(s.t_gyro))
-    ew_stats_step(s.gyro_stats, first, t - s.t_gyro, wx, wy, wz, p.still_tau_s)
+    ew_stats_step(s.gyro_stats, first, t - s.t_gyro, wx, wy, wz, p.gyro.still_tau_s)
     if s.init > 0 and s.have_gyro:
         dt = t - s.t_gyro
         if dt > 0.0:
             ox = 0.5 * (wx + s.w_gyro[0]) - s.b[0]
             oy = 0.5 * (wy + s.w_gyro[1]) - s.b[1]
             oz = 0.5 * (wz + s.w_gyro[2]) - s.b[2]
-            if dt <= p.max_dt:
+            if dt <= p.gyro.max_dt:
                 predict(s, R, work, ox, oy, oz, dt, p)
                 if dt > GAP_DT:  # a gap: the rate in between is known to the recent motion level only
                     inflate_attitude(s.P, s.gyro_stats.var * (dt - GAP_DT) ** 2)
             else:  # too long to integrate: P only, and the unknown rotation meanwhile
                 predict(s, R, work, 0.0, 0.0, 0.0, dt, p)
                 inflate_attitude(s.P, (ox * ox + oy * oy + oz * oz + s.gyro_stats.var) * dt * dt)
-        still = (s.gyro_stats.var < p.still_gyro**2) and (s.acc_stats.var < p.still_acc**2)
+        still = (s.gyro_stats.var < p.gyro.still_gyro**2) and (s.acc_stats.var < p.gyro.still_acc**2)
         if still:
             if not np.isfinite(s.still_since):
                 s.still_since = t
-            if t - s.still_since >= p.still_min_s:
+            if t - s.still_since >= p.gyro.still_min_s:
                 dx = np.zeros(NX)
                 dtg = min(max(t - s.t_gyro, 1e-4), 0.1) if np.isfinite(s.t_gyro) else 0.01
-                rv = p.zupt_noise**2 / dtg  # a noise density: the same information per second at any rate
+                rv = p.gyro.zupt_noise**2 / dtg  # a noise density: the same information a second at any rate
                 update(s, dx, BIAS, 1.0, wx - s.b[0], rv)
                 update(s, dx, BIAS + 1, 1.0, wy - s.b[1], rv)
                 update(s, dx, BIAS + 2, 1.0, wz - s.b[2], rv)

@@ -29,7 +29,7 @@ from pdr_mag.fusion.state import TH_Z, Rows
 
 
 @njit(cache=True, error_model="numpy")
-def run(kind, t, xyz, allowed, st, p, ip, out, k0):
+def run(kind, t, xyz, allowed, st, p, out, k0):
     """Process a chunk (``kind`` 0 accelerometer, 1 gyroscope, 2 magnetometer) with the state record
     ``st``, writing rows into the :class:`~pdr_mag.fusion.state.Rows` columns ``out`` from row ``k0`` on;
     returns the number of rows written."""
@@ -44,7 +44,7 @@ def run(kind, t, xyz, allowed, st, p, ip, out, k0):
             if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
                 accel_step(st, R, x, y, z, ti, p)
         elif k == 2:
-            mag_step(st, R, x, y, z, ti, allowed[i], p, ip)
+            mag_step(st, R, x, y, z, ti, allowed[i], p)
         elif k == 1:
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                 continue
@@ -107,17 +107,15 @@ def named_rows(floats, q, flags):
 
 
 @njit(cache=True, error_model="numpy")
-def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, floats, q, flags):
+def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, floats, q, flags):
     """:func:`run` over the whole chunk with a copy of the state put in ``snaps[j]`` before sample
     ``cuts[j]`` (increasing); then each row's quaternion sign made non-negative in w and its heading's
-    ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state``, ``params`` and ``iparams`` are
-    one-element arrays of :data:`~pdr_mag.fusion.state.STATE`, :data:`~pdr_mag.fusion.state.PARAMS` and
-    :data:`pdr_mag.interference.PARAMS`; ``floats``, ``q``, ``flags`` the output blocks of
-    :func:`~pdr_mag.fusion.state.new_rows`.  Returns the number of rows (the rows of one :func:`run` call
-    per piece: the same rows, cut or not)."""
+    ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state`` and ``params`` are one-element arrays of
+    :data:`~pdr_mag.fusion.state.STATE` and :data:`~pdr_mag.fusion.state.PARAMS`; ``floats``, ``q``,
+    ``flags`` the output blocks of :func:`~pdr_mag.fusion.state.new_rows`.  Returns the number of rows
+    (the rows of one :func:`run` call per piece: the same rows, cut or not)."""
     st = state[0]
     p = params[0]
-    ip = iparams[0]
     out = named_rows(floats, q, flags)
     n = len(t)
     k = 0
@@ -125,7 +123,7 @@ def run_cut(kind, t, xyz, allowed, state, params, iparams, cuts, snaps, floats, 
     for j in range(len(cuts) + 1):
         b = cuts[j] if j < len(cuts) else n
         if b > a or j == len(cuts):
-            k += run(kind[a:b], t[a:b], xyz[a:b], allowed[a:b], st, p, ip, out, k)
+            k += run(kind[a:b], t[a:b], xyz[a:b], allowed[a:b], st, p, out, k)
         if j < len(cuts):
             snaps[j] = st
         a = b

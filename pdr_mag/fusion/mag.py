@@ -9,7 +9,7 @@ declination, 0 for magnetic north) observes
 
     h = (h_t, 1 on δθ_z, 0 on δb, 1 on δc),    h_t = −k_t (m_x m_z, m_y m_z) / B_h²
 
-``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag_tilt_k``).  The tilt
+``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag.tilt_k``).  The tilt
 errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
 field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
 accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is
@@ -21,16 +21,16 @@ Noise::
     σ_ψ² = σ_h² + σ_m² / B_h² + (|ω| τ_m F / B_h)² + k_d² d_min² / B_h²
     d_min² = (F − F_loc)² + (F (I − I_loc))² + k_c (F ∠cons_d)²,   ∠cons_d = max(∠cons − σ_b W, 0)
 
-σ_h ``mag_noise_deg``, σ_m ``mag_noise_uT``, ``B_h`` the measured horizontal strength, τ_m
-``mag_time_unc_s`` (the device turns by ``|ω| τ_m`` within the timestamp uncertainty), k_d ``mag_dist_k``,
-k_c ``mag_cons_k``.  ``d_min`` is the smallest disturbance that explains the deviations of strength, dip
+σ_h ``mag.noise_deg``, σ_m ``mag.noise_uT``, ``B_h`` the measured horizontal strength, τ_m
+``mag.time_unc_s`` (the device turns by ``|ω| τ_m`` within the timestamp uncertainty), k_d ``mag.dist_k``,
+k_c ``mag.cons_k``.  ``d_min`` is the smallest disturbance that explains the deviations of strength, dip
 and world-frame direction from the detectors' references (a disturbance d changes the strength by at most
 |d|, the dip by at most |d|/F and turns the horizontal field by at most |d|/B_h); the consistency angle
 counts only beyond what the filter's own bias uncertainty explains over the detector's window
 (σ_b = √tr P_bb, W ``consistency_window_s``).
 
 Gates.  No update while the interference flag is up (except the first fix, when strength and dip are
-fine), when the caller disallows it, within ``mag_interval_s`` of the last update (the errors are
+fine), when the caller disallows it, within ``mag.interval_s`` of the last update (the errors are
 correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag_gate² · S`` with ``S = h P hᵀ`` plus the
 *undisturbed* part of σ_ψ² (a suspect field gets less weight; it cannot widen the gate).  While a
 clean-looking field keeps failing the gate, the heading may be what is wrong: ``P[δθ_z, δθ_z]`` grows by
@@ -38,9 +38,9 @@ clean-looking field keeps failing the gate, the heading may be what is wrong: ``
 
 Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
 field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
-without a break for ``reacquire_s`` and its innovations agree among themselves (circular spread of their
-exponentially weighted mean below ``reacquire_spread_deg``: a lost heading is off by one angle whatever the
-device does, a turned field in a steel building changes as the walker moves), the heading is set to the
+without a break for ``mag.reacquire_s`` and its innovations agree among themselves (circular spread of their
+exponentially weighted mean below ``mag.reacquire_spread_deg``: a lost heading is off by one angle whatever
+the device does, a turned field in a steel building changes as the walker moves), the heading is set to the
 magnetometer's, ``q ← Exp(r̄ e_z) ⊗ q`` with r̄ that mean, exactly as at the first fix (the covariance
 below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², bias0_std²)``, the drift rate
 that the jump implies over the time Δt since the last heading update.  The jump is reported in the
@@ -84,11 +84,12 @@ from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
 
 @njit(cache=True, error_model="numpy")
-def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
+def mag_step(s, R, mx, my, mz, t, allowed, p):
     """One calibrated magnetometer sample (µT, device frame) at time t; ``allowed``: the caller permits a
     heading update from it.  ``R`` scratch 3×3."""
     if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or s.init == 0:
         return
+    ip = p.interference
     rotation_matrix(s.q, R)
     f = np.sqrt(mx * mx + my * my + mz * mz)
     if f <= 0.0:
@@ -111,7 +112,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
         return
     if flag and not (s.init < 2 and det.score_f < 1.0 and det.score_dip < 1.0):
         return
-    if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag_interval_s:
+    if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag.interval_s:
         return
     bh = np.sqrt(mwx * mwx + mwy * mwy) * f
     if bh < 1e-3:
@@ -129,18 +130,18 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     if np.isfinite(det.dip_loc):
         dmin2 += (f * np.radians(dip - det.dip_loc)) ** 2
     cons_d = max(det.cons - np.degrees(sb) * ip.consistency_window_s, 0.0)
-    dmin2 += p.mag_cons_k * (f * np.radians(cons_d)) ** 2
+    dmin2 += p.mag.cons_k * (f * np.radians(cons_d)) ** 2
     _environment_step(s, dmin2, t, det, p)
-    rv_clean = p.mag_noise_rad**2 + p.mag_noise_uT**2 / (bh * bh)
-    if p.mag_time_unc_s > 0.0:
+    rv_clean = p.mag.noise_rad**2 + p.mag.noise_uT**2 / (bh * bh)
+    if p.mag.time_unc_s > 0.0:
         wx, wy, wz = s.w_gyro[0] - s.b[0], s.w_gyro[1] - s.b[1], s.w_gyro[2] - s.b[2]
-        rv_clean += (np.sqrt(wx * wx + wy * wy + wz * wz) * p.mag_time_unc_s * f / bh) ** 2
-    rv = rv_clean + p.mag_dist_k**2 * dmin2 / (bh * bh)
+        rv_clean += (np.sqrt(wx * wx + wy * wy + wz * wz) * p.mag.time_unc_s * f / bh) ** 2
+    rv = rv_clean + p.mag.dist_k**2 * dmin2 / (bh * bh)
     # --- measurement row: tilt (consider states), heading, c
     bh2 = mwx * mwx + mwy * mwy
     h = np.zeros(NX)
-    h[TH_X] = -p.mag_tilt_k * mwx * mwz / bh2
-    h[TH_Y] = -p.mag_tilt_k * mwy * mwz / bh2
+    h[TH_X] = -p.mag.tilt_k * mwx * mwz / bh2
+    h[TH_Y] = -p.mag.tilt_k * mwy * mwz / bh2
     h[TH_Z] = 1.0
     h[C_ERR] = 1.0
     if s.init < 2:
@@ -152,10 +153,10 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
     for i in range(NX):
         for m in range(NX):
             S += h[i] * P[i, m] * h[m]
-    if r * r > p.mag_gate**2 * S:
+    if r * r > p.mag.gate**2 * S:
         # a clean-looking field that keeps disagreeing: let the heading's variance grow
         if np.isfinite(s.t_reject):
-            P[TH_Z, TH_Z] += p.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
+            P[TH_Z, TH_Z] += p.mag.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
         _rejected(s, R, h, r, rv, t, p)
         return
     s.t_reject = np.nan
@@ -172,20 +173,20 @@ def mag_step(s, R, mx, my, mz, t, allowed, p, ip):
 @njit(cache=True, error_model="numpy")
 def _rejected(s, R, h, r, rv, t, p):
     """A gate rejection of a clean-looking field (innovation r): the run's statistics; re-acquisition once
-    the run is ``reacquire_s`` long and its innovations agree."""
+    the run is ``mag.reacquire_s`` long and its innovations agree."""
     mean = s.reject_mean
     if not np.isfinite(s.t_reject) or not np.isfinite(s.t_reject_start):
         s.t_reject_start = t
         mean[0], mean[1] = np.cos(r), np.sin(r)
     else:
-        a = ew_alpha(t - s.t_reject, p.reacquire_s)
+        a = ew_alpha(t - s.t_reject, p.mag.reacquire_s)
         mean[0] += a * (np.cos(r) - mean[0])
         mean[1] += a * (np.sin(r) - mean[1])
     s.t_reject = t
-    if p.reacquire_s <= 0.0 or t - s.t_reject_start < p.reacquire_s:
+    if p.mag.reacquire_s <= 0.0 or t - s.t_reject_start < p.mag.reacquire_s:
         return
     rbar = np.sqrt(mean[0] * mean[0] + mean[1] * mean[1])
-    if rbar <= 0.0 or -2.0 * np.log(min(rbar, 1.0)) > p.reacquire_spread_rad**2:
+    if rbar <= 0.0 or -2.0 * np.log(min(rbar, 1.0)) > p.mag.reacquire_spread_rad**2:
         return
     _reacquire(s, R, np.arctan2(mean[1], mean[0]), h, rv, t, p)
 
@@ -197,7 +198,7 @@ def _reacquire(s, R, jump, h, rv, t, p):
     _turn_world_frame(s, jump)
     P = s.P
     # the drift the jump implies, ``jump / Δt`` about up (Δt ≥ 10 s: short runs say little about a rate)
-    vb = min((jump / max(dt_ref, 10.0)) ** 2, p.bias0_std**2)
+    vb = min((jump / max(dt_ref, 10.0)) ** 2, p.gyro.bias0_std**2)
     rotation_matrix(s.q, R)
     for i in range(3):
         for m in range(3):
@@ -254,16 +255,16 @@ def _calibration_jump(s, g, mx, my, mz):
 
 @njit(cache=True, error_model="numpy")
 def _environment_step(s, dmin2, t, det, p):
-    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag_env_tau_s`` (from the prior
-    ``mag_env_prior_uT``: the filter's weighting) and the same over the samples seen only, normalised by
+    """The environment's disturbance level: EW mean of ``d_min²`` over ``mag.env_tau_s`` (from the prior
+    ``mag.env_prior_uT``: the filter's weighting) and the same over the samples seen only, normalised by
     their weight (the reported std's, :func:`pdr_mag.fusion.gyro.unmodelled_var`), and the local
     reference's horizontal strength ``B_h = F_loc cos I_loc`` (they set the stationary variance of c)."""
     if np.isfinite(s.t_env):
-        a = ew_alpha(t - s.t_env, p.mag_env_tau_s)
+        a = ew_alpha(t - s.t_env, p.mag.env_tau_s)
         s.env_d2 += a * (dmin2 - s.env_d2)
         s.env_seen2, s.env_w = _ew_seen(s.env_seen2, s.env_w, dmin2, a)
     else:  # the first sample is the level seen until the next (its weight is nil)
-        s.env_d2 = max(dmin2, p.mag_env_prior_uT**2)
+        s.env_d2 = max(dmin2, p.mag.env_prior_uT**2)
         s.env_seen2 = dmin2
     s.t_env = t
     if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
@@ -284,13 +285,13 @@ def _ew_seen(mean, w, x, a):
 
 @njit(cache=True, error_model="numpy")
 def _flag_share_step(s, flag, f, t, det, p):
-    """The share of flagged samples, EW over ``mag_env_tau_s`` and normalised by the weight of the samples
+    """The share of flagged samples, EW over ``mag.env_tau_s`` and normalised by the weight of the samples
     seen (so the first seconds give the share of what was seen, not a mean pulled towards the first
     sample), and the disturbance the detectors' tolerance stands for, ``tol_F² + (F tol_I)²`` (they set
     the consider covariance's part of c, :func:`pdr_mag.fusion.gyro.unmodelled_var`)."""
     x = 1.0 if flag else 0.0
     if np.isfinite(s.t_flag):
-        s.flag_share, s.flag_w = _ew_seen(s.flag_share, s.flag_w, x, ew_alpha(t - s.t_flag, p.mag_env_tau_s))
+        s.flag_share, s.flag_w = _ew_seen(s.flag_share, s.flag_w, x, ew_alpha(t - s.t_flag, p.mag.env_tau_s))
     else:  # the first sample is the share seen until the next (its weight is nil)
         s.flag_share = x
     s.t_flag = t

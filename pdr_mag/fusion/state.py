@@ -18,6 +18,8 @@ from collections import namedtuple
 import numpy as np
 
 from pdr_mag._json import state_float
+from pdr_mag._records import settings_dtype
+from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.interference import DETECTOR_STATE, new_detector_state
 
 #: size of the error state (δθ, δb, δc)
@@ -58,13 +60,13 @@ STATE = np.dtype(
         ("t_acc_prev", np.float64),  # time of the one before, s
         ("acc_w", np.float64, (3,)),  # EW mean ā_w of the world-frame specific force, m/s² (NaN: restart)
         ("acc_peak", np.float64),  # largest |a_i| of any axis seen, m/s² (the range, if it clips)
-        ("acc_peak_hits", np.int64),  # samples that reached within acc_clip_band of acc_peak
+        ("acc_peak_hits", np.int64),  # samples that reached within accel.clip_band of acc_peak
         ("clip_share", np.float64),  # EW share of clipped samples in the window of ā_w
         ("acc_spread", np.float64),  # EW mean of |a_w,h − ā_w,h|², the horizontal spread about ā_w, (m/s²)²
         ("R_bar", np.float64, (3, 3)),  # EW mean of R (device → world) over the same window
         ("t_acc_update", np.float64),  # time of the last averaged-accelerometer update, s
         ("t_acc_w0", np.float64),  # time the average ā_w (re)started, s
-        ("acc_w_long", np.float64, (3,)),  # the same average over tilt_reset_tau_s (whole strides), m/s²
+        ("acc_w_long", np.float64, (3,)),  # the same average over accel.tilt_reset_tau_s (strides), m/s²
         ("tilt_resets", np.int64),  # tilt resets so far (the average far outside the tilt's uncertainty)
         # magnetometer
         ("declination", np.float64),  # D, rad (0: magnetic north)
@@ -83,7 +85,7 @@ STATE = np.dtype(
         ("t_env", np.float64),  # time of its last sample, s
         ("env_seen2", np.float64),  # the same mean over the samples seen only (no prior), µT²
         ("env_w", np.float64),  # its EW weight of the samples seen (1 − e^(−(t − t_first)/τ))
-        ("flag_share", np.float64),  # EW share of flagged samples over mag_env_tau_s (of the weight seen)
+        ("flag_share", np.float64),  # EW share of flagged samples over mag.env_tau_s (of the weight seen)
         ("flag_w", np.float64),  # the EW weight of the samples seen so far (1 − e^(−T/τ) at uniform rate)
         ("flag_d2", np.float64),  # the detectors' tolerance as a disturbance, tol_F² + (F tol_I)², µT²
         ("t_flag", np.float64),  # time of the last sample in flag_share, s
@@ -97,64 +99,11 @@ STATE = np.dtype(
     align=True,
 )
 
-#: the settings in the kernel's units (:meth:`pdr_mag.attitude.FusionSettings.as_params`): each field is
-#: the setting of the same name, but ``*_rad`` for the setting ``*_deg`` and ``out_dt_s`` (0: every gyro
-#: sample) for ``output_rate_hz``
-PARAMS = np.dtype(
-    [
-        (name, np.float64)
-        for name in (
-            "gyro_noise",
-            "bias_rw",
-            "bias0_std",
-            "tilt0_std",
-            "acc_tau_s",
-            "acc_interval_s",
-            "tilt_reset_k",
-            "tilt_reset_tau_s",
-            "tilt_reset_min_rad",
-            "acc_avg_noise",
-            "acc_noise",
-            "acc_corr_s",
-            "acc_dyn",
-            "acc_spread_k",
-            "acc_range",
-            "acc_clip_band",
-            "acc_clip_min_hits",
-            "acc_clip_k",
-            "turn_speed",
-            "turn_corr_s",
-            "acc_gyro",
-            "acc_gate",
-            "mag_noise_rad",
-            "mag_noise_uT",
-            "mag_dist_k",
-            "mag_time_unc_s",
-            "mag_cons_k",
-            "mag_tilt_k",
-            "mag_error_std_rad",
-            "mag_error_tau_s",
-            "mag_env_k",
-            "mag_env_tau_s",
-            "mag_env_prior_uT",
-            "std_env_k",
-            "std_flag_k",
-            "mag_interval_s",
-            "mag_gate",
-            "reject_inflate_rad",
-            "reacquire_s",
-            "reacquire_spread_rad",
-            "still_gyro",
-            "still_acc",
-            "still_tau_s",
-            "still_min_s",
-            "zupt_noise",
-            "out_dt_s",
-            "gravity",
-            "max_dt",
-        )
-    ]
-)
+#: the settings in the kernel's units (:class:`pdr_mag.fusion.settings.FusionSettings`, built by
+#: :func:`pdr_mag._records.settings_dtype`): one nested record per group (``p.gyro``, ``p.accel``, ``p.mag``,
+#: ``p.uncertainty``, ``p.interference``), ``*_rad`` for the settings ``*_deg`` and ``out_dt_s`` (0: every
+#: gyro sample) for ``output_rate_hz``
+PARAMS = settings_dtype(FusionSettings)
 
 #: diagnostic columns of the output, in order (:data:`pdr_mag.estimates.DIAG_KEYS`)
 DIAG_NAMES = (

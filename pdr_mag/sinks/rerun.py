@@ -23,8 +23,8 @@ Entities (timeline ``time``: the recording's clock as a duration, ``round(t·1e9
     interference score (≥ 1 flags) and the threshold 1.
 ``mag_use/share``
     the magnetometer's use per second of the recording clock: corrections in the second × the fusion's
-    ``mag_interval_s`` (``meta["mag_interval_s"]``; else the shortest gap between corrections seen), over
-    the second's covered time, at most 1; drawn at the middle of the second.
+    ``MagSettings.interval_s`` (``meta["mag_interval_s"]``; else the shortest gap between corrections seen),
+    over the second's covered time, at most 1; drawn at the middle of the second.
 ``state/drift``, ``state/interference``, ``state/mag_calibration``, ``state/magnetometer``, ``state/rotation``
     :class:`rerun.StateChange` lanes with fixed colours (:mod:`pdr_mag.sinks._rerun_layout`), in this
     (alphabetical, the viewer's) order: the drift episodes of the replay (``drift_episode`` events; where
@@ -162,7 +162,7 @@ class RerunSink:
         self._truth: tuple[list, list] | None = None  # (t chunks, heading chunks) for the error curves
         self._truth_unwrapped: tuple[np.ndarray, np.ndarray] | None = None
         self._referenced = False  # a magnetometer correction has been seen
-        self._mag_interval = np.nan  # the fusion's mag_interval_s (meta), else inferred
+        self._mag_interval = np.nan  # the fusion's MagSettings.interval_s (meta), else inferred
         self._min_used_gap = np.inf
         self._last_used_t = np.nan
         self._second: _Second | None = None  # the second whose magnetometer share is being counted
