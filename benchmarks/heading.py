@@ -14,7 +14,7 @@ Columns, all in the same run on the same inputs:
 ``b``
     the same pipeline with no calibration: online calibration only.
 ``core``
-    :class:`~pdr_mag.attitude.FusionCore` alone with the same calibrated magnetometer (cheap; left out when
+    :class:`~pdr_mag.fusion.FusionCore` alone with the same calibrated magnetometer (cheap; left out when
     the core's interface is not the one this script knows).
 peers
     :mod:`_peers` (the columns of ``../shared/benchmarks/PEERS.md``), magnetometer calibrated with the
@@ -213,7 +213,7 @@ def run_mode(walk_dir: Path, cal, truth: Truth) -> tuple[dict, dict]:
 def run_core(rec, cal, field, truth: Truth) -> dict | None:
     """The fusion core alone on the merged raw streams with the calibrated magnetometer."""
     try:
-        from pdr_mag.attitude import FusionCore
+        from pdr_mag.fusion import FusionCore
 
         core = FusionCore(field=field)
         core.set_reference_strength(cal.field_uT)

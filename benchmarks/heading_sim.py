@@ -10,7 +10,7 @@ is the fusion's own error.
 Columns, all in the same run on the same inputs:
 
 ``pdr_mag``
-    :class:`pdr_mag.attitude.FusionCore` with default settings on the merged raw streams (time stamps,
+    :class:`pdr_mag.fusion.FusionCore` with default settings on the merged raw streams (time stamps,
     gaps and all), the simulation's WMM field.
 peers
     vqf (defaults), imufusion (gain 0.5, rejections 10°, recovery 5 s), ahrs Madgwick (gain 0.041), as in
@@ -103,7 +103,7 @@ def summary(t, head, tilt) -> tuple[float, float]:
 
 
 def run_ours(res, cal, settings=None):
-    from pdr_mag.attitude import FusionCore
+    from pdr_mag.fusion import FusionCore
 
     core = FusionCore(settings, field=res.field)
     b = core.process(*merged(res, cal.apply(res.mag[1])))

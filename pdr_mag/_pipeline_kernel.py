@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
+
 #: A magnetometer sample with its context: time, raw field (µT), up vector and gyro rate (rad/s).
 MAG_ROW = np.dtype(
     [("t", np.float64), ("m", np.float64, (3,)), ("up", np.float64, (3,)), ("rate", np.float64)]
@@ -53,8 +55,8 @@ def take_merged(t0, x0, lo0, hi0, t1, x1, lo1, hi1, t2, x2, lo2, hi2, t_end):
 
 @njit(cache=True, error_model="numpy")
 def _merge(t0, x0, t1, x1, t2, x2):
-    """Three time-ordered streams merged into ``(kind, t, xyz)``, ``kind`` the stream (0, 1, 2); on equal
-    times the lower stream first."""
+    """Three time-ordered streams merged into ``(kind, t, xyz)``, ``kind`` the stream (``ACCEL``, ``GYRO``,
+    ``MAG``); on equal times in that order."""
     n0 = len(t0)
     n1 = len(t1)
     n2 = len(t2)
@@ -64,17 +66,17 @@ def _merge(t0, x0, t1, x1, t2, x2):
     i0 = i1 = i2 = 0
     for k in range(len(t)):
         if i0 < n0 and (i1 == n1 or t0[i0] <= t1[i1]) and (i2 == n2 or t0[i0] <= t2[i2]):
-            kind[k] = 0
+            kind[k] = ACCEL
             t[k] = t0[i0]
             xyz[k] = x0[i0]
             i0 += 1
         elif i1 < n1 and (i2 == n2 or t1[i1] <= t2[i2]):
-            kind[k] = 1
+            kind[k] = GYRO
             t[k] = t1[i1]
             xyz[k] = x1[i1]
             i1 += 1
         else:
-            kind[k] = 2
+            kind[k] = MAG
             t[k] = t2[i2]
             xyz[k] = x2[i2]
             i2 += 1
@@ -91,9 +93,9 @@ def filter_input(kind, xyz, offset, calibrated):
     n_gyro = 0
     for i in range(n):
         allowed[i] = calibrated
-        n_gyro += kind[i] == 1
+        n_gyro += kind[i] == GYRO
         for c in range(3):
-            if kind[i] != 2:
+            if kind[i] != MAG:
                 data[i, c] = xyz[i, c]
             elif calibrated:
                 data[i, c] = xyz[i, c] - offset[c]
@@ -145,12 +147,12 @@ def _up(q, out):
 
 @njit(cache=True, error_model="numpy")
 def mag_context(kind, t, xyz, row_t, row_q, carry, before):
-    """:data:`MAG_ROW` records: ``before``'s, then those of the magnetometer samples (``kind == 2``) of a
+    """:data:`MAG_ROW` records: ``before``'s, then those of the magnetometer samples (``kind == MAG``) of a
     merged chunk, given its filter output rows (``row_t``, ``row_q``) and the :data:`CARRY` record from
     before the chunk."""
     n_mag = 0
     for i in range(len(t)):
-        if kind[i] == 2:
+        if kind[i] == MAG:
             n_mag += 1
     out = np.empty(len(before) + n_mag, dtype=MAG_ROW)
     for k in range(len(before)):
@@ -161,9 +163,9 @@ def mag_context(kind, t, xyz, row_t, row_q, carry, before):
     a = -1  # latest accelerometer / gyroscope sample so far (the merge puts ties before the magnetometer)
     g = -1
     for i in range(len(t)):
-        if kind[i] == 0:
+        if kind[i] == ACCEL:
             a = i
-        elif kind[i] == 1:
+        elif kind[i] == GYRO:
             g = i
         else:
             row = out[k]
@@ -195,9 +197,9 @@ def carry_over(kind, xyz, row_q, carry):
     a = -1
     g = -1
     for i in range(len(kind) - 1, -1, -1):
-        if a < 0 and kind[i] == 0:
+        if a < 0 and kind[i] == ACCEL:
             a = i
-        if g < 0 and kind[i] == 1:
+        if g < 0 and kind[i] == GYRO:
             g = i
         if a >= 0 and g >= 0:
             break

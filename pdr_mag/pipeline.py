@@ -49,16 +49,13 @@ import numpy as np
 
 from pdr_mag import _pipeline_kernel as PK
 from pdr_mag._json import state_float
-from pdr_mag.attitude import heading_reset_events
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
-from pdr_mag.fusion.settings import FusionSettings
+from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
+from pdr_mag.fusion.kinds import KINDS, NAMES
 
-#: Stream names and their ``kind`` codes in the merged sample stream.
-KINDS = {"accel": 0, "gyro": 1, "mag": 2}
-_NAMES = {v: k for k, v in KINDS.items()}
 STATE_VERSION = 2
 _NO_OFFSET = np.zeros(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
@@ -98,7 +95,7 @@ class PipelineSettings:
     online_settings : OnlineSettings
         Its settings.
     fusion : FusionSettings or None
-        Settings of :class:`pdr_mag.attitude.FusionCore` (None: its defaults).
+        Settings of :class:`pdr_mag.fusion.FusionCore` (None: its defaults).
     keep_mag_calibrated : bool
         Keep the calibrated magnetometer samples for :meth:`HeadingPipeline.pop_mag_calibrated` (sinks).
     """
@@ -169,9 +166,9 @@ class HeadingPipeline:
     meta : dict, optional
         Recording metadata (``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date``): with position
         and date, the WMM gives the reference field and the heading is true north.
-    fusion : object, optional
-        A fusion core to use instead of :class:`pdr_mag.attitude.FusionCore` (for tests; the pipeline uses
-        its ``_run``, ``snapshots``, ``_restore``, ``set_reference_strength``, ``get_state``/``set_state``).
+    fusion : FusionCore, optional
+        The filter to use instead of a new :class:`pdr_mag.fusion.FusionCore` (for tests; the pipeline uses
+        its public API: ``advance``, ``restore``, ``use_calibration``, ``get_state``/``set_state``).
 
     Examples
     --------
@@ -200,8 +197,6 @@ class HeadingPipeline:
         except ValueError as exc:
             raise ValueError(f"meta: {exc}") from exc
         if fusion is None:
-            from pdr_mag.attitude import FusionCore
-
             fusion = FusionCore(_fusion_settings(self.settings.fusion, self.meta), self.field)
         self.fusion = fusion
         f = self.field
@@ -412,9 +407,10 @@ class HeadingPipeline:
         if cal is not None and self._mag_matrix_t is not None:
             is_mag = kind == 2
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
-        # the filter over the span, keeping its state before each block (FusionCore.snapshots)
+        # the filter over the span, keeping its state before each block
         starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
-        batch = self.fusion._run(kind, t, data, allowed, starts, n_gyro, cal_state)
+        batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), snapshot_before=starts)
+        batch.cal_state = np.full(len(batch), cal_state, dtype="<U13")
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
@@ -433,7 +429,7 @@ class HeadingPipeline:
                 self._pend = rows[:0]
                 end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
                 if end < len(t):
-                    self.fusion._restore(self.fusion.snapshots[int(starts.searchsorted(end))])
+                    self.fusion.restore(snapshots[int(starts.searchsorted(end))])
                     batch = batch.head(int(batch.t.searchsorted(t[end])))
                 self._use_calibration()  # after the filter's state (with its reference strength) is put back
             PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
@@ -477,25 +473,21 @@ class HeadingPipeline:
 
     def _use_calibration(self, restored: bool = False) -> None:
         """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = ``cal.matrix``; None
-        for the identity) for the filter's input, and (unless ``restored`` with the fusion core's state) its
-        radius as the detectors' reference strength and its offset covariance as a source of heading error."""
+        for the identity) for the filter's input, and (unless ``restored`` with the filter's state) the
+        filter's :meth:`~pdr_mag.fusion.FusionCore.use_calibration`."""
         cal = self.online.calibration
         old = self._cal_in_use
-        if not restored and cal is not None and old is not None and cal is not old:
-            # the heading taken from the fields of the old calibration carries what the change removes
-            self.fusion.note_calibration_change(old.matrix, old.offset_array, cal.matrix, cal.offset_array)
         self._cal_in_use = cal
         self._mag_offset = _NO_OFFSET if cal is None else cal.offset_array
         self._mag_matrix_t = None
         if cal is not None:
             a = cal.matrix
             self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
-        if not restored and cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
-            if not self._calibrations:
-                self._calibrations.append((-np.inf, cal))
-            self.fusion.set_reference_strength(float(cal.field_uT))
-        if not restored:
-            self.fusion.set_calibration_covariance(None if cal is None else cal.offset_covariance)
+        if restored:
+            return
+        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not self._calibrations:
+            self._calibrations.append((-np.inf, cal))
+        self.fusion.use_calibration(cal, old)
 
     def _interference_events(self, batch: EstimateBatch) -> list[Event]:
         """The changes of the interference flag in these rows."""
@@ -604,6 +596,6 @@ def _kind_name(kind) -> str:
             raise ValueError(f"kind: expected one of {sorted(KINDS)}, got {kind!r}")
         return kind
     try:
-        return _NAMES[int(kind)]
+        return NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None

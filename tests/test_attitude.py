@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from pdr_mag._records import settings_record
-from pdr_mag.attitude import FusionCore
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import EarthField
+from pdr_mag.fusion import FusionCore
 from pdr_mag.fusion.settings import AccelSettings, FusionSettings, GyroSettings, MagSettings
 from pdr_mag.sim import simulate
 
@@ -512,7 +512,7 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     re-acquisition it is still tens of degrees off at that time."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.attitude import heading_reset_events
+    from pdr_mag.fusion import heading_reset_events
     from pdr_mag.sensor_model import quat_slerp
 
     tm, m = walk.mag

@@ -8,8 +8,8 @@ import pytest
 from conftest import dataset
 from test_attitude import merge, twist_error_deg
 
-from pdr_mag.attitude import FusionCore
 from pdr_mag.estimates import EstimateBatch
+from pdr_mag.fusion import FusionCore
 from pdr_mag.sim import simulate
 
 EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}

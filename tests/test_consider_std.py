@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_attitude import merge, twist_error_deg
 
-from pdr_mag.attitude import FusionCore
+from pdr_mag.fusion import FusionCore
 from pdr_mag.fusion.settings import FusionSettings, UncertaintySettings
 from pdr_mag.sensor_model import quat_slerp
 from pdr_mag.sim import simulate

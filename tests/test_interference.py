@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pdr_mag.attitude import FusionCore
-from pdr_mag.interference import (
+from pdr_mag.fusion import FusionCore
+from pdr_mag.fusion.detectors import (
     InterferenceSettings,
     consistency_angle_deg,
     dip_deg,
@@ -198,7 +198,7 @@ def test_heading_survives_a_strong_disturbance(walk):
 
 def test_kernel_step_matches_the_vectorised_functions():
     """detect_step (what the fusion kernel runs per sample) gives the numbers of the array functions."""
-    from pdr_mag.interference import detect_step, new_detector_state
+    from pdr_mag.fusion.detectors import detect_step, new_detector_state
 
     rng = np.random.default_rng(3)
     t = np.cumsum(rng.uniform(0.015, 0.025, 400))

@@ -221,15 +221,15 @@ def test_fusion_snapshot_restores_as_set_state(walk):
     pipe.run({k: (t[t < 20.0], x[t < 20.0]) for k, (t, x) in streams.items()})
     core = pipe.fusion
     core.set_reference_strength(47.5)
-    snap, js = core._snapshot(), core.get_state()
+    snap, js = core.snapshot(), core.get_state()
     core.set_reference_strength(30.0)
     t, x = streams["gyro"]
     core.process(np.ones(100, dtype=np.int8), t[2000:2100], x[2000:2100])
     assert core.get_state() != js
-    core._restore(snap)
+    core.restore(snap)
     assert core.get_state() == js
     core.process(np.ones(100, dtype=np.int8), t[2000:2100], x[2000:2100])
-    core._restore(snap)  # the snapshot is not changed by the filter running on
+    core.restore(snap)  # the snapshot is not changed by the filter running on
     assert core.get_state() == js
 
 

@@ -1,7 +1,20 @@
-"""The fusion filter's compiled recursion (numba, ``cache=True``), one module per part of the model.
+"""The fusion filter, behind one door: its settings, state, process, snapshots and interference detectors.
 
-:class:`pdr_mag.attitude.FusionCore` is the Python face of this package (settings, input checks, state
-round trip); the per-sample recursion is here.
+The public API (what :class:`pdr_mag.pipeline.HeadingPipeline` uses; nothing outside this package reaches
+into its modules' private parts):
+
+:class:`FusionCore`
+    ``process(kind, t, xyz, mag_allowed)`` (checked input) or ``advance(Span, snapshot_before)`` (the
+    pipeline's: rows and :class:`Snapshot` s), ``snapshot()`` / ``restore()``, ``get_state()`` /
+    ``set_state()`` (JSON), ``use_calibration()`` (a calibration in force: reference strength, offset
+    covariance, a change noted), ``set_field()``;
+:class:`FusionSettings`
+    grouped by concern: :class:`GyroSettings`, :class:`AccelSettings`, :class:`MagSettings`,
+    :class:`UncertaintySettings`, :class:`InterferenceSettings`;
+:mod:`~pdr_mag.fusion.kinds`
+    the codes of the merged stream's samples (``ACCEL``, ``GYRO``, ``MAG``);
+:func:`heading_reset_events`
+    the ``heading_reset`` events of a batch of rows.
 
 Model: an error-state (multiplicative) extended Kalman filter.
 
@@ -24,7 +37,7 @@ magnetometer (:mod:`~pdr_mag.fusion.mag`)
     heading only: ``r = wrap(atan2(m_w,x, m_w,y) − D − c)`` observes ``h_t·δθ_xy + δθ_z + δc`` with the
     tilt errors as consider states; noise from the field's horizontal strength and the smallest
     disturbance that explains the detectors' deviations; skipped while the interference flag
-    (:mod:`pdr_mag.interference`) is up, when the caller disallows it or beyond a χ² gate.  The
+    (:mod:`pdr_mag.fusion.detectors`) is up, when the caller disallows it or beyond a χ² gate.  The
     stationary variance of ``c`` grows with the recent environment's disturbance level and with the
     heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
     the gate for ``mag.reacquire_s`` re-acquires the heading (``heading_reset``).
@@ -38,6 +51,12 @@ consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gy
 
 Modules
 -------
+:mod:`~pdr_mag.fusion.core`
+    :class:`FusionCore`, the Python face: settings, input checks, spans, snapshots, state round trip;
+:mod:`~pdr_mag.fusion.settings`
+    the settings groups (the kernel reads them as one record, :mod:`pdr_mag._records`);
+:mod:`~pdr_mag.fusion.detectors`
+    the interference detectors (strength, variance, dip, gyro consistency) and their hold-off timer;
 :mod:`~pdr_mag.fusion.state`
     the state, parameter and output layouts (numpy records with named fields) and their JSON form;
 :mod:`~pdr_mag.fusion.eskf`
@@ -47,9 +66,42 @@ Modules
 :mod:`~pdr_mag.fusion.kernel`
     the run loop over a merged chunk of samples and the output rows.
 
-To change a measurement model, edit its sensor module; to add a detector, extend
-:data:`pdr_mag.interference.DETECTOR_STATE` and :func:`pdr_mag.interference.detect_step`; to carry a new
-quantity from sample to sample, add a field to :data:`~pdr_mag.fusion.state.STATE` (the JSON state
-follows; bump :data:`pdr_mag.attitude.STATE_VERSION`).  The kernels' numba cache is refreshed when any of
+To change a measurement model, edit its sensor module; a setting is a field of its group in
+:mod:`~pdr_mag.fusion.settings` (the kernel's record follows); to add a detector, extend
+:data:`pdr_mag.fusion.detectors.DETECTOR_STATE` and :func:`pdr_mag.fusion.detectors.detect_step`; to carry a
+new quantity from sample to sample, add a field to :data:`~pdr_mag.fusion.state.STATE` (the JSON state
+follows; bump :data:`pdr_mag.fusion.core.STATE_VERSION`).  The kernels' numba cache is refreshed when any of
 these modules changes (:mod:`pdr_mag._jit_cache`).
 """
+
+from pdr_mag.fusion.core import (
+    STATE_VERSION,
+    Advanced,
+    FusionCore,
+    Snapshot,
+    Span,
+    heading_reset_events,
+)
+from pdr_mag.fusion.detectors import InterferenceSettings
+from pdr_mag.fusion.settings import (
+    AccelSettings,
+    FusionSettings,
+    GyroSettings,
+    MagSettings,
+    UncertaintySettings,
+)
+
+__all__ = [
+    "STATE_VERSION",
+    "AccelSettings",
+    "Advanced",
+    "FusionCore",
+    "FusionSettings",
+    "GyroSettings",
+    "InterferenceSettings",
+    "MagSettings",
+    "Snapshot",
+    "Span",
+    "UncertaintySettings",
+    "heading_reset_events",
+]

@@ -63,6 +63,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.detectors import ew_alpha
 from pdr_mag.fusion.eskf import (
     inject,
     rotate_world,
@@ -74,7 +75,6 @@ from pdr_mag.fusion.eskf import (
 )
 from pdr_mag.fusion.gyro import ew_stats_step
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
-from pdr_mag.interference import ew_alpha
 
 #: the largest tilt error the averaged update treats as linear (its bias terms), rad
 LINEAR_RAD = 0.35

@@ -39,9 +39,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.detectors import ew_alpha
 from pdr_mag.fusion.eskf import inject, rotate_body, rotation_matrix, update
 from pdr_mag.fusion.state import BIAS, NX, TH_Z
-from pdr_mag.interference import ew_alpha
 
 #: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
 GAP_DT = 0.05

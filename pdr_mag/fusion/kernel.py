@@ -19,18 +19,19 @@ import sys
 import numpy as np
 from numba import njit
 
-from pdr_mag import _jit_cache, interference
-from pdr_mag.fusion import accel, eskf, gyro, mag, state
+from pdr_mag import _jit_cache
+from pdr_mag.fusion import accel, detectors, eskf, gyro, mag, state
 from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_deg, heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
+from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 from pdr_mag.fusion.mag import mag_step
 from pdr_mag.fusion.state import TH_Z, Rows
 
 
 @njit(cache=True, error_model="numpy")
 def run(kind, t, xyz, allowed, st, p, out, k0):
-    """Process a chunk (``kind`` 0 accelerometer, 1 gyroscope, 2 magnetometer) with the state record
+    """Process a chunk (``kind``: :mod:`pdr_mag.fusion.kinds`) with the state record
     ``st``, writing rows into the :class:`~pdr_mag.fusion.state.Rows` columns ``out`` from row ``k0`` on;
     returns the number of rows written."""
     R = np.empty((3, 3))
@@ -40,12 +41,12 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
         k = kind[i]
         x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         ti = t[i]
-        if k == 0:
+        if k == ACCEL:
             if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
                 accel_step(st, R, x, y, z, ti, p)
-        elif k == 2:
+        elif k == MAG:
             mag_step(st, R, x, y, z, ti, allowed[i], p)
-        elif k == 1:
+        elif k == GYRO:
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
                 continue
             gyro_step(st, R, work, x, y, z, ti, p)
@@ -141,4 +142,4 @@ def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, floats, q, flags)
 
 
 # numba checks a cached function against its own file only: empty the caches when any of these changed
-_jit_cache.refresh_if_changed((interference, state, eskf, gyro, accel, mag, sys.modules[__name__]), "fusion")
+_jit_cache.refresh_if_changed((detectors, state, eskf, gyro, accel, mag, sys.modules[__name__]), "fusion")

@@ -1,6 +1,6 @@
 """Heading from the calibrated magnetometer: the interference detectors, then a heading-only update.
 
-Detectors.  Every finite sample goes through :func:`pdr_mag.interference.detect_step` (strength, variance,
+Detectors.  Every finite sample goes through :func:`pdr_mag.fusion.detectors.detect_step` (strength, variance,
 dip against the filter's up direction, gyro consistency of the world-frame direction ``m_w = R m_d``, with
 hold timers), whatever the caller allows; their state is the record ``det`` inside the filter's state.
 
@@ -58,7 +58,7 @@ so a later field with the same offset — a disturbance present since the start 
 same form with its own c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
-:meth:`pdr_mag.attitude.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
+:meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
 ``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next usable sample that
 variance joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once.  (A change
 of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
@@ -69,6 +69,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.detectors import detect_step, dip_of, ew_alpha
 from pdr_mag.fusion.eskf import (
     inject,
     rotate_world,
@@ -80,7 +81,6 @@ from pdr_mag.fusion.eskf import (
 )
 from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
-from pdr_mag.interference import detect_step, dip_of, ew_alpha
 
 
 @njit(cache=True, error_model="numpy")
@@ -236,7 +236,7 @@ def _calibration_variance(s, g):
 @njit(cache=True, error_model="numpy")
 def _calibration_jump(s, g, mx, my, mz):
     """A calibration change noted since the last usable sample (``dm = D m + e``, m this calibrated sample,
-    :meth:`pdr_mag.attitude.FusionCore.note_calibration_change`): the heading variance grows by
+    :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`): the heading variance grows by
     ``(g · dm)²``, capped at π², once the heading is known."""
     D, e = s.cal_jump_d, s.cal_jump_e
     if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0 and not np.any(D != 0.0):

@@ -20,7 +20,7 @@ import numpy as np
 
 from pdr_mag._records import check_numbers, kernel_field
 from pdr_mag.conventions import GRAVITY
-from pdr_mag.interference import InterferenceSettings
+from pdr_mag.fusion.detectors import InterferenceSettings
 
 
 def _radians(name: str, default: float):

@@ -1,10 +1,10 @@
 """The fusion filter's state, parameters and output rows, each in named fields.
 
 The compiled kernels (:mod:`pdr_mag.fusion.kernel` and the modules it calls) read and write one record of
-:data:`STATE`, read one record of :data:`PARAMS` (the :class:`pdr_mag.attitude.FusionSettings` in the
-kernel's units) and one of :data:`pdr_mag.interference.PARAMS`, and write their output into the named
-columns of a :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its
-fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
+:data:`STATE`, read one record of :data:`PARAMS` (the :class:`~pdr_mag.fusion.settings.FusionSettings` in
+the kernel's units, the detectors' thresholds nested in it), and write their output into the named columns of
+a :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its fields are read
+by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
 Error state (the rows and columns of ``P`` and ``U``): ``δθ`` (3, world frame; ``δθ_z`` is the heading
@@ -19,8 +19,8 @@ import numpy as np
 
 from pdr_mag._json import state_float
 from pdr_mag._records import settings_dtype
+from pdr_mag.fusion.detectors import DETECTOR_STATE, new_detector_state
 from pdr_mag.fusion.settings import FusionSettings
-from pdr_mag.interference import DETECTOR_STATE, new_detector_state
 
 #: size of the error state (δθ, δb, δc)
 NX = 7
@@ -90,7 +90,7 @@ STATE = np.dtype(
         ("flag_d2", np.float64),  # the detectors' tolerance as a disturbance, tol_F² + (F tol_I)², µT²
         ("t_flag", np.float64),  # time of the last sample in flag_share, s
         ("bh_ref", np.float64),  # horizontal strength of the local reference field, µT (NaN: unknown)
-        ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.interference)
+        ("det", DETECTOR_STATE),  # the interference detectors (pdr_mag.fusion.detectors)
         # output rows
         ("t_next_out", np.float64),  # grid time of the next output row, s
         ("mag_used", np.bool_),  # the magnetometer corrected the heading since the last row

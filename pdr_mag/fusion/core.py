@@ -1,9 +1,10 @@
-"""Attitude fusion: gyroscope + accelerometer + calibrated magnetometer → orientation, heading, uncertainty.
+""":class:`FusionCore`, the fusion filter's face: gyroscope + accelerometer + calibrated magnetometer →
+orientation, heading, uncertainty.
 
 An error-state (multiplicative) extended Kalman filter with seven error states — world-frame attitude
 error ``δθ``, gyroscope bias error ``δb`` and a Gauss–Markov magnetometer heading error ``c`` — whose
-recursion is compiled in :mod:`pdr_mag.fusion` (the model there, each sensor's equations in its module).
-In short:
+recursion is compiled in :mod:`pdr_mag.fusion.kernel` (the model in :mod:`pdr_mag.fusion`, each sensor's
+equations in its module).  In short:
 
 * gyroscope: propagates ``q`` (device → ENU) with the bias-corrected rate (across gaps up to ``gyro.max_dt``,
   whose unknown rotation is added to ``P``); ``P`` grows with the gyro noise and the bias uncertainty,
@@ -16,7 +17,7 @@ In short:
 * magnetometer: corrects heading only, so a disturbed field can never corrupt the tilt; the tilt errors
   enter its H as consider states (Schmidt), so a tilt error (× tan I in the field's horizontal
   projection) is not taken for a heading error.  Gross disturbances are rejected by
-  :mod:`pdr_mag.interference` (flag with hold-off timers); moderate ones are down-weighted by the
+  :mod:`pdr_mag.fusion.detectors` (flag with hold-off timers); moderate ones are down-weighted by the
   smallest disturbance that explains the deviations of strength, dip and gyro consistency; the
   innovation must pass a χ² gate; the caller may veto (``mag_allowed``);
 * gyroscope bias: observable through the heading (magnetometer) and tilt (accelerometer) corrections as
@@ -34,13 +35,16 @@ In short:
   it may be turned.  Measured on the 42 tyrex walks (benchmarks/RESULTS.md): no walk with more than 10 % of
   its frames beyond 3σ; conservative on most frames (truth within 1σ in ≈ 95 %).
 
-Interface for :class:`pdr_mag.pipeline.HeadingPipeline`
--------------------------------------------------------
-``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch``:
+Interface
+---------
+``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch`` (checked input),
+or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows and
+a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`; what the pipeline uses):
 
 ``kind`` int8 (N,)
-    0 accelerometer (m/s²), 1 gyroscope (rad/s), 2 magnetometer (µT, **already calibrated**, device frame;
-    a row of NaN = no usable calibration yet: the detectors and the heading update skip it).
+    :data:`~pdr_mag.fusion.kinds.ACCEL` (m/s²), :data:`~pdr_mag.fusion.kinds.GYRO` (rad/s),
+    :data:`~pdr_mag.fusion.kinds.MAG` (µT, **already calibrated**, device frame; a row of NaN = no usable
+    calibration yet: the detectors and the heading update skip it).
 ``t`` float64 (N,)
     Merged, time-ordered (non-decreasing) times, s.
 ``xyz`` float64 (N, 3).
@@ -62,24 +66,31 @@ north) with ``heading_std_deg = 180``.
 North: with a field that has a declination, the output is referenced to true north (the magnetometer
 residual is taken against the declination); with ``field=None`` to magnetic north.  The strength
 reference of the detectors is, in this order: the value passed to :meth:`FusionCore.set_reference_strength`
-(the pipeline passes its calibration radius, which is in the calibrated data's own scale), else the
+(:meth:`FusionCore.use_calibration` passes the calibration radius, which is in the calibrated data's own
+scale), else the
 field's WMM strength, else none (the strength check is off).  The dip reference is the field's
 inclination, else learnt from clean samples.
 
 State: everything the filter carries from one sample to the next is one record of
 :data:`pdr_mag.fusion.state.STATE` (named fields), so splitting a stream into any chunks gives identical
 results; :meth:`get_state` / :meth:`set_state` round-trip it exactly as a JSON-serialisable dict of those
-fields.
+fields, and a :class:`Snapshot` is a copy of its bytes.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
 import numpy as np
 
 from pdr_mag._records import settings_record
+from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
+from pdr_mag.fusion.kinds import GYRO, check_kinds
 from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import (
     DIAG_NAMES,
@@ -98,6 +109,61 @@ _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
 
+class Span(NamedTuple):
+    """A merged, time-ordered chunk of samples as the filter takes it (the module docstring's input), made
+    by the caller and not checked again: contiguous arrays of these dtypes.
+
+    Attributes
+    ----------
+    kind : int8 (N,)
+        :mod:`pdr_mag.fusion.kinds` codes.
+    t : float64 (N,)
+        Times, s, non-decreasing.
+    xyz : float64 (N, 3)
+        Samples; magnetometer rows calibrated (NaN: no usable calibration).
+    mag_allowed : bool (N,)
+        Per-row permission to use a magnetometer row for the heading.
+    n_gyro : int
+        At least the number of gyroscope rows (the most output rows the span can give).
+    """
+
+    kind: np.ndarray
+    t: np.ndarray
+    xyz: np.ndarray
+    mag_allowed: np.ndarray
+    n_gyro: int
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """The filter at one instant, for :meth:`FusionCore.restore` in the same process: a copy of its state's
+    bytes and the reference strength in force (not serialisable: :meth:`FusionCore.get_state` is)."""
+
+    raw: np.ndarray
+    reference_strength: float | None
+
+
+class Snapshots(Sequence):
+    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order (made on access)."""
+
+    def __init__(self, states: np.ndarray, reference_strength: float | None):
+        self._raw = states.view(np.uint8).reshape(len(states), -1) if len(states) else states
+        self._ref = reference_strength
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    def __getitem__(self, i: int) -> Snapshot:
+        return Snapshot(self._raw[i], self._ref)
+
+
+class Advanced(NamedTuple):
+    """What :meth:`FusionCore.advance` gives: the output rows and the snapshots asked for."""
+
+    rows: EstimateBatch
+    snapshots: Snapshots
+
+
 class FusionCore:
     """The streaming fusion filter (see the module docstring for the interface).
 
@@ -114,7 +180,6 @@ class FusionCore:
         self._st = new_state()
         self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
         self._ref_strength: float | None = None
-        self._snaps = (_NO_SNAPS, None)  # the states kept by the last run, and the reference strength
         self.field: EarthField | None = None
         self.set_field(field)
 
@@ -166,6 +231,23 @@ class FusionCore:
         st["cal_jump_d"] += np.eye(3) - m_old @ np.linalg.inv(m_new)
         st["cal_jump_e"] += m_old @ (b_old - b_new)
 
+    def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:
+        """The magnetometer calibration in force is now ``cal`` (the samples the filter takes are calibrated
+        with it; None: none yet), ``previous`` the one before it (None: none).  Where a calibration meets
+        the filter — a given one (the phone's own, a backend's store), an online fit, a recalibration:
+
+        * a change is noted (:meth:`note_calibration_change`), so the heading taken from the old fields
+          gets the variance of what the change removes;
+        * its radius becomes the detectors' reference strength (:meth:`set_reference_strength`; a
+          calibration without a radius leaves the reference as it was);
+        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`).
+        """
+        if cal is not None and previous is not None and cal is not previous:
+            self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
+        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
+            self.set_reference_strength(float(cal.field_uT))
+        self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
+
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:
             self._st["f_ref"] = self._ref_strength
@@ -180,12 +262,9 @@ class FusionCore:
         return "true" if self.field is not None else "magnetic"
 
     # ------------------------------------------------------------------ processing
-    def process(self, kind, t, xyz, mag_allowed=None, snapshot_at=None) -> EstimateBatch:
-        """Run a merged, time-ordered chunk through the filter; returns its output rows.
-
-        ``snapshot_at``: increasing sample indices before each of which a :meth:`_snapshot` is kept in
-        ``self.snapshots`` (same rows: the filter's output does not depend on how its input is cut).
-        """
+    def process(self, kind, t, xyz, mag_allowed=None) -> EstimateBatch:
+        """Run a merged, time-ordered chunk through the filter (the module docstring's input, checked);
+        returns its output rows."""
         kind = np.ascontiguousarray(kind, dtype=np.int8)
         t = np.ascontiguousarray(t, dtype=np.float64)
         xyz = np.ascontiguousarray(xyz, dtype=np.float64)
@@ -194,42 +273,45 @@ class FusionCore:
             raise ValueError(
                 f"kind, t, xyz: expected shapes (N,), (N,), (N, 3); got {kind.shape}, {t.shape}, {xyz.shape}"
             )
+        check_kinds(kind)
         if mag_allowed is None:
             allowed = np.ones(n, dtype=np.bool_)
         else:
             allowed = np.ascontiguousarray(mag_allowed, dtype=np.bool_)
             if allowed.shape != (n,):
                 raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
-        m = int(np.count_nonzero(kind == 1))
-        cuts = _NO_CUTS if snapshot_at is None else np.asarray(snapshot_at, dtype=np.intp)
-        return self._run(kind, t, xyz, allowed, cuts, m)
+        return self.advance(Span(kind, t, xyz, allowed, int(np.count_nonzero(kind == GYRO)))).rows
 
-    def _run(self, kind, t, xyz, allowed, cuts, m, cal_state: str = "none") -> EstimateBatch:
-        """:meth:`process` on checked input: contiguous ``kind`` (int8), ``t``, ``xyz`` (float64),
-        ``allowed`` (bool), ``cuts`` (intp, the ``snapshot_at``), ``m`` ≥ the number of gyro samples; the
-        rows' ``cal_state`` is ``cal_state``."""
-        floats, q, flags = new_rows(m)
+    def advance(self, span: Span, snapshot_before=None) -> Advanced:
+        """Run ``span`` through the filter; keep a :class:`Snapshot` before each sample index of
+        ``snapshot_before`` (increasing, intp; the rows do not depend on where the input is cut).
+
+        The rows' ``cal_state`` is ``"none"`` (the caller who knows the calibration's state sets it)."""
+        cuts = _NO_CUTS if snapshot_before is None else snapshot_before
+        floats, q, flags = new_rows(span.n_gyro)
         snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
-        k = kernel.run_cut(kind, t, xyz, allowed, self._st, self._p, cuts, snaps, floats, q, flags)
-        self._snaps = (snaps, self._ref_strength)
+        k = kernel.run_cut(
+            span.kind, span.t, span.xyz, span.mag_allowed, self._st, self._p, cuts, snaps, floats, q, flags
+        )
         col = dict(zip(FLOAT_COLS, floats[:, :k], strict=True)) | dict(
             zip(FLAG_COLS, flags[:, :k], strict=True)
         )
         heading = np.arctan2(col["h_y"], col["h_x"])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
-        return EstimateBatch(
+        rows = EstimateBatch(
             t=col["t"],
             q_wd=q[:k],
             heading_deg=heading,
             heading_std_deg=col["heading_std_deg"],
             mag_used=col["mag_used"],
             interference=col["interference"],
-            cal_state=np.full(k, cal_state, dtype="<U13"),
+            cal_state=np.full(k, "none", dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
+        return Advanced(rows, Snapshots(snaps, self._ref_strength))
 
     # ------------------------------------------------------------------ state
     @property
@@ -249,21 +331,15 @@ class FusionCore:
             "reference_strength_uT": self._ref_strength,
         }
 
-    @property
-    def snapshots(self) -> list:
-        """The :meth:`_snapshot` s kept by the last :meth:`process` (``snapshot_at``), in order."""
-        snaps, ref = self._snaps
-        return [(raw, ref) for raw in snaps.view(np.uint8).reshape(len(snaps), -1)] if len(snaps) else []
+    def snapshot(self) -> Snapshot:
+        """The filter as it is now, for :meth:`restore` (a copy of the state's bytes)."""
+        return Snapshot(self._raw.copy(), self._ref_strength)
 
-    def _snapshot(self) -> tuple:
-        """Cheap in-process snapshot for :meth:`_restore` (a copy of the state's bytes; not serialisable)."""
-        return self._raw.copy(), self._ref_strength
-
-    def _restore(self, snap: tuple) -> None:
-        """Put back a :meth:`_snapshot` (as :meth:`set_state` does for a :meth:`get_state` dict: the
+    def restore(self, snap: Snapshot) -> None:
+        """Put back a :class:`Snapshot` (as :meth:`set_state` does for a :meth:`get_state` dict: the
         reference field of this object wins)."""
-        raw, self._ref_strength = snap
-        self._raw[:] = raw
+        self._raw[:] = snap.raw
+        self._ref_strength = snap.reference_strength
         self.set_field(self.field)
 
     def set_state(self, state: dict) -> None:
