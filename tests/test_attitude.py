@@ -230,22 +230,29 @@ def test_state_round_trip_through_json(walk):
         second.set_state(broken)
 
 
-def test_output_columns_are_named_in_order():
-    """The kernel's named output columns are the rows of the blocks that FusionCore reads by name."""
-    from pdr_mag.fusion.kernel import named_rows
-    from pdr_mag.fusion.state import FLAG_COLS, FLOAT_COLS, Rows, new_rows
+def test_the_kernel_writes_every_output_column(walk):
+    """Every field of :data:`pdr_mag.fusion.rows.ROWS` is written for every row the kernel reports (a
+    sentinel put there before the run is gone), and the rows' diagnostics are exactly DIAG_NAMES."""
+    from pdr_mag.fusion import kernel
+    from pdr_mag.fusion.rows import DIAG_NAMES, ROWS
+    from pdr_mag.fusion.state import STATE
 
-    floats, q, flags = new_rows(3)
-    floats[:] = np.arange(len(FLOAT_COLS))[:, None]
-    q[:] = -1.0
-    for i, name in enumerate(FLAG_COLS):
-        flags[:] = False
-        flags[i] = True
-        rows = named_rows(floats, q, flags)
-        assert isinstance(rows, Rows) and np.all(getattr(rows, name))
-        assert not any(np.any(getattr(rows, other)) for other in FLAG_COLS if other != name)
-    assert all(np.all(getattr(rows, name) == i) for i, name in enumerate(FLOAT_COLS))
-    assert np.all(rows.q == -1.0)
+    kind, t, xyz = merge(walk)
+    core = FusionCore(field=walk.field)
+    out = np.zeros(len(t), dtype=ROWS)
+    for name in ROWS.names:
+        out[name] = -12345.0 if out[name].dtype.kind == "f" else True
+    allowed = np.ones(len(t), dtype=np.bool_)
+    no_cut = np.empty(0, dtype=np.intp)
+    k = kernel.run_cut(kind, t, xyz, allowed, core._st, core._p, no_cut, np.empty(0, STATE), out)
+    assert k > 100
+    for name in ROWS.names:
+        col = out[name][:k]
+        if col.dtype.kind == "f":
+            assert not np.any(col == -12345.0), name
+        else:
+            assert not np.all(col), name  # some rows without a correction or a flag
+    assert set(core.process(kind, t, xyz).diag) == set(DIAG_NAMES)
 
 
 def test_every_setting_reaches_the_kernel():

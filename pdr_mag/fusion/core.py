@@ -91,17 +91,9 @@ from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.kinds import GYRO, check_kinds
+from pdr_mag.fusion.rows import DIAG_NAMES, new_rows
 from pdr_mag.fusion.settings import FusionSettings
-from pdr_mag.fusion.state import (
-    DIAG_NAMES,
-    FLAG_COLS,
-    FLOAT_COLS,
-    STATE,
-    new_rows,
-    new_state,
-    state_from_json,
-    state_to_json,
-)
+from pdr_mag.fusion.state import STATE, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 6
@@ -288,28 +280,24 @@ class FusionCore:
 
         The rows' ``cal_state`` is ``"none"`` (the caller who knows the calibration's state sets it)."""
         cuts = _NO_CUTS if snapshot_before is None else snapshot_before
-        floats, q, flags = new_rows(span.n_gyro)
+        out = new_rows(span.n_gyro)
         snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
-        k = kernel.run_cut(
-            span.kind, span.t, span.xyz, span.mag_allowed, self._st, self._p, cuts, snaps, floats, q, flags
-        )
-        col = dict(zip(FLOAT_COLS, floats[:, :k], strict=True)) | dict(
-            zip(FLAG_COLS, flags[:, :k], strict=True)
-        )
-        heading = np.arctan2(col["h_y"], col["h_x"])
+        k = kernel.run_cut(span.kind, span.t, span.xyz, span.mag_allowed, self._st, self._p, cuts, snaps, out)
+        out = out[:k]
+        heading = np.arctan2(out["h_y"], out["h_x"])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
         rows = EstimateBatch(
-            t=col["t"],
-            q_wd=q[:k],
+            t=out["t"],
+            q_wd=out["q"],
             heading_deg=heading,
-            heading_std_deg=col["heading_std_deg"],
-            mag_used=col["mag_used"],
-            interference=col["interference"],
+            heading_std_deg=out["heading_std_deg"],
+            mag_used=out["mag_used"],
+            interference=out["interference"],
             cal_state=np.full(k, "none", dtype="<U13"),
-            diag={name: col[name] for name in DIAG_NAMES},
+            diag={name: out[name] for name in DIAG_NAMES},
         )
         return Advanced(rows, Snapshots(snaps, self._ref_strength))
 

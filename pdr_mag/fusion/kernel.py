@@ -20,20 +20,20 @@ import numpy as np
 from numba import njit
 
 from pdr_mag import _jit_cache
-from pdr_mag.fusion import accel, detectors, eskf, gyro, mag, state
+from pdr_mag.fusion import accel, detectors, eskf, gyro, mag, rows, state
 from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_deg, heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 from pdr_mag.fusion.mag import mag_step
-from pdr_mag.fusion.state import TH_Z, Rows
+from pdr_mag.fusion.state import TH_Z
 
 
 @njit(cache=True, error_model="numpy")
 def run(kind, t, xyz, allowed, st, p, out, k0):
-    """Process a chunk (``kind``: :mod:`pdr_mag.fusion.kinds`) with the state record
-    ``st``, writing rows into the :class:`~pdr_mag.fusion.state.Rows` columns ``out`` from row ``k0`` on;
-    returns the number of rows written."""
+    """Process a chunk (``kind``: :mod:`pdr_mag.fusion.kinds`) with the state record ``st``, writing rows
+    into ``out`` (:data:`~pdr_mag.fusion.rows.ROWS`) from row ``k0`` on; returns the number of rows
+    written."""
     R = np.empty((3, 3))
     work = np.empty(1, dtype=PREDICT_WORK)  # gyro_step's scratch
     n_out = k0
@@ -61,63 +61,52 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
                 while nxt <= ti:
                     nxt += p.out_dt_s
                 st.t_next_out = nxt
-            _write_row(st, ti, out, n_out)
+            _write_row(st, ti, out[n_out])
             n_out += 1
     return n_out - k0
 
 
 @njit(cache=True, error_model="numpy")
-def _write_row(st, ti, out, n):
-    """Row n of ``out`` from the state at gyroscope time ti; resets the since-last-row flags."""
-    out.t[n] = ti
+def _write_row(st, ti, row):
+    """The output ``row`` (a record of :data:`~pdr_mag.fusion.rows.ROWS`) from the state at gyroscope time
+    ti; resets the since-last-row flags."""
+    row.t = ti
     for c in range(4):
-        out.q[n, c] = st.q[c]
+        row.q[c] = st.q[c]
     var = min(st.P[TH_Z, TH_Z] + heading_var_u(st), np.pi**2)  # the filter's and the consider covariance's
-    out.heading_std_deg[n] = np.degrees(np.sqrt(max(var, 0.0)))
-    out.mag_used[n] = st.mag_used
-    out.interference[n] = st.det.flag or st.interference_seen
+    row.heading_std_deg = np.degrees(np.sqrt(max(var, 0.0)))
+    row.mag_used = st.mag_used
+    row.interference = st.det.flag or st.interference_seen
     st.mag_used = False
     st.interference_seen = False
     det = st.det
-    out.gyro_heading_deg[n] = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
-    out.field_strength_uT[n] = det.f
-    out.field_ref_uT[n] = det.f_loc
-    out.strength_tol_uT[n] = det.tol_f
-    out.dip_deg[n] = det.dip
-    out.dip_ref_deg[n] = det.dip_loc
-    out.dip_tol_deg[n] = det.tol_dip
-    out.strength_var_uT2[n] = det.var
-    out.interference_score[n] = det.score
-    out.gyro_bias_x[n] = st.b[0]
-    out.gyro_bias_y[n] = st.b[1]
-    out.gyro_bias_z[n] = st.b[2]
-    out.consistency_deg[n] = det.cons
-    out.heading_reset_deg[n] = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
+    row.gyro_heading_deg = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
+    row.field_strength_uT = det.f
+    row.field_ref_uT = det.f_loc
+    row.strength_tol_uT = det.tol_f
+    row.dip_deg = det.dip
+    row.dip_ref_deg = det.dip_loc
+    row.dip_tol_deg = det.tol_dip
+    row.strength_var_uT2 = det.var
+    row.interference_score = det.score
+    row.gyro_bias_x = st.b[0]
+    row.gyro_bias_y = st.b[1]
+    row.gyro_bias_z = st.b[2]
+    row.consistency_deg = det.cons
+    row.heading_reset_deg = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
     st.reset_jump = 0.0
 
 
 @njit(cache=True, error_model="numpy")
-def named_rows(floats, q, flags):
-    """The :class:`~pdr_mag.fusion.state.Rows` of the blocks of :func:`~pdr_mag.fusion.state.new_rows`:
-    row i of ``floats`` is column ``FLOAT_COLS[i]``, row i of ``flags`` column ``FLAG_COLS[i]``."""
-    return Rows(
-        floats[0], floats[1], floats[2], floats[3], floats[4], floats[5], floats[6], floats[7], floats[8],
-        floats[9], floats[10], floats[11], floats[12], floats[13], floats[14], floats[15], floats[16],
-        floats[17], q, flags[0], flags[1],
-    )  # fmt: skip
-
-
-@njit(cache=True, error_model="numpy")
-def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, floats, q, flags):
+def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, out):
     """:func:`run` over the whole chunk with a copy of the state put in ``snaps[j]`` before sample
     ``cuts[j]`` (increasing); then each row's quaternion sign made non-negative in w and its heading's
     ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state`` and ``params`` are one-element arrays of
-    :data:`~pdr_mag.fusion.state.STATE` and :data:`~pdr_mag.fusion.state.PARAMS`; ``floats``, ``q``,
-    ``flags`` the output blocks of :func:`~pdr_mag.fusion.state.new_rows`.  Returns the number of rows
-    (the rows of one :func:`run` call per piece: the same rows, cut or not)."""
+    :data:`~pdr_mag.fusion.state.STATE` and :data:`~pdr_mag.fusion.state.PARAMS`; ``out`` the rows
+    (:data:`~pdr_mag.fusion.rows.ROWS`).  Returns the number of rows (the rows of one :func:`run` call per
+    piece: the same rows, cut or not)."""
     st = state[0]
     p = params[0]
-    out = named_rows(floats, q, flags)
     n = len(t)
     k = 0
     a = 0
@@ -129,17 +118,20 @@ def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, floats, q, flags)
             snaps[j] = st
         a = b
     for i in range(k):
-        s = -1.0 if q[i, 0] < 0 else 1.0
+        row = out[i]
+        q = row.q
+        s = -1.0 if q[0] < 0 else 1.0
         for c in range(4):
-            q[i, c] = q[i, c] * s
-        w = q[i, 0]
-        x = q[i, 1]
-        y = q[i, 2]
-        z = q[i, 3]
-        out.h_y[i] = 2.0 * (x * y - w * z)
-        out.h_x[i] = 1.0 - 2.0 * (x * x + z * z)
+            q[c] = q[c] * s
+        w = q[0]
+        x = q[1]
+        y = q[2]
+        z = q[3]
+        row.h_y = 2.0 * (x * y - w * z)
+        row.h_x = 1.0 - 2.0 * (x * x + z * z)
     return k
 
 
 # numba checks a cached function against its own file only: empty the caches when any of these changed
-_jit_cache.refresh_if_changed((detectors, state, eskf, gyro, accel, mag, sys.modules[__name__]), "fusion")
+_KERNEL_MODULES = (detectors, state, rows, eskf, gyro, accel, mag, sys.modules[__name__])
+_jit_cache.refresh_if_changed(_KERNEL_MODULES, "fusion")

@@ -1,10 +1,10 @@
-"""The fusion filter's state, parameters and output rows, each in named fields.
+"""The fusion filter's state and parameters, each in named fields.
 
 The compiled kernels (:mod:`pdr_mag.fusion.kernel` and the modules it calls) read and write one record of
 :data:`STATE`, read one record of :data:`PARAMS` (the :class:`~pdr_mag.fusion.settings.FusionSettings` in
-the kernel's units, the detectors' thresholds nested in it), and write their output into the named columns of
-a :data:`Rows` tuple.  A numpy record is what numba compiles against with ``cache=True``: its fields are read
-by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
+the kernel's units, the detectors' thresholds nested in it), and write their output into the named fields of
+:data:`pdr_mag.fusion.rows.ROWS`.  A numpy record is what numba compiles against with ``cache=True``: its
+fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
 Error state (the rows and columns of ``P`` and ``U``): ``δθ`` (3, world frame; ``δθ_z`` is the heading
@@ -12,8 +12,6 @@ error), ``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag
 """
 
 from __future__ import annotations
-
-from collections import namedtuple
 
 import numpy as np
 
@@ -104,42 +102,6 @@ STATE = np.dtype(
 #: ``p.uncertainty``, ``p.interference``), ``*_rad`` for the settings ``*_deg`` and ``out_dt_s`` (0: every
 #: gyro sample) for ``output_rate_hz``
 PARAMS = settings_dtype(FusionSettings)
-
-#: diagnostic columns of the output, in order (:data:`pdr_mag.estimates.DIAG_KEYS`)
-DIAG_NAMES = (
-    "gyro_heading_deg",
-    "field_strength_uT",
-    "field_ref_uT",
-    "strength_tol_uT",
-    "dip_deg",
-    "dip_ref_deg",
-    "dip_tol_deg",
-    "strength_var_uT2",
-    "interference_score",
-    "gyro_bias_x",
-    "gyro_bias_y",
-    "gyro_bias_z",
-    "consistency_deg",
-    "heading_reset_deg",
-)
-
-#: float columns of the output, one row per output gyroscope sample: time, heading std (deg), the arguments
-#: ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, and the diagnostics;
-#: in the order of the rows of the float block of :func:`new_rows`
-FLOAT_COLS = ("t", "heading_std_deg", "h_y", "h_x", *DIAG_NAMES)
-#: flag columns: the magnetometer corrected the heading / the interference flag was up, since the last row
-FLAG_COLS = ("mag_used", "interference")
-#: the output columns by name, as the kernel writes them (:func:`pdr_mag.fusion.kernel.named_rows`);
-#: ``q`` the attitude (m, 4), w ≥ 0
-Rows = namedtuple("Rows", (*FLOAT_COLS, "q", *FLAG_COLS))
-
-
-def new_rows(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Room for ``m`` output rows: the float block (``FLOAT_COLS`` × m), the attitudes (m × 4) and the flag
-    block (``FLAG_COLS`` × m); each column contiguous.  (Three arrays: what crosses into the compiled code
-    cheaply; :func:`pdr_mag.fusion.kernel.named_rows` names their rows.)"""
-    return np.empty((len(FLOAT_COLS), m)), np.empty((m, 4)), np.empty((len(FLAG_COLS), m), dtype=np.bool_)
-
 
 def new_state() -> np.ndarray:
     """A filter that has seen nothing: a one-element array of :data:`STATE` (the kernels take its record)."""
