@@ -63,17 +63,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.detectors import ew_alpha
-from pdr_mag.fusion.eskf import (
-    inject,
-    rotate_world,
-    rotation_matrix,
-    settle_u,
-    tilt_unsettled,
-    update,
-    update_h,
-)
+from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update, update_h
+from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import ew_stats_step
+from pdr_mag.fusion.quat import rotate_world, rotation_matrix
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
 #: the largest tilt error the averaged update treats as linear (its bias terms), rad

@@ -39,8 +39,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.detectors import ew_alpha
-from pdr_mag.fusion.eskf import inject, rotate_body, rotation_matrix, update
+from pdr_mag.fusion.eskf import inject, update
+from pdr_mag.fusion.ew import ew_alpha
+from pdr_mag.fusion.quat import rotate_body, rotation_matrix
 from pdr_mag.fusion.state import BIAS, NX, TH_Z
 
 #: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s

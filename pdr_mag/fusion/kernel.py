@@ -20,12 +20,13 @@ import numpy as np
 from numba import njit
 
 from pdr_mag import _jit_cache
-from pdr_mag.fusion import accel, detectors, eskf, gyro, mag, rows, state
+from pdr_mag.fusion import accel, detectors, eskf, ew, gyro, mag, quat, rows, state
 from pdr_mag.fusion.accel import accel_step
-from pdr_mag.fusion.eskf import heading_deg, heading_var_u
+from pdr_mag.fusion.eskf import heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 from pdr_mag.fusion.mag import mag_step
+from pdr_mag.fusion.quat import heading_deg
 from pdr_mag.fusion.state import TH_Z
 
 
@@ -133,5 +134,5 @@ def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, out):
 
 
 # numba checks a cached function against its own file only: empty the caches when any of these changed
-_KERNEL_MODULES = (detectors, state, rows, eskf, gyro, accel, mag, sys.modules[__name__])
+_KERNEL_MODULES = (detectors, state, rows, quat, ew, eskf, gyro, accel, mag, sys.modules[__name__])
 _jit_cache.refresh_if_changed(_KERNEL_MODULES, "fusion")

@@ -69,17 +69,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.detectors import detect_step, dip_of, ew_alpha
-from pdr_mag.fusion.eskf import (
-    inject,
-    rotate_world,
-    rotation_matrix,
-    settle_u,
-    tilt_unsettled,
-    update_h,
-    wrap,
-)
+from pdr_mag.fusion.detectors import detect_step, dip_of
+from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update_h
+from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
+from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
 
