@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pdr_mag.fusion.rows import DIAG_COLUMNS, INTERNAL_DIAG
+
 #: ``replay --out-csv`` columns (INTERFACE.md); more may follow, none renamed.
 CSV_COLUMNS = (
     "t", "qw", "qx", "qy", "qz", "heading_deg", "heading_std_deg", "mag_used", "interference", "cal_state",
@@ -19,22 +21,15 @@ CSV_COLUMNS = (
 CAL_STATES = ("none", "offset", "ellipsoid", "recalibrating")
 
 #: Optional diagnostic columns an :class:`EstimateBatch` may carry in ``diag`` (all float arrays, NaN when
-#: not available at that epoch).  Sinks draw them when present.
-DIAG_KEYS = {
-    "gyro_heading_deg": "heading from gyroscope integration alone (same start), deg",
-    "field_strength_uT": "|calibrated field| at the latest magnetometer sample, µT",
-    "field_ref_uT": "reference strength the detector compares with (WMM or fitted radius), µT",
-    "strength_tol_uT": "half-width of the accepted strength band around field_ref_uT, µT",
-    "dip_deg": "measured dip angle (field below horizon) from calibrated field and gravity, deg",
-    "dip_ref_deg": "reference inclination, deg",
-    "dip_tol_deg": "half-width of the accepted dip band, deg",
-    "strength_var_uT2": "windowed variance of the strength, µT²",
-    "interference_score": "detector score (≥ 1 means flagged)",
-    "coverage": "orientation coverage of the online calibration buffer, [0, 1]",
-    "gyro_bias_x": "estimated gyroscope bias x, rad/s",
-    "gyro_bias_y": "estimated gyroscope bias y, rad/s",
-    "gyro_bias_z": "estimated gyroscope bias z, rad/s",
-}
+#: not available at that epoch): the fusion filter's (:data:`pdr_mag.fusion.rows.DIAG_COLUMNS`, with every
+#: registered interference detector's) and the online calibrator's ``coverage``.  Sinks draw them when
+#: present.
+DIAG_KEYS = {}
+for _name, _doc in DIAG_COLUMNS.items():
+    if _name not in INTERNAL_DIAG:
+        DIAG_KEYS[_name] = _doc
+    if _name == "interference_score":
+        DIAG_KEYS["coverage"] = "orientation coverage of the online calibration buffer, [0, 1]"
 
 
 @dataclass(frozen=True)

@@ -221,8 +221,8 @@ def test_state_round_trip_through_json(walk):
     with pytest.raises(ValueError, match="version"):
         second.set_state({"version": 999})
     broken = json.loads(json.dumps(saved))
-    del broken["state"]["det"]["f_loc"]
-    with pytest.raises(ValueError, match=r"det\.f_loc"):
+    del broken["state"]["det"]["strength"]["loc"]
+    with pytest.raises(ValueError, match=r"det\.strength\.loc"):
         second.set_state(broken)
     broken = json.loads(json.dumps(saved))
     broken["state"]["P"] = broken["state"]["P"][:3]

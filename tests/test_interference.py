@@ -7,15 +7,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pdr_mag._records import settings_record
 from pdr_mag.fusion import FusionCore
-from pdr_mag.fusion.detectors import (
-    InterferenceSettings,
-    consistency_angle_deg,
-    dip_deg,
-    hold_off,
-    strength_score,
-    windowed_variance,
-)
+from pdr_mag.fusion.detectors import DipSettings, InterferenceSettings, hold_off
+from pdr_mag.fusion.detectors.consistency import consistency_angle_deg
+from pdr_mag.fusion.detectors.dip import dip_deg
+from pdr_mag.fusion.detectors.strength import strength_score
+from pdr_mag.fusion.detectors.variance import windowed_variance
 from pdr_mag.sim import simulate
 from tests.test_attitude import error_at_truth, merge
 
@@ -25,7 +23,7 @@ S = InterferenceSettings()
 # ------------------------------------------------------------------------------------------ vectorised
 def test_strength_score_present_and_absent():
     ref = 48.0
-    tol = max(S.strength_tol_uT, S.strength_tol_rel * ref)
+    tol = max(S.strength.tol_uT, S.strength.tol_rel * ref)
     d = np.array([[0.0, 0.0, 1.0]])
     f, s = strength_score(ref * d, ref)
     assert f[0] == pytest.approx(ref) and s[0] == pytest.approx(0.0)
@@ -74,8 +72,8 @@ def test_hold_off_neither_flickers_nor_sticks():
 
 
 def test_settings_validation():
-    with pytest.raises(ValueError, match="dip_tol_deg"):
-        InterferenceSettings(dip_tol_deg=0.0)
+    with pytest.raises(ValueError, match=r"DipSettings\.tol_deg"):
+        InterferenceSettings(dip=DipSettings(tol_deg=0.0))
     with pytest.raises(ValueError, match="hold_off_s"):
         InterferenceSettings(hold_off_s=-1.0)
 
@@ -141,7 +139,7 @@ def test_dip_detector(walk):
     b = _run(walk, mag)
     fin, fout, inside = _fractions(b)
     assert fin > 0.95 and fout < 0.01
-    assert np.all(np.abs(b.diag["dip_deg"][inside] - b.diag["dip_ref_deg"][inside]) > S.dip_tol_deg)
+    assert np.all(np.abs(b.diag["dip_deg"][inside] - b.diag["dip_ref_deg"][inside]) > S.dip.tol_deg)
 
 
 def test_gyro_consistency_detector(walk):
@@ -151,7 +149,7 @@ def test_gyro_consistency_detector(walk):
     b = _run(walk, mag)
     onset = (b.t >= T0 + 0.05) & (b.t < T0 + 1.0)
     assert b.interference[onset].all()
-    assert b.diag["consistency_deg"][onset].max() > S.consistency_tol_deg
+    assert b.diag["consistency_deg"][onset].max() > S.consistency.tol_deg
     # strength and dip saw nothing
     f_ok = np.abs(b.diag["field_strength_uT"][onset] - walk.field.strength) < 3.0
     assert f_ok.all()
@@ -178,10 +176,10 @@ def test_variance_detector(walk):
 
     b = _run(walk, osc_mag())
     inside = (b.t >= T0 + 1.0) & (b.t < T1)
-    assert np.median(b.diag["strength_var_uT2"][inside]) > S.var_max_uT2
+    assert np.median(b.diag["strength_var_uT2"][inside]) > S.variance.max_uT2
     assert b.interference[inside].mean() > 0.95
     clean = _run(walk, walk.mag[1])
-    assert np.max(clean.diag["strength_var_uT2"][clean.t > 5.0]) < 0.1 * S.var_max_uT2
+    assert np.max(clean.diag["strength_var_uT2"][clean.t > 5.0]) < 0.1 * S.variance.max_uT2
 
 
 def test_heading_survives_a_strong_disturbance(walk):
@@ -200,6 +198,7 @@ def test_kernel_step_matches_the_vectorised_functions():
     """detect_step (what the fusion kernel runs per sample) gives the numbers of the array functions."""
     from pdr_mag.fusion.detectors import detect_step, new_detector_state
 
+
     rng = np.random.default_rng(3)
     t = np.cumsum(rng.uniform(0.015, 0.025, 400))
     f_w = np.array([0.6, 22.8, -41.2])
@@ -208,12 +207,14 @@ def test_kernel_step_matches_the_vectorised_functions():
     f = np.linalg.norm(m_w, axis=1)
     u = m_w / f[:, None]
     det = new_detector_state()
-    ip = S.as_params()[0]
+    ip = settings_record(S)[0]
     out = []
     for i in range(len(t)):
-        flag = detect_step(det, f[i], 61.0, *u[i], t[i], 47.0, 61.0, 0.0, ip)
-        out.append((flag, det["score"], det["var"], det["cons"]))
+        det["x"]["t"], det["x"]["f"], det["x"]["dip"], det["x"]["mw"] = t[i], f[i], 61.0, u[i]
+        det["x"]["f_ref"], det["x"]["dip_ref"], det["x"]["sigma_b_deg"] = 47.0, 61.0, 0.0
+        flag = detect_step(det, ip)
+        out.append((flag, det["score"], det["variance"]["var"], det["consistency"]["angle"]))
     out = np.array(out)
-    np.testing.assert_allclose(out[:, 2], windowed_variance(t, f, S.var_window_s), rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(out[:, 3], consistency_angle_deg(t, m_w, S.consistency_window_s), atol=1e-6)
+    np.testing.assert_allclose(out[:, 2], windowed_variance(t, f, S.variance.window_s), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(out[:, 3], consistency_angle_deg(t, m_w, S.consistency.window_s), atol=1e-6)
     np.testing.assert_array_equal(out[:, 0].astype(bool), hold_off(t, out[:, 1]))

@@ -67,41 +67,47 @@ Modules
     the run loop over a merged chunk of samples and the output rows.
 
 To change a measurement model, edit its sensor module; a setting is a field of its group in
-:mod:`~pdr_mag.fusion.settings` (the kernel's record follows); to add a detector, extend
-:data:`pdr_mag.fusion.detectors.DETECTOR_STATE` and :func:`pdr_mag.fusion.detectors.detect_step`; to carry a
+:mod:`~pdr_mag.fusion.settings` (the kernel's record follows); to add an interference detector, write
+its module and add it to :data:`pdr_mag.fusion.detectors.DETECTORS`; to carry a
 new quantity from sample to sample, add a field to :data:`~pdr_mag.fusion.state.STATE` (the JSON state
 follows; bump :data:`pdr_mag.fusion.core.STATE_VERSION`).  The kernels' numba cache is refreshed when any of
 these modules changes (:mod:`pdr_mag._jit_cache`).
 """
 
-from pdr_mag.fusion.core import (
-    STATE_VERSION,
-    Advanced,
-    FusionCore,
-    Snapshot,
-    Span,
-    heading_reset_events,
-)
-from pdr_mag.fusion.detectors import InterferenceSettings
-from pdr_mag.fusion.settings import (
-    AccelSettings,
-    FusionSettings,
-    GyroSettings,
-    MagSettings,
-    UncertaintySettings,
-)
+import importlib as _importlib
 
-__all__ = [
-    "STATE_VERSION",
-    "AccelSettings",
-    "Advanced",
-    "FusionCore",
-    "FusionSettings",
-    "GyroSettings",
-    "InterferenceSettings",
-    "MagSettings",
-    "Snapshot",
-    "Span",
-    "UncertaintySettings",
-    "heading_reset_events",
-]
+#: public name → module that defines it (imported on first use, so the detectors and the settings load
+#: without the filter's compiled kernel, and :mod:`pdr_mag.estimates` can read the detectors' columns)
+_EXPORTS = {
+    "STATE_VERSION": "pdr_mag.fusion.core",
+    "Advanced": "pdr_mag.fusion.core",
+    "FusionCore": "pdr_mag.fusion.core",
+    "Snapshot": "pdr_mag.fusion.core",
+    "Span": "pdr_mag.fusion.core",
+    "heading_reset_events": "pdr_mag.fusion.core",
+    "InterferenceSettings": "pdr_mag.fusion.detectors",
+    "StrengthSettings": "pdr_mag.fusion.detectors",
+    "DipSettings": "pdr_mag.fusion.detectors",
+    "VarianceSettings": "pdr_mag.fusion.detectors",
+    "ConsistencySettings": "pdr_mag.fusion.detectors",
+    "AccelSettings": "pdr_mag.fusion.settings",
+    "FusionSettings": "pdr_mag.fusion.settings",
+    "GyroSettings": "pdr_mag.fusion.settings",
+    "MagSettings": "pdr_mag.fusion.settings",
+    "UncertaintySettings": "pdr_mag.fusion.settings",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'pdr_mag.fusion' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -63,6 +63,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.detectors import restart
 from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update, update_h
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import ew_stats_step
@@ -328,7 +329,7 @@ def _tilt_reset(s, t, p):
     P[TH_Y, TH_Y] = p.accel.tilt0_std**2
     for i in range(BIAS, BIAS + 3):
         P[i, i] = max(P[i, i], p.gyro.bias0_std**2)
-    s.det.mw[0] = np.nan  # the detectors' mean field direction restarts in the turned world frame
+    restart(s.det)  # the detectors' world-frame state restarts in the turned world frame
     s.tilt_resets += 1
     return True
 

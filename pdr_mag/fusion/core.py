@@ -96,7 +96,7 @@ from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import STATE, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 6
+STATE_VERSION = 7
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.detectors import turn
 from pdr_mag.fusion.quat import rotate_vector, rotate_world
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
@@ -171,17 +172,16 @@ def inject(s, dx):
     """Apply the error estimate ``dx`` to the nominal state of record ``s`` and zero it.
 
     The world-frame quantities the filter carries — the averaged specific force ``acc_w`` and
-    ``acc_w_long`` and the detectors' mean field direction ``det.mw`` — turn with the attitude correction,
-    so they stay in the corrected frame (the consistency check then measures the field's motion against
-    the gyro-propagated frame, whatever the filter concluded from it).
+    ``acc_w_long`` and the detectors' world-frame state (:func:`pdr_mag.fusion.detectors.turn`) — turn with
+    the attitude correction, so they stay in the corrected frame (the consistency check then measures the
+    field's motion against the gyro-propagated frame, whatever the filter concluded from it).
     """
     ex, ey, ez = dx[TH_X], dx[TH_Y], dx[TH_Z]
     rotate_world(s.q, ex, ey, ez)
     if np.isfinite(s.acc_w[0]):
         rotate_vector(s.acc_w, ex, ey, ez)
         rotate_vector(s.acc_w_long, ex, ey, ez)
-    if np.isfinite(s.det.mw[0]):
-        rotate_vector(s.det.mw, ex, ey, ez)
+    turn(s.det, ex, ey, ez)
     for i in range(3):
         s.b[i] += dx[BIAS + i]
     s.c += dx[C_ERR]

@@ -80,20 +80,12 @@ def _write_row(st, ti, row):
     row.interference = st.det.flag or st.interference_seen
     st.mag_used = False
     st.interference_seen = False
-    det = st.det
     row.gyro_heading_deg = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
-    row.field_strength_uT = det.f
-    row.field_ref_uT = det.f_loc
-    row.strength_tol_uT = det.tol_f
-    row.dip_deg = det.dip
-    row.dip_ref_deg = det.dip_loc
-    row.dip_tol_deg = det.tol_dip
-    row.strength_var_uT2 = det.var
-    row.interference_score = det.score
+    detectors.write(st.det, row)
+    row.interference_score = st.det.score
     row.gyro_bias_x = st.b[0]
     row.gyro_bias_y = st.b[1]
     row.gyro_bias_z = st.b[2]
-    row.consistency_deg = det.cons
     row.heading_reset_deg = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
     st.reset_jump = 0.0
 
@@ -134,5 +126,5 @@ def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, out):
 
 
 # numba checks a cached function against its own file only: empty the caches when any of these changed
-_KERNEL_MODULES = (detectors, state, rows, quat, ew, eskf, gyro, accel, mag, sys.modules[__name__])
-_jit_cache.refresh_if_changed(_KERNEL_MODULES, "fusion")
+_KERNEL_MODULES = (*detectors.DETECTORS, detectors, state, rows, quat, ew, eskf, gyro, accel, mag)
+_jit_cache.refresh_if_changed((*_KERNEL_MODULES, sys.modules[__name__]), "fusion")

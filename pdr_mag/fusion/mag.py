@@ -69,7 +69,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.detectors import detect_step, dip_of
+from pdr_mag.fusion.detectors import detect_step, disturbance2, reference_horizontal, restart, tolerance2
+from pdr_mag.fusion.detectors.dip import dip_of
 from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update_h
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
@@ -83,7 +84,6 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     heading update from it.  ``R`` scratch 3×3."""
     if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or s.init == 0:
         return
-    ip = p.interference
     rotation_matrix(s.q, R)
     f = np.sqrt(mx * mx + my * my + mz * mz)
     if f <= 0.0:
@@ -97,14 +97,17 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     P = s.P
     sb = np.sqrt(max(P[BIAS, BIAS] + P[BIAS + 1, BIAS + 1] + P[BIAS + 2, BIAS + 2], 0.0))  # σ_b
     det = s.det
-    flag = detect_step(det, f, dip, mwx, mwy, mwz, t, s.f_ref, s.dip_ref, np.degrees(sb), ip)
+    x = det.x
+    x.t, x.f, x.dip, x.f_ref, x.dip_ref, x.sigma_b_deg = t, f, dip, s.f_ref, s.dip_ref, np.degrees(sb)
+    x.mw[0], x.mw[1], x.mw[2] = mwx, mwy, mwz
+    flag = detect_step(det, p.interference)
     if flag:
         s.interference_seen = True
     _flag_share_step(s, flag, f, t, det, p)
     # --- gates
     if not allowed:
         return
-    if flag and not (s.init < 2 and det.score_f < 1.0 and det.score_dip < 1.0):
+    if flag and not (s.init < 2 and det.score_absolute < 1.0):
         return
     if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag.interval_s:
         return
@@ -118,13 +121,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
-    dmin2 = 0.0
-    if np.isfinite(det.f_loc):
-        dmin2 += (f - det.f_loc) ** 2
-    if np.isfinite(det.dip_loc):
-        dmin2 += (f * np.radians(dip - det.dip_loc)) ** 2
-    cons_d = max(det.cons - np.degrees(sb) * ip.consistency_window_s, 0.0)
-    dmin2 += p.mag.cons_k * (f * np.radians(cons_d)) ** 2
+    dmin2 = disturbance2(det, p)
     _environment_step(s, dmin2, t, det, p)
     rv_clean = p.mag.noise_rad**2 + p.mag.noise_uT**2 / (bh * bh)
     if p.mag.time_unc_s > 0.0:
@@ -261,8 +258,9 @@ def _environment_step(s, dmin2, t, det, p):
         s.env_d2 = max(dmin2, p.mag.env_prior_uT**2)
         s.env_seen2 = dmin2
     s.t_env = t
-    if np.isfinite(det.f_loc) and np.isfinite(det.dip_loc):
-        s.bh_ref = det.f_loc * np.cos(np.radians(det.dip_loc))
+    bh_ref = reference_horizontal(det)
+    if np.isfinite(bh_ref):
+        s.bh_ref = bh_ref
     s.u_var = unmodelled_var(s, p)
 
 
@@ -289,7 +287,7 @@ def _flag_share_step(s, flag, f, t, det, p):
     else:  # the first sample is the share seen until the next (its weight is nil)
         s.flag_share = x
     s.t_flag = t
-    s.flag_d2 = det.tol_f**2 + (f * np.radians(det.tol_dip)) ** 2
+    s.flag_d2 = tolerance2(det)
     s.u_var = unmodelled_var(s, p)
 
 
@@ -324,7 +322,7 @@ def _turn_world_frame(s, angle):
     for m in range(3):
         x0, y0 = Rb[0, m], Rb[1, m]
         Rb[0, m], Rb[1, m] = c * x0 - sn * y0, sn * x0 + c * y0
-    s.det.mw[0], s.det.mw[1], s.det.mw[2] = np.nan, 0.0, 0.0
+    restart(s.det)
 
 
 @njit(cache=True, error_model="numpy")

@@ -1,40 +1,36 @@
-"""The filter's output rows: one structured array, its columns by name, defined and checked here only.
+"""The filter's output rows: one structured array, its columns by name, defined here only.
 
 The kernel (:func:`pdr_mag.fusion.kernel.run_cut`) writes one record of :data:`ROWS` per output gyroscope
-sample, field by field (``row.heading_std_deg = …``); :class:`pdr_mag.fusion.FusionCore` reads the columns
-by the same names into an :class:`pdr_mag.estimates.EstimateBatch` (views, no copy).  The diagnostic
-columns are :data:`DIAG_NAMES`: every one of them is either a documented diagnostic of the pipeline's
-output (:data:`pdr_mag.estimates.DIAG_KEYS`) or one of :data:`INTERNAL_DIAG` (checked at import).
+sample, field by field (``row.heading_std_deg = …``; each detector writes its own columns,
+:func:`pdr_mag.fusion.detectors.write`); :class:`pdr_mag.fusion.FusionCore` reads the columns by the same
+names into an :class:`pdr_mag.estimates.EstimateBatch` (views, no copy).  The diagnostic columns are
+:data:`DIAG_COLUMNS`: the filter's own and every registered detector's
+(:data:`pdr_mag.fusion.detectors.COLUMNS`); :data:`pdr_mag.estimates.DIAG_KEYS` is built from them.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from pdr_mag.estimates import DIAG_KEYS
+from pdr_mag.fusion.detectors import COLUMNS as DETECTOR_COLUMNS
 
-#: diagnostic columns of the output, in order: the gyroscope-only heading, the detectors' figures at the
-#: latest magnetometer sample, the bias estimate, the consistency angle and a re-acquisition's jump
-DIAG_NAMES = (
-    "gyro_heading_deg",
-    "field_strength_uT",
-    "field_ref_uT",
-    "strength_tol_uT",
-    "dip_deg",
-    "dip_ref_deg",
-    "dip_tol_deg",
-    "strength_var_uT2",
-    "interference_score",
-    "gyro_bias_x",
-    "gyro_bias_y",
-    "gyro_bias_z",
-    "consistency_deg",
-    "heading_reset_deg",
-)
-
-#: diagnostic columns the filter gives that are not among DIAG_KEYS: the jump of a heading
-#: re-acquisition at that row (deg; NaN elsewhere; the pipeline turns it into ``heading_reset`` events) and
-#: the gyro-consistency angle (deg)
+#: diagnostic columns of the output (name → meaning), in order: the gyroscope-only heading, the detectors'
+#: figures at the latest magnetometer sample and their score, the bias estimate, a re-acquisition's jump
+DIAG_COLUMNS = {
+    "gyro_heading_deg": "heading from gyroscope integration alone (same start), deg",
+    **DETECTOR_COLUMNS,
+    "interference_score": "detector score (≥ 1 means flagged)",
+    "gyro_bias_x": "estimated gyroscope bias x, rad/s",
+    "gyro_bias_y": "estimated gyroscope bias y, rad/s",
+    "gyro_bias_z": "estimated gyroscope bias z, rad/s",
+    "heading_reset_deg": "the turn of a heading re-acquisition at that row, deg (NaN at the others)",
+}
+#: the diagnostic columns, in order
+DIAG_NAMES = tuple(DIAG_COLUMNS)
+#: the columns that are not among :data:`pdr_mag.estimates.DIAG_KEYS` (so not in the MCAP's ``/pdr/diag``):
+#: the jump of a re-acquisition, which the pipeline turns into ``heading_reset`` events, and the
+#: gyro-consistency angle (adding it to ``/pdr/diag`` changes that message's layout, which
+#: ``tests/fixtures/pdrmcap_v2_handwritten.mcap`` holds byte for byte)
 INTERNAL_DIAG = ("consistency_deg", "heading_reset_deg")
 
 #: one output row: time (the gyroscope sample's, s), attitude ``q`` (w-first, w ≥ 0), heading std (deg),
@@ -59,13 +55,3 @@ ROWS = np.dtype(
 def new_rows(m: int) -> np.ndarray:
     """Room for ``m`` output rows."""
     return np.empty(m, dtype=ROWS)
-
-
-def _check() -> None:
-    unknown = [n for n in DIAG_NAMES if n not in DIAG_KEYS and n not in INTERNAL_DIAG]
-    missing = [k for k in DIAG_KEYS if k not in DIAG_NAMES and k != "coverage"]
-    if unknown or missing:
-        raise ImportError(f"fusion rows and DIAG_KEYS disagree: unknown {unknown}, missing {missing}")
-
-
-_check()

@@ -12,15 +12,17 @@ import json
 from dataclasses import dataclass
 
 from pdr_mag.estimates import DIAG_KEYS
+from pdr_mag.fusion.detectors import BANDS as DETECTOR_BANDS
 
 _SEP = "=" * 80
 
-#: Extra columns of ``/pdr/diag``: the detector bands, from the reference and tolerance columns.
+#: Extra columns of ``/pdr/diag``: the bands of the detectors that have one
+#: (:data:`pdr_mag.fusion.detectors.BANDS`): ``<detector>_lower_<unit>`` / ``_upper_`` = reference ∓
+#: tolerance.
 BANDS = {
-    "strength_lower_uT": "field_ref_uT - strength_tol_uT",
-    "strength_upper_uT": "field_ref_uT + strength_tol_uT",
-    "dip_lower_deg": "dip_ref_deg - dip_tol_deg",
-    "dip_upper_deg": "dip_ref_deg + dip_tol_deg",
+    f"{name}_{side}_{band.unit}": f"{band.reference} {sign} {band.tolerance}"
+    for name, band in DETECTOR_BANDS.items()
+    for side, sign in (("lower", "-"), ("upper", "+"))
 }
 #: Diagnostic column (``DIAG_KEYS`` and :data:`BANDS`) → its ROS 2 field name in ``pdr_mag/msg/Diagnostics``.
 DIAG_FIELDS = {k: k.lower() for k in (*DIAG_KEYS, *BANDS)}

@@ -4,15 +4,17 @@ The blueprint answers "when did the heading drift, and why" on one screen, over 
 
 left, on one time axis (every view shows the recording's whole time span, not a window round the cursor)
     heading (ours, truth, gyro only, the phone's own); the heading error against the truth with the
-    filter's ±σ and ±2σ around zero, so the error reads against the uncertainty the filter claims; field
-    strength and dip angle with the detector's bands; the state lanes — drift episodes, interference,
-    calibration state, magnetometer use (share of each second), rotation episodes of the online calibrator.
-    The drift episodes, the interference flag and the seconds without the magnetometer are also drawn as
-    strips along the top and bottom of the error plot, where they share the error's time axis exactly (the
-    lanes' axis starts a little left of the plots', which reserve room for their y labels).
+    filter's ±σ and ±2σ around zero, so the error reads against the uncertainty the filter claims; the
+    interference detectors with a band (field strength and dip angle, with their bands: each registered
+    detector's plot, :data:`pdr_mag.fusion.detectors.PLOTS`, ``main``); the state lanes — drift episodes,
+    interference, calibration state, magnetometer use (share of each second), rotation episodes of the online
+    calibrator.  The drift episodes, the interference flag and the seconds without the magnetometer are also
+    drawn as strips along the top and bottom of the error plot, where they share the error's time axis exactly
+    (the lanes' axis starts a little left of the plots', which reserve room for their y labels).
 right
     the magnetometer cloud (raw and calibrated, accumulated up to the cursor) with the latest fit only; tabs
-    for the detector score, the magnetometer's share, σ, coverage and one plot per input sensor; the events.
+    for the detector score, the other detectors (strength variance, gyro consistency), the magnetometer's
+    share, σ, coverage and one plot per input sensor; the events.
 
 The y ranges are fitted to the part of the recording after the first magnetometer correction (before it the
 heading is arbitrary and σ is 180°), from :class:`PlotRanges` gathered by the sink; legends are hidden and
@@ -21,7 +23,9 @@ the view titles name the series and their colours instead, so nothing covers the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from pdr_mag.fusion.detectors import BANDS, PLOTS
 
 # colours (RGB): one per meaning, shared by the lines and the titles that name them
 BLUE = (31, 119, 180)
@@ -37,6 +41,10 @@ SIGMA2 = (195, 195, 195)
 CYAN = (23, 190, 207)
 OLIVE = (188, 189, 34)
 BROWN = (140, 86, 75)
+
+#: the colours the detectors' plots name (:class:`pdr_mag.fusion.detectors._unit.Plot`)
+COLOURS = {"blue": BLUE, "orange": ORANGE, "green": GREEN, "red": RED, "purple": PURPLE, "cyan": CYAN,
+           "olive": OLIVE, "brown": BROWN}  # fmt: skip
 
 DRIFT = {"error": (200, 0, 0), "sigma": (240, 120, 0), "no_reference": (250, 190, 40)}
 #: entity → (legend name, colour, drawn as points, line width or marker size in UI points).
@@ -59,14 +67,13 @@ SERIES = {
     "heading_error/strip_interference": ("interference flagged", RED, False, 6.0),
     "heading_error/strip_no_magnetometer": ("magnetometer not used", ORANGE, False, 6.0),
     "heading_std/ours": ("1σ", BLUE, False, 1.5),
-    "field/strength": ("|m_cal|", BLUE, False, 1.5),
-    "field/reference": ("reference", BLACK, False, 1.5),
-    "field/lower": ("band lower", RED, False, 1.5),
-    "field/upper": ("band upper", RED, False, 1.5),
-    "dip/measured": ("dip", PURPLE, False, 1.5),
-    "dip/reference": ("reference", BLACK, False, 1.5),
-    "dip/lower": ("band lower", RED, False, 1.5),
-    "dip/upper": ("band upper", RED, False, 1.5),
+    **{f"{p.group}/{p.leaf}": (p.label, COLOURS[p.colour], False, 1.5) for p in PLOTS.values()},
+    **{
+        f"{PLOTS[name].group}/{leaf}": (label, colour, False, 1.5)
+        for name in BANDS
+        for leaf, label, colour in (("reference", "reference", BLACK), ("lower", "band lower", RED),
+                                    ("upper", "band upper", RED))
+    },  # fmt: skip
     "detector/score": ("score", BROWN, False, 1.5),
     "detector/threshold": ("threshold", RED, False, 1.5),
     "mag_use/share": ("share of the second", GREEN, False, 1.5),
@@ -104,16 +111,16 @@ class PlotRanges:
         The recording's time span, s.
     error : float or None
         Half-height of the heading error plot, deg.
-    field, dip : (float, float) or None
-        y ranges of the field strength (µT) and dip (deg) plots.
+    bands : dict
+        y ranges of the plots of the detectors with a band (their plot group → (low, high)): field
+        strength (µT) and dip (deg).
     truth : bool
         Whether a truth was drawn (the error plot's title says what it holds).
     """
 
     t: tuple[float, float] | None = None
     error: float | None = None
-    field: tuple[float, float] | None = None
-    dip: tuple[float, float] | None = None
+    bands: dict = field(default_factory=dict)
     truth: bool = True
 
 
@@ -158,13 +165,19 @@ def drift_blueprint(ranges: PlotRanges | None = None):
         time_view=time_axis(),
     )
     heading_title = "Heading, deg: ours (blue), truth (black), gyro only (orange), phone (green)"
+    main = [
+        plot(f"/{p.group}", f"{p.title}: {p.label} ({p.colour}), reference (black), detector band (red)",
+             r.bands.get(p.group))
+        for p in PLOTS.values()
+        if p.main
+    ]  # fmt: skip
+    tabs = [plot(f"/{p.group}", f"{p.title}: {p.label} ({p.colour})") for p in PLOTS.values() if not p.main]
     left = rrb.Vertical(
         plot("/heading", heading_title, (0.0, 360.0)),
         plot("/heading_error", error_title, err),
-        plot("/field", "Field strength, µT: |m_cal| (blue), reference (black), detector band (red)", r.field),
-        plot("/dip", "Dip angle, deg: measured (purple), reference (black), detector band (red)", r.dip),
+        *main,
         lanes,
-        row_shares=[1.1, 2.5, 1.9, 1.9, 2.6],
+        row_shares=[1.1, 2.5, *[1.9] * len(main), 2.6],
     )
     cloud_range = rrb.VisibleTimeRanges(
         [
@@ -181,6 +194,7 @@ def drift_blueprint(ranges: PlotRanges | None = None):
         ),
         rrb.Tabs(
             plot("/detector", "Interference score (≥ 1 flags)"),
+            *tabs,
             plot("/mag_use", "Magnetometer use, share of each second", (0.0, 1.05)),
             plot("/heading_std", "Heading σ, deg"),
             plot("/coverage", "Coverage", (0.0, 1.05)),

@@ -93,6 +93,7 @@ from mcap_ros2._dynamic import serialize_dynamic  # the encoder behind mcap_ros2
 from pdr_mag._json import jsonable
 from pdr_mag.conventions import heading_deg_from_quat
 from pdr_mag.estimates import DIAG_KEYS
+from pdr_mag.fusion.detectors import BANDS as DETECTOR_BANDS
 from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
 
@@ -391,12 +392,10 @@ def _encoder(spec: Schema) -> Callable[[dict], bytes]:
 
 def _diag_messages(t: np.ndarray, cols: dict[str, np.ndarray]) -> Iterator[dict]:
     """``pdr_mag/msg/Diagnostics`` dicts: ``t``, the diagnostic columns and the detector bands."""
-    if "field_ref_uT" in cols and "strength_tol_uT" in cols:
-        cols["strength_lower_uT"] = cols["field_ref_uT"] - cols["strength_tol_uT"]
-        cols["strength_upper_uT"] = cols["field_ref_uT"] + cols["strength_tol_uT"]
-    if "dip_ref_deg" in cols and "dip_tol_deg" in cols:
-        cols["dip_lower_deg"] = cols["dip_ref_deg"] - cols["dip_tol_deg"]
-        cols["dip_upper_deg"] = cols["dip_ref_deg"] + cols["dip_tol_deg"]
+    for name, band in DETECTOR_BANDS.items():
+        if band.reference in cols and band.tolerance in cols:
+            cols[f"{name}_lower_{band.unit}"] = cols[band.reference] - cols[band.tolerance]
+            cols[f"{name}_upper_{band.unit}"] = cols[band.reference] + cols[band.tolerance]
     names = ["t", *DIAG_FIELDS.values()]
     table = np.column_stack([t, *(cols.get(key, np.full(len(t), np.nan)) for key in DIAG_FIELDS)])
     return (dict(zip(names, row, strict=True)) for row in table.tolist())

@@ -15,10 +15,12 @@ Entities (timeline ``time``: the recording's clock as a duration, ``round(t·1e9
     first magnetometer correction on; the phone's as points (its wraps draw no strokes).
 ``heading_error/{plus,minus}_{1,2}sigma``
     ±σ and ±2σ of our heading around zero (from the first correction on): the error reads against them.
-``field/strength``, ``field/reference``, ``field/lower``, ``field/upper``
-    |calibrated field| with the detector's reference and the accepted band (reference ∓ tolerance), µT.
-``dip/measured``, ``dip/reference``, ``dip/lower``, ``dip/upper``
-    dip angle with the reference inclination and its band, deg.
+one group per interference detector (:data:`pdr_mag.fusion.detectors.PLOTS`)
+    ``field/strength``, ``field/reference``, ``field/lower``, ``field/upper``: |calibrated field| with the
+    detector's reference and the accepted band (reference ∓ tolerance), µT; ``dip/measured``,
+    ``dip/reference``, ``dip/lower``, ``dip/upper``: dip angle with the reference inclination and its band,
+    deg; ``variance/strength``: the strength's windowed variance, µT²; ``consistency/angle``: the
+    gyro-consistency angle, deg.
 ``detector/score``, ``detector/threshold``
     interference score (≥ 1 flags) and the threshold 1.
 ``mag_use/share``
@@ -63,6 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.fusion.detectors import BANDS, PLOTS
 from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._rerun_layout import (
     BLUE,
@@ -91,6 +94,15 @@ def _duration_ns(t: np.ndarray) -> np.ndarray:
 
 #: events that announce a calibration the sink also receives through ``calibration()``: one line for both.
 _CALIBRATION_EVENTS = ("calibration_accepted", "recalibrated")
+#: diagnostic column → entity: the gyro-only heading, each detector's value (and reference, for a band), the
+#: score, the online buffer's coverage.
+_DIAG_SERIES = (
+    ("gyro_heading_deg", "heading/gyro_only"),
+    *((p.column, f"{p.group}/{p.leaf}") for p in PLOTS.values()),
+    *((band.reference, f"{PLOTS[name].group}/reference") for name, band in BANDS.items()),
+    ("interference_score", "detector/score"),
+    ("coverage", "coverage/online"),
+)
 #: drift lane priority where episodes overlap (worst first).
 _DRIFT_ORDER = ("error", "sigma", "no_reference")
 #: strips drawn inside the error plot (exactly on its time axis): (lane, its state, strip entity, height as a
@@ -172,8 +184,7 @@ class RerunSink:
         self._t_span = [np.inf, -np.inf]
         self._err_max = 0.0
         self._std_hist = np.zeros(int(180.0 / _STD_BIN_DEG) + 1, dtype=np.int64)
-        self._field_span = [np.inf, -np.inf]
-        self._dip_span = [np.inf, -np.inf]
+        self._band_span = {p.group: [np.inf, -np.inf] for name, p in PLOTS.items() if name in BANDS}
         self.rows_sent: dict[str, int] = {}
 
     # ------------------------------------------------------------------ Sink protocol
@@ -267,25 +278,16 @@ class RerunSink:
         d = batch.diag
         if "gyro_heading_deg" in d:
             self._push_error("heading_error/gyro_only", tr, np.asarray(d["gyro_heading_deg"])[ref])
-        for key, entity in (
-            ("gyro_heading_deg", "heading/gyro_only"),
-            ("field_strength_uT", "field/strength"),
-            ("field_ref_uT", "field/reference"),
-            ("dip_deg", "dip/measured"),
-            ("dip_ref_deg", "dip/reference"),
-            ("interference_score", "detector/score"),
-            ("coverage", "coverage/online"),
-        ):
+        for key, entity in _DIAG_SERIES:
             if key in d:
                 self._push_scalar(entity, t, d[key])
-        for ref_key, tol_key, name, span in (
-            ("field_ref_uT", "strength_tol_uT", "field", self._field_span),
-            ("dip_ref_deg", "dip_tol_deg", "dip", self._dip_span),
-        ):
-            if ref_key in d and tol_key in d:
-                r, w = np.asarray(d[ref_key], dtype=float), np.asarray(d[tol_key], dtype=float)
-                self._push_scalar(f"{name}/lower", t, r - w)
-                self._push_scalar(f"{name}/upper", t, r + w)
+        for name, band in BANDS.items():
+            if band.reference in d and band.tolerance in d:
+                group = PLOTS[name].group
+                span = self._band_span[group]
+                r, w = np.asarray(d[band.reference], dtype=float), np.asarray(d[band.tolerance], dtype=float)
+                self._push_scalar(f"{group}/lower", t, r - w)
+                self._push_scalar(f"{group}/upper", t, r + w)
                 lo, hi = r - 2 * w, r + 2 * w  # the plot shows excursions up to twice the band
                 if np.isfinite(lo).any():
                     span[0] = min(span[0], float(np.nanmin(lo)))
@@ -431,17 +433,16 @@ class RerunSink:
 
     def plot_ranges(self) -> PlotRanges:
         """Time span of everything written; the error plot's half-height ``1.2 · max(max |ours − truth|,
-        2 σ₉₀)`` (σ₉₀ the 90th percentile of σ after the first correction), at least 5°, at most 180°; field
-        strength and dip: the detector's bands widened to twice their tolerance."""
+        2 σ₉₀)`` (σ₉₀ the 90th percentile of σ after the first correction), at least 5°, at most 180°; the
+        detectors with a band (field strength, dip): their bands widened to twice their tolerance."""
         t = tuple(self._t_span) if np.isfinite(self._t_span).all() else None
         n = self._std_hist.sum()
         s90 = 0.0
         if n:
             s90 = (int(np.searchsorted(np.cumsum(self._std_hist), 0.9 * n)) + 1) * _STD_BIN_DEG
         err = float(np.clip(1.2 * max(self._err_max if self._truth else 0.0, 2 * s90), 5.0, 180.0))
-        field = tuple(self._field_span) if np.isfinite(self._field_span).all() else None
-        dip = tuple(self._dip_span) if np.isfinite(self._dip_span).all() else None
-        return PlotRanges(t=t, error=err, field=field, dip=dip, truth=self._truth is not None)
+        bands = {group: tuple(span) for group, span in self._band_span.items() if np.isfinite(span).all()}
+        return PlotRanges(t=t, error=err, bands=bands, truth=self._truth is not None)
 
     def __enter__(self):
         return self
