@@ -237,7 +237,7 @@ def test_span_length_does_not_change_the_result(walk, monkeypatch):
     """Fusion runs ahead over spans of blocks and goes back to its state at the end of the block whose close
     changed the calibration: any span length (one block: no speculation at all) gives the same rows,
     coverage, events and calibrations."""
-    import pdr_mag.pipeline as pl
+    import pdr_mag.pipeline.heading as pl
 
     streams = {k: walk[k] for k in ("accel", "gyro", "mag")}
     ref = HeadingPipeline(meta=META)

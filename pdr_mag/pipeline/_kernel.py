@@ -13,9 +13,13 @@ Loops, because a poll of a second or two is too short for a sequence of numpy ca
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from numba import njit
 
+from pdr_mag import _jit_cache
+from pdr_mag.fusion import kinds
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 
 #: A magnetometer sample with its context: time, raw field (µT), up vector and gyro rate (rad/s).
@@ -43,14 +47,17 @@ def in_order(t, xyz, after):
 
 
 @njit(cache=True, error_model="numpy")
-def take_merged(t0, x0, lo0, hi0, t1, x1, lo1, hi1, t2, x2, lo2, hi2, t_end):
-    """The pending rows ``[lo, hi)`` of three time-ordered stream buffers that are before ``t_end``, merged:
-    ``(kind, t, xyz)`` and each stream's new ``lo``."""
-    k0 = lo0 + np.searchsorted(t0[lo0:hi0], t_end)
-    k1 = lo1 + np.searchsorted(t1[lo1:hi1], t_end)
-    k2 = lo2 + np.searchsorted(t2[lo2:hi2], t_end)
-    kind, t, xyz = _merge(t0[lo0:k0], x0[lo0:k0], t1[lo1:k1], x1[lo1:k1], t2[lo2:k2], x2[lo2:k2])
-    return kind, t, xyz, k0, k1, k2
+def take_merged(streams, t_end):
+    """The pending rows of the three streams (``streams``: their :class:`~pdr_mag.pipeline.streams.Pending`
+    records, accelerometer, gyroscope, magnetometer) that are before ``t_end``, merged: ``(kind, t, xyz)``
+    and each stream's new ``lo``."""
+    a, g, m = streams
+    ka = a.lo + np.searchsorted(a.t[a.lo : a.hi], t_end)
+    kg = g.lo + np.searchsorted(g.t[g.lo : g.hi], t_end)
+    km = m.lo + np.searchsorted(m.t[m.lo : m.hi], t_end)
+    kind, t, xyz = _merge(a.t[a.lo : ka], a.xyz[a.lo : ka], g.t[g.lo : kg], g.xyz[g.lo : kg], m.t[m.lo : km],
+                          m.xyz[m.lo : km])  # fmt: skip
+    return kind, t, xyz, (ka, kg, km)
 
 
 @njit(cache=True, error_model="numpy")
@@ -207,3 +214,7 @@ def carry_over(kind, xyz, row_q, carry):
         c.accel[:] = xyz[a]
     if g >= 0:
         c.gyro[:] = xyz[g]
+
+
+# numba freezes the kind codes into the cached kernels: empty the caches when they change
+_jit_cache.refresh_if_changed((kinds, sys.modules[__name__]), "pipeline")

@@ -47,7 +47,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pdr_mag import _pipeline_kernel as PK
 from pdr_mag._json import state_float
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
@@ -55,6 +54,8 @@ from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
 from pdr_mag.fusion.kinds import KINDS, NAMES
+from pdr_mag.pipeline import _kernel as PK
+from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 STATE_VERSION = 2
 _NO_OFFSET = np.zeros(3)
@@ -117,44 +118,6 @@ class PipelineSettings:
             raise ValueError(f"max_pending: expected a positive count, got {self.max_pending!r}")
 
 
-class _Stream:
-    """Pending samples of one input stream, in time order: rows ``[lo, hi)`` of a buffer that grows
-    (doubling) when a push does not fit after moving the pending rows to its start."""
-
-    __slots__ = ("t", "xyz", "lo", "hi", "last_t")
-
-    def __init__(self):
-        self.t = np.empty(0)
-        self.xyz = np.empty((0, 3))
-        self.lo = 0
-        self.hi = 0
-        self.last_t = -np.inf  # the latest sample pushed
-
-    @property
-    def n(self) -> int:
-        return self.hi - self.lo
-
-    def append(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        k = len(t)
-        if self.hi + k > len(self.t):
-            n = self.hi - self.lo
-            if n + k > len(self.t):
-                cap = max(2 * len(self.t), n + k, 256)
-                bt, bx = np.empty(cap), np.empty((cap, 3))
-            else:
-                bt, bx = self.t, self.xyz
-            bt[:n] = self.t[self.lo : self.hi]
-            bx[:n] = self.xyz[self.lo : self.hi]
-            self.t, self.xyz, self.lo, self.hi = bt, bx, 0, n
-        self.t[self.hi : self.hi + k] = t
-        self.xyz[self.hi : self.hi + k] = xyz
-        self.hi += k
-        self.last_t = float(t[-1])
-
-    def pending(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.t[self.lo : self.hi].copy(), self.xyz[self.lo : self.hi].copy()
-
-
 class HeadingPipeline:
     """Calibrated, interference-aware heading from streaming accelerometer, gyroscope and magnetometer.
 
@@ -207,7 +170,7 @@ class HeadingPipeline:
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
         )
         self.dropped: Counter = Counter()
-        self._streams = {k: _Stream() for k in KINDS}
+        self._streams = {k: PendingStream() for k in KINDS}
         self._done_t = -np.inf  # every sample before this time has been processed
         self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
         self._pend = np.empty(0, dtype=PK.MAG_ROW)  # magnetometer rows of the open block, not yet closed
@@ -355,7 +318,7 @@ class HeadingPipeline:
             return
         else:
             t_end = horizon
-        kind, t, xyz = self._merge(t_end)
+        kind, t, xyz = take_merged(self._streams, t_end)
         if not final:
             self._done_t = t_end
         elif len(t):
@@ -375,15 +338,6 @@ class HeadingPipeline:
             self._coverage = float(cov[-1]) if len(cov) else self._coverage
             if self.online.calibration is not before:
                 self._use_calibration()
-
-    def _merge(self, t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each stream's pending samples before ``t_end``, merged in time order, ties in kind order
-        (accel < gyro < mag): ``(kind, t, xyz)``."""
-        a, g, m = self._streams.values()
-        kind, t, xyz, a.lo, g.lo, m.lo = PK.take_merged(
-            a.t, a.xyz, a.lo, a.hi, g.t, g.xyz, g.lo, g.hi, m.t, m.xyz, m.lo, m.hi, t_end
-        )
-        return kind, t, xyz
 
     def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
         """Fuse the span of blocks that starts at sample ``i`` (see the module docstring); returns the index

@@ -1,0 +1,18 @@
+"""The heading pipeline: streaming samples in, calibrated and interference-aware heading out.
+
+:mod:`~pdr_mag.pipeline.heading`
+    :class:`HeadingPipeline` (the streaming state machine: merge → calibrate → fuse → online calibration
+    → events) and :class:`PipelineSettings`;
+:mod:`~pdr_mag.pipeline.streams`
+    each stream's pending samples and their merge in time order;
+:mod:`~pdr_mag.pipeline._kernel`
+    the compiled helpers: the merge, the filter's input, the magnetometer context of the calibrator.
+
+The filter it drives is :mod:`pdr_mag.fusion` (through its public API), the calibrator
+:mod:`pdr_mag.calibration.online`.
+"""
+
+from pdr_mag.fusion.kinds import KINDS
+from pdr_mag.pipeline.heading import STATE_VERSION, HeadingPipeline, PipelineSettings
+
+__all__ = ["KINDS", "STATE_VERSION", "HeadingPipeline", "PipelineSettings"]
