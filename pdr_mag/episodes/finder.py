@@ -46,8 +46,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pdr_mag import _episode_kernel as K
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.episodes import _kernel as K
 from pdr_mag.estimates import Event
 
 #: Episode kinds, with the unit of their threshold and peak.
@@ -235,7 +235,7 @@ class EpisodeFinder:
 
     ``update(batch, events)`` with every batch and event of the run, in time order, returns the episodes
     closed so far; ``finish()`` the rest (sorted by start).  The rows go through a compiled scan
-    (:mod:`pdr_mag._episode_kernel`) that keeps the open stretches and the detectors' states; the
+    (:mod:`pdr_mag.episodes._kernel`) that keeps the open stretches and the detectors' states; the
     transitions of each detector are kept here, pruned to those a window still to come can need.
     """
 
@@ -340,7 +340,7 @@ class EpisodeFinder:
         return self._release()
 
     def _take(self, closed: np.ndarray) -> None:
-        """The scan's closed stretches (:data:`pdr_mag._episode_kernel.CLOSED`) to the pending ones."""
+        """The scan's closed stretches (:data:`pdr_mag.episodes._kernel.CLOSED`) to the pending ones."""
         for kind, *rest in closed.tolist():
             self._pending.append(_Closed(K.KIND_NAMES[kind], *rest))
 

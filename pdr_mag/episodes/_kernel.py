@@ -12,9 +12,9 @@ One pass over a batch's rows, in time order, carrying everything from one batch 
 
 The closed stretches come out as :data:`CLOSED` records (``kind`` an index into :data:`KIND_NAMES`); the
 episode finder turns them into episodes.  Definitions (thresholds, which rows count) are those of the
-:mod:`pdr_mag.episodes` docstring.  A loop, because the hysteresis, the merging across short gaps and the
-running peaks take a dozen numpy calls per kind and batch, which on a replay's 10-s batches cost as much as
-the pipeline's own bookkeeping.
+:mod:`pdr_mag.episodes.finder` docstring.  A loop, because the hysteresis, the merging across short gaps and
+the running peaks take a dozen numpy calls per kind and batch, which on a replay's 10-s batches cost as much
+as the pipeline's own bookkeeping.
 """
 
 from __future__ import annotations
