@@ -233,7 +233,7 @@ def test_state_round_trip_through_json(walk):
 def test_the_kernel_writes_every_output_column(walk):
     """Every field of :data:`pdr_mag.fusion.rows.ROWS` is written for every row the kernel reports (a
     sentinel put there before the run is gone), and the rows' diagnostics are exactly DIAG_NAMES."""
-    from pdr_mag.fusion import kernel
+    from pdr_mag.fusion import Span, kernel
     from pdr_mag.fusion.rows import DIAG_NAMES, ROWS
     from pdr_mag.fusion.state import STATE
 
@@ -244,7 +244,8 @@ def test_the_kernel_writes_every_output_column(walk):
         out[name] = -12345.0 if out[name].dtype.kind == "f" else True
     allowed = np.ones(len(t), dtype=np.bool_)
     no_cut = np.empty(0, dtype=np.intp)
-    k = kernel.run_cut(kind, t, xyz, allowed, core._st, core._p, no_cut, np.empty(0, STATE), out)
+    span = Span(kind, t, xyz, allowed, len(t))
+    k = kernel.run_cut(span, core._st, core._p, no_cut, np.empty(0, STATE), out)
     assert k > 100
     for name in ROWS.names:
         col = out[name][:k]

@@ -25,6 +25,7 @@ name on both sides.
 from __future__ import annotations
 
 import sys
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -83,6 +84,43 @@ CAL = np.dtype(
 #: the settings as the loop reads them (:class:`~pdr_mag.calibration.online_settings.OnlineSettings`)
 PARAMS = settings_dtype(OnlineSettings)
 
+class Blocks(NamedTuple):
+    """Magnetometer samples as :func:`scan` takes them, block by block: times ``t`` (N,) s, raw field ``mag``
+    (N, 3) µT, device-frame up ``up`` (N, 3), gyro ``rate`` (N,) rad/s, and ``block_end`` (N,) bool marking
+    each block's last sample."""
+
+    t: np.ndarray
+    mag: np.ndarray
+    up: np.ndarray
+    rate: np.ndarray
+    block_end: np.ndarray
+
+
+class Loop(NamedTuple):
+    """The calibrator's compiled records and buffers: one-element arrays of :data:`STATE`, :data:`CAL` (in
+    force) and :data:`CAL` (at the open block's start), :data:`PARAMS`; the diversity buffer, its copy at
+    the block's start, the indices of its samples that may grow old within the block, and the ring of recent
+    samples (:mod:`pdr_mag.calibration.diversity` records)."""
+
+    state: np.ndarray
+    cal: np.ndarray
+    cal0: np.ndarray
+    params: np.ndarray
+    buf: np.ndarray
+    buf0: np.ndarray
+    old0: np.ndarray
+    ring: np.ndarray
+
+
+class Found(NamedTuple):
+    """What :func:`scan` writes: the buffer's ``coverage`` (N,) at each block end (NaN elsewhere), and its
+    rotation-episode events: the sample index ``ev_index`` and kind ``ev_kind`` of each."""
+
+    coverage: np.ndarray
+    ev_index: np.ndarray
+    ev_kind: np.ndarray
+
+
 # what scan returns for
 DONE = 0  # every sample taken in
 REFIT = 1  # a refit is due at the returned sample: the Python side fits, then runs stale_step
@@ -100,19 +138,21 @@ STALE_CLEAR = 1  # the strength does not deviate
 
 
 @njit(cache=True, error_model="numpy")
-def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf, buf0, old0, ring, coverage,
-         ev_index, ev_kind):  # fmt: skip
-    """Take samples ``i, i+1, …`` in (steps 1–6 of the module docstring); return ``(code, index, n_events)``.
+def scan(blocks, i, resumed, loop, found):
+    """Take the samples ``i, i+1, …`` of ``blocks`` (:class:`Blocks`) in (steps 1–6 of the module docstring)
+    with the calibrator's records ``loop`` (:class:`Loop`); return ``(code, index, n_events)``.
 
-    ``block_end[k]`` marks the last sample of a block; there ``coverage[k]`` gets the buffer's coverage (a
-    block of skipped samples only has none).  Samples with a NaN time, field or up vector are skipped; a
-    NaN rate counts as 0.
+    At a block's last sample ``found.coverage`` gets the buffer's coverage (a block of skipped samples only
+    has none).  Samples with a NaN time, field or up vector are skipped; a NaN rate counts as 0.
     ``resumed``: sample ``i`` was taken in and returned (``REFIT``/``STALE_TEST``) by the previous call; only
-    its block end is left.  Episode events go to ``ev_index``/``ev_kind`` (``n_events`` of them).
+    its block end is left.  Episode events go to ``found.ev_index``/``found.ev_kind`` (``n_events`` of them).
     """
-    st = state[0]
-    c = cal[0]
-    p = params[0]
+    t, mag, up, rate, block_end = blocks
+    st = loop.state[0]
+    c = loop.cal[0]
+    cal0 = loop.cal0
+    p = loop.params[0]
+    buf, buf0, old0, ring = loop.buf, loop.buf0, loop.old0, loop.ring
     n_ev = 0
     while i < len(t):
         ti = t[i]
@@ -122,9 +162,9 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
             resumed = False
         elif _finite(ti, m, u):
             if not st.in_block:
-                _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0)
+                _start_block(blocks, i, loop)
             rate_i = rate[i] if np.isfinite(rate[i]) else 0.0
-            n_ev = _track_episode(i, ti, rate_i, st, p, ev_index, ev_kind, n_ev)
+            n_ev = _track_episode(i, ti, rate_i, st, p, found, n_ev)
             if ti - st.ring_last_t >= p.ring_dt:
                 put(ring, st.ring_next % len(ring), ti, m, u)
                 st.ring_next += 1
@@ -146,7 +186,7 @@ def scan(t, mag, up, rate, block_end, i, resumed, state, cal, cal0, params, buf,
                 return STALE_TEST, i, n_ev
         if block_end[i] and st.in_block:
             st.in_block = False
-            coverage[i] = current_coverage(st, c, buf)
+            found.coverage[i] = current_coverage(st, c, buf)
             if st.cal_changed:
                 return BLOCK_END, i, n_ev
         i += 1
@@ -168,11 +208,15 @@ def _finite(t, m, u):
 
 
 @njit(cache=True, error_model="numpy")
-def _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0):
-    """Step 1: copy the calibration and the buffer; list the buffer samples that can be older than
-    ``refresh_s`` before the block's last time (unknown — the block goes on after these samples, or its
-    last time is NaN —: +inf)."""
-    cal0[0] = cal[0]
+def _start_block(blocks, i, loop):
+    """Step 1, at sample ``i``: copy the calibration and the buffer; list the buffer samples that can be
+    older than ``refresh_s`` before the block's last time (unknown — the block goes on after these samples,
+    or its last time is NaN —: +inf)."""
+    t, block_end = blocks.t, blocks.block_end
+    st = loop.state[0]
+    p = loop.params[0]
+    buf, buf0, old0 = loop.buf, loop.buf0, loop.old0
+    loop.cal0[0] = loop.cal[0]
     n = st.n_buf
     for k in range(n):
         buf0[k] = buf[k]
@@ -194,8 +238,10 @@ def _start_block(t, block_end, i, st, cal, cal0, p, buf, buf0, old0):
 
 
 @njit(cache=True, error_model="numpy")
-def _track_episode(i, ti, rate, st, p, ev_index, ev_kind, n_ev):
-    """Step 2; a start or an end makes the next refit fit, an end makes it due now."""
+def _track_episode(i, ti, rate, st, p, found, n_ev):
+    """Step 2; a start or an end makes the next refit fit, an end makes it due now (an event in ``found``,
+    the ``n_ev``-th)."""
+    ev_index, ev_kind = found.ev_index, found.ev_kind
     st.rate_ema += 0.02 * (rate - st.rate_ema)
     if not st.episode and st.rate_ema > p.episode_rate:
         st.episode = True
@@ -351,15 +397,15 @@ def recent(ring, ring_next, t_min):
 
 
 @njit(cache=True, error_model="numpy")
-def stale_now(ti, state, cal, params, ring):
-    """:func:`stale_step` on the one-element record arrays (the Python side's entry, after a refit)."""
-    return stale_step(ti, state[0], cal[0], params[0], ring)
+def stale_now(ti, loop):
+    """:func:`stale_step` on the calibrator's records (the Python side's entry, after a refit)."""
+    return stale_step(ti, loop.state[0], loop.cal[0], loop.params[0], loop.ring)
 
 
 @njit(cache=True, error_model="numpy")
-def coverage_now(state, cal, buf):
-    """:func:`current_coverage` on the one-element record arrays (the Python side's entry)."""
-    return current_coverage(state[0], cal[0], buf)
+def coverage_now(loop):
+    """:func:`current_coverage` on the calibrator's records (the Python side's entry)."""
+    return current_coverage(loop.state[0], loop.cal[0], loop.buf)
 
 
 # numba's cache checks a kernel against its own file only: empty the caches when diversity.py changed too

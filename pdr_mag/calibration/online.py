@@ -103,6 +103,10 @@ class OnlineCalibrator:
         self._buf0 = diversity.empty(s.buffer_size)  # the buffer at the start of the open block
         self._old0 = np.zeros(s.buffer_size, dtype=np.int64)
         self._ring = diversity.empty(int(s.stale_window_s * s.stale_rate_hz) + 1)  # recent samples
+        # the same arrays as the compiled loop takes them (written in place from here on)
+        self._loop = K.Loop(
+            self._state, self._cal, self._cal0, self._params, self._buf, self._buf0, self._old0, self._ring
+        )
         # the stale test's fits: F and sin I free, and (set by _use) the references in force with priors
         self._free_model = fit_model(None, None, s.sigma_strength_uT, s.sigma_tilt_deg)
         self._use(calibration, "none" if calibration is None else refit.state_of(calibration))
@@ -144,7 +148,7 @@ class OnlineCalibrator:
 
     def coverage(self) -> float:
         """Direction coverage of the buffer about the calibration's offset (the buffer mean without one)."""
-        return float(K.coverage_now(self._state, self._cal, self._buf))
+        return float(K.coverage_now(self._loop))
 
     # ------------------------------------------------------------------ feeding
     def update(self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray) -> list:
@@ -177,28 +181,25 @@ class OnlineCalibrator:
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
         n = len(t)
-        cov = np.full(n, np.nan)
-        ev_index = np.empty(n, dtype=np.int64)  # at most one episode event per sample
-        ev_kind = np.empty(n, dtype=np.int64)
+        blocks = K.Blocks(t, mag, up, rate, block_end)
+        # at most one episode event per sample
+        found = K.Found(np.full(n, np.nan), np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64))
         events: list = []
         i, resumed = 0, False
         while True:
-            code, j, n_ev = K.scan(
-                t, mag, up, rate, block_end, i, resumed, self._state, self._cal, self._cal0, self._params,
-                self._buf, self._buf0, self._old0, self._ring, cov, ev_index, ev_kind,
-            )  # fmt: skip
+            code, j, n_ev = K.scan(blocks, i, resumed, self._loop, found)
             for k in range(n_ev):
-                r = int(ev_index[k])
-                events.append((r, (float(t[r]), _EPISODE_EVENTS[int(ev_kind[k])], {})))
+                r = int(found.ev_index[k])
+                events.append((r, (float(t[r]), _EPISODE_EVENTS[int(found.ev_kind[k])], {})))
             if code == K.DONE:
-                return events, n, cov
+                return events, n, found.coverage
             if code == K.BLOCK_END:  # the calibration changed in the block that ended at j
-                return events, j + 1, cov
+                return events, j + 1, found.coverage
             ti = float(t[j])
             decided: list = []
             if code == K.REFIT:
                 self._refit(ti, decided)
-                if K.stale_now(ti, self._state, self._cal, self._params, self._ring) == K.STALE_TEST:
+                if K.stale_now(ti, self._loop) == K.STALE_TEST:
                     self._stale_test(ti, decided)
             else:
                 self._stale_test(ti, decided)

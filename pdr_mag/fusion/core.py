@@ -284,7 +284,7 @@ class FusionCore:
         snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
-        k = kernel.run_cut(span.kind, span.t, span.xyz, span.mag_allowed, self._st, self._p, cuts, snaps, out)
+        k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
         out = out[:k]
         heading = np.arctan2(out["h_y"], out["h_x"])
         np.degrees(heading, out=heading)

@@ -91,13 +91,14 @@ def _write_row(st, ti, row):
 
 
 @njit(cache=True, error_model="numpy")
-def run_cut(kind, t, xyz, allowed, state, params, cuts, snaps, out):
-    """:func:`run` over the whole chunk with a copy of the state put in ``snaps[j]`` before sample
-    ``cuts[j]`` (increasing); then each row's quaternion sign made non-negative in w and its heading's
-    ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state`` and ``params`` are one-element arrays of
-    :data:`~pdr_mag.fusion.state.STATE` and :data:`~pdr_mag.fusion.state.PARAMS`; ``out`` the rows
-    (:data:`~pdr_mag.fusion.rows.ROWS`).  Returns the number of rows (the rows of one :func:`run` call per
-    piece: the same rows, cut or not)."""
+def run_cut(span, state, params, cuts, snaps, out):
+    """:func:`run` over the chunk ``span`` (:class:`pdr_mag.fusion.core.Span`) with a copy of the state put
+    in ``snaps[j]`` before sample ``cuts[j]`` (increasing); then each row's quaternion sign made
+    non-negative in w and its heading's ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state`` and
+    ``params`` are one-element arrays of :data:`~pdr_mag.fusion.state.STATE` and
+    :data:`~pdr_mag.fusion.state.PARAMS`; ``out`` the rows (:data:`~pdr_mag.fusion.rows.ROWS`).  Returns the
+    number of rows (the rows of one :func:`run` call per piece: the same rows, cut or not)."""
+    kind, t, xyz, allowed = span.kind, span.t, span.xyz, span.mag_allowed
     st = state[0]
     p = params[0]
     n = len(t)
