@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from pygeomag import GeoMag
 
 from pdr_mag.conventions import NT_PER_UT
 
@@ -89,8 +90,6 @@ def decimal_year(date: _dt.date | str) -> float:
 
 @lru_cache(maxsize=8)
 def _geomag(filename: str):
-    from pygeomag import GeoMag
-
     return GeoMag(coefficients_file=f"wmm/{filename}")
 
 

@@ -34,11 +34,18 @@ axis perpendicular to ``a`` sweeps ``a`` through the field, which is the motion 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
 
+from pdr_mag.calibration.geometry import (
+    Projection,
+    ellipsoid_from_calibration,
+    geometric_jacobian,
+    param_names,
+    sym_basis,
+)
 from pdr_mag.calibration.model import MagCalibration
 
 #: Inclination assumed when only the field strength (or nothing) is known: the dip of the populated
@@ -106,8 +113,6 @@ def _param_names(cal: MagCalibration, p: int) -> list[str]:
     names = cal.extra.get("covariance_params") if isinstance(cal.extra, dict) else None
     if names is not None and len(names) == p:
         return list(names)
-    from pdr_mag.calibration.geometry import param_names
-
     default = {3: ["offset_x", "offset_y", "offset_z"], 4: param_names("sphere"), 6: param_names("diagonal"),
                9: param_names("full")}
     if p not in default:
@@ -146,8 +151,6 @@ def _tangent_sensitivity(linv: np.ndarray, basis: np.ndarray, u: np.ndarray, e: 
 def heading_shift(cal: MagCalibration, delta, inclination_deg: float = DEFAULT_INCLINATION_DEG) -> float:
     """The largest heading change, degrees, over heading and pose, of the full-model parameter change
     ``delta`` = (δb, δl) (9,) at ``cal``: ``max_u |P_u K(u) δθ| / cos I`` (module docstring)."""
-    from pdr_mag.calibration.geometry import sym_basis
-
     u, e1, e2 = _grid()
     linv, basis, d = cal.soft_iron_array / cal.field_uT, sym_basis("full"), np.asarray(delta, dtype=float)
     x1, x2 = _tangent_sensitivity(linv, basis, u, e1) @ d, _tangent_sensitivity(linv, basis, u, e2) @ d
@@ -269,16 +272,6 @@ def fit_figures(mag: np.ndarray, cal: MagCalibration, inclination_deg: float = D
         ``radius_std_uT`` (1-σ of ``field_uT = det(L)^{1/3}``); ``residual_noise_uT`` (σ_noise),
         ``residual_slow_uT`` (δ_slow), ``inclination_deg``, ``lag``, ``noise_lag``.
     """
-    from dataclasses import replace
-
-    from pdr_mag.calibration.geometry import (
-        Projection,
-        ellipsoid_from_calibration,
-        geometric_jacobian,
-        param_names,
-        sym_basis,
-    )
-
     m = np.asarray(mag, dtype=float)
     n = len(m)
     p = 9

@@ -55,7 +55,7 @@ from pdr_mag.calibration.geometry import (
     sym_coords,
 )
 from pdr_mag.calibration.model import MagCalibration
-from pdr_mag.calibration.sphere import _check_mag
+from pdr_mag.calibration.sphere import _check_mag, sphere_lls
 from pdr_mag.calibration.twostep import initial_ellipsoid
 
 _N_PARAMS = {"sphere": 4, "diagonal": 6, "full": 9}
@@ -290,8 +290,6 @@ def fit_lm9(mag: np.ndarray, max_iter: int = 100, tol: float = 1e-12) -> MagCali
         every other fit (det soft_iron = 1).
     """
     m = _check_mag(mag, 10)
-    from pdr_mag.calibration.sphere import sphere_lls
-
     b0, r0, _ = sphere_lls(m)  # step 1 of the two-step method (seed 001 eq. 13)
     beta = np.array([0.0, 0.0, 0.0, 1.0, 1.0, *b0, r0])
     eps = 1e-7

@@ -13,6 +13,8 @@ under-fitted (its RSS drop grows with N).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from pdr_mag.calibration.alignment import fit_alignment
@@ -70,8 +72,6 @@ def select_model(mag: np.ndarray, models=("sphere", "diagonal", "full")) -> MagC
     cal = fits[best]
     extra = dict(cal.extra)
     extra.update({"model_selection": table, "model": best, "criterion": "bic"})
-    from dataclasses import replace
-
     return replace(cal, extra=extra)
 
 
@@ -136,8 +136,6 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
             m.mean(axis=0), None, method=method, n_samples=len(m), coverage=0.0, accepted=False,
             reasons=[f"no calibration possible: {exc}"], extra={"failed": True})
     if accel is not None:
-        from dataclasses import replace
-
         inc = getattr(field, "inclination_deg", None)
         sin_dip = None if inc is None else -float(np.sin(np.radians(inc)))
         al = fit_alignment(cal.apply(m), accel, sin_dip=sin_dip)

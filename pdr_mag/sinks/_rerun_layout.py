@@ -25,6 +25,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import rerun as rr
+import rerun.blueprint as rrb
+
 from pdr_mag.fusion.detectors import BANDS, PLOTS
 
 # colours (RGB): one per meaning, shared by the lines and the titles that name them
@@ -126,9 +129,6 @@ class PlotRanges:
 
 def drift_blueprint(ranges: PlotRanges | None = None):
     """The default layout (module docstring), with axes fitted to ``ranges``."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-
     r = ranges or PlotRanges()
 
     def time_axis():

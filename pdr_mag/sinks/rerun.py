@@ -59,12 +59,16 @@ up to ``chunk_rows`` rows (bounded memory, few large sends); nothing is logged r
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import rerun as rr
+from scipy.spatial.transform import Rotation
 
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.episodes import Episode
 from pdr_mag.fusion.detectors import BANDS, PLOTS
 from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._rerun_layout import (
@@ -189,8 +193,6 @@ class RerunSink:
 
     # ------------------------------------------------------------------ Sink protocol
     def open(self, meta: dict) -> None:
-        import rerun as rr
-
         rec = rr.RecordingStream(self.application_id)
         if self.spawn and self.path is not None:
             rec.spawn(connect=False)
@@ -305,8 +307,6 @@ class RerunSink:
         q = np.asarray(q_wd, dtype=float).reshape(len(t), 4)
         entity = f"heading/{name}"
         if entity not in SERIES and self._rec is not None:
-            import rerun as rr
-
             self._rec.log(entity, rr.SeriesPoints(names=[name], marker_sizes=[1.5]), static=True)
         heading = heading_deg_from_quat(q)
         self._push_scalar(entity, t, heading)
@@ -348,8 +348,6 @@ class RerunSink:
             state = "rotating" if kind.endswith("start") else ""
             self._push("state/rotation", "state", np.array([float(ev.t)]), np.array([state]))
         if kind == "drift_episode":
-            from pdr_mag.episodes import Episode
-
             d = ev.to_dict()
             ep = Episode.from_dict({**d, "kind": d["episode"], "t_start": d["t"]})
             self._episodes.append((ep.t_start, ep.t_end, ep.kind))
@@ -360,9 +358,6 @@ class RerunSink:
         self._log_text(float(ev.t), text, "WARN" if kind in WARNING_EVENTS else "INFO")
 
     def calibration(self, t: float, cal) -> None:
-        import rerun as rr
-        from scipy.spatial.transform import Rotation
-
         t = float(t)
         rec = self._require()
         time = [rr.TimeColumn("time", duration=_duration_ns(np.array([t])))]
@@ -422,8 +417,6 @@ class RerunSink:
         except RuntimeError as exc:  # a live viewer that is gone must not cost the replay its outputs
             if not self.spawn:
                 raise
-            import warnings
-
             warnings.warn(f"rerun viewer unreachable ({exc}); the data it missed is not shown", stacklevel=2)
         rec.disconnect()
 
@@ -618,8 +611,6 @@ class RerunSink:
         self.rows_sent[entity] = self.rows_sent.get(entity, 0) + n
 
     def _send(self, entity: str, kind: str, t: np.ndarray, v: np.ndarray) -> None:
-        import rerun as rr
-
         index = [rr.TimeColumn("time", duration=_duration_ns(t))]
         if kind == "scalar":
             columns = rr.Scalars.columns(scalars=v)
