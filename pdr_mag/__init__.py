@@ -25,6 +25,9 @@ Magnetometer calibration
 
 The library knows no file format; reading recordings and writing files is the job of the ``replay``
 package (readers) and :mod:`pdr_mag.sinks` (MCAP, rerun).
+
+Sources: the documents the methods follow are listed once, in :mod:`pdr_mag.references`, and cited
+elsewhere by their key and equation (``[Liu2018] eqs. 7–16``).
 """
 
 import importlib as _importlib
@@ -41,7 +44,7 @@ _EXPORTS = {
     "EarthField": "pdr_mag.field",
     "earth_field": "pdr_mag.field",
     "earth_field_from_meta": "pdr_mag.field",
-    # calibration (seeds 000, 001, 003, 004)
+    # calibration ([Long2013], [Zhong2017], [Liu2018], [Huang2018])
     "MagCalibration": "pdr_mag.calibration",
     "calibrate": "pdr_mag.calibration",
     "fit_sphere": "pdr_mag.calibration",

@@ -1,10 +1,11 @@
 """Magnetometer calibration: ``m_cal = soft_iron @ (m_raw - offset)``.
 
-Estimators (each module documents its formula and source): :func:`fit_sphere` (seed 003),
-:func:`fit_twostep` (seeds 001/000), :func:`fit_ellipsoid` and :func:`fit_als` (seed 004), :func:`fit_ml`
-(geometric maximum likelihood, attains the Cramér–Rao bound of :mod:`.crlb`), :func:`fit_radial_newton`
-(seed 000) and :func:`fit_lm9` (seed 001).  :func:`calibrate` picks one, chooses the model (``auto``),
-estimates the magnetometer → IMU alignment and judges acceptance (:mod:`.coverage`).
+Estimators (each module documents its formula and source): :func:`fit_sphere` ([Liu2018]),
+:func:`fit_twostep` ([Zhong2017]/[Long2013]), :func:`fit_ellipsoid` and :func:`fit_als` ([Huang2018]),
+:func:`fit_ml` (geometric maximum likelihood, attains the Cramér–Rao bound of :mod:`.crlb`),
+:func:`fit_radial_newton` ([Long2013]) and :func:`fit_lm9` ([Zhong2017]).  :func:`calibrate` picks one,
+chooses the model (``auto``), estimates the magnetometer → IMU alignment and judges acceptance
+(:mod:`.coverage`).
 """
 
 from pdr_mag.calibration.alignment import Alignment, fit_alignment, fit_reference_rotation

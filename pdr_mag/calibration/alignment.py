@@ -1,8 +1,8 @@
-"""Rotation between the magnetometer axes and the IMU axes (seed 000 eq. 12 idea).
+"""Rotation between the magnetometer axes and the IMU axes ([Long2013] eq. 12 idea).
 
 After the ellipsoid calibration, ``m_cal = soft_iron (m − b)`` has the right length but is known only up to
-a rotation: the SPD ``soft_iron`` leaves out the rotation part of the distortion (seed 000's ``V_L``, which
-"does not take part in the fit") plus any mounting rotation between the magnetometer and the IMU.  Seed 000
+a rotation: the SPD ``soft_iron`` leaves out the rotation part of the distortion ([Long2013]'s ``V_L``, which
+"does not take part in the fit") plus any mounting rotation between the magnetometer and the IMU.  [Long2013]
 (eq. 12) fits ``V_L`` by least squares against reference vectors.  Without a reference the accelerometer
 gives one constraint per sample: the angle between gravity and the Earth field (the dip) is constant,
 
@@ -16,7 +16,7 @@ samples (low-passed specific force with ``| |a| − g | < static_tol``) are used
 ``ωᵀ Σ_ω⁻¹ ω > χ²₃(0.999)`` passes, with ``Σ_ω`` the GN covariance inflated by the autocorrelation of the
 residuals (consecutive samples are not independent).  Otherwise the identity is kept.
 
-:func:`fit_reference_rotation` is seed 000 eq. 12 itself: the least-squares rotation onto known reference
+:func:`fit_reference_rotation` is [Long2013] eq. 12 itself: the least-squares rotation onto known reference
 vectors (orthogonal Procrustes via SVD), used in the known-answer test.
 """
 
@@ -238,7 +238,7 @@ def fit_alignment(mag_cal: np.ndarray, accel: np.ndarray, static_tol: float = 0.
 
 
 def fit_reference_rotation(mag_cal: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Seed 000 eq. 12: rotation ``V`` minimising ``Σ |V m_cal,i − h_i|²`` (orthogonal Procrustes, SVD)."""
+    """[Long2013] eq. 12: rotation ``V`` minimising ``Σ |V m_cal,i − h_i|²`` (orthogonal Procrustes, SVD)."""
     m = np.asarray(mag_cal, dtype=float)
     h = np.asarray(reference, dtype=float)
     if m.shape != h.shape or m.ndim != 2 or m.shape[1] != 3:

@@ -65,7 +65,7 @@ class AcceptanceSettings:
     max_offset_uT : float
         Largest plausible hard-iron offset norm, µT (phone sensors saturate at a few mT) [1500].
     max_axis_ratio : float
-        Largest plausible ratio of soft-iron eigenvalues [2.5]: seed 000's own simulated sensor (gains
+        Largest plausible ratio of soft-iron eigenvalues [2.5]: [Long2013]'s own simulated sensor (gains
         1 : 0.9 : 1.2 and its soft-iron matrix) has 2.33; a phone's own iron distorts far less.
     max_residual_frac, max_noise_uT : float
         Residual RMS above this share of the (reference, else fitted) field [0.05] and above the noise of

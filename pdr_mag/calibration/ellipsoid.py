@@ -1,9 +1,9 @@
-"""Ellipsoid-specific algebraic fit and its noise-compensated form (adjusted least squares), seed 004.
+"""Ellipsoid-specific algebraic fit and its noise-compensated form (adjusted least squares), [Huang2018].
 
 Quadric (see :mod:`pdr_mag.calibration.geometry`): ``θ·z(x) = 0`` with
 ``z(x) = (x², y², z², 2yz, 2xz, 2xy, 2x, 2y, 2z, 1)`` and ``θ = (a, b, c, f, g, h, p, q, r, d)``.
 
-**Ellipsoid-specific LS** (seed 004 step 3; the constraint of Li & Griffiths 2004, cited there as the
+**Ellipsoid-specific LS** ([Huang2018] step 3; the constraint of Li & Griffiths 2004, cited there as the
 ellipsoid constraint): minimise ``θᵀ Ψ θ`` with ``Ψ = Σ z(x_l) z(x_l)ᵀ`` subject to
 
     4J − I² = θᵀ C θ = 1,   I = a + b + c,   J = ab + bc + ca − f² − g² − h²,
@@ -13,16 +13,16 @@ which admits only ellipsoids.  Stationarity gives the generalised eigenproblem `
 ``θ₂ = −Ψ22⁻¹ Ψ21 θ₁``, and ``(Ψ11 − Ψ12 Ψ22⁻¹ Ψ21) θ₁ = λ C₁ θ₁`` is solved for the eigenvector with
 ``θ₁ᵀC₁θ₁ > 0`` and the smallest λ (the cost at the constraint).
 
-**Noise compensation with unknown variance** (seed 004 steps 1–2, the adjusted least squares of Kukush,
+**Noise compensation with unknown variance** ([Huang2018] steps 1–2, the adjusted least squares of Kukush,
 Markovsky & Van Huffel): for ``x = x₀ + ε``, ``ε ~ N(0, s·diag(w²))``, every monomial ``x^k`` in ``Ψ`` is
 replaced by the polynomial ``t_k(x)`` with ``E t_k(x₀ + ε) = x₀^k``:
 
     t₀ = 1, t₁ = x, t₂ = x² − s, t₃ = x³ − 3 s x, t₄ = x⁴ − 6 s x² + 3 s²,
 
 (coordinates independent, so products of the ``t`` per coordinate), giving
-``Ψ_als(s) = Ψ₀ − s Ψ₁ + s² Ψ₂`` (the seed's ``Y₀(μ) = Y − μC₁ − μ²C₂``).  ``E Ψ_als(s_true) = Ψ(x₀)``
+``Ψ_als(s) = Ψ₀ − s Ψ₁ + s² Ψ₂`` (the patent's ``Y₀(μ) = Y − μC₁ − μ²C₂``).  ``E Ψ_als(s_true) = Ψ(x₀)``
 which is singular at the true θ, so the unknown noise amplitude is the smallest ``s > 0`` with
-``λ_min(Ψ_als(s)) = 0`` (the seed's zero-determinant condition), found by bracketing and Brent's method.
+``λ_min(Ψ_als(s)) = 0`` (the patent's zero-determinant condition), found by bracketing and Brent's method.
 The ellipsoid-specific solve above is then applied to ``Ψ_als(ŝ)``.
 
 The data are centred and scaled to unit RMS radius first (isotropic noise stays isotropic), and the
@@ -105,7 +105,7 @@ def _unbiased_moment_polys(x: np.ndarray, w2: np.ndarray) -> np.ndarray:
 
 
 def estimate_noise_variance(polys: np.ndarray) -> float:
-    """Smallest s > 0 with ``λ_min(Ψ₀ + sΨ₁ + s²Ψ₂) = 0`` (seed 004 step 2), in normalised units²."""
+    """Smallest s > 0 with ``λ_min(Ψ₀ + sΨ₁ + s²Ψ₂) = 0`` ([Huang2018] step 2), in normalised units²."""
     def lam(s: float) -> float:
         return float(np.linalg.eigvalsh(polys[0] + s * polys[1] + s * s * polys[2])[0])
 
@@ -122,7 +122,7 @@ def estimate_noise_variance(polys: np.ndarray) -> float:
 
 
 def fit_ellipsoid(mag: np.ndarray) -> MagCalibration:
-    """Ellipsoid-specific algebraic LS fit (seed 004 step 3; ``method='ellipsoid'``).
+    """Ellipsoid-specific algebraic LS fit ([Huang2018] step 3; ``method='ellipsoid'``).
 
     Parameters
     ----------
@@ -143,14 +143,14 @@ def fit_ellipsoid(mag: np.ndarray) -> MagCalibration:
 
 
 def fit_als(mag: np.ndarray, noise_shape=None) -> MagCalibration:
-    """Noise-compensated (adjusted) LS with unknown noise variance + ellipsoid constraint (seed 004).
+    """Noise-compensated (adjusted) LS with unknown noise variance + ellipsoid constraint ([Huang2018]).
 
     Parameters
     ----------
     mag : ndarray (N, 3)
         Raw samples, µT, N ≥ 10.
     noise_shape : array (3,), optional
-        Relative noise standard deviations per axis (seed 004's known σx:σy:σz); isotropic by default.
+        Relative noise standard deviations per axis ([Huang2018]'s known σx:σy:σz); isotropic by default.
 
     Returns
     -------

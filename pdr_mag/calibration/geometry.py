@@ -6,7 +6,7 @@ The ellipsoid of raw magnetometer readings is written
 
 with ``b`` the hard-iron offset (µT) and ``L`` symmetric positive definite (µT; its eigenvalues are the
 semi-axes).  Any linear distortion ``m = S h + b`` with ``|h| = F`` is of this form with ``L`` the SPD polar
-factor of ``F·S`` (seed 000, eq. 5: ``S = R_L S_L V_Lᵀ``; ``L = R_L S_L R_Lᵀ·F`` absorbs the rotation
+factor of ``F·S`` ([Long2013], eq. 5: ``S = R_L S_L V_Lᵀ``; ``L = R_L S_L R_Lᵀ·F`` absorbs the rotation
 ``V_L`` which the norm constraint cannot see).  The calibration of the contract then is
 
     m_cal = soft_iron @ (m − b),   soft_iron = F̄ L⁻¹,   F̄ = det(L)^{1/3},

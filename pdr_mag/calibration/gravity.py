@@ -1,16 +1,16 @@
-"""Gravity-aided hard-iron fit: the offset from yaw turns alone (seed 003's strength equation + a dip one).
+"""Gravity-aided hard-iron fit: the offset from yaw turns alone ([Liu2018]'s strength equation + a dip one).
 
 Model.  Raw magnetometer samples ``m_i`` (device frame, µT), unit up vectors ``u_i`` (device frame: the
 normalised specific force at rest, or the attitude filter's), the Earth field of strength ``F`` and
 inclination ``I`` (positive down), ``s = F sin I``.  The calibrated field ``m_i − b`` of a device with
 hard-iron offset ``b`` obeys two equations::
 
-    |m_i − b|        = F           (strength: seed 003 eq. 3, R = F)
+    |m_i − b|        = F           (strength: [Liu2018] eq. 3, R = F)
     (m_i − b) · u_i  = −s          (dip: the field points below the horizon)
 
 Under pure yaw (the texting pose of a walk) the ``m_i`` lie on a circle about the axis ``u``: the circle's
 centre gives the two components of ``b`` across ``u``, the dip equation the one along ``u`` — so ``b`` is
-observable from yaw turns alone, where seed 003's sphere fit (eqs. 7–16) needs samples over the whole
+observable from yaw turns alone, where [Liu2018]'s sphere fit (eqs. 7–16) needs samples over the whole
 sphere.
 
 Unknowns: ``b``; ``F`` and ``s`` too when they are not given (no World Magnetic Model, no earlier
@@ -22,7 +22,7 @@ Solution, on samples centred for conditioning (``x_i = m_i − m̄``, ``b`` of t
 
 1. Linear initial value, least squares of the rows (scaled by ``1/(2F σ_str)`` and ``1/σ_dip``)::
 
-       F, s given:  2 x_i·b − k = |x_i|² − F²      u_i·b     = x_i·u_i + s     (k = |b|² free: seed 003 eq. 7)
+       F, s given:  2 x_i·b − k = |x_i|² − F²     u_i·b     = x_i·u_i + s    (k = |b|² free, [Liu2018] eq. 7)
        F, s free:   2 x_i·b + c = |x_i|²           u_i·b − s = x_i·u_i         (c = F² − |b|²)
 
 2. Gauss–Newton on the residuals ``r_i = (|x_i − b| − F) / σ_str`` and ``d_i = ((x_i − b)·u_i + s) / σ_dip``

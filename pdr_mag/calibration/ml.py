@@ -1,8 +1,8 @@
-"""Maximum-likelihood refinement: geometric (orthogonal-distance) ML, seed 000's Newton, seed 001's LM.
+"""Maximum-likelihood refinement: geometric (orthogonal-distance) ML, [Long2013]'s Newton, [Zhong2017]'s LM.
 
-**Geometric ML** (``fit_ml``, the default refinement).  Model (seed 000 eqs. 4–7): ``m_i = b + L u_i + ε_i``,
-``|u_i| = 1``, ``ε_i ~ N(0, σ²I)``; the unit directions ``u_i`` are per-sample nuisance parameters.  The
-likelihood (seed 000 eq. 7) is maximised by
+**Geometric ML** (``fit_ml``, the default refinement).  Model ([Long2013] eqs. 4–7): ``m_i = b + L u_i +
+ε_i``, ``|u_i| = 1``, ``ε_i ~ N(0, σ²I)``; the unit directions ``u_i`` are per-sample nuisance parameters.
+The likelihood ([Long2013] eq. 7) is maximised by
 
     min_{b, L, u}  Σ_i |m_i − b − L u_i|²  =  min_{b, L}  Σ_i d_i(b, L)²,
 
@@ -18,9 +18,9 @@ the residual is ``d_i − σ̂² (κ₁+κ₂)_i / 2`` with ``σ̂² = Σ d_i² 
 
 Models: ``full`` (L SPD, 9 parameters), ``diagonal`` (L diagonal, 6), ``sphere`` (L = R·I, 4).
 
-**Seed 000 — radial objective, Newton** (``fit_radial_newton``): ``min Σ_i (|T(m_i − b)| − C)²``
-(seed 000 eq. 10) by Newton's method with the exact Hessian, from the two-step value.  ``T`` is taken
-symmetric (its left rotation is invisible to the norm, seed 000 "V_L 并不会参与计算"), and the SVD
+**[Long2013] — radial objective, Newton** (``fit_radial_newton``): ``min Σ_i (|T(m_i − b)| − C)²``
+([Long2013] eq. 10) by Newton's method with the exact Hessian, from the two-step value.  ``T`` is taken
+symmetric (its left rotation is invisible to the norm, [Long2013] "V_L 并不会参与计算"), and the SVD
 ``T = U₁S₁V₁ᵀ`` gives ``R_L = V₁``, ``S_L = S₁⁻¹`` (eq. 11).  ``C`` is the known field if given, otherwise
 the two-step norm.  The radial residual is not the orthogonal distance: its noise is ``(Tε)·ŵ``, whose
 variance varies with direction when T is not a multiple of I, so it is not efficient, and with partial
@@ -28,18 +28,18 @@ coverage its O(σ²) bias does not cancel.
 
 Measured (``benchmarks/RESULTS.md``, N = 300, soft iron ±15 %): with full coverage all three reach
 1.00–1.08 × the CRLB.  With a hemisphere only at σ/F = 3 %, the geometric ML stays at 1.03 × CRLB with a
-bias indistinguishable from zero, whereas the radial objective is biased — seed 001's LM by ≈ 5.6 µT
-(≈ 70 standard errors, 3.7 × CRLB) and seed 000's Newton runs away along the missing side (the radial
+bias indistinguishable from zero, whereas the radial objective is biased — [Zhong2017]'s LM by ≈ 5.6 µT
+(≈ 70 standard errors, 3.7 × CRLB) and [Long2013]'s Newton runs away along the missing side (the radial
 objective keeps decreasing towards a large, flat ellipsoid; offset errors of hundreds of µT).
 ``tests/test_calibration_crlb.py`` asserts both.  The curvature correction changes the ML results by far
 less than their standard error at σ/F ≤ 5 %.
 
-**Seed 001 — 9 parameters, Levenberg–Marquardt** (``fit_lm9``): ``m = K N h + b``, ``|h| = F``, with
-``K = diag(k_x, k_y, 1)`` (sensitivities relative to z, seed 001 §2.1), ``N`` the non-orthogonal axes
+**[Zhong2017] — 9 parameters, Levenberg–Marquardt** (``fit_lm9``): ``m = K N h + b``, ``|h| = F``, with
+``K = diag(k_x, k_y, 1)`` (sensitivities relative to z, [Zhong2017] §2.1), ``N`` the non-orthogonal axes
 with unit rows ``(1,0,0)``, ``(sin ε₁, cos ε₁, 0)``, ``(sin ε₂, cos ε₂ sin ε₃, cos ε₂ cos ε₃)`` (three small
 mounting angles), ``b`` the offset, ``F`` the norm: β = (ε₁, ε₂, ε₃, k_x, k_y, b_x, b_y, b_z, F), residual
-``r_i = |N⁻¹K⁻¹(m_i − b)| − F`` (seed 001 eq. 9), LM step ``(JᵀJ + μI)δ = −g`` (eq. 14) from the two-step
-value (eq. 13).  The seed's eqs. 1–4 are not legible in our copy; this lower-triangular axis model is our
+``r_i = |N⁻¹K⁻¹(m_i − b)| − F`` ([Zhong2017] eq. 9), LM step ``(JᵀJ + μI)δ = −g`` (eq. 14) from the two-step
+value (eq. 13).  The paper's eqs. 1–4 are not legible in our copy; this lower-triangular axis model is our
 reading of "three small mounting angles + relative sensitivities".
 """
 
@@ -186,18 +186,18 @@ def fit_ml(mag: np.ndarray, model: str = "full", init: tuple | None = None,
     return build_calibration(m, res["b"], res["L"], "ml", model, extra, cov=res["cov"])
 
 
-# ---------------------------------------------------------------------------------------------- seed 000
+# ---------------------------------------------------------------------------------------------- [Long2013]
 def fit_radial_newton(mag: np.ndarray, field: float | None = None, max_iter: int = 50,
                       tol: float = 1e-10) -> MagCalibration:
-    """Seed 000: ``min Σ (|T(m_i − b)| − C)²`` by Newton's method, T = U₁S₁V₁ᵀ (module docstring).
+    """[Long2013]: ``min Σ (|T(m_i − b)| − C)²`` by Newton's method, T = U₁S₁V₁ᵀ (module docstring).
 
     Parameters
     ----------
     mag : ndarray (N, 3)
         Raw samples, µT.
     field : float, optional
-        Known field strength C (seed 000 uses the true |H|); the two-step norm otherwise.  The returned
-        calibration is normalised as all others (det soft_iron = 1); ``extra["T"]`` keeps the seed's T.
+        Known field strength C ([Long2013] uses the true |H|); the two-step norm otherwise.  The returned
+        calibration is normalised as all others (det soft_iron = 1); ``extra["T"]`` keeps the paper's T.
 
     Returns
     -------
@@ -270,7 +270,7 @@ def fit_radial_newton(mag: np.ndarray, field: float | None = None, max_iter: int
     return build_calibration(m, theta[:3], L, "radial", "full", extra)
 
 
-# ---------------------------------------------------------------------------------------------- seed 001
+# ---------------------------------------------------------------------------------------------- [Zhong2017]
 def _lm9_matrix(beta: np.ndarray) -> np.ndarray:
     e1, e2, e3, kx, ky = beta[:5]
     nmat = np.array([[1.0, 0.0, 0.0],
@@ -280,17 +280,17 @@ def _lm9_matrix(beta: np.ndarray) -> np.ndarray:
 
 
 def fit_lm9(mag: np.ndarray, max_iter: int = 100, tol: float = 1e-12) -> MagCalibration:
-    """Seed 001: the 9-parameter model with the field norm as a parameter, Levenberg–Marquardt.
+    """[Zhong2017]: the 9-parameter model with the field norm as a parameter, Levenberg–Marquardt.
 
     Returns
     -------
     MagCalibration
-        ``method='lm9'``; ``extra["beta"]`` = (ε₁, ε₂, ε₃ [rad], k_x, k_y, b_x, b_y, b_z, F) in the seed's
+        ``method='lm9'``; ``extra["beta"]`` = (ε₁, ε₂, ε₃ [rad], k_x, k_y, b_x, b_y, b_z, F) in the paper's
         order, ``extra["beta_std"]`` their 1-σ from ``σ̂²(JᵀJ)⁻¹``; ``field_uT`` is normalised as for
         every other fit (det soft_iron = 1).
     """
     m = _check_mag(mag, 10)
-    b0, r0, _ = sphere_lls(m)  # step 1 of the two-step method (seed 001 eq. 13)
+    b0, r0, _ = sphere_lls(m)  # step 1 of the two-step method ([Zhong2017] eq. 13)
     beta = np.array([0.0, 0.0, 0.0, 1.0, 1.0, *b0, r0])
     eps = 1e-7
 

@@ -1,4 +1,4 @@
-"""Online (streaming) hard-iron calibration, stale-calibration test and figure-8 recalibration (seed 003).
+"""Online (streaming) hard-iron calibration, stale-calibration test and figure-8 recalibration ([Liu2018]).
 
 :class:`OnlineCalibrator` is a state machine over the calibration in force::
 
@@ -13,7 +13,7 @@ that instant, and works with bounded memory:
   keeps a ring of recent samples, admits samples to the **diversity buffer**
   (:mod:`pdr_mag.calibration.diversity`) and keeps the schedule of refits and stale tests;
 * a **refit** fits the buffer (the gravity-aided fit of :mod:`pdr_mag.calibration.gravity`, which works from
-  yaw turns alone; seed 003's sphere fit and the core's full fit once the coverage allows) and judges the
+  yaw turns alone; [Liu2018]'s sphere fit and the core's full fit once the coverage allows) and judges the
   candidates (:mod:`pdr_mag.calibration.refit`);
 * the **stale-calibration test** (:mod:`pdr_mag.calibration.stale`) tells an offset that moved from a passing
   disturbance.  A shift found again ``stale_confirm_s`` later requests a recalibration: the provisional

@@ -5,14 +5,14 @@ Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vect
 * the gravity-aided fit (:mod:`pdr_mag.calibration.gravity`), always: it needs yaw turns only.  It keeps the
   shape of the calibration in force (:func:`gravity_fit_keeping_shape`): a magnet or a case moves the hard
   iron, not the sensor's scale and axes;
-* seed 003's linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
+* [Liu2018]'s linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
   the buffer's direction coverage about the gravity fit's offset reaches ``sphere_coverage``;
 * the calibration core's full fit (:func:`pdr_mag.calibration.select.calibrate`: model by BIC, geometric
-  ML; seeds 000/001/004) once the coverage reaches ``ellipsoid_coverage``, the buffer's coverage on the
-  core's equal-area grid reaches ``ellipsoid_precheck_frac`` of ``AcceptanceSettings.min_coverage`` (a
-  cheap gate that spares full fits on a sparse buffer; it is not the acceptance rule, which is the heading
-  bound of :func:`pdr_mag.calibration.coverage.accept` and may pass fits the gate skips), and a figure-8 was
-  seen (or nothing is calibrated yet).
+  ML; [Long2013]/[Zhong2017]/[Huang2018]) once the coverage reaches ``ellipsoid_coverage``, the buffer's
+  coverage on the core's equal-area grid reaches ``ellipsoid_precheck_frac`` of
+  ``AcceptanceSettings.min_coverage`` (a cheap gate that spares full fits on a sparse buffer; it is not the
+  acceptance rule, which is the heading bound of :func:`pdr_mag.calibration.coverage.accept` and may pass fits
+  the gate skips), and a figure-8 was seen (or nothing is calibrated yet).
 
 Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravity, then the smallest offset
 σ) is the refit's result.  Whether it replaces the calibration in force is :func:`replaces`.

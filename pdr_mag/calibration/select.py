@@ -84,9 +84,10 @@ def calibrate(mag: np.ndarray, method: str = "auto", accel: np.ndarray | None = 
     mag : ndarray (N, 3)
         Raw magnetometer samples, µT.
     method : str
-        ``auto`` (geometric ML, model chosen by BIC), ``sphere`` (LLS, seed 003), ``ellipsoid``
-        (ellipsoid-specific LS, seed 004), ``als`` (noise-compensated, seed 004), ``ml`` (geometric ML, full
-        soft iron), ``radial`` (seed 000 Newton), ``lm9`` (seed 001 LM), ``twostep`` (the initial value).
+        ``auto`` (geometric ML, model chosen by BIC), ``sphere`` (LLS, [Liu2018]), ``ellipsoid``
+        (ellipsoid-specific LS, [Huang2018]), ``als`` (noise-compensated, [Huang2018]), ``ml`` (geometric ML,
+        full soft iron), ``radial`` ([Long2013] Newton), ``lm9`` ([Zhong2017] LM), ``twostep`` (the initial
+        value).
     accel : ndarray (N, 3), optional
         Specific force (m/s², IMU axes) at the magnetometer instants, low-passed, NaN where the device
         moves (:func:`alignment.quasi_static_accel` makes it from a raw stream); when given, the

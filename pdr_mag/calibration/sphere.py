@@ -1,6 +1,6 @@
-"""Hard-iron offset and field radius by linear least squares (seed 003, eqs. 3–16).
+"""Hard-iron offset and field radius by linear least squares ([Liu2018], eqs. 3–16).
 
-Model (soft iron neglected, seed 003 eq. 2): ``m̂ = m − O`` with ``|m̂| = R``.  Expanding
+Model (soft iron neglected, [Liu2018] eq. 2): ``m̂ = m − O`` with ``|m̂| = R``.  Expanding
 ``(m − O)ᵀ(m − O) = R²`` gives, per sample i (eq. 7),
 
     Y_i = |m_i|² = [m_ix, m_iy, m_iz, 1] · β,   β = (2O_x, 2O_y, 2O_z, R² − |O|²)
@@ -56,7 +56,7 @@ def sphere_lls(mag: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def fit_sphere(mag: np.ndarray) -> MagCalibration:
-    """Offset-only calibration by linear least squares (seed 003).
+    """Offset-only calibration by linear least squares ([Liu2018]).
 
     Parameters
     ----------

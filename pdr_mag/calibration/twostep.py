@@ -1,12 +1,13 @@
-"""Two-step initial value: offset and norm without a prior range, then the shape (seed 001 §2.3, seed 000).
+"""Two-step initial value: offset and norm without a prior range, then the shape ([Zhong2017] §2.3,
+[Long2013]).
 
-Step 1 (seed 001 §2.3, eqs. 10–13): ignore misalignment and sensitivity errors, so ``|m − b|² = F²`` is
+Step 1 ([Zhong2017] §2.3, eqs. 10–13): ignore misalignment and sensitivity errors, so ``|m − b|² = F²`` is
 linear in ``β = (2b, F² − |b|²)``: ``|m_i|² = [m_iᵀ, 1] β``, solved by linear least squares
 (:func:`pdr_mag.calibration.sphere.sphere_lls`).  This gives the offset ``b₀`` and the norm ``F₀`` in the
 sensor's own units, whatever they are — which is what lets the iterative fits start without knowing the
-range of the parameters (seed 001 §2.3; the seed shows LM diverging from a fixed guess).
+range of the parameters ([Zhong2017] §2.3; the paper shows LM diverging from a fixed guess).
 
-Step 2 (the linear "二步法" step seed 000 starts its Newton iterations from, Alonso & Shuster's centred
+Step 2 (the linear "二步法" step [Long2013] starts its Newton iterations from, Alonso & Shuster's centred
 estimate): in the coordinates ``(m − b₀)/F₀`` of step 1 the full quadric is fitted linearly with the
 ellipsoid constraint (:func:`pdr_mag.calibration.ellipsoid.ellipsoid_specific_solve`), giving offset and
 SPD shape ``L``.  If the data cannot support it (not an ellipsoid, or axis ratio beyond
