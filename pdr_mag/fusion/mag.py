@@ -1,8 +1,9 @@
 """Heading from the calibrated magnetometer: the interference detectors, then a heading-only update.
 
-Detectors.  Every finite sample goes through :func:`pdr_mag.fusion.detectors.detect_step` (strength, variance,
-dip against the filter's up direction, gyro consistency of the world-frame direction ``m_w = R m_d``, with
-hold timers), whatever the caller allows; their state is the record ``det`` inside the filter's state.
+Detectors.  Every finite sample goes through :func:`pdr_mag.fusion.detectors.detect_step` (each registered
+detector — strength, dip against the filter's up direction, variance, gyro consistency of the world-frame
+direction ``m_w = R m_d`` — and the hold timer), whatever the caller allows; their state is the record
+``det`` inside the filter's state, the sample in ``det.x``.
 
 Measurement.  Heading only: ``ψ = atan2(m_w,x, m_w,y)``; the residual ``r = wrap(ψ − D − c)`` (D the
 declination, 0 for magnetic north) observes
@@ -13,13 +14,14 @@ declination, 0 for magnetic north) observes
 errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
 field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
 accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is
-unsettled (``tr P_tilt > 2 tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion), the
-heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
+unsettled (``tr P_tilt > 2 accel.tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion),
+the heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
 
 Noise::
 
     σ_ψ² = σ_h² + σ_m² / B_h² + (|ω| τ_m F / B_h)² + k_d² d_min² / B_h²
     d_min² = (F − F_loc)² + (F (I − I_loc))² + k_c (F ∠cons_d)²,   ∠cons_d = max(∠cons − σ_b W, 0)
+           (each detector's part: :func:`pdr_mag.fusion.detectors.disturbance2`)
 
 σ_h ``mag.noise_deg``, σ_m ``mag.noise_uT``, ``B_h`` the measured horizontal strength, τ_m
 ``mag.time_unc_s`` (the device turns by ``|ω| τ_m`` within the timestamp uncertainty), k_d ``mag.dist_k``,
@@ -27,14 +29,15 @@ k_c ``mag.cons_k``.  ``d_min`` is the smallest disturbance that explains the dev
 and world-frame direction from the detectors' references (a disturbance d changes the strength by at most
 |d|, the dip by at most |d|/F and turns the horizontal field by at most |d|/B_h); the consistency angle
 counts only beyond what the filter's own bias uncertainty explains over the detector's window
-(σ_b = √tr P_bb, W ``consistency_window_s``).
+(σ_b = √tr P_bb, W ``ConsistencySettings.window_s``).
 
-Gates.  No update while the interference flag is up (except the first fix, when strength and dip are
-fine), when the caller disallows it, within ``mag.interval_s`` of the last update (the errors are
-correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag_gate² · S`` with ``S = h P hᵀ`` plus the
-*undisturbed* part of σ_ψ² (a suspect field gets less weight; it cannot widen the gate).  While a
-clean-looking field keeps failing the gate, the heading may be what is wrong: ``P[δθ_z, δθ_z]`` grows by
-``reject_inflate_deg²`` per second (only the heading's, so the bias is not dragged when the gate opens).
+Gates.  No update while the interference flag is up (except the first fix, when the detectors against an
+absolute reference — strength and dip — pass it), when the caller disallows it, within ``mag.interval_s`` of
+the last update (the errors are correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag.gate² · S``
+with ``S = h P hᵀ`` plus the *undisturbed* part of σ_ψ² (a suspect field gets less weight; it cannot widen
+the gate).  While a clean-looking field keeps failing the gate, the heading may be what is wrong:
+``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the bias is not
+dragged when the gate opens).
 
 Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
 field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
