@@ -44,7 +44,7 @@ _EXPORTS = {
     "EarthField": "pdr_mag.field",
     "earth_field": "pdr_mag.field",
     "earth_field_from_meta": "pdr_mag.field",
-    # calibration ([Long2013], [Zhong2017], [Liu2018], [Huang2018])
+    # calibration ([Long2013], [Zhong2017], [Liu2018], [Huang2018]: pdr_mag.references)
     "MagCalibration": "pdr_mag.calibration",
     "calibrate": "pdr_mag.calibration",
     "fit_sphere": "pdr_mag.calibration",
@@ -64,6 +64,10 @@ _EXPORTS = {
     "gravity_aided_offset": "pdr_mag.calibration.online",
     # detection, fusion, pipeline
     "InterferenceSettings": "pdr_mag.fusion",
+    "StrengthSettings": "pdr_mag.fusion",
+    "DipSettings": "pdr_mag.fusion",
+    "VarianceSettings": "pdr_mag.fusion",
+    "ConsistencySettings": "pdr_mag.fusion",
     "FusionSettings": "pdr_mag.fusion",
     "GyroSettings": "pdr_mag.fusion",
     "AccelSettings": "pdr_mag.fusion",
