@@ -57,7 +57,8 @@ from pdr_mag.fusion.kinds import KINDS, NAMES
 from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
-STATE_VERSION = 2
+#: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
+STATE_VERSION = 3
 _NO_OFFSET = np.zeros(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
 #: (changes come in runs while the calibration converges), doubled after each span without one, up to the
