@@ -354,7 +354,9 @@ def _score_rows(summary: dict) -> list[tuple[str, str]]:
     """The console's lines on the heading against the references and the walked direction it has."""
     names = {"truth": "heading vs truth", "os": "heading vs phone's own"}
     rows = []
-    for name, e in summary.get("heading_error", {}).items():
+    errors = summary.get("heading_error", {})
+    for name in sorted(errors, key=lambda n: (n not in names, list(names).index(n) if n in names else 0, n)):
+        e = errors[name]
         if e["n_epochs"]:
             rows.append((names.get(name, f"heading vs {name}"),
                          f"median {e['median_deg']:.1f}°, p90 {e['p90_deg']:.1f}°, "
