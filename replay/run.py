@@ -4,7 +4,9 @@ The recording streams (:mod:`replay.source`): its samples are read a chunk at a 
 of ``slice_s`` seconds of stream time (:data:`SLICE_S`), so memory does not grow with the recording's
 length; the pipeline is polled after each slice, and everything it gives out — estimates,
 events, calibrations, calibrated magnetometer samples — goes to every sink through the
-:class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink.
+:class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink; another,
+:class:`replay.heading_scores.HeadingScores`, is in every run and gives the summary's heading figures
+against the walked direction and the reference series.
 """
 
 from __future__ import annotations
@@ -355,10 +357,10 @@ def _score_rows(summary: dict) -> list[tuple[str, str]]:
     names = {"truth": "heading vs truth", "os": "heading vs phone's own"}
     rows = []
     errors = summary.get("heading_error", {})
-    for name in sorted(errors, key=lambda n: (n not in names, list(names).index(n) if n in names else 0, n)):
-        e = errors[name]
-        if e["n_epochs"]:
-            rows.append((names.get(name, f"heading vs {name}"),
+    for name in names:
+        e = errors.get(name)
+        if e and e["n_epochs"]:
+            rows.append((names[name],
                          f"median {e['median_deg']:.1f}°, p90 {e['p90_deg']:.1f}°, "
                          f"> 45° {100 * e['share_over_45']:.1f} % of {e['n_epochs']} rows"))
     w = summary.get("walked_direction")
