@@ -20,6 +20,12 @@ iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, 
   ``accel = -9.80665 * a`` (iOS's device axes are Android's: x right, y top, z out of the screen);
 * ``gyroscope.txt`` rad/s and ``magnetometer.txt`` µT (raw ``CMMagnetometerData``), unchanged.
 
+The phone's own fusion, when logged, becomes ``references["os"]`` (device → ENU, for evaluation only):
+Android's ``rotation-vector.txt`` (t, qx, qy, qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic
+north) and iOS's ``attitude.txt`` (t, qw, qx, qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to
+magnetic north, z up, so ``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north
+(:mod:`replay.formats._attitude`); odd rows are counted as ``os:<reason>``.
+
 Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
 (Δ, with ``t_qualisys = t_phone + Δ``) are present, the Qualisys rigid-body rotation (device → ENU, true
 north) becomes :attr:`Recording.truth` at ``t = i / FrameRate - Δ`` on the phone clock. NaN frames are
@@ -37,7 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import quat_multiply
 from replay.errors import InputError
+from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
@@ -87,7 +95,7 @@ def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
     """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
 
     def chunks():
-        b = StreamBuilder(path, key, dropped)
+        b = StreamBuilder(path, key, dropped, width=ncol)
         with open_text(path) as fh:
             steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
             yield from chunks_of(fh, {key: b}, steps)
@@ -195,6 +203,33 @@ def open_source(path) -> RecordingSource:
     if truth is not None:
         meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})
         meta["truth_north"] = "true"
+    references = {}
+    os_ref = _os_attitude(p, platform, t_off, meta, dropped)
+    if os_ref is not None:
+        references["os"] = os_ref
     return RecordingSource(
-        specs, feeds, meta=meta, truth=truth, source=str(p), format=f"{NAME}-{platform}", dropped=dropped
+        specs, feeds, meta=meta, truth=truth, references=references, source=str(p),
+        format=f"{NAME}-{platform}", dropped=dropped,
     )
+
+
+def _os_attitude(path: Path, platform: str, t_off: float, meta: dict, dropped: Counter):
+    """The phone's own attitude (``rotation-vector.txt`` / ``attitude.txt``) in the pipeline's north, or
+    None when the trial has none."""
+    f = path / ("rotation-vector.txt" if platform == "android" else "attitude.txt")
+    if not f.is_file():
+        return None
+    t, v = [], []
+    for _, chunk in columns_feed(f, "os", dropped, ncol=4).chunks():
+        if "os" in chunk:
+            t.append(chunk["os"][0])
+            v.append(chunk["os"][1])
+    if not t:
+        return None
+    t, v = np.concatenate(t), np.concatenate(v)
+    if platform == "android":  # x, y, z, w
+        q = rotation_vector_quat(v[:, :3], v[:, 3])
+    else:  # w, x, y, z in CoreMotion's x-north, z-up frame: turned +90° about Up into ENU
+        up90 = np.array([np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])
+        q = quat_multiply(up90, rotation_vector_quat(v[:, 1:], v[:, 0]))
+    return t + t_off, in_output_north(q, meta)
