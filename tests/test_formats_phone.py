@@ -83,8 +83,8 @@ def test_os_estimate_blocks_as_samples():
     level = np.cumsum(rng.random(n) < 0.02)  # a new value now and then
     v = np.column_stack([level * 1.5, -level, 0.25 * level + 400.0])
     v[rng.random(n) < 0.03] = np.nan  # odd cells
-    one, one_dropped = OsEstimate("gyro_os_bias", Counter()), Counter()
-    one.dropped = one_dropped
+    one_dropped: Counter = Counter()
+    one = OsEstimate("gyro_os_bias", one_dropped)
     for ti, vi in zip(t, v, strict=True):
         one.add(ti, vi)
     for size in (1, 7, 64, n):
