@@ -165,16 +165,17 @@ def test_fixture_android_estimates(tmp_path):
         "0.08 31 1 -30 1.5 2 3\n"
         "0.10 31 1 -30 1.5 2\n"  # a column missing: odd
         "0.12 31 1 -30\n"  # no estimate stated
+        "0.14 31 1 -30 inf 2 3\n"  # not a finite number: odd
     )
     d = _android(tmp_path, mag)
     (d / "record.properties").write_text(
         "[Device]\nModel = Phone\nManufacturer = Acme\nID = 0123abcd\n\n[Time]\nStartTime = 1464686052\n"
     )
     rec = read_recording(d)
-    assert len(rec.mag) == 6 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
+    assert len(rec.mag) == 7 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
     assert rec.meta["mag_os_bias_uT"] == [1.0, 2.0, 3.0]
     assert rec.meta["mag_os_bias_changes"] == [[0.08, 1.5, 2.0, 3.0]]
-    assert rec.dropped["mag_os_bias:nan"] == 2
+    assert rec.dropped["mag_os_bias:nan"] == 3
     assert rec.meta["gyro_os_bias_rad_s"] == [0.0, 0.0, 0.0] and rec.meta["gyro_os_bias_changes"] == []
     assert rec.meta["device_id"] == "0123abcd" and rec.meta["device"] == "Acme Phone"
 

@@ -128,25 +128,26 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
         while lines := list(itertools.islice(fh, CHUNK)):
             try:
                 arr = np.loadtxt(lines, usecols=range(7), ndmin=2, dtype=float, comments=None)
+                stated = np.ones(len(arr), dtype=bool)
             except ValueError:
-                arr = np.array([_row7(ln) for ln in lines], dtype=float).reshape(-1, 7)
-            if len(arr) != len(lines):  # blank lines: the stream's pass reports them
-                arr = np.array([_row7(ln) for ln in lines], dtype=float).reshape(-1, 7)
+                arr = np.empty((0, 7))
+            if len(arr) != len(lines):  # a row that does not parse, or blank lines: one by one
+                rows = [_row7(ln) for ln in lines]
+                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, 7)
+                stated = np.array([s for _, s in rows], dtype=bool)
             keep = np.all(np.isfinite(arr[:, :4]), axis=1)
-            arr = arr[keep]
+            arr, stated = arr[keep], stated[keep]
             t = arr[:, 0]
-            new_t = t != np.concatenate([[last_t], t[:-1]])
-            stated = ~np.isinf(arr[:, 4])  # +inf marks a row of four columns (no estimate stated)
-            sel = new_t & stated
+            sel = stated & (t != np.concatenate([[last_t], t[:-1]]))  # not a repeated time
             est.add_block(t[sel], arr[sel, 4:7])
             if len(t):
                 last_t = float(t[-1])
     return est
 
 
-def _row7(line: str) -> list[float]:
-    """One Senslogs row as 7 numbers, tolerant: NaN for a cell that is not a number or is missing (the whole
-    estimate +inf when the row has just t, x, y, z)."""
+def _row7(line: str) -> tuple[list[float], bool]:
+    """One Senslogs row as 7 numbers (NaN for a cell that is not a number or is missing), tolerant, and
+    whether it states an estimate (more than t, x, y, z)."""
     parts = line.split()
     out = []
     for cell in parts[:7]:
@@ -154,9 +155,7 @@ def _row7(line: str) -> list[float]:
             out.append(float(cell))
         except ValueError:
             out.append(np.nan)
-    if len(parts) == 4:
-        return out + [np.inf] * 3
-    return out + [np.nan] * (7 - len(out))
+    return out + [np.nan] * (7 - len(out)), len(parts) > 4
 
 
 def _truth(path: Path, dropped: Counter):
