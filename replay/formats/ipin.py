@@ -27,6 +27,14 @@ first one also sets ``latitude_deg``/``longitude_deg``. The ``AHRS`` rotation ve
 their yaw's sign), on the app clock by the streams' shift when their sensor clock is the same (within
 0.5 s), else by their own; odd rows are counted as ``os:<reason>``. The ``% Model:`` and
 ``% Manufacturer:`` header lines give ``meta["device"]``.
+
+What the phone states about itself (:mod:`replay.formats._phone`): ``MAGN`` and ``GYRO`` are Android's
+``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, the streams the OS has already calibrated
+(``mag_os_calibrated`` and ``gyro_os_calibrated`` True); the OS's estimates are not in the file (no bias
+or drift columns), nor is a device id. ``% Date of creation: …`` (Java's ``Date.toString()``, e.g.
+``Thu Sep 12 10:22:32 GMT+02:00 2019``, or an ISO-like date) gives ``meta["date"]``, the calendar date as
+written; a date in another form is kept as text under ``date_unreadable``. With the ``POSI`` fixes' place,
+the date lets the pipeline use the field model (and true north).
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.formats._common import is_float as _is_number
+from replay.formats._phone import put_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -64,7 +73,8 @@ def detect(path: Path) -> bool:
 
 def _parse(p: Path, fh, builders: dict, found: dict):
     """Parse the logfile line by line into ``builders`` (yielding after each line); ``found`` collects the
-    delivery-latency floors (``offsets``), the ``positions``, the header's ``model``/``maker`` and, when
+    delivery-latency floors (``offsets``), the ``positions``, the header's ``model``/``maker``/``created``
+    (the ``Date of creation`` text) and, when
     ``found["os"]`` is a builder, the ``AHRS`` rotation vectors (sensor clock) and their floor
     (``os_offset``)."""
     for lineno, line in enumerate(fh, start=1):
@@ -75,6 +85,8 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 found["model"] = body.split(":", 1)[1].strip()
             elif body.startswith("Manufacturer:"):
                 found["maker"] = body.split(":", 1)[1].strip()
+            elif body.startswith("Date of creation:") and "created" not in found:
+                found["created"] = body.split(":", 1)[1].strip()
             continue
         s = line.strip()
         if not s:
@@ -140,9 +152,11 @@ def open_source(path) -> RecordingSource:
     dropped: Counter = Counter(os_dropped)
     chunks = lambda: _chunks(p, dropped, {"offsets": dict(offsets), "positions": []})  # noqa: E731
     feed = Feed(tuple(keys), chunks, p.stat().st_size)
-    meta: dict = {}
+    meta: dict = {"mag_os_calibrated": True, "gyro_os_calibrated": True}
     if found.get("model"):
         meta["device"] = f"{found.get('maker', '')} {found['model']}".strip()
+    if "created" in found:
+        put_date(meta, found["created"])
     positions = found["positions"]
     if positions:
         meta["positions"] = positions
