@@ -38,7 +38,9 @@ class Recording:
     accel, gyro : Stream or None
         Accelerometer (m/s², specific force) and gyroscope (rad/s).
     meta : dict
-        ``device``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` — all optional.
+        ``device``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date`` — all optional; what the
+        file states about the phone's own calibration and the device (``mag_os_bias_uT``,
+        ``mag_os_calibrated``, ``device_id``, …: INTERFACE.md, "Recording ``meta``"); format-specific keys.
     truth : (t (N,), q_wxyz (N, 4)) or None
         True orientation, device → ENU true north; for evaluation only.
     references : dict

@@ -4,7 +4,9 @@ The recording streams (:mod:`replay.source`): its samples are read a chunk at a 
 of ``slice_s`` seconds of stream time (:data:`SLICE_S`), so memory does not grow with the recording's
 length; the pipeline is polled after each slice, and everything it gives out — estimates,
 events, calibrations, calibrated magnetometer samples — goes to every sink through the
-:class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink.
+:class:`pdr_mag.sinks.Sink` protocol.  The CSV output of ``replay --out-csv`` is one such sink; another,
+:class:`replay.heading_scores.HeadingScores`, is in every run and gives the summary's heading figures
+against the walked direction and the reference series.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from pdr_mag.sinks import QuietSink
 from replay.errors import InputError
 from replay.formats import open_recording
+from replay.heading_scores import HeadingScores
 from replay.recording import Recording
 from replay.source import Merge, RecordingSource
 
@@ -167,7 +170,8 @@ def replay(
             raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
     if calibration is not None and not isinstance(calibration, MagCalibration):
         calibration = load_calibration(calibration)
-    sinks = list(sinks)
+    scores = HeadingScores()  # against the walked direction and the references: the summary's figures
+    sinks = [*sinks, scores]
     if settings is None and any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
         settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
     try:
@@ -258,6 +262,7 @@ def replay(
             "calibration_given": calibration is not None,
             "episodes": [ep.to_dict() for ep in finder.episodes],
             "episode_settings": {"truth": finder.has_truth, **asdict(finder.settings)},
+            **scores.summary(),
             "elapsed_s": elapsed,
             "samples_per_s": n_samples / elapsed if elapsed > 0 else None,
         }
@@ -332,6 +337,7 @@ def summary_table(summary: dict) -> str:
     rows.append(("drift episodes", ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"))
     for i, ep in enumerate(worst([Episode.from_dict(e) for e in episodes]), 1):
         rows.append((f"  worst {i}", ep.describe()))
+    rows += _score_rows(summary)
     dropped = summary["dropped_samples"]
     rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
     if summary.get("samples_per_s"):
@@ -344,3 +350,26 @@ def summary_table(summary: dict) -> str:
         )
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
+
+
+def _score_rows(summary: dict) -> list[tuple[str, str]]:
+    """The console's lines on the heading against the references and the walked direction it has."""
+    names = {"truth": "heading vs truth", "os": "heading vs phone's own"}
+    rows = []
+    errors = summary.get("heading_error", {})
+    for name in names:
+        e = errors.get(name)
+        if e and e["n_epochs"]:
+            rows.append((names[name],
+                         f"median {e['median_deg']:.1f}°, p90 {e['p90_deg']:.1f}°, "
+                         f"> 45° {100 * e['share_over_45']:.1f} % of {e['n_epochs']} rows"))
+    w = summary.get("walked_direction")
+    if w and w["n_segments"]:
+        within = w["within_2sigma_share"]
+        rows.append(("heading vs walked", f"{w['n_segments']} segments: median {w['median_deg']:.1f}°, mean "
+                     f"{w['mean_deg']:.1f}°, > 45° {w['n_over_45']}, within 2σ "
+                     + (f"{100 * within:.0f} %" if within is not None else "-")
+                     + f", > 45° with σ ≤ 20° {w['n_over_45_sigma_le_20']}"))
+    elif w:
+        rows.append(("heading vs walked", "no segment (waypoints ≥ 4 m and 3 s apart)"))
+    return rows

@@ -97,8 +97,14 @@ def test_local_batch_table_complete_errors_named_exit_2(local):
         sd = np.sort(np.loadtxt(out / label / "heading.csv", delimiter=",", skiprows=1, usecols=6))
         for q, col in ((0.5, "heading_std_median_deg"), (0.95, "heading_std_p95_deg")):
             assert r[col] == pytest.approx(sd[math.ceil(q * len(sd)) - 1], abs=0.011)
-        assert r["heading_err_truth_median_deg"] is not None  # simulated recordings carry truth.csv
-        assert r["heading_err_os_median_deg"] is None
+        # simulated recordings carry truth.csv (the table's figures are replay.json's), no phone attitude
+        # and no waypoints
+        err = json.loads((out / label / "replay.json").read_text())["heading_error"]
+        assert set(err) == {"truth"} and err["truth"]["n_epochs"] > 900
+        for col, key in (("median", "median_deg"), ("p90", "p90_deg"), ("p95", "p95_deg")):
+            assert r[f"heading_err_truth_{col}_deg"] == err["truth"][key] is not None
+        assert r["heading_err_truth_over45_share"] == err["truth"]["share_over_45"]
+        assert r["heading_err_os_median_deg"] is None and r["walked_segments"] is None
         assert r["elapsed_s"] > 0
         files = sorted(p.name for p in (out / label).iterdir())
         assert files == ["batch.json", "heading.csv", "replay.json"]
@@ -124,7 +130,8 @@ def test_batch_replay_identical_to_the_single_command(local, tmp_path, monkeypat
 
 
 def test_parquet_matches_csv(local):
-    pq = pytest.importorskip("pyarrow.parquet")  # optional: Parquet only when pyarrow is installed
+    import pyarrow.parquet as pq  # the test extra installs pyarrow (optional for users: the parquet extra)
+
     _, out = local
     assert pq.read_table(out / "summary.parquet").to_pylist() == read_csv(out / "summary.csv")
 

@@ -69,7 +69,9 @@ def test_calibrate_real_tyrex(tmp_path, capsys):
     out = tmp_path / "c.json"
     assert main(["calibrate", str(rec), "--json", str(out)]) == 0
     d = json.loads(out.read_text())
-    assert d["accepted"] and abs(d["field_uT"] / 47.06 - 1) < 0.2
+    # the WMM gives 47.06 µT at the benchmark (Grenoble, 2016); SOURCE.md's sphere radii of the Nexus 5's
+    # calibration recordings are 46.7–47.6 µT: within 0.6 µT of it (measured 47.33)
+    assert d["accepted"] and d["field_uT"] == pytest.approx(47.06, abs=0.6)
 
 
 def test_rejection_is_reported(tmp_path, capsys):

@@ -11,6 +11,7 @@ import pytest
 
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.estimates import CAL_STATES, CSV_COLUMNS
+from pdr_mag.field import earth_field_from_meta
 from replay.cli import main
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
@@ -66,7 +67,11 @@ def test_replay_writes_csv_and_json(rec_dir, tmp_path, capsys):
     assert all({"t", "kind"} <= set(e) for e in summary["events"])
     assert any(e["kind"] == "calibration_accepted" for e in summary["events"])
     assert summary["calibrations"] and "offset_uT" in summary["calibrations"][-1]
-    np.testing.assert_allclose(summary["calibrations"][-1]["offset_uT"], B_TRUE, atol=3.0)
+    # the online offset within 2 of its own σ per axis (measured 0.19 µT off, 0.2 σ; 0.7 σ at most on seeds
+    # 22–23), and within 1 µT (the walk's geometry leaves σ at 0.9–2.1 µT per axis on those seeds)
+    last = summary["calibrations"][-1]
+    err = np.asarray(last["offset_uT"]) - B_TRUE
+    assert np.all(np.abs(err) < 2 * np.asarray(last["offset_std_uT"])) and np.linalg.norm(err) < 1.0, err
 
 
 def test_replay_with_calibration_file(rec_dir, tmp_path):
@@ -81,7 +86,11 @@ def test_replay_with_calibration_file(rec_dir, tmp_path):
     truth = np.loadtxt(rec_dir / "truth.csv", delimiter=",", skiprows=1)
     w = truth[:, 0] > 5.0
     err = _heading_err_deg(d[:, 0], d[:, 1:5], truth[w, 0], truth[w, 1:5])
-    assert np.median(err) < 5.0
+    # the synthetic field has no declination, the pipeline applies the WMM's (1.50° here): measured median
+    # 1.38° (1.28–1.50° on seeds 21–23); the bound adds 1° of fusion error to the declination (the medians of
+    # tests/test_pipeline.py's synthetic walks: 0.4–1.1° once the declination is removed)
+    decl = earth_field_from_meta(META).declination_deg
+    assert np.median(err) < abs(decl) + 1.0
 
 
 @pytest.mark.parametrize(
@@ -233,5 +242,6 @@ def test_replay_real_tyrex_walk_online_only():
     w = (truth[:, 0] > truth[0, 0] + 5) & (truth[:, 0] < truth[0, 0] + 120)
     err = _heading_err_deg(b.t, b.q_wd, truth[w, 0], truth[w, 1:5])
     # the phone's own fusion reaches 3.3° here with its long-term calibration; online from nothing we
-    # must at least stay well under a gross failure (the calibration converges within seconds)
-    assert np.mean(err) < 10.0
+    # measure 3.2° over 5–120 s: no worse than the phone's plus the 2° the motion-capture body's misalignment
+    # allows between two equally right estimators (PEERS.md; tests/test_real_walks.py's MARGIN_DEG)
+    assert np.mean(err) < 3.3 + 2.0

@@ -180,3 +180,50 @@ def test_phyphox_gauss_is_wrong_unit(tmp_path):
     (d / "Magnetometer.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
     with pytest.raises(InputError, match="outside the plausible"):
         read_recording(d)
+
+
+# --- what the phone states about itself ---
+
+
+def test_sensorlogger_flags_device_id_and_date(tmp_path):
+    rec = read_recording(FIX / "sensorlogger_android")
+    assert rec.meta["device_id"] == "abc"
+    assert rec.meta["mag_os_calibrated"] is False and rec.meta["gyro_os_calibrated"] is True  # Gyroscope.csv
+    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias")) for k in rec.meta)  # not in the export
+    d = _copy(tmp_path, "sensorlogger_android")
+    (d / "MagnetometerUncalibrated.csv").unlink()
+    gyro = (d / "Gyroscope.csv").read_text()
+    (d / "GyroscopeUncalibrated.csv").write_text(gyro)
+    md = (d / "Metadata.csv").read_text().replace("2024-05-29_16-26-40", "29 May 2024")
+    (d / "Metadata.csv").write_text(md)
+    rec = read_recording(d)
+    assert rec.meta["mag_os_calibrated"] is True and rec.meta["gyro_os_calibrated"] is False
+    assert "date" not in rec.meta and rec.meta["date_unreadable"] == "29 May 2024"
+
+
+def _phyphox_time(tmp_path, text):
+    d = _copy(tmp_path, "phyphox")
+    (d / "meta" / "time.csv").write_text(text, encoding="utf-8")
+    return read_recording(d)
+
+
+def test_phyphox_flags_and_start_date(tmp_path):
+    rec = read_recording(FIX / "phyphox")  # no meta/time.csv
+    assert rec.meta["mag_os_calibrated"] is True and rec.meta["gyro_os_calibrated"] is True
+    assert "date" not in rec.meta and "device_id" not in rec.meta
+    header = '"event","experiment time","system time","system time text"\n'
+    # the START's Unix time gives the UTC date: 1770070000 s is 2026-02-02 22:06:40 UTC (03:36 the next day
+    # in India: the text's local date is not the one used)
+    rec = _phyphox_time(
+        tmp_path / "a",
+        header + '"START",0.000000000E0,1770070000.000,"2026-02-03 03:36:40.000 UTC+05:30"\n'
+        '"PAUSE",1.000000000E1,1770070010.000,"2026-02-03 03:36:50.000 UTC+05:30"\n',
+    )
+    assert rec.meta["date"] == "2026-02-02"
+    row = '"START";0,000000000E0;1770070000,000;"2026-02-03 03:36:40"\n'  # semicolons and decimal commas
+    rec = _phyphox_time(tmp_path / "b", header.replace(",", ";") + row)
+    assert rec.meta["date"] == "2026-02-02"
+    rec = _phyphox_time(tmp_path / "c", header + '"START",0,n/a,"2026-02-03 03:36:40.000 UTC+05:30"\n')
+    assert rec.meta["date"] == "2026-02-03"  # no Unix time: the date its text states
+    rec = _phyphox_time(tmp_path / "d", header + '"START",0,,"03.02.2026"\n')
+    assert "date" not in rec.meta and rec.meta["date_unreadable"] == "03.02.2026"

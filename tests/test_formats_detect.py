@@ -129,8 +129,9 @@ def test_cli_calibrates_a_raw_tyrex_recording(tmp_path, capsys):
     import json
 
     cal = json.loads((tmp_path / "c.json").read_text())
-    # SOURCE.md: d1 sphere centre ≈ (58.3, −73.6, 412.3) µT, radius 46.7–47.6 µT
-    np.testing.assert_allclose(cal["offset_uT"], [58.3, -73.6, 412.3], atol=2.0)
+    # SOURCE.md: d1 sphere centre ≈ (58.3, −73.6, 412.3) µT, to one decimal: the same least-squares sphere
+    # agrees to that rounding (measured within 0.03 µT)
+    np.testing.assert_allclose(cal["offset_uT"], [58.3, -73.6, 412.3], atol=0.051)
 
 
 def _bad_tyrex(tmp_path):

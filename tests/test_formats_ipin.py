@@ -78,3 +78,44 @@ def test_field_in_nanotesla_is_wrong_unit(tmp_path):
     f.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=r"median \|mag\| is .* outside the plausible"):
         read_recording(f)
+
+
+def _with_header_line(tmp_path, line):
+    anchor = "% Phone used for this logfile:"
+    text = FIXTURE.read_text().replace(anchor, f"{line}\n{anchor}")
+    f = tmp_path / "log.txt"
+    f.write_text(text)
+    return f
+
+
+def test_os_calibrated_streams_and_no_date():
+    rec = read_recording(FIXTURE)
+    assert rec.meta["mag_os_calibrated"] is True and rec.meta["gyro_os_calibrated"] is True
+    assert "date" not in rec.meta and "date_unreadable" not in rec.meta
+    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias", "device_id")) for k in rec.meta)
+
+
+@pytest.mark.parametrize(
+    "stated,day",
+    [
+        ("Thu Sep 12 10:22:32 GMT+02:00 2019", "2019-09-12"),  # what the app writes: Date.toString()
+        ("Tue Jun 04 09:15:00 CEST 2019", "2019-06-04"),
+        ("2019-09-12 10:22:32", "2019-09-12"),
+        ("2019/09/12", "2019-09-12"),
+    ],
+)
+def test_date_of_creation(tmp_path, stated, day):
+    rec = read_recording(_with_header_line(tmp_path, f"% Date of creation: {stated}"))
+    assert rec.meta["date"] == day and "date_unreadable" not in rec.meta
+    # with the POSI fixes' place, the field model is known: the pipeline can give true north
+    from pdr_mag.field import earth_field_from_meta
+
+    field = earth_field_from_meta(rec.meta)
+    assert field is not None and 35 < field.strength < 50  # Madrid, about 45 µT
+    assert (len(rec.mag), len(rec.accel)) == (15, 30)  # the samples are as before
+
+
+def test_date_of_creation_unreadable(tmp_path):
+    rec = read_recording(_with_header_line(tmp_path, "% Date of creation: 12.09.2019 10h22"))
+    assert "date" not in rec.meta and rec.meta["date_unreadable"] == "12.09.2019 10h22"
+    assert (len(rec.mag), len(rec.accel)) == (15, 30)

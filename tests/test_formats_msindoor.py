@@ -28,6 +28,7 @@ def test_real_trace():
     # the raw field minus the OS's hard-iron estimate is the Earth's field (SOURCE.md: p50 41.8 µT)
     cal = rec.mag.xyz - np.asarray(rec.meta["mag_os_bias_uT"])
     assert 38 < np.median(np.linalg.norm(cal, axis=1)) < 46
+    assert rec.meta["mag_os_bias_changes"] == [] and rec.meta["gyro_os_bias_changes"] == []
     # held flat in front of the body: gravity mostly on +z
     assert np.median(rec.accel.xyz[:, 2]) > 8.0
 
@@ -40,8 +41,54 @@ def test_fixture():
     np.testing.assert_allclose(rec.gyro.xyz[0], [0.011, 0.021, 0.031])  # the uncalibrated gyro preferred
     assert rec.dropped == {"mag:nan": 1, "accel:duplicate_t": 1, "accel:saturated": 1}
     assert rec.meta["waypoints"] == [[0.0, 10.0, 20.0], [0.07, 11.0, 20.5]]
-    assert rec.meta["mag_os_bias_uT"] == [50.0, -90.0, -300.0]
+    assert rec.meta["mag_os_bias_uT"] == [50.0, -90.0, -300.0] and rec.meta["mag_os_bias_changes"] == []
+    assert rec.meta["gyro_os_bias_rad_s"] == [0.001, 0.001, 0.001] and rec.meta["gyro_os_calibrated"] is False
     assert "latitude_deg" not in rec.meta  # no floor map beside the fixture
+
+
+def test_real_trace_whose_os_bias_changes():
+    """The one trace of the 40 where the OS replaces its hard-iron estimate, 17.4 s in."""
+    f = dataset("ms-indoor-location-2020", "site1", "F1", "path_data_files", "5dd9fd619191710006b570f0.txt")
+    rec = read_recording(f)
+    assert rec.meta["mag_os_bias_uT"] == [-57.131958, -91.18652, -301.94855]
+    # the first sample carrying the new value: unix ms 1574566557422, startTime 1574566540013
+    assert rec.meta["mag_os_bias_changes"] == [[17.409, -59.109497, -89.86511, -304.66156]]
+    assert rec.mag.t[np.searchsorted(rec.mag.t, 17.409)] == 17.409  # a magnetometer sample's time
+    assert rec.meta["gyro_os_bias_rad_s"] == [-0.0015563965, -0.00062561035, -0.0001373291]
+    assert rec.meta["gyro_os_bias_changes"] == []
+    assert not any(k.endswith("os_bias:nan") for k in rec.dropped)
+
+
+def test_fixture_bias_changes_and_odd_cells(tmp_path):
+    """The bias in force at the first kept sample, each change at the first sample carrying it; a cell
+    that is not a number is an odd sample, counted; the drift likewise."""
+    lines = FIXTURE.read_text().splitlines()
+    uncal = [i for i, ln in enumerate(lines) if "\tTYPE_MAGNETIC_FIELD_UNCALIBRATED\t" in ln]
+    gyro = [i for i, ln in enumerate(lines) if "\tTYPE_GYROSCOPE_UNCALIBRATED\t" in ln]
+    # uncal[1] is the NaN sample (dropped): its bias cells say nothing
+    lines[uncal[1]] = lines[uncal[1]].replace("50.0\t-90.0\t-300.0", "49.0\t-90.0\t-300.0")
+    lines[uncal[2]] = lines[uncal[2]].replace("50.0\t-90.0\t-300.0", "50.5\t-90.0\t-300.0")  # 0.06 s
+    lines[uncal[3]] = lines[uncal[3]].replace("50.0\t-90.0", "bias?\t-90.0")  # 0.08 s: odd
+    lines[gyro[3]] = lines[gyro[3]].replace("0.001\t0.001\t0.001", "0.002\t0.001\t0.001")  # 0.08 s
+    f = tmp_path / "trace.txt"
+    f.write_text("\n".join(lines) + "\n")
+    rec = read_recording(f)
+    assert rec.meta["mag_os_bias_uT"] == [50.0, -90.0, -300.0]
+    assert rec.meta["mag_os_bias_changes"] == [[0.06, 50.5, -90.0, -300.0]]
+    assert rec.meta["gyro_os_bias_changes"] == [[0.08, 0.002, 0.001, 0.001]]
+    assert rec.dropped["mag_os_bias:nan"] == 1 and "gyro_os_bias:nan" not in rec.dropped
+    np.testing.assert_allclose(rec.mag.xyz[:, 0], [70.0, 71.0, 72.0])  # the samples themselves unchanged
+
+
+def test_calibrated_streams_only(tmp_path):
+    """Without the uncalibrated types the OS-calibrated streams are read: flagged, and no estimate."""
+    lines = [ln for ln in FIXTURE.read_text().splitlines() if "_UNCALIBRATED\t" not in ln]
+    f = tmp_path / "cal.txt"
+    f.write_text("\n".join(lines) + "\n")
+    rec = read_recording(f)
+    assert rec.meta["mag_os_calibrated"] is True and rec.meta["gyro_os_calibrated"] is True
+    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias")) for k in rec.meta)
+    np.testing.assert_allclose(rec.mag.xyz[0], [20.0, 5.0, -40.0])
 
 
 def _write(tmp_path, replace_from, replace_to):

@@ -123,3 +123,66 @@ def test_magnetometer_axes_against_mocap(platform, trial):
     near = np.abs(tq[i] - rec.mag.t) < 0.02
     field_w = np.median(np.einsum("nij,nj->ni", quat_to_rot(q[i[near]]), (m - centre)[near]), axis=0)
     assert abs(field_w[0]) < 4.0 and 17.0 < field_w[1] < 28.0
+
+
+def test_os_estimates_of_a_real_nexus5_walk():
+    """Senslogs' bias/drift columns: what the OS stated when the walk started, and that it never changed."""
+    rec = tyrex.read(dataset("tyrex-attitude", "android", "Thibaud_Nexus5_Dist_Texting"))
+    assert rec.meta["mag_os_bias_uT"] == [57.95996, -35.742188, 419.90356]
+    assert rec.meta["gyro_os_bias_rad_s"] == [0.013793947, -0.0052337646, 0.070999146]
+    assert rec.meta["mag_os_bias_changes"] == [] and rec.meta["gyro_os_bias_changes"] == []
+    assert rec.meta["mag_os_calibrated"] is False and rec.meta["gyro_os_calibrated"] is False
+    assert rec.meta["device_id"] == "03bd36a425202217"
+    # the raw field minus the OS's estimate is the Earth's (about 47 µT in Grenoble) where the walk is clean
+    cal = np.linalg.norm(rec.mag.xyz - rec.meta["mag_os_bias_uT"], axis=1)
+    assert 40 < np.percentile(cal, 10) < np.median(cal) < 60
+
+
+def test_os_bias_changes_of_a_real_nexus5_walk():
+    rec = tyrex.read(dataset("tyrex-attitude", "android", "Thibaud_Nexus5_NoDist_Swinging"))
+    changes = rec.meta["mag_os_bias_changes"]
+    assert [len(c) for c in changes] == [4, 4]
+    assert 0 < changes[0][0] < changes[1][0] < rec.mag.t[-1]
+    assert all(c[0] in rec.mag.t for c in changes)  # at magnetometer samples
+    assert rec.meta["mag_os_bias_uT"] == [58.569336, -74.22638, 412.05902]
+
+
+def test_ios_states_no_estimate():
+    rec = tyrex.read(dataset("tyrex-attitude", "ios", "Thibaud_iPhone5_NoDist_Texting"))
+    assert rec.meta["mag_os_calibrated"] is False and rec.meta["gyro_os_calibrated"] is False
+    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias", "device_id")) for k in rec.meta)
+
+
+def test_fixture_android_estimates(tmp_path):
+    """The estimate of the first kept sample; changes at the samples carrying them; odd cells counted; rows
+    the stream drops (NaN, repeated time) say nothing."""
+    mag = (
+        "0.00 30 0 -30 1 2 3\n"
+        "0.02 nan 1 -30 9 9 9\n"  # dropped sample
+        "0.04 30 1 -30 1 2 3\n"
+        "0.04 30 1 -30 8 8 8\n"  # repeated time: dropped
+        "0.06 31 1 -30 1 2 x\n"  # odd estimate
+        "0.08 31 1 -30 1.5 2 3\n"
+        "0.10 31 1 -30 1.5 2\n"  # a column missing: odd
+        "0.12 31 1 -30\n"  # no estimate stated
+        "0.14 31 1 -30 inf 2 3\n"  # not a finite number: odd
+    )
+    d = _android(tmp_path, mag)
+    (d / "record.properties").write_text(
+        "[Device]\nModel = Phone\nManufacturer = Acme\nID = 0123abcd\n\n[Time]\nStartTime = 1464686052\n"
+    )
+    rec = read_recording(d)
+    assert len(rec.mag) == 7 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
+    assert rec.meta["mag_os_bias_uT"] == [1.0, 2.0, 3.0]
+    assert rec.meta["mag_os_bias_changes"] == [[0.08, 1.5, 2.0, 3.0]]
+    assert rec.dropped["mag_os_bias:nan"] == 3
+    assert rec.meta["gyro_os_bias_rad_s"] == [0.0, 0.0, 0.0] and rec.meta["gyro_os_bias_changes"] == []
+    assert rec.meta["device_id"] == "0123abcd" and rec.meta["device"] == "Acme Phone"
+
+
+def test_fixture_android_without_estimate_columns(tmp_path):
+    d = _android(tmp_path, "0.0 30 0 -30\n0.02 30 1 -30\n0.04 31 1 -30\n")
+    (d / "gyroscope.txt").write_text("0.0 0 0 0.01\n0.01 0 0 0.01\n")
+    rec = read_recording(d)
+    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias")) for k in rec.meta) and rec.dropped == {}
+    assert "device_id" not in rec.meta and rec.meta["mag_os_calibrated"] is False

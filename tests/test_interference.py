@@ -153,12 +153,14 @@ def test_gyro_consistency_detector(walk):
     # strength and dip saw nothing
     f_ok = np.abs(b.diag["field_strength_uT"][onset] - walk.field.strength) < 3.0
     assert f_ok.all()
-    # the heading does not follow the turned field (flag, then the innovation gate)
+    # the heading does not follow the turned field (flag, then the innovation gate): against the clean
+    # walk's own error it moves by what 10 s on the gyroscope drift, measured 1.3° at most (following the
+    # field would be 120°); 3° leaves the gyro's drift its spread
     tt, qt = walk.truth
     w = (tt >= T0) & (tt < T1 + 5.0)
     err = error_at_truth(b, tt[w], qt[w])
-    assert np.max(np.abs(err)) < 10.0
     clean = _run(walk, walk.mag[1])
+    assert np.max(np.abs(err - error_at_truth(clean, tt[w], qt[w]))) < 3.0
     assert not clean.interference[(clean.t >= T0) & (clean.t < T1)].any()
 
 
@@ -189,7 +191,9 @@ def test_heading_survives_a_strong_disturbance(walk):
     tt, qt = walk.truth
     w = (tt >= T0) & (tt < T1 + 5.0)
     err = error_at_truth(b, tt[w], qt[w])
-    assert np.max(np.abs(err)) < 5.0
+    # against the clean walk's own error: 10 s on the gyroscope, measured 1.5° at most
+    clean = _run(walk, walk.mag[1])
+    assert np.max(np.abs(err - error_at_truth(clean, tt[w], qt[w]))) < 3.0
     inside = (b.t >= T0 + 0.2) & (b.t < T1)
     assert np.all(np.diff(b.heading_std_deg[inside]) >= -1e-9)  # std grows while rejected
 

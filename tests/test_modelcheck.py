@@ -70,7 +70,9 @@ def test_orientation_tilt_matches_truth():
     tilt_deg = np.degrees(np.linalg.norm(err[:, :2], axis=1))
     yaw_deg = np.degrees(np.unwrap(err[:, 2]))
     assert np.median(tilt_deg) < 2.0  # walking accelerations average out over the 2 s tilt window
-    assert np.ptp(yaw_deg) < 2.0  # no gyro bias in this recording: the heading only wanders with noise
+    # no gyro bias in this recording: the heading only wanders with the gyroscope's noise, 0.12° over the
+    # 30 s here; 0.5° (a gyro bias of 0.017 °/s) would be a bias the orientation made up
+    assert np.ptp(yaw_deg) < 0.5
 
 
 # ------------------------------------------------------------------------------------------ the adapter

@@ -110,7 +110,9 @@ def test_gravity_aided_offset_from_yaw_only_within_its_sigma():
     cal = gravity_aided_offset(m, u, F, np.sin(INC), sigma_strength_uT=0.5, sigma_tilt_deg=1.0)
     err = cal.offset_array - B_TRUE
     std = np.asarray(cal.offset_std_uT)
-    assert np.all(std < 1.5)
+    # 600 samples of 0.4 µT noise determine the offset to better than one sample's noise (measured σ 0.09–0.19
+    # µT per axis), and the error lies within its σ (measured 0.8–1.6 σ)
+    assert np.all(std < 0.4)
     assert np.all(np.abs(err) < 4 * std + 0.1), (err, std)
     assert cal.method == "gravity" and cal.field_uT == pytest.approx(F)
 
@@ -121,12 +123,11 @@ def test_sphere_fit_cannot_do_what_the_gravity_fit_does_on_a_ring():
 
     m, u = _ring(tilt_jitter=0.0, noise=0.3)
     g = gravity_aided_offset(m, u, F, np.sin(INC))
-    assert np.linalg.norm(g.offset_array - B_TRUE) < 2.0
-    try:
-        s = fit_sphere(m)
-        assert np.linalg.norm(s.offset_array - B_TRUE) > 5 * np.linalg.norm(g.offset_array - B_TRUE)
-    except ValueError:
-        pass
+    assert np.all(np.abs(g.offset_array - B_TRUE) < 3 * np.asarray(g.offset_std_uT))  # measured ≤ 0.45 σ
+    # the sphere fit returns a member of the family, a different one from the truth: measured 42.5 µT off
+    # (the gravity fit: 0.20 µT); 10 µT, a fifth of the field, is far beyond any noise-driven error
+    s = fit_sphere(m)
+    assert np.linalg.norm(s.offset_array - B_TRUE) > 10.0
 
 
 def test_gravity_aided_free_strength_with_tilt_diversity():
@@ -137,9 +138,11 @@ def test_gravity_aided_free_strength_with_tilt_diversity():
     m = rot.inv().apply(FIELD_W) + B_TRUE + rng.normal(0, 0.4, (200, 3))
     u = rot.inv().apply([0.0, 0.0, 1.0])
     cal = gravity_aided_offset(m, u)
-    assert cal.field_uT == pytest.approx(F, abs=1.0)
-    assert cal.extra["sin_dip"] == pytest.approx(np.sin(INC), abs=0.02)
-    assert np.linalg.norm(cal.offset_array - B_TRUE) < 1.5
+    # 200 samples of 0.4 µT noise: F to σ/√200 ≈ 0.03 µT and sin I to (σ/F)/√200 ≈ 6e-4; bounds at 4-5 of
+    # those (measured on seeds 3–6: |δF| ≤ 0.06 µT, |δ sin I| ≤ 3e-4, offsets within 0.61 of their σ)
+    assert cal.field_uT == pytest.approx(F, abs=0.15)
+    assert cal.extra["sin_dip"] == pytest.approx(np.sin(INC), abs=0.0025)
+    assert np.all(np.abs(cal.offset_array - B_TRUE) < 3 * np.asarray(cal.offset_std_uT))
 
 
 def test_gravity_aided_degenerate_raises():
@@ -250,8 +253,11 @@ def test_stale_offset_requests_recalibration_and_figure8_recalibrates():
     assert req and 40.0 + st.stale_confirm_s < req[0] < latest, kinds
     assert rec and rec[0] > 100.0, kinds
     shift = next(dd for _, k, dd in events if k == "recalibration_requested")["offset_shift_uT"]
-    assert np.linalg.norm(np.asarray(shift) - delta) < 4.0
-    assert np.linalg.norm(oc.calibration.offset_array - (B_TRUE + delta)) < 2.0
+    # the stale test's shift comes from the recent window's yaw-and-tilt fit: 0.98 µT off here
+    assert np.linalg.norm(np.asarray(shift) - delta) < 2.0
+    # the refit on the figure-8: within 3 of its σ per axis (measured 0.025 µT off, σ 0.04–0.05 µT)
+    err = oc.calibration.offset_array - (B_TRUE + delta)
+    assert np.all(np.abs(err) < 3 * np.asarray(oc.calibration.offset_std_uT)), err
     assert oc.cal_state in ("offset", "ellipsoid")
 
 
@@ -260,7 +266,9 @@ def test_passing_disturbance_does_not_request_recalibration():
     oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
     events = _feed(oc, d)
     assert not [k for _, k, _ in events if k == "recalibration_requested"]
-    assert np.linalg.norm(oc.calibration.offset_array - B_TRUE) < 3.0
+    # the disturbance did not move the offset beyond its σ (measured 0.29 µT off, σ 0.7–1.2 µT per axis)
+    err = oc.calibration.offset_array - B_TRUE
+    assert np.all(np.abs(err) < 3 * np.asarray(oc.calibration.offset_std_uT)), err
 
 
 def test_local_vertical_field_is_not_taken_for_a_moved_offset():
@@ -305,7 +313,8 @@ def test_offset_refit_keeps_the_soft_iron_shape():
     assert "recalibration_requested" in kinds and "recalibrated" in kinds, kinds
     np.testing.assert_allclose(oc.calibration.soft_iron_array, a, atol=1e-9)
     assert oc.cal_state == "ellipsoid"
-    assert np.linalg.norm(oc.calibration.offset_array - (B_TRUE + delta)) < 2.5
+    err = oc.calibration.offset_array - (B_TRUE + delta)  # measured 0.53 µT off, σ 0.9–1.4 µT per axis
+    assert np.all(np.abs(err) < 3 * np.asarray(oc.calibration.offset_std_uT)), err
 
 
 def test_update_blocks_equals_update_per_block():

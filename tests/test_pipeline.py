@@ -112,7 +112,9 @@ def test_online_calibration_and_heading_on_synthetic_walk(walk):
     pipe = HeadingPipeline(meta=META)
     out = pipe.run({k: walk[k] for k in ("accel", "gyro", "mag")})
     assert pipe.calibration is not None
-    assert np.linalg.norm(pipe.calibration.offset_array - B_TRUE) < 3.0
+    # the online offset on 40 s of texting walk: measured 0.58 µT off (0.32–0.58 on seeds 1–4 and 11); the
+    # bound is 1.2 µT, twice the worst of those seeds (the fit's own σ is 1.2–1.4 µT per axis here)
+    assert np.linalg.norm(pipe.calibration.offset_array - B_TRUE) < 1.2
     assert set(out.cal_state) <= {"none", "offset", "ellipsoid", "recalibrating"}
     assert out.cal_state[0] == "none" and out.cal_state[-1] == "offset"
     t, q = walk["truth"]
@@ -122,7 +124,9 @@ def test_online_calibration_and_heading_on_synthetic_walk(walk):
     decl = pipe.field.declination_deg
     err = wrap_deg(out.heading_deg - decl - heading_deg_from_quat(qi))
     late = out.t > 20.0
-    assert np.median(np.abs(err[late])) < 6.0
+    # measured median 0.68° (0.36–1.05° on seeds 1–4 and 11; the WMM and the synthetic field differ by
+    # 0.07 µT and 0.05° of dip); 2° is twice the worst of those seeds
+    assert np.median(np.abs(err[late])) < 2.0
 
 
 def test_recalibration_end_to_end():
@@ -142,7 +146,9 @@ def test_recalibration_end_to_end():
     latest = 40.0 + st.stale_window_s + st.stale_confirm_s + 2 * st.stale_check_s
     assert req and 40.0 + st.stale_confirm_s < req[0] < latest, kinds
     assert rec and rec[0] > 100.0, kinds
-    assert np.linalg.norm(pipe.calibration.offset_array - (B_TRUE + delta)) < 2.0
+    # the refit on the figure-8: within 3 of its σ per axis (measured 0.08 µT off, σ 0.04–0.05 µT)
+    err = pipe.calibration.offset_array - (B_TRUE + delta)
+    assert np.all(np.abs(err) < 3 * np.asarray(pipe.calibration.offset_std_uT)), err
     assert out.cal_state[0] == "offset"
     assert "recalibrating" in set(out.cal_state)
     assert out.cal_state[-1] in ("offset", "ellipsoid")
@@ -328,7 +334,7 @@ def test_a_minute_of_hidden_field_is_bridged_honestly_and_left_behind():
     """The ``steel`` scenario: from 30 to 90 s of a 2-min walk magnetised shelving hides the Earth's field.
     With the phone's calibration given, the heading runs on the gyroscope meanwhile and its std grows as the
     bias uncertainty says (the truth within 3σ on ≥ 99 % of the rows inside the window), and 10 s after
-    the shelving the heading is back to the undisturbed walk's accuracy (< 5°).
+    the shelving the heading is back to the undisturbed walk's accuracy (< 1.5°).
 
     The 3σ check alone would pass with any large σ, so two bounds that do not come from the filter's output
     hold it: the σ inside the window stays below 45° (a σ that useless tells a user nothing), and the error
@@ -353,4 +359,6 @@ def test_a_minute_of_hidden_field_is_bridged_honestly_and_left_behind():
         assert np.max(sd_in) < 45.0, f"seed {seed}: σ up to {np.max(sd_in):.1f}° inside"
         assert np.max(e_in) > 2.0, f"seed {seed}: |error| at most {np.max(e_in):.1f}° inside"
         after = t >= t0 + win["t1"] + 10.0
-        assert np.mean(np.abs(err[after])) < 5.0
+        # measured 0.57° / 0.54°: back to an undisturbed walk's (medians 0.4–1.1°, the test above); 1.5°
+        # leaves that spread
+        assert np.mean(np.abs(err[after])) < 1.5

@@ -33,7 +33,7 @@ Bounds (mean |heading error| per walk, degrees):
 
 Walks that fail a bound today are ``xfail`` naming issue 10, strict when their figure is 15 % or more beyond
 its bound (see the lists below): a strict one flips (and fails) when the filter is fixed — then delete it
-from its list.
+from its list.  A walk that passes today, by however little, is not listed: its bound is asserted.
 """
 
 from __future__ import annotations
@@ -79,12 +79,10 @@ XFAIL_A: dict[str, tuple[str, bool]] = {
     ),
 }
 #: walk → its mode-b figure against its bound today, strict
+#: (Only walks that miss their bound on this machine are listed.  Thibaud_Nexus5_NoDist_BackPocket passes in
+#: mode b, 4.84° ≤ 4.88° (max(os 2.88°, mahony_cal 2.84°) + 2°): a pass, asserted as one — if another CPU's
+#: rounding carries it over, that is a failure to look at, not an expected one.)
 XFAIL_B: dict[str, tuple[str, bool]] = {
-    "Thibaud_Nexus5_NoDist_BackPocket": (
-        "4.84° ≤ 4.9° (os 2.9° + 2°) today, 0.06° to spare: non-strict, either side of its bound is within"
-        " reach of another CPU's rounding through the gate",
-        False,
-    ),
     "Thibaud_iPhone4S_NoDist_Texting": (
         "8.9° > 6.4° (os 4.4° + 2°): the first online calibrations of the 590-µT offset are 5–15 µT off",
         True,

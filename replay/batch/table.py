@@ -56,6 +56,21 @@ COLUMNS = (
     ("heading_err_os_median_deg", "float",
      "replay: median |heading error| against the phone's own attitude, deg (±0.005)"),
     ("heading_err_os_p95_deg", "float", "replay: 95th percentile of the same, deg (±0.005)"),
+    ("heading_err_truth_p90_deg", "float", "replay: 90th percentile of |heading error| against truth, deg "
+                                           "(±0.005)"),
+    ("heading_err_truth_over45_share", "float", "replay: share of those epochs with |heading error| > 45°"),
+    ("heading_err_os_p90_deg", "float",
+     "replay: 90th percentile of |heading error| against the phone's own attitude, deg (±0.005)"),
+    ("heading_err_os_over45_share", "float", "replay: share of those epochs with |heading error| > 45°"),
+    ("walked_segments", "int", "replay, with waypoints or position fixes: segments scored against the "
+                               "walked direction"),
+    ("heading_err_walked_median_deg", "float", "replay: median |heading error| against the walked "
+                                               "direction over the segments, deg"),
+    ("heading_err_walked_mean_deg", "float", "replay: mean of the same, deg"),
+    ("heading_err_walked_p95_deg", "float", "replay: 95th percentile (nearest rank) of the same, deg"),
+    ("walked_over45", "int", "replay: segments more than 45° off the walked direction"),
+    ("walked_within_2sigma_share", "float", "replay: share of the segments with a σ whose |error| ≤ 2σ"),
+    ("walked_over45_sigma_le20", "int", "replay: segments more than 45° off with σ ≤ 20° (wrong, confident)"),
     ("diag_orientation", "str", "diagnose: where the orientation came from (gyro+accel or truth)"),
     ("diag_missing_effects", "str", "diagnose: the missing effects named, in order, joined by '+'"),
     ("diag_baseline_gap_uT", "float", "diagnose: gap of the baseline model (hard_iron + noise), µT"),
@@ -180,8 +195,8 @@ def write_table(rows, out_dir) -> list[Path]:
 # ------------------------------------------------------------------------------------------------ headline
 #: Per command: the columns the headline shows, and how the rows are ranked (worst first).
 HEADLINE = {
-    "replay": ("heading_err_truth_p95_deg", "heading_err_os_p95_deg", "heading_std_p95_deg",
-               "interference_share", "cal_state"),
+    "replay": ("heading_err_truth_p95_deg", "heading_err_walked_p95_deg", "heading_err_os_p95_deg",
+               "heading_std_p95_deg", "interference_share", "cal_state"),
     "calibrate": ("cal_accepted", "cal_residual_rms_uT", "cal_coverage", "cal_field_uT", "cal_method"),
     "diagnose": ("diag_final_gap_uT", "diag_baseline_gap_uT", "diag_missing_effects"),
 }
@@ -192,15 +207,25 @@ def _neg(v) -> float:
     return -float(v) if v is not None and math.isfinite(float(v)) else math.inf
 
 
+#: replay: the error figures a row is ranked by, the first the recording has (its truth of any kind).
+ERROR_RANK = ("heading_err_truth_p95_deg", "heading_err_walked_p95_deg", "heading_err_os_p95_deg")
+
+
+def _figure(v) -> float | None:
+    return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
 def worst_first(rows, command: str) -> list[dict]:
-    """The rows ranked worst first: errors, then — replay — by the heading error's p95 against truth
-    (recordings with truth first), else against the phone's attitude, else by the heading σ's p95;
+    """The rows ranked worst first: errors, then — replay — the recordings with a heading error against
+    any truth by that error's p95 (against motion capture when they have it, else the walked direction,
+    else the phone's own attitude: :data:`ERROR_RANK`), then those without by the heading σ's p95;
     calibrate: rejected calibrations first, then by residual RMS; diagnose: by the final gap."""
     def key(row):
         head = (row.get("status") != "error",)
         if command == "replay":
-            return head + (_neg(row.get("heading_err_truth_p95_deg")),
-                           _neg(row.get("heading_err_os_p95_deg")), _neg(row.get("heading_std_p95_deg")))
+            err = next((f for f in (_figure(row.get(c)) for c in ERROR_RANK) if f is not None), None)
+            rank = (True, 0.0) if err is None else (False, -err)
+            return head + rank + (_neg(row.get("heading_std_p95_deg")),)
         if command == "calibrate":
             return head + (row.get("cal_accepted") is not False, _neg(row.get("cal_residual_rms_uT")))
         return head + (_neg(row.get("diag_final_gap_uT")),)

@@ -251,9 +251,18 @@ def _run_replay(task: Task, stage: Path) -> dict:
     kinds = Counter(e["kind"] for e in summary["events"])
     for kind, col in EVENT_COLUMNS.items():
         row[col] = kinds.get(kind, 0)
-    for name in ("truth", "os"):
-        row[f"heading_err_{name}_median_deg"] = metrics.error_quantile(name, 0.5)
-        row[f"heading_err_{name}_p95_deg"] = metrics.error_quantile(name, 0.95)
+    for name, e in summary["heading_error"].items():
+        for col, key in (("median", "median_deg"), ("p90", "p90_deg"), ("p95", "p95_deg")):
+            row[f"heading_err_{name}_{col}_deg"] = e[key]
+        row[f"heading_err_{name}_over45_share"] = e["share_over_45"]
+    w = summary["walked_direction"]
+    if w is not None:
+        row["walked_segments"] = w["n_segments"]
+        for col in ("median", "mean", "p95"):
+            row[f"heading_err_walked_{col}_deg"] = w[f"{col}_deg"]
+        row["walked_over45"] = w["n_over_45"]
+        row["walked_within_2sigma_share"] = w["within_2sigma_share"]
+        row["walked_over45_sigma_le20"] = w["n_over_45_sigma_le_20"]
     return row
 
 

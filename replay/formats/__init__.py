@@ -50,7 +50,17 @@ ends. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason
   stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);
 * format-specific: ``truth:nan``/``truth:glitch`` (mocap occlusions), ``mag:held_repeat`` (a
   sample-and-hold repeat), ``accel:no_gravity_sample`` (Sensor Logger's user acceleration without a
-  gravity sample at the same time).
+  gravity sample at the same time), ``mag_os_bias:nan``/``gyro_os_bias:nan`` (an OS estimate's cell that
+  is not a number).
+
+What the phone states about itself
+----------------------------------
+Every reader puts into ``meta`` what its file states about the phone's own calibration — the OS's
+hard-iron and gyro-drift estimates at the first sample and their later changes, whether the streams read
+are OS-calibrated — and the date, place and device id it states (keys in INTERFACE.md, "Recording
+``meta``"; helpers in :mod:`replay.formats._phone`); each reader's docstring says what its format has.
+Where the estimates are spread over the file they are collected by the first pass (``ms-indoor``) or one
+of their own (``tyrex`` Android: the two files' estimate columns, read before the streams).
 """
 
 from __future__ import annotations

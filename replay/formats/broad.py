@@ -17,6 +17,9 @@ NaN rows (counted as ``truth:nan``), with ``meta["truth_north"] = "magnetic"`` (
 defines north). Only the needed variables are loaded (``opt_pos`` is skipped). ``scipy.io.loadmat`` cannot
 read a variable in parts, so this reader loads the file whole (the one reader that does; the trials are a
 few minutes long) and then serves it through the streaming source API like the others.
+
+A lab IMU, not a phone: its streams are raw (``meta["mag_os_calibrated"]`` and ``["gyro_os_calibrated"]``
+False), with no estimate of an OS, no date and no device id in the file.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ def open_source(path) -> RecordingSource:
             dropped["truth:nan"] += int((~good).sum())
         q = q[good] / np.linalg.norm(q[good], axis=1, keepdims=True)
         truth = (t[good], q * np.where(q[:, :1] < 0, -1.0, 1.0))
-    meta: dict = {"device": "myon aktos-t IMU"}
+    meta: dict = {"device": "myon aktos-t IMU", "mag_os_calibrated": False, "gyro_os_calibrated": False}
     if truth is not None:
         meta["truth_north"] = "magnetic"
     if "info" in m:

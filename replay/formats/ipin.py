@@ -6,9 +6,12 @@ A text file: ``%`` lines are comments (the header documents the layout and names
 * ``ACCE``: AppTimestamp (s), SensorTimestamp (s), Acc_X, Acc_Y, Acc_Z (m/s²), Accuracy;
 * ``GYRO``: AppTimestamp, SensorTimestamp, Gyr_X, Gyr_Y, Gyr_Z (rad/s), Accuracy;
 * ``MAGN``: AppTimestamp, SensorTimestamp, Mag_X, Mag_Y, Mag_Z (µT), Accuracy;
-* ``POSI``: Timestamp (s), Counter, Latitude (deg), Longitude (deg), FloorID, BuildingID — ground truth.
+* ``POSI``: Timestamp (s), Counter, Latitude (deg), Longitude (deg), FloorID, BuildingID — ground truth;
+* ``AHRS``: AppTimestamp, SensorTimestamp, PitchX, RollY, YawZ (deg), then the x, y, z of Android's
+  ``TYPE_ROTATION_VECTOR`` (magnetic north; the header calls them ``Quat(2)…Quat(4)`` or
+  ``RotVecX()…RotVecZ()``), Accuracy — the phone's own fusion.
 
-Other records (``AHRS``, ``PRES``, ``WIFI``, ``GNSS``, ``BLE4``, …) are skipped. Android sensors in Android's
+Other records (``PRES``, ``WIFI``, ``GNSS``, ``BLE4``, …) are skipped. Android sensors in Android's
 frame and units: nothing is converted.
 
 Time. ``AppTimestamp`` is the app's clock (seconds since logging started), common to all records but
@@ -19,8 +22,19 @@ while keeping the sensors' precise spacing and their relative timing: one shift 
 sensor clocks agree (within 0.5 s, the usual case on Android), else one shift per stream. The shifts need
 the whole file: a first pass finds them (and the fixes and the header), the second streams the samples.
 ``POSI`` fixes go to ``meta["positions"]`` as ``[t, latitude_deg, longitude_deg, floor, building]``; the
-first one also sets ``latitude_deg``/``longitude_deg``. The ``% Model:`` and ``% Manufacturer:`` header
-lines give ``meta["device"]``.
+first one also sets ``latitude_deg``/``longitude_deg``. The ``AHRS`` rotation vectors become
+``references["os"]`` (:mod:`replay.formats._attitude`; the angles are not read: the app's versions differ in
+their yaw's sign), on the app clock by the streams' shift when their sensor clock is the same (within
+0.5 s), else by their own; odd rows are counted as ``os:<reason>``. The ``% Model:`` and
+``% Manufacturer:`` header lines give ``meta["device"]``.
+
+What the phone states about itself (:mod:`replay.formats._phone`): ``MAGN`` and ``GYRO`` are Android's
+``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, the streams the OS has already calibrated
+(``mag_os_calibrated`` and ``gyro_os_calibrated`` True); the OS's estimates are not in the file (no bias
+or drift columns), nor is a device id. ``% Date of creation: …`` (Java's ``Date.toString()``, e.g.
+``Thu Sep 12 10:22:32 GMT+02:00 2019``, or an ISO-like date) gives ``meta["date"]``, the calendar date as
+written; a date in another form is kept as text under ``date_unreadable``. With the ``POSI`` fixes' place,
+the date lets the pipeline use the field model (and true north).
 """
 
 from __future__ import annotations
@@ -30,8 +44,10 @@ from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
+from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.formats._common import is_float as _is_number
+from replay.formats._phone import put_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -57,7 +73,10 @@ def detect(path: Path) -> bool:
 
 def _parse(p: Path, fh, builders: dict, found: dict):
     """Parse the logfile line by line into ``builders`` (yielding after each line); ``found`` collects the
-    delivery-latency floors (``offsets``), the ``positions`` and the header's ``model``/``maker``."""
+    delivery-latency floors (``offsets``), the ``positions``, the header's ``model``/``maker``/``created``
+    (the ``Date of creation`` text) and, when
+    ``found["os"]`` is a builder, the ``AHRS`` rotation vectors (sensor clock) and their floor
+    (``os_offset``)."""
     for lineno, line in enumerate(fh, start=1):
         yield
         if line.startswith("%"):
@@ -66,6 +85,8 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 found["model"] = body.split(":", 1)[1].strip()
             elif body.startswith("Manufacturer:"):
                 found["maker"] = body.split(":", 1)[1].strip()
+            elif body.startswith("Date of creation:") and "created" not in found:
+                found["created"] = body.split(":", 1)[1].strip()
             continue
         s = line.strip()
         if not s:
@@ -89,6 +110,15 @@ def _parse(p: Path, fh, builders: dict, found: dict):
             t, _, lat, lon = floats(p, lineno, parts[1:5])
             rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
             found["positions"].append([t, lat, lon, *rest])
+        elif kind == "AHRS" and found.get("os") is not None:
+            vals = [math.nan] * 5
+            if len(parts) >= 9:
+                try:
+                    vals = [float(v) for v in (parts[1], parts[2], *parts[6:9])]
+                except ValueError:
+                    pass
+            if found["os"].add(lineno, vals[1], vals[2:]):
+                found["os_offset"] = min(found["os_offset"], vals[0] - vals[1])
 
 
 def _chunks(p: Path, dropped: Counter, found: dict):
@@ -105,7 +135,9 @@ def read(path) -> Recording:
 def open_source(path) -> RecordingSource:
     """Open an IPIN/GetSensorData logfile: a first pass for the clock shifts and fixes, then streamed."""
     p = Path(path)
-    found: dict = {"offsets": dict.fromkeys(_TYPES.values(), math.inf), "positions": []}
+    os_dropped: Counter = Counter()
+    found: dict = {"offsets": dict.fromkeys(_TYPES.values(), math.inf), "positions": [],
+                   "os": StreamBuilder(p, "os", os_dropped), "os_offset": math.inf}
     counts: Counter = Counter()
     for _, chunk in _chunks(p, Counter(), found):
         counts.update({k: len(t) for k, (t, _) in chunk.items()})
@@ -117,14 +149,24 @@ def open_source(path) -> RecordingSource:
         offsets = dict.fromkeys(offsets, min(finite))
     keys = [k for k in _TYPES.values() if counts[k]]
     specs = {k: StreamSpec(p, k, t_offset=offsets[k], unit_hint=_UNITS[k]) for k in keys}
-    dropped: Counter = Counter()
+    dropped: Counter = Counter(os_dropped)
     chunks = lambda: _chunks(p, dropped, {"offsets": dict(offsets), "positions": []})  # noqa: E731
     feed = Feed(tuple(keys), chunks, p.stat().st_size)
-    meta: dict = {}
+    meta: dict = {"mag_os_calibrated": True, "gyro_os_calibrated": True}
     if found.get("model"):
         meta["device"] = f"{found.get('maker', '')} {found['model']}".strip()
+    if "created" in found:
+        put_date(meta, found["created"])
     positions = found["positions"]
     if positions:
         meta["positions"] = positions
         meta["latitude_deg"], meta["longitude_deg"] = positions[0][1], positions[0][2]
-    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)
+    references = {}
+    if len(found["os"]):
+        t, xyz = found["os"].arrays()
+        shift = found["os_offset"]
+        if len(set(offsets.values())) == 1 and abs(shift - min(finite)) < _SAME_CLOCK_S:
+            shift = min(finite)  # the streams' one sensor clock
+        references["os"] = (t + shift, in_output_north(rotation_vector_quat(xyz), meta))
+    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped,
+                           references=references)

@@ -11,18 +11,27 @@ Data lines are ``<unix ms> <TAB> TYPE_… <TAB> values…``:
 ``TYPE_MAGNETIC_FIELD``                 x, y, z (µT, calibrated by the OS), accuracy
 ``TYPE_MAGNETIC_FIELD_UNCALIBRATED``    x, y, z (µT, raw), bias x, y, z, accuracy
 ``TYPE_WAYPOINT``                       x, y (metres on the floor map: x east, y north)
+``TYPE_ROTATION_VECTOR``                x, y, z (the phone's own fusion, magnetic north), accuracy
 ======================================  ===================================================
 
 Android's frame and units are the contract's, so nothing is converted. The raw streams are preferred:
 the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope from
 ``TYPE_GYROSCOPE_UNCALIBRATED``; the calibrated types are used only when the raw ones are absent (then
-``meta["mag_os_calibrated"]`` is True); the OS's last hard-iron estimate is kept as
-``meta["mag_os_bias_uT"]``. Times are seconds since the header's ``startTime``
+``meta["mag_os_calibrated"]`` / ``meta["gyro_os_calibrated"]`` is True, else False). What the phone states
+about its own calibration (:mod:`replay.formats._phone`): the OS's hard-iron estimate (the bias columns of
+``TYPE_MAGNETIC_FIELD_UNCALIBRATED``) in force at the first magnetometer sample, ``mag_os_bias_uT``, and its
+later changes, ``mag_os_bias_changes`` (one trace of the dataset's 40 changes it, once); the same for the
+gyroscope's drift columns, ``gyro_os_bias_rad_s`` / ``gyro_os_bias_changes``; a bias cell that is not a
+number is counted as ``mag_os_bias:nan`` / ``gyro_os_bias:nan``. The header states no device id. Times are
+seconds since the header's ``startTime``
 (``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
-header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped. Choosing
-the streams needs the whole file (and the header's ``endTime`` and the waypoints are spread over it): a
-first pass reads it without keeping samples, the second streams the chosen types.
+header are counted as ``<stream>:saturated``. The phone's own fusion (``TYPE_ROTATION_VECTOR``) becomes
+``references["os"]`` (:mod:`replay.formats._attitude`: in the pipeline's north, i.e. turned by the WMM
+declination when the map gives the position; odd rows counted as ``os:<reason>``). Other line types
+(Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole file (and the header's ``endTime``,
+the waypoints and the OS's estimates are spread over it): a first pass reads it without keeping samples
+(but the waypoints, the rotation vectors and the estimates' changes), the second streams the chosen types.
 When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
 WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
 and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
@@ -30,12 +39,14 @@ and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' orig
 
 from __future__ import annotations
 
-import datetime as dt
+import math
 from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
+from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -114,7 +125,9 @@ def _site_location(path: Path, meta: dict) -> None:
 def _parse(p: Path, fh, builders: dict, found: dict, kinds):
     """Parse the log line by line (yielding after each line) into ``builders`` (by data type, made here for
     the types in ``kinds``, counting odd samples in ``found["dropped"]``); ``found`` collects the header
-    (``meta``, ``ranges``), the ``waypoints`` and the OS's last bias (``last_bias``)."""
+    (``meta``, ``ranges``), the ``waypoints``, the first time (``t0_ms``) and, when ``found["os"]`` is a
+    builder, the rotation vectors (times in ms); each kept sample's bias/drift columns go to its data type's
+    :class:`OsEstimate` in ``found["estimates"]``, if any."""
     meta, ranges = found["meta"], found["ranges"]
     t0_ms: float | None = None
     for lineno, line in enumerate(fh, start=1):
@@ -131,10 +144,14 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
                 raise InputError(p, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", lineno)
             continue
         kind = parts[1]
+        if kind == "TYPE_ROTATION_VECTOR" and found.get("os") is not None:
+            _rotation_vector(found["os"], lineno, parts)
+            continue
         if kind not in _TYPES and kind != "TYPE_WAYPOINT":
             continue
         if t0_ms is None:
             t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
+            found["t0_ms"] = t0_ms
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
@@ -149,14 +166,28 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         if b is None:
             key, _, android_type = _TYPES[kind]
             b = builders[kind] = StreamBuilder(p, key, found["dropped"], limit=ranges.get(android_type))
-        b.add(lineno, t, vals[1:])
-        if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(parts) >= 8:
-            found["last_bias"] = parts[5:8]
+        est = found["estimates"].get(kind)
+        if b.add(lineno, t, vals[1:]) and est is not None:
+            est.add(t, parts[5:8])
 
 
-def _pass(p: Path, dropped: Counter, kinds):
-    """One pass over the log: ``(found, builders, chunks)``; the chunks are keyed by data type."""
-    found = {"meta": {}, "ranges": {}, "waypoints": [], "last_bias": None, "dropped": dropped}
+def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:
+    """One ``TYPE_ROTATION_VECTOR`` line into ``b`` (t in ms, x, y, z); a row too short or not numeric is
+    dropped as ``os:nan`` (the series is for evaluation only)."""
+    vals = [math.nan] * 4
+    if len(parts) >= 5:
+        try:
+            vals = [float(v) for v in (parts[0], *parts[2:5])]
+        except ValueError:
+            pass
+    b.add(lineno, vals[0], vals[1:])
+
+
+def _pass(p: Path, dropped: Counter, kinds, os_builder: StreamBuilder | None = None, estimates=None):
+    """One pass over the log: ``(found, builders, chunks)``; the chunks are keyed by data type (the
+    rotation vectors go to ``os_builder``, the OS's estimates to ``estimates`` (by data type), when given)."""
+    found = {"meta": {}, "ranges": {}, "waypoints": [], "dropped": dropped, "os": os_builder, "t0_ms": None,
+             "estimates": estimates or {}}
     builders: dict[str, StreamBuilder] = {}
 
     def chunks():
@@ -174,7 +205,12 @@ def read(path) -> Recording:
 def open_source(path) -> RecordingSource:
     """Open one path log: a first pass chooses the streams and gathers the metadata, then they stream."""
     p = Path(path)
-    found, builders, chunks = _pass(p, Counter(), _TYPES)  # its odd samples are counted by the second pass
+    os_dropped: Counter = Counter()
+    os_builder = StreamBuilder(p, "os", os_dropped)
+    estimates = {"TYPE_MAGNETIC_FIELD_UNCALIBRATED": OsEstimate("mag_os_bias", os_dropped),
+                 "TYPE_GYROSCOPE_UNCALIBRATED": OsEstimate("gyro_os_bias", os_dropped)}
+    # odd samples of the streams: counted by the second pass; of the estimates: by this one
+    found, builders, chunks = _pass(p, Counter(), _TYPES, os_builder, estimates)
     n_valid: Counter = Counter()
     for _, chunk in chunks:
         n_valid.update({kind: len(t) for kind, (t, _) in chunk.items()})
@@ -183,18 +219,15 @@ def open_source(path) -> RecordingSource:
     for kind, (key, rank, _) in sorted(_TYPES.items(), key=lambda kv: kv[1][1]):
         if n_valid[kind] and key not in chosen:
             chosen[key] = kind
-            if key == "mag":
-                meta["mag_os_calibrated"] = rank > 0
+            if key in ("mag", "gyro"):
+                meta[f"{key}_os_calibrated"] = rank > 0
     if "mag" not in chosen:
         raise InputError(p, "no magnetometer lines (TYPE_MAGNETIC_FIELD[_UNCALIBRATED])")
-    last_bias = found["last_bias"]
-    if last_bias is not None and not meta["mag_os_calibrated"]:
-        try:
-            meta["mag_os_bias_uT"] = [float(v) for v in last_bias]
-        except ValueError:
-            pass
+    for kind, est in estimates.items():
+        if kind in chosen.values():  # the raw stream read: its OS estimate is what the file states
+            est.to_meta(meta)
     if "start_time_unix" in meta:
-        meta["date"] = dt.datetime.fromtimestamp(meta["start_time_unix"], dt.UTC).date().isoformat()
+        meta["date"] = utc_date(meta["start_time_unix"])
     _site_location(p, meta)
     if found["waypoints"]:
         meta["waypoints"] = sorted(found["waypoints"])
@@ -205,11 +238,17 @@ def open_source(path) -> RecordingSource:
         )
         for key, kind in chosen.items()
     }
-    dropped: Counter = Counter()
+    references = {}
+    if len(os_builder) and found["t0_ms"] is not None:
+        t_ms, xyz = os_builder.arrays()
+        q = in_output_north(rotation_vector_quat(xyz), meta)
+        references["os"] = ((t_ms - found["t0_ms"]) / 1000.0, q)
+    dropped: Counter = Counter(os_dropped)
 
     def streams():
         for pos, chunk in _pass(p, dropped, set(chosen.values()))[2]:
             yield pos, {_TYPES[kind][0]: block for kind, block in chunk.items()}
 
     feed = Feed(tuple(chosen), streams, p.stat().st_size)
-    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)
+    return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped,
+                           references=references)

@@ -5,6 +5,13 @@ Odd rows inside a good file (a NaN value, a duplicate timestamp) are dropped and
 as ``<stream>:saturated`` (:func:`replay.formats._common.flag_saturation`); a file that cannot be right
 (missing, bad header, text in a number column, time going backwards, an empty stream, values in the wrong
 unit) raises :class:`InputError` naming the file and line.
+
+``meta.json`` becomes ``Recording.meta`` as it is: besides the contract's keys it may state what the phone
+knows about itself (INTERFACE.md: ``mag_os_bias_uT``, ``mag_os_bias_changes``, ``gyro_os_bias_rad_s``,
+``gyro_os_bias_changes``, ``mag_os_calibrated``, ``gyro_os_calibrated``, ``device_id``, …), passed on
+as they are (nothing is added, so :func:`write` and :func:`read` give the same meta back). Without
+``mag_os_calibrated`` the magnetometer is the contract's ``mag.csv``: raw; ``gyro.csv`` may be either
+("uncalibrated is fine"), so without ``gyro_os_calibrated`` that is not known.
 """
 
 from __future__ import annotations

@@ -26,6 +26,11 @@ values are dropped as ``<stream>:nan``.  The metadata record ``recording`` becom
 topics are optional.  The file is read twice, front to back (mcap's reader decompresses one chunk at a
 time): first the truth topics (loaded whole, for evaluation), then the sensor topics, streamed; CDR messages
 are decoded in blocks with numpy.
+
+The ``recording`` metadata holds the meta of the recording the MCAP was written from, so what that file
+stated about the phone (``mag_os_bias_uT`` and its ``…_changes``, ``gyro_os_bias_rad_s``,
+``mag_os_calibrated``, ``gyro_os_calibrated``, ``date``, ``device_id``, …: INTERFACE.md) comes back as it
+was (JSON numbers: the same floats); nothing is added.
 """
 
 from __future__ import annotations

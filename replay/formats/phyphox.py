@@ -14,6 +14,15 @@ exports comma-separated with decimal points by default; the tab-separated and th
 variants are read too. phyphox reports the same axes and units on Android and iOS (its iOS app multiplies
 Core Motion's accelerations in g by −9.81, which gives Android's sign), i.e. the contract's: nothing is
 converted. ``meta/device.csv`` (``property,value``) gives the device name when present.
+
+What the phone states about itself (:mod:`replay.formats._phone`): phyphox's sensors are the OS-calibrated
+ones — Android's ``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, iOS's Core Motion device-motion field and
+rotation rate — so ``mag_os_calibrated`` and ``gyro_os_calibrated`` are True. (An experiment may ask for the
+raw magnetometer, ``calibrated="false"``; the export does not say so, and such a file is read as calibrated
+too.) No estimate of the OS and no device id are exported (``device.csv`` leaves out phyphox's ``uniqueID``).
+``meta/time.csv`` (``event, experiment time, system time, system time text``) gives ``date``: the UTC date
+of the first ``START``'s ``system time`` (Unix s), else the date its text states (``2026-02-02
+20:10:00.000 UTC+05:30``; another form: ``date_unreadable``).
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ from pathlib import Path
 
 from replay.errors import InputError
 from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, every, floats, iter_csv
+from replay.formats._phone import put_date, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -147,6 +157,35 @@ def _device(b: Bundle) -> str | None:
     return f"{brand} {model}".strip() if model else None
 
 
+def _start_date(b: Bundle, meta: dict) -> None:
+    """``date`` from ``meta/time.csv``'s first ``START`` row (module docstring), when the export has one."""
+    name = next((n for n in b.names() if n.lower() == "meta/time.csv"), None)
+    if name is None:
+        return
+    delim, decimal_comma = _dialect(_first_line(b, name))
+    with b.open(name) as fh:
+        rows = iter_csv(fh, b.where(name), delimiter=delim)
+        try:
+            _, header = next(rows)
+        except StopIteration:
+            return
+        cols = {c.strip().lstrip("\ufeff").lower(): i for i, c in enumerate(header)}
+
+        def cell(cells: list[str], name: str) -> str:
+            i = cols.get(name)
+            return cells[i].strip() if i is not None and i < len(cells) else ""
+
+        for _, cells in rows:
+            if cell(cells, "event") != "START":
+                continue
+            unix = cell(cells, "system time")
+            try:
+                meta["date"] = utc_date(float(unix.replace(",", ".") if decimal_comma else unix))
+            except (ValueError, OverflowError, OSError):
+                put_date(meta, cell(cells, "system time text"))
+            return
+
+
 def read(path) -> Recording:
     """Read a phyphox CSV export (folder or zip) into a :class:`Recording`."""
     return open_source(path).collect()
@@ -169,10 +208,11 @@ def open_source(path) -> RecordingSource:
             feeds.append(Feed((key,), chunks, b.size(name)))
         if "mag" not in specs:
             raise InputError(p, "no magnetometer file (columns 'Magnetic field x (µT)' …): a stream missing")
-        meta: dict = {}
+        meta: dict = {"mag_os_calibrated": True, "gyro_os_calibrated": True}
         device = _device(b)
         if device:
             meta["device"] = device
+        _start_date(b, meta)
     finally:
         b.close()
     return RecordingSource(specs, feeds, meta=meta, source=str(p), format=NAME, dropped=dropped)

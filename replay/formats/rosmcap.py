@@ -23,6 +23,11 @@ Axes — the assumption
     then is the direction of the body's forward axis, as a ROS user expects. (A phone whose driver publishes
     Android's own axes — x right, y top — would come out turned by 90° in heading and must be read with
     ``axes="device"``.) ``meta["ros_axes"]`` says which mapping was used.
+
+What the device states about itself
+    Nothing: ``sensor_msgs`` has no field for a calibration or a bias, and the bag's metadata no date or
+    device id. The streams are taken as the raw readings IMU drivers publish (``meta["mag_os_calibrated"]``
+    and ``["gyro_os_calibrated"]`` False).
 """
 
 from __future__ import annotations
@@ -162,6 +167,8 @@ def open_source(path, axes: str = "flu") -> RecordingSource:
     meta = {
         "ros_topics": {"mag": mag_topic, "imu": imu_topic},
         "ros_axes": "flu: x_d=-y, y_d=x, z_d=z" if axes == "flu" else "device: unchanged",
+        "mag_os_calibrated": False,
+        "gyro_os_calibrated": False,
     }
     feed = Feed(tuple(specs), chunks, p.stat().st_size)
     return RecordingSource(specs, [feed], meta=meta, source=str(p), format=NAME, dropped=dropped)

@@ -21,11 +21,17 @@ standardised) are minus Android's in all three axes (gravity points to −z lyin
 contract's specific force is ``-(Accelerometer + Gravity)``, or ``-9.80665 × AccelerometerUncalibrated``.
 Without ``Metadata.csv`` Android conventions are assumed (the unit check still catches g).
 ``Location.csv``'s first fix gives ``latitude_deg``/``longitude_deg``/``altitude_m`` in ``meta``.
+
+What the phone states about itself (:mod:`replay.formats._phone`): ``mag_os_calibrated`` is False when the
+magnetometer read is ``MagnetometerUncalibrated`` (raw), True when it is ``Magnetometer`` (calibrated by
+the OS); ``gyro_os_calibrated`` likewise for ``GyroscopeUncalibrated`` / ``Gyroscope``. The app's
+uncalibrated files have only ``x, y, z`` (no bias or drift columns: the OS's estimates are not in the
+export). ``Metadata.csv``'s ``recording time`` (UTC, ``2024-05-29_16-26-40``) gives ``date`` (a value in
+another form: ``date_unreadable``) and its ``device id`` gives ``device_id``.
 """
 
 from __future__ import annotations
 
-import re
 from collections import Counter
 from pathlib import Path
 
@@ -33,6 +39,7 @@ import numpy as np
 
 from replay.errors import InputError
 from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
+from replay.formats._phone import put_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -201,6 +208,8 @@ def _open(b: Bundle, p: Path) -> RecordingSource:
     meta: dict = {"platform": platform}
     if md.get("device name"):
         meta["device"] = md["device name"]
+    if md.get("device id"):
+        meta["device_id"] = md["device id"]
     dropped: Counter = Counter()
     specs, feeds = {}, []
 
@@ -210,12 +219,12 @@ def _open(b: Bundle, p: Path) -> RecordingSource:
     meta["mag_os_calibrated"] = not mag_name.endswith("MagnetometerUncalibrated.csv")
     specs["mag"] = StreamSpec(b.where(mag_name), "mag", unit_hint="µT")
     feeds.append(_vector_feed(p, b, mag_name, "mag", dropped))
-    day = md.get("recording time", "")[:10]
-    if re.fullmatch(r"\d{4}-\d{2}-\d{2}", day):
-        meta["date"] = day
+    if md.get("recording time"):
+        put_date(meta, md["recording time"])
 
     gyr_name = b.find("GyroscopeUncalibrated.csv") or b.find("Gyroscope.csv")
     if gyr_name is not None:
+        meta["gyro_os_calibrated"] = not gyr_name.endswith("GyroscopeUncalibrated.csv")
         specs["gyro"] = StreamSpec(b.where(gyr_name), "gyro", unit_hint="rad/s")
         feeds.append(_vector_feed(p, b, gyr_name, "gyro", dropped))
 

@@ -30,6 +30,9 @@ the board's forward axis.
 Saturation: the MPU6050 ran at ±2 g and ±250 deg/s; samples with an axis at the range limit are counted as
 ``accel:saturated`` / ``gyro:saturated`` (22 gyro samples in ``full-sphere``). Timestamps are host arrival
 times and come in bursts (median 2 ms, gaps of 42 ms); they are kept as they are.
+
+A breadboard, not a phone: the chips' raw readings (``meta["mag_os_calibrated"]`` and
+``["gyro_os_calibrated"]`` False), with no estimate of an OS, no date and no device id in the files.
 """
 
 from __future__ import annotations
@@ -142,6 +145,8 @@ def open_source(path) -> RecordingSource:
     meta = {
         "device": "MPU6050 + HMC5883L breadboard",
         "axes": "device x = -board y, y = board x (forward), z = z",
+        "mag_os_calibrated": False,
+        "gyro_os_calibrated": False,
     }
     return RecordingSource(
         specs, feeds, meta=meta, temperature=temperature, source=str(p), format=NAME, dropped=dropped

@@ -6,12 +6,20 @@ Android (Senslogs app), recognised by ``record.properties``:
 
 ==========================  =======================================================================
 ``accelerometer.txt``       t, ax, ay, az — m/s², specific force (``TYPE_ACCELEROMETER``)
-``gyroscope.txt``           t, wx, wy, wz, drift x, y, z — rad/s, uncalibrated (only wx, wy, wz read)
-``magnetometer.txt``        t, mx, my, mz, bias x, y, z — µT, raw (uncalibrated; only mx, my, mz read)
-``record.properties``       ``Model``, ``Manufacturer``, ``StartTime`` (Unix s) of the record clock
+``gyroscope.txt``           t, wx, wy, wz, drift x, y, z — rad/s, raw (``TYPE_GYROSCOPE_UNCALIBRATED``)
+``magnetometer.txt``        t, mx, my, mz, bias x, y, z — µT, raw (``TYPE_MAGNETIC_FIELD_UNCALIBRATED``)
+``record.properties``       ``Model``, ``Manufacturer``, ``ID``; ``StartTime`` (Unix s) of the record clock
 ==========================  =======================================================================
 
-Android's device frame is the contract's: no axis change, no unit change.
+Android's device frame is the contract's: no axis change, no unit change. The streams read are the raw ones
+(``mag_os_calibrated`` and ``gyro_os_calibrated`` False). Their last three columns are what the OS states
+about its own calibration (:mod:`replay.formats._phone`): the hard-iron estimate in force at the first
+magnetometer sample, ``mag_os_bias_uT``, and its later changes, ``mag_os_bias_changes`` (the Nexus 5 walks:
+(57.96, −35.74, 419.90) µT throughout Dist_Texting, two changes in NoDist_Swinging; the calibration
+recordings change it 12–33 times), and the gyroscope's drift, ``gyro_os_bias_rad_s`` /
+``gyro_os_bias_changes``. A first pass over the two files collects them (the streams are then read as
+before); a row whose sample is kept but whose estimate is not three numbers counts as ``mag_os_bias:nan`` /
+``gyro_os_bias:nan``, a row of four columns states no estimate. ``ID`` is ``meta["device_id"]``.
 
 iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, with
 
@@ -19,6 +27,17 @@ iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, 
 * ``accelerometer.txt`` in g with iOS's sign (≈ −1 g on z lying flat, screen up), so
   ``accel = -9.80665 * a`` (iOS's device axes are Android's: x right, y top, z out of the screen);
 * ``gyroscope.txt`` rad/s and ``magnetometer.txt`` µT (raw ``CMMagnetometerData``), unchanged.
+
+Both are raw (``mag_os_calibrated``, ``gyro_os_calibrated`` False) and carry no estimate of the OS: the
+magnetometer is ``CMMagnetometerData`` (offsets of 100–280 µT), and the gyroscope, though stamped at Core
+Motion's device-motion epochs, keeps its bias — it differs from the rate of the logged attitude by a constant
+(0.111, −0.023, 0.012) rad/s (median over each of the three iPhone 5 trials, within 0.005 rad/s).
+
+The phone's own fusion, when logged, becomes ``references["os"]`` (device → ENU, for evaluation only):
+Android's ``rotation-vector.txt`` (t, qx, qy, qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic
+north) and iOS's ``attitude.txt`` (t, qw, qx, qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to
+magnetic north, z up, so ``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north
+(:mod:`replay.formats._attitude`); odd rows are counted as ``os:<reason>``.
 
 Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
 (Δ, with ``t_qualisys = t_phone + Δ``) are present, the Qualisys rigid-body rotation (device → ENU, true
@@ -31,14 +50,16 @@ Grenoble; the values the upstream code uses for the reference field).
 from __future__ import annotations
 
 import configparser
-import datetime as dt
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import quat_multiply
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
+from replay.formats._attitude import in_output_north, rotation_vector_quat
+from replay.formats._common import CHUNK, StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
+from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -87,12 +108,54 @@ def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
     """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
 
     def chunks():
-        b = StreamBuilder(path, key, dropped)
+        b = StreamBuilder(path, key, dropped, width=ncol)
         with open_text(path) as fh:
             steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
             yield from chunks_of(fh, {key: b}, steps)
 
     return Feed((key,), chunks, path.stat().st_size)
+
+
+def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
+    """The OS's estimate in columns 5–7 of a Senslogs file (a first pass, a chunk at a time): from the rows
+    whose sample the stream keeps (t, x, y, z numbers, not a repeated time); rows that do not parse are left
+    to the stream's own pass, which reports them."""
+    import itertools
+
+    est = OsEstimate(key, dropped)
+    last_t = -np.inf
+    with open_text(path) as fh:
+        while lines := list(itertools.islice(fh, CHUNK)):
+            try:
+                arr = np.loadtxt(lines, usecols=range(7), ndmin=2, dtype=float, comments=None)
+                stated = np.ones(len(arr), dtype=bool)
+            except ValueError:
+                arr = np.empty((0, 7))
+            if len(arr) != len(lines):  # a row that does not parse, or blank lines: one by one
+                rows = [_row7(ln) for ln in lines]
+                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, 7)
+                stated = np.array([s for _, s in rows], dtype=bool)
+            keep = np.all(np.isfinite(arr[:, :4]), axis=1)
+            arr, stated = arr[keep], stated[keep]
+            t = arr[:, 0]
+            sel = stated & (t != np.concatenate([[last_t], t[:-1]]))  # not a repeated time
+            est.add_block(t[sel], arr[sel, 4:7])
+            if len(t):
+                last_t = float(t[-1])
+    return est
+
+
+def _row7(line: str) -> tuple[list[float], bool]:
+    """One Senslogs row as 7 numbers (NaN for a cell that is not a number or is missing), tolerant, and
+    whether it states an estimate (more than t, x, y, z)."""
+    parts = line.split()
+    out = []
+    for cell in parts[:7]:
+        try:
+            out.append(float(cell))
+        except ValueError:
+            out.append(np.nan)
+    return out + [np.nan] * (7 - len(out)), len(parts) > 4
 
 
 def _truth(path: Path, dropped: Counter):
@@ -157,6 +220,9 @@ def open_source(path) -> RecordingSource:
         maker = cp.get("Device", "Manufacturer", fallback="").strip()
         if model:
             meta["device"] = f"{maker} {model}".strip()
+        device_id = cp.get("Device", "ID", fallback="").strip()
+        if device_id:
+            meta["device_id"] = device_id
         start = cp.get("Time", "StartTime", fallback="").strip()
         if start:
             try:
@@ -164,7 +230,7 @@ def open_source(path) -> RecordingSource:
             except ValueError:
                 raise InputError(p / "record.properties", f"StartTime is not a number: {start!r}") from None
             meta["start_time_unix"] = start_s
-            meta["date"] = dt.datetime.fromtimestamp(start_s, dt.UTC).date().isoformat()
+            meta["date"] = utc_date(start_s)
         t_off = 0.0
     else:
         cp = _properties(p / "description.txt")
@@ -191,10 +257,41 @@ def open_source(path) -> RecordingSource:
         "gyro": StreamSpec(files["gyro"], "gyro", t_offset=t_off, unit_hint="rad/s"),
     }
     feeds = [columns_feed(f, k, dropped) for k, f in files.items()]
+    meta["mag_os_calibrated"] = meta["gyro_os_calibrated"] = False
+    if platform == "android":
+        for key, f in (("mag_os_bias", files["mag"]), ("gyro_os_bias", files["gyro"])):
+            _os_estimate(f, key, dropped).to_meta(meta)
     truth = _truth(p, dropped)
     if truth is not None:
         meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})
         meta["truth_north"] = "true"
+    references = {}
+    os_ref = _os_attitude(p, platform, t_off, meta, dropped)
+    if os_ref is not None:
+        references["os"] = os_ref
     return RecordingSource(
-        specs, feeds, meta=meta, truth=truth, source=str(p), format=f"{NAME}-{platform}", dropped=dropped
+        specs, feeds, meta=meta, truth=truth, references=references, source=str(p),
+        format=f"{NAME}-{platform}", dropped=dropped,
     )
+
+
+def _os_attitude(path: Path, platform: str, t_off: float, meta: dict, dropped: Counter):
+    """The phone's own attitude (``rotation-vector.txt`` / ``attitude.txt``) in the pipeline's north, or
+    None when the trial has none."""
+    f = path / ("rotation-vector.txt" if platform == "android" else "attitude.txt")
+    if not f.is_file():
+        return None
+    t, v = [], []
+    for _, chunk in columns_feed(f, "os", dropped, ncol=4).chunks():
+        if "os" in chunk:
+            t.append(chunk["os"][0])
+            v.append(chunk["os"][1])
+    if not t:
+        return None
+    t, v = np.concatenate(t), np.concatenate(v)
+    if platform == "android":  # x, y, z, w
+        q = rotation_vector_quat(v[:, :3], v[:, 3])
+    else:  # w, x, y, z in CoreMotion's x-north, z-up frame: turned +90° about Up into ENU
+        up90 = np.array([np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])
+        q = quat_multiply(up90, rotation_vector_quat(v[:, 1:], v[:, 0]))
+    return t + t_off, in_output_north(q, meta)

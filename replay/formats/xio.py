@@ -11,6 +11,9 @@ z lying flat (specific force) and the IMU's own axes are taken as the device fra
 The magnetometer is sample-and-hold: it updates at ~20 Hz while rows come at 100 Hz, repeating the last
 value. A row whose magnetometer value equals the previous one exactly is not a new measurement: it is left
 out of the magnetometer stream and counted as ``mag:held_repeat``.
+
+A lab IMU, not a phone: its streams are taken as raw (``meta["mag_os_calibrated"]`` and
+``["gyro_os_calibrated"]`` False), with no estimate of an OS, no date and no device id in the file.
 """
 
 from __future__ import annotations
@@ -110,7 +113,8 @@ def open_source(path) -> RecordingSource:
     return RecordingSource(
         specs,
         [Feed(tuple(idx), chunks, p.stat().st_size)],
-        meta={"device": "x-io IMU", "units_in_file": units},
+        meta={"device": "x-io IMU", "units_in_file": units, "mag_os_calibrated": False,
+              "gyro_os_calibrated": False},
         source=str(p),
         format=NAME,
         dropped=dropped,
