@@ -20,6 +20,11 @@ from pygeomag import GeoMag
 
 from pdr_mag.conventions import NT_PER_UT
 
+#: The Earth's total intensity at its surface, µT: over the WMM's epochs 2010–2025 it runs from 22.1 µT (the
+#: South Atlantic anomaly, 27° S 60° W) to 66.9 µT (59° S 136° E), read off a 2° × 4° grid.  No calibration
+#: whose radius lies far outside this range describes the Earth's field.
+EARTH_STRENGTH_RANGE_UT = (22.0, 67.0)
+
 _EPOCHS = (
     (2010.0, "WMM_2010.COF", "WMM-2010"),
     (2015.0, "WMM_2015v2.COF", "WMM-2015v2"),
@@ -145,3 +150,15 @@ def earth_field_from_meta(meta: dict) -> EarthField | None:
     except (KeyError, TypeError):
         return None
     return earth_field(lat, lon, meta.get("altitude_m", 0.0) or 0.0, date)
+
+
+def plausible_strength(strength_uT: float, reference_uT: float | None, rel_tol: float) -> bool:
+    """Whether a field strength can be the Earth's: within ``rel_tol`` (indoors the local field departs from
+    the model by up to tens of per cent) of the reference strength when one is known (the WMM's for the
+    place and date), else within :data:`EARTH_STRENGTH_RANGE_UT` widened by the same share."""
+    if not np.isfinite(strength_uT) or strength_uT <= 0:
+        return False
+    if reference_uT is not None and np.isfinite(reference_uT):
+        return abs(strength_uT / reference_uT - 1.0) <= rel_tol
+    lo, hi = EARTH_STRENGTH_RANGE_UT
+    return lo * (1.0 - rel_tol) <= strength_uT <= hi * (1.0 + rel_tol)

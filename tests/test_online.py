@@ -421,3 +421,22 @@ def test_correlated_errors_scale_the_offset_covariance():
     np.testing.assert_allclose(short.offset_std_uT, np.sqrt(np.diag(cov) * 12 / 2.5), rtol=1e-12)
     long = with_correlated_errors(cal, np.linspace(0.0, 60.0, 12), 2.0)
     assert long is cal
+
+
+@pytest.mark.parametrize(
+    "radius, ok", [(14.0, False), (16.0, False), (17.0, True), (47.0, True), (83.0, True), (85.0, False)]
+)
+def test_a_refit_whose_field_the_earth_cannot_produce_is_refused_without_a_reference(radius, ok):
+    """Without a field model (no date or place) the radius is bounded by the Earth's own range, 22-67 µT
+    (WMM 2010-2025), widened by the 25 % the local field may depart indoors: 16.5-83.75 µT.  A held-out
+    IPIN logfile's first fit had 14 µT (25 samples) and, accepted, made the detectors flag 80 % of the
+    walk."""
+    from pdr_mag.calibration.model import MagCalibration
+    from pdr_mag.calibration.refit import judge
+
+    cal = MagCalibration.from_arrays([1.0, 2.0, 3.0], None, field_uT=radius, method="gravity", n_samples=25,
+                                     residual_rms_uT=0.3, offset_std_uT=[1.0, 1.0, 1.0])  # fmt: skip
+    verdict = judge(cal, OnlineSettings(), field_ref=None)
+    assert verdict.accepted is ok, verdict.reasons
+    if not ok:
+        assert any("Earth's field is 22–67 µT" in r for r in verdict.reasons)

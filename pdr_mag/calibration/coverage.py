@@ -33,6 +33,7 @@ from pdr_mag.calibration.heading_error import (
     motion_hint,
 )
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
 
 
 @dataclass(frozen=True)
@@ -293,6 +294,10 @@ def accept(cal: MagCalibration, field=None, settings: AcceptanceSettings | None 
         reasons.append(f"soft-iron eigenvalue spread {ev[-1] / ev[0]:.2f} (largest / smallest) is beyond the "
                        f"plausible {s.max_axis_ratio:g}: an ellipsoid this elongated is not a "
                        f"magnetometer's own distortion")
+    if ref is None and not plausible_strength(f, None, s.max_radius_error):
+        lo, hi = EARTH_STRENGTH_RANGE_UT
+        reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere (± "
+                       f"{s.max_radius_error:.0%} indoors)")
     if ref is not None and abs(f / ref - 1.0) > s.max_radius_error:
         r_std = float(fig.get("radius_std_uT", 0.0))
         if abs(f - ref) > 3.0 * r_std:

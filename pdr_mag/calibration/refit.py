@@ -34,6 +34,11 @@ from pdr_mag.calibration.model import _EYE, MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
+from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
+
+#: An online fit's radius may differ from the reference strength (or, without one, from the Earth's range)
+#: by this share: indoors the local field departs from the model by up to tens of per cent.
+RADIUS_REL_TOL = 0.25
 
 #: Preference among accepted refits: the full fit's methods (ellipsoid, ml, …) rank 2.
 _RANK = {"gravity": 0, "sphere": 1}
@@ -175,7 +180,8 @@ def judge(
     them, a plausible soft-iron eigenvalue spread and a radius near the reference (coverage only explains a
     heading refusal).  The online rules below are applied to every refit: offset σ below
     ``max_offset_std_uT`` (for the very first calibration, ``first_offset_std_uT`` when larger), a finite
-    radius, residual RMS relative to F, offset magnitude, radius within 25 % of the reference strength.
+    radius, residual RMS relative to F, offset magnitude, radius within :data:`RADIUS_REL_TOL` of the
+    reference strength (without one, of the Earth's range, 22–67 µT: no Earth field has 14 µT).
     ``coverage`` given: the copy also gets it (for the gravity-aided refit, whose rules do not read it).
     """
     reasons: list[str] = []
@@ -193,8 +199,12 @@ def judge(
         reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {s.max_rms_frac:.0%} of F")
     if np.linalg.norm(cal.offset_array) > s.max_offset_uT:
         reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
-    if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > 0.25:
+    if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > RADIUS_REL_TOL:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
+    elif field_ref is None and np.isfinite(f) and not plausible_strength(f, None, RADIUS_REL_TOL):
+        lo, hi = EARTH_STRENGTH_RANGE_UT
+        reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere "
+                       f"(± {RADIUS_REL_TOL:.0%} indoors)")
     if coverage is not None:
         return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)

@@ -1,0 +1,111 @@
+"""Prior knowledge of a device: the phone's own estimates from the metadata, their ageing in a device store,
+and the choice between them (pdr_mag.calibration.prior, pdr_mag.calibration.store)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.prior import DAY_S, DevicePrior, PriorSettings, aged, choose, phone_prior
+from pdr_mag.calibration.store import DeviceStore
+
+META = {"device": "OPPO PBCM10"}
+
+
+def _stored_cal(std=0.5):
+    return MagCalibration.from_arrays([-57.0, -91.0, -302.0], field_uT=43.0, method="gravity",
+                                      offset_std_uT=(std, std, std))  # fmt: skip
+
+
+def test_phone_prior_from_the_os_bias_and_drift():
+    s = PriorSettings()
+    meta = {"mag_os_bias_uT": [-61.0, -17.7, -346.3], "gyro_os_bias_rad_s": [0.0018, 0.0022, 0.0009]}
+    p = phone_prior(meta)
+    assert p.source == "phone"
+    assert p.calibration.offset == (-61.0, -17.7, -346.3)
+    np.testing.assert_allclose(np.diag(p.calibration.offset_covariance), [s.phone_offset_std_uT**2] * 3)
+    assert p.gyro_bias == (0.0018, 0.0022, 0.0009)
+    assert p.gyro_bias_std == s.phone_gyro_bias_std
+
+
+def test_phone_prior_of_os_calibrated_streams_is_a_zero_bias_with_its_sigma():
+    p = phone_prior({"mag_os_calibrated": True, "gyro_os_calibrated": True})
+    assert p.calibration.offset == (0.0, 0.0, 0.0)
+    assert max(p.calibration.offset_std_uT) == PriorSettings().phone_offset_std_uT
+    assert p.gyro_bias == (0.0, 0.0, 0.0)
+
+
+def test_no_phone_prior_when_the_recording_states_nothing_or_it_is_switched_off():
+    assert phone_prior({"mag_os_calibrated": False}) is None
+    assert phone_prior({"mag_os_bias_uT": [1, 2, 3]}, PriorSettings(use_phone=False)) is None
+
+
+def test_a_malformed_os_bias_names_its_key():
+    with pytest.raises(ValueError, match="mag_os_bias_uT"):
+        phone_prior({"mag_os_bias_uT": [1.0, "x", 3.0]})
+    with pytest.raises(ValueError, match="gyro_os_bias_rad_s"):
+        phone_prior({"gyro_os_bias_rad_s": [1.0, 2.0]})
+
+
+def test_ageing_grows_the_offset_variance_by_the_drift_rate_and_adds_a_power_up_to_the_gyro():
+    s = PriorSettings()
+    p = DevicePrior(calibration=_stored_cal(0.5), gyro_bias=(0.01, 0.0, 0.07), gyro_bias_std=0.001,
+                    source="store")
+    a = aged(p, 2 * DAY_S, s)
+    np.testing.assert_allclose(np.diag(a.calibration.offset_covariance),
+                               0.25 + 2 * s.offset_drift_uT_per_sqrt_day**2, rtol=1e-12)  # fmt: skip
+    assert a.calibration.offset == p.calibration.offset  # the estimate itself does not move
+    assert a.gyro_bias_std == pytest.approx(math.hypot(0.001, s.gyro_turn_on_std), rel=1e-12)
+    assert a.age_s == 2 * DAY_S
+
+
+def test_choose_takes_the_surer_part_from_each_source():
+    phone = phone_prior({"mag_os_bias_uT": [0.0, 0.0, 0.0], "gyro_os_bias_rad_s": [0.0, 0.0, 0.0]})
+    fresh = aged(DevicePrior(calibration=_stored_cal(0.5), source="store"), 600.0)  # 10 min old: ≈ 1.1 µT
+    old = aged(DevicePrior(calibration=_stored_cal(0.5), source="store"), 3 * DAY_S)  # ≈ 23 µT
+    c = choose(phone, fresh)
+    assert c.calibration is fresh.calibration and c.gyro_bias == phone.gyro_bias
+    assert c.source == "phone+store"
+    assert choose(phone, old).calibration is phone.calibration
+    assert choose(None, None) is None
+
+
+def test_store_round_trip_keys_and_age(tmp_path):
+    store = DeviceStore(tmp_path / "devices")
+    assert store.load(META, 1000.0) is None
+    prior = DevicePrior(calibration=_stored_cal(0.5), gyro_bias=(0.002, -0.001, 0.0), gyro_bias_std=4e-4)
+    path = store.save(META, prior, t_unix=1000.0)
+    assert path.name == "OPPO_PBCM10.json" and json.loads(path.read_text())["device"] == "OPPO PBCM10"
+    back = store.load(META, 1000.0 + 3600.0)
+    assert back.source == "store" and back.age_s == 3600.0
+    assert back.calibration.offset == prior.calibration.offset
+    s = store.settings
+    np.testing.assert_allclose(np.diag(back.calibration.offset_covariance),
+                               0.25 + s.offset_drift_uT_per_sqrt_day**2 / 24, rtol=1e-9)  # fmt: skip
+    # another device, or the same model with another id, has no entry
+    assert store.load({"device": "Pixel 7"}, 1000.0) is None
+    assert store.load({**META, "device_id": "a1"}, 1000.0) is None
+    # a recording that names no device is not stored
+    assert store.save({}, prior, 1000.0) is None
+
+
+def test_store_keeps_the_part_a_new_save_lacks(tmp_path):
+    store = DeviceStore(tmp_path)
+    first = DevicePrior(calibration=_stored_cal(0.5), gyro_bias=(0.01, 0.0, 0.0), gyro_bias_std=1e-3)
+    store.save(META, first, t_unix=0.0)
+    store.save(META, DevicePrior(calibration=None, gyro_bias=(0.02, 0.0, 0.0), gyro_bias_std=1e-3), 60.0)
+    back = store.load(META, 60.0)
+    assert back.calibration is not None and back.calibration.offset == (-57.0, -91.0, -302.0)
+    assert back.gyro_bias == (0.02, 0.0, 0.0)
+
+
+def test_a_broken_store_file_is_reported_by_name(tmp_path):
+    store = DeviceStore(tmp_path)
+    (tmp_path / "OPPO_PBCM10.json").write_text("{not json")
+    with pytest.raises(ValueError, match="OPPO_PBCM10.json: device store: cannot read"):
+        store.load(META, 0.0)
+    (tmp_path / "OPPO_PBCM10.json").write_text(json.dumps({"format_version": 7}))
+    with pytest.raises(ValueError, match="format_version"):
+        store.load(META, 0.0)
