@@ -64,6 +64,10 @@ class OnlineCalibrator:
         A device calibration to start from (``cal_state`` ``offset`` or ``ellipsoid``).
     strength, sin_dip : float, optional
         Earth field strength F (µT) and sin of the inclination from the WMM; None when unknown.
+    prior : bool
+        ``calibration`` is a prior (the phone's own estimate, a device store's: :mod:`.prior`), not a
+        calibration the user gave: an online fit that improves on its covariance replaces it
+        (:func:`pdr_mag.calibration.refit.replaces`), as it replaces an earlier fit.
 
     Attributes
     ----------
@@ -72,7 +76,7 @@ class OnlineCalibrator:
     cal_state : str
         ``none``, ``offset``, ``ellipsoid`` or ``recalibrating``.
     provided : bool
-        The calibration in force is the one given (gravity and sphere refits do not replace it).
+        The calibration in force is the one the user gave (gravity and sphere refits do not replace it).
     """
 
     def __init__(
@@ -81,11 +85,12 @@ class OnlineCalibrator:
         calibration: MagCalibration | None = None,
         strength: float | None = None,
         sin_dip: float | None = None,
+        prior: bool = False,
     ):
         s = self.settings = settings or OnlineSettings()
         self.strength_wmm = None if strength is None else float(strength)
         self.sin_dip_wmm = None if sin_dip is None else float(sin_dip)
-        self.provided = calibration is not None
+        self.provided = calibration is not None and not prior
         self._recal_t = np.nan  # when the recalibration was requested
         self._n_refits = 0
         self._last_reject_t = -np.inf  # last calibration_rejected event (at most one per 30 s)
@@ -207,6 +212,20 @@ class OnlineCalibrator:
             i, resumed = j, True
 
     # ------------------------------------------------------------------ transitions
+    def renew_prior(self, cal: MagCalibration) -> bool:
+        """A newer estimate from the source of the prior in force (the phone's OS changed its hard-iron
+        estimate mid-recording: ``cal.extra["prior"]`` names the source): it becomes the calibration in
+        force when that is still the prior from the same source — not an online fit that replaced it, nor a
+        recalibration under way.  Returns whether it did."""
+        cur = self.calibration
+        source = cal.extra.get("prior") if isinstance(cal.extra, dict) else None
+        if cur is None or source is None or self.cal_state == "recalibrating":
+            return False
+        if not isinstance(cur.extra, dict) or cur.extra.get("prior") != source:
+            return False
+        self._use(cal, refit.state_of(cal))
+        return True
+
     def _use(self, cal: MagCalibration | None, cal_state: str) -> None:
         """Put ``cal`` in force with state ``cal_state``, and its parameters where the compiled loop reads
         them (:data:`pdr_mag.calibration._online_kernel.CAL`); the next refit fits."""

@@ -66,7 +66,7 @@ from numba import njit
 from pdr_mag.fusion.detectors import restart
 from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update, update_h
 from pdr_mag.fusion.ew import ew_alpha
-from pdr_mag.fusion.gyro import ew_stats_step
+from pdr_mag.fusion.gyro import bias_prior_var, ew_stats_step
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
@@ -130,7 +130,7 @@ def init_tilt(s, ax, ay, az, p):
     P[TH_X, TH_X] = t0
     P[TH_Y, TH_Y] = t0
     P[TH_Z, TH_Z] = np.pi**2
-    b0 = p.gyro.bias0_std**2
+    b0 = bias_prior_var(s, p)
     for i in range(BIAS, BIAS + 3):
         P[i, i] = b0
     P[C_ERR, C_ERR] = p.mag.error_std_rad**2
@@ -327,8 +327,9 @@ def _tilt_reset(s, t, p):
                 M[j, i] = 0.0
     P[TH_X, TH_X] = p.accel.tilt0_std**2
     P[TH_Y, TH_Y] = p.accel.tilt0_std**2
+    b0 = bias_prior_var(s, p)
     for i in range(BIAS, BIAS + 3):
-        P[i, i] = max(P[i, i], p.gyro.bias0_std**2)
+        P[i, i] = max(P[i, i], b0)
     restart(s.det)  # the detectors' world-frame state restarts in the turned world frame
     s.tilt_resets += 1
     return True

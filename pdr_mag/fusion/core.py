@@ -93,7 +93,7 @@ from pdr_mag.fusion import kernel
 from pdr_mag.fusion.kinds import GYRO, check_kinds
 from pdr_mag.fusion.rows import DIAG_NAMES, new_rows
 from pdr_mag.fusion.settings import FusionSettings
-from pdr_mag.fusion.state import STATE, new_state, state_from_json, state_to_json
+from pdr_mag.fusion.state import BIAS, STATE, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 7
@@ -240,6 +240,21 @@ class FusionCore:
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
+    def set_gyro_prior(self, bias, std: float) -> None:
+        """What is known of the gyroscope bias before the first sample: ``bias`` (3, rad/s, device frame)
+        with ``std`` (rad/s per axis) — the phone's own drift estimate, a device store's
+        (:mod:`pdr_mag.calibration.prior`) — instead of a zero bias with ``gyro.bias0_std``.  Only before the
+        filter has started (``ValueError`` after)."""
+        b = np.asarray(bias, dtype=float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"bias: expected 3 finite values in rad/s, got {bias!r}")
+        if not (np.isfinite(std) and std > 0):
+            raise ValueError(f"std: expected a positive number of rad/s, got {std!r}")
+        if self._st["init"][0] != 0:
+            raise ValueError("gyro prior: the filter has already started")
+        self._st["b"] = b
+        self._st["bias0_var"] = float(std) ** 2
+
     def _apply_strength(self) -> None:
         if self._ref_strength is not None:
             self._st["f_ref"] = self._ref_strength
@@ -306,6 +321,14 @@ class FusionCore:
     def bias(self) -> np.ndarray:
         """Current gyroscope bias estimate, rad/s (device frame)."""
         return self._st["b"][0].copy()
+
+    def gyro_bias(self) -> tuple[np.ndarray, np.ndarray]:
+        """The gyroscope bias estimate (rad/s, device frame) and its variance per axis, (rad/s)² — NaN before
+        the filter has started (no accelerometer sample yet)."""
+        st = self._st[0]
+        if st["init"] == 0:
+            return np.full(3, np.nan), np.full(3, np.nan)
+        return st["b"].copy(), np.diag(st["P"])[BIAS : BIAS + 3].copy()
 
     @property
     def interference_flag(self) -> bool:

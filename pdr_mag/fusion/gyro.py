@@ -143,6 +143,14 @@ def propagate(P, R, work, dt, phi, qa, qb, qc):
 
 
 @njit(cache=True, error_model="numpy")
+def bias_prior_var(s, p):
+    """Variance per axis of what is known of the gyro bias before any correction, (rad/s)²: the prior given
+    to the filter (:meth:`pdr_mag.fusion.FusionCore.set_gyro_prior`: the phone's own drift estimate, a
+    device store's), else ``gyro.bias0_std²`` (a raw gyroscope of unknown offset)."""
+    return s.bias0_var if np.isfinite(s.bias0_var) else p.gyro.bias0_std**2
+
+
+@njit(cache=True, error_model="numpy")
 def magerr_var(s, p):
     """Stationary variance of c, rad²: ``σ_c² + (mag.env_k · d_env / B_h)² + g Σ_b gᵀ`` (the environment's
     recent disturbance level ``d_env`` and the calibration's offset covariance ``Σ_b`` seen in the heading

@@ -45,8 +45,9 @@ without a break for ``mag.reacquire_s`` and its innovations agree among themselv
 exponentially weighted mean below ``mag.reacquire_spread_deg``: a lost heading is off by one angle whatever
 the device does, a turned field in a steel building changes as the walker moves), the heading is set to the
 magnetometer's, ``q ← Exp(r̄ e_z) ⊗ q`` with r̄ that mean, exactly as at the first fix (the covariance
-below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², bias0_std²)``, the drift rate
-that the jump implies over the time Δt since the last heading update.  The jump is reported in the
+below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², σ_b0²)``, the drift rate
+that the jump implies over the time Δt since the last heading update (σ_b0 the bias prior's,
+:func:`pdr_mag.fusion.gyro.bias_prior_var`).  The jump is reported in the
 ``heading_reset_deg`` output column (a ``heading_reset`` event in the pipeline).
 
 First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
@@ -76,7 +77,7 @@ from pdr_mag.fusion.detectors import detect_step, disturbance2, reference_horizo
 from pdr_mag.fusion.detectors.dip import dip_of
 from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update_h
 from pdr_mag.fusion.ew import ew_alpha
-from pdr_mag.fusion.gyro import magerr_var, unmodelled_var
+from pdr_mag.fusion.gyro import bias_prior_var, magerr_var, unmodelled_var
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
@@ -192,7 +193,7 @@ def _reacquire(s, R, jump, h, rv, t, p):
     _turn_world_frame(s, jump)
     P = s.P
     # the drift the jump implies, ``jump / Δt`` about up (Δt ≥ 10 s: short runs say little about a rate)
-    vb = min((jump / max(dt_ref, 10.0)) ** 2, p.gyro.bias0_std**2)
+    vb = min((jump / max(dt_ref, 10.0)) ** 2, bias_prior_var(s, p))
     rotation_matrix(s.q, R)
     for i in range(3):
         for m in range(3):

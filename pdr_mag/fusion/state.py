@@ -35,6 +35,7 @@ STATE = np.dtype(
         # the filter: nominal state and covariance of the error state
         ("q", np.float64, (4,)),  # attitude, device → ENU (true north with a declination), w-first
         ("b", np.float64, (3,)),  # gyroscope bias, device frame, rad/s
+        ("bias0_var", np.float64),  # variance per axis of the bias prior, (rad/s)² (NaN: gyro.bias0_std²)
         ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
         ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
         ("U", np.float64, (NX, NX)),  # consider covariance: the part of the error the weighting leaves out
@@ -124,6 +125,7 @@ def new_state() -> np.ndarray:
         "t_flag",
         "bh_ref",
         "t_next_out",
+        "bias0_var",
     ):
         st[name] = np.nan
     st["u_phi"] = 1.0

@@ -50,6 +50,7 @@ import numpy as np
 from pdr_mag._json import state_float
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
+from pdr_mag.calibration.prior import DevicePrior, PriorSettings, choose, phone_prior
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
@@ -58,7 +59,7 @@ from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 3
+STATE_VERSION = 4
 _NO_OFFSET = np.zeros(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
 #: (changes come in runs while the calibration converges), doubled after each span without one, up to the
@@ -100,6 +101,9 @@ class PipelineSettings:
         Settings of :class:`pdr_mag.fusion.FusionCore` (None: its defaults).
     keep_mag_calibrated : bool
         Keep the calibrated magnetometer samples for :meth:`HeadingPipeline.pop_mag_calibrated` (sinks).
+    prior : PriorSettings
+        What is taken from the phone's own estimates in the metadata and how sure they are
+        (:mod:`pdr_mag.calibration.prior`).
     """
 
     block_s: float = 0.5
@@ -109,6 +113,7 @@ class PipelineSettings:
     online_settings: OnlineSettings = field(default_factory=OnlineSettings)
     fusion: object | None = None
     keep_mag_calibrated: bool = False
+    prior: PriorSettings = field(default_factory=PriorSettings)
 
     def __post_init__(self):
         if not (np.isfinite(self.block_s) and self.block_s > 0):
@@ -129,7 +134,16 @@ class HeadingPipeline:
         A device calibration (from ``pdr-mag calibrate``); None starts uncalibrated (online only).
     meta : dict, optional
         Recording metadata (``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date``): with position
-        and date, the WMM gives the reference field and the heading is true north.
+        and date, the WMM gives the reference field and the heading is true north.  What the phone knows of
+        itself (``mag_os_bias_uT`` and its ``mag_os_bias_changes``, ``mag_os_calibrated``,
+        ``gyro_os_bias_rad_s``, ``gyro_os_calibrated``: ``INTERFACE.md``) is a prior
+        (:func:`pdr_mag.calibration.prior.phone_prior`, unless ``settings.prior.use_phone`` is False).
+    prior : DevicePrior, optional
+        What a backend knows of the device (its device store, :class:`pdr_mag.calibration.store.DeviceStore`).
+        With the phone's own estimates, each part (magnetometer, gyro) comes from the surer source
+        (:func:`pdr_mag.calibration.prior.choose`).  A prior calibration is in force from the first sample,
+        never as a fact: the stale test and the online fits replace it when the data disagree.  A
+        ``calibration`` given is used instead of the prior's magnetometer part.
     fusion : FusionCore, optional
         The filter to use instead of a new :class:`pdr_mag.fusion.FusionCore` (for tests; the pipeline uses
         its public API: ``advance``, ``restore``, ``use_calibration``, ``get_state``/``set_state``).
@@ -147,6 +161,7 @@ class HeadingPipeline:
         calibration: MagCalibration | None = None,
         meta: dict | None = None,
         fusion=None,
+        prior: DevicePrior | None = None,
     ):
         if calibration is not None and not isinstance(calibration, MagCalibration):
             raise ValueError(
@@ -154,6 +169,8 @@ class HeadingPipeline:
             )
         if meta is not None and not isinstance(meta, dict):
             raise ValueError(f"meta: expected a dict or None, got {type(meta).__name__}")
+        if prior is not None and not isinstance(prior, DevicePrior):
+            raise ValueError(f"prior: expected a DevicePrior or None, got {type(prior).__name__}")
         self.settings = settings or PipelineSettings()
         self.meta = dict(meta or {})
         try:
@@ -163,13 +180,28 @@ class HeadingPipeline:
         if fusion is None:
             fusion = FusionCore(_fusion_settings(self.settings.fusion, self.meta), self.field)
         self.fusion = fusion
+        try:
+            phone = phone_prior(self.meta, self.settings.prior)
+        except ValueError as exc:
+            raise ValueError(f"meta: {exc}") from exc
+        #: the prior knowledge the run started from (None: nothing known)
+        self.prior: DevicePrior | None = choose(phone, prior)
+        p = self.prior
+        start = calibration if calibration is not None else (p.calibration if p is not None else None)
         f = self.field
         self.online = OnlineCalibrator(
             self.settings.online_settings,
-            calibration,
+            start,
             strength=None if f is None else f.strength,
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
+            prior=calibration is None and start is not None,
         )
+        if p is not None and p.gyro_bias is not None:
+            self.fusion.set_gyro_prior(p.gyro_bias, p.gyro_bias_std)
+        # the phone's later hard-iron estimates, while its first is the calibration in force: (t, offset)
+        self._phone_changes: list[tuple[float, tuple]] = []
+        if start is not None and start is (phone.calibration if phone is not None else None):
+            self._phone_changes = _phone_changes(self.meta)
         self.dropped: Counter = Counter()
         self._streams = {k: PendingStream() for k in KINDS}
         self._done_t = -np.inf  # every sample before this time has been processed
@@ -261,10 +293,32 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
+            # a sample equal on all three axes to the one before is that sample delivered again (a logger
+            # writing the latest value on its own clock: the mall traces' gyroscope and magnetometer hold it
+            # for up to 1.6 s while the phone turns), never a new noisy measurement
+            rep = np.all(xyz == np.concatenate((s.last_xyz[None, :], xyz[:-1])), axis=1)
+            s.last_xyz = xyz[-1].copy()
+            if rep.any():
+                self.dropped[f"{name}:repeated"] += int(np.count_nonzero(rep))
+                t, xyz = t[~rep], xyz[~rep]
+        if len(t):
             s.append(t, xyz)
         a, g, m = self._streams.values()
         if a.n + g.n + m.n > self.settings.max_pending:
             self._process(min(a.last_t, g.last_t, m.last_t))
+
+    def push_phone_calibration(self, t: float, offset_uT) -> None:
+        """The phone's OS changed its hard-iron estimate at stream time ``t`` (Android's uncalibrated
+        magnetometer carries it in its bias columns): while the phone's first estimate is the calibration in
+        force (no online fit has replaced it), the new one replaces it at the end of the block ``t`` falls in.
+        Changes must come in time order, before the samples after them are polled."""
+        b = np.asarray(offset_uT, dtype=float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)) or not math.isfinite(t):
+            raise ValueError(
+                f"phone calibration: expected a finite time and 3 finite µT, got {t!r}, {offset_uT!r}"
+            )
+        self._phone_changes.append((float(t), tuple(float(v) for v in b)))
+        self._phone_changes.sort()
 
     # ------------------------------------------------------------------ output
     def poll(self) -> EstimateBatch:
@@ -312,7 +366,35 @@ class HeadingPipeline:
     # ------------------------------------------------------------------ processing
     def _process(self, horizon: float, final: bool = False) -> None:
         """Fuse every pending sample before ``horizon`` (all of them when ``final``), span by span, and close
-        the blocks that ended."""
+        the blocks that ended; the phone's later hard-iron estimates (:meth:`push_phone_calibration`) take
+        effect at the end of the block they fall in, as a calibration found by the online calibrator does."""
+        b = self.settings.block_s
+        while self._phone_changes:
+            t_change, offset = self._phone_changes[0]
+            t_block_end = (math.floor(t_change / b) + 1) * b
+            if not final and t_block_end > horizon:
+                break  # its block has not ended yet
+            self._fuse_until(t_block_end)
+            self._phone_changes.pop(0)
+            self._renew_phone_calibration(t_change, max(t_block_end, self._done_t), offset)
+        self._fuse_until(horizon, final)
+
+    def _renew_phone_calibration(self, t_change: float, t_use: float, offset: tuple) -> None:
+        """The phone's OS changed its hard-iron estimate at ``t_change``: while its first one is still the
+        calibration in force, the new one replaces it (from ``t_use``, a block end); a
+        ``phone_calibration_changed`` event says which."""
+        old = self.online.calibration
+        std = old.offset_std_uT if old is not None else None
+        cal = MagCalibration.from_arrays(offset, method="phone", offset_std_uT=std, extra={"prior": "phone"})
+        used = self.online.renew_prior(cal)
+        if used:
+            self._calibrations.append((t_use, cal))
+            self._use_calibration()
+        data = {"offset_uT": [round(float(v), 3) for v in offset], "in_force": used}
+        self._events.append(Event(float(t_change), "phone_calibration_changed", data))
+
+    def _fuse_until(self, horizon: float, final: bool = False) -> None:
+        """:meth:`_process` without the phone's changes."""
         if final:
             t_end = np.inf
         elif not np.isfinite(horizon) or horizon <= self._done_t:
@@ -464,6 +546,25 @@ class HeadingPipeline:
         self._interf = bool(flags[-1])
         return out
 
+    def device_knowledge(self) -> DevicePrior:
+        """What this run knows of the device now, for a device store (:class:`~pdr_mag.calibration.store.
+        DeviceStore`): the calibration in force when it is one the data support — an accepted fit, or the
+        given / prior one the stale test let stand — but not the phone's own estimate (the phone states it
+        again next time), nor a provisional one during a recalibration; and the filter's gyro bias with its
+        σ (the larger of the three axes').  A part not known is None."""
+        cal = self.calibration
+        phone = cal is not None and isinstance(cal.extra, dict) and cal.extra.get("prior") == "phone"
+        if cal is None or phone or self.cal_state in ("none", "recalibrating") or not cal.accepted:
+            cal = None
+        b, var = self.fusion.gyro_bias()
+        ok = bool(np.all(np.isfinite(b)) and np.all(np.isfinite(var)))
+        return DevicePrior(
+            calibration=cal,
+            gyro_bias=tuple(float(v) for v in b) if ok else None,
+            gyro_bias_std=float(np.sqrt(np.max(var))) if ok else float("nan"),
+            source="run",
+        )
+
     # ------------------------------------------------------------------ summary
     def summary(self) -> dict:
         """The run's summary for ``replay --json`` (INTERFACE.md keys and a few more)."""
@@ -478,6 +579,7 @@ class HeadingPipeline:
                 {"t": None if not np.isfinite(t) else float(t), **c.to_dict()} for t, c in self._calibrations
             ],
             "dropped_samples": dict(sorted(self.dropped.items())),
+            "prior": None if self.prior is None else self.prior.to_dict(),
             "field": None
             if self.field is None
             else {
@@ -496,7 +598,8 @@ class HeadingPipeline:
         pend = {}
         for name, s in self._streams.items():
             t, x = s.pending()
-            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": state_float(s.last_t)}
+            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": state_float(s.last_t),
+                          "last_xyz": [state_float(v) for v in s.last_xyz]}
         st = {
             "version": STATE_VERSION,
             "pending": pend,
@@ -512,6 +615,7 @@ class HeadingPipeline:
             "t_last": state_float(self._t_last),
             "fusion": self.fusion.get_state(),
             "online": self.online.get_state(),
+            "phone_changes": [[t, list(b)] for t, b in self._phone_changes],
         }
         json.dumps(st)  # fail here, not at the caller's, if something is not serialisable
         return st
@@ -527,6 +631,7 @@ class HeadingPipeline:
                 x = np.asarray(p["xyz"], dtype=float).reshape(-1, 3)
                 s.t, s.xyz, s.lo, s.hi = t, x, 0, len(t)
                 s.last_t = float(p["last_t"])
+                s.last_xyz = np.array([float(v) for v in p["last_xyz"]])
             self._done_t = float(state["done_t"])
             self.dropped = Counter(state["dropped"])
             self._pend = np.array([float(v) for v in state["mag_rows"]]).view(PK.MAG_ROW)
@@ -539,6 +644,7 @@ class HeadingPipeline:
             self._t_last = float(state["t_last"])
             self.fusion.set_state(state["fusion"])  # with its reference strength
             self.online.set_state(state["online"])
+            self._phone_changes = [(float(t), tuple(float(v) for v in b)) for t, b in state["phone_changes"]]
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"state: malformed ({exc!r})") from exc
         self._use_calibration(restored=True)
@@ -554,3 +660,19 @@ def _kind_name(kind) -> str:
         return NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
+
+
+def _phone_changes(meta: dict) -> list[tuple[float, tuple]]:
+    """The phone's later hard-iron estimates stated by the metadata (``mag_os_bias_changes``: ``[[t, x, y,
+    z], …]``), in time order; ``ValueError`` naming the key when malformed."""
+    rows = meta.get("mag_os_bias_changes") or []
+    out = []
+    try:
+        for r in rows:
+            t, x, y, z = (float(v) for v in r)
+            if not all(map(math.isfinite, (t, x, y, z))):
+                raise ValueError(r)
+            out.append((t, (x, y, z)))
+    except (TypeError, ValueError):
+        raise ValueError(f"meta: mag_os_bias_changes: expected [[t, x, y, z], …], got {rows!r}") from None
+    return sorted(out)

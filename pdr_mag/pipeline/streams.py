@@ -27,7 +27,7 @@ class PendingStream:
     """Pending samples of one input stream, in time order: rows ``[lo, hi)`` of a buffer that grows
     (doubling) when a push does not fit after moving the pending rows to its start."""
 
-    __slots__ = ("t", "xyz", "lo", "hi", "last_t")
+    __slots__ = ("t", "xyz", "lo", "hi", "last_t", "last_xyz")
 
     def __init__(self):
         self.t = np.empty(0)
@@ -35,6 +35,7 @@ class PendingStream:
         self.lo = 0
         self.hi = 0
         self.last_t = -np.inf  # the latest sample pushed
+        self.last_xyz = np.full(3, np.nan)  # its value (a repeat of it is the same sample again)
 
     @property
     def n(self) -> int:
