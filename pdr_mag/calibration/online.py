@@ -35,6 +35,7 @@ from pdr_mag.calibration import diversity, refit, stale
 from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
+from pdr_mag.calibration.prior import is_prior
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
 
@@ -239,11 +240,14 @@ class OnlineCalibrator:
         if cal is not None:
             c["matrix"] = cal.matrix
             c["offset"] = cal.offset_array
+        # a prior (the phone's, a store's) is only as good as its covariance: the samples it admits may be off
+        # by what its offset may be off (3σ), or a wrong prior would keep out the very samples that correct it
+        widen = 3.0 * _prior_offset_sigma(cal)
         c["strength"] = np.nan if f is None else f
-        c["strength_tol"] = np.nan if f is None else s.add_tol_frac * f
+        c["strength_tol"] = np.nan if f is None else s.add_tol_frac * f + widen
         c["dip_check"] = sd is not None
         c["dip_deg"] = np.nan if sd is None else np.degrees(np.arcsin(sd))
-        c["dip_tol_deg"] = s.add_dip_tol_deg
+        c["dip_tol_deg"] = s.add_dip_tol_deg + (np.degrees(widen / f) if f else 0.0)
         c["sep2"] = (s.min_sep_frac * (f or 50.0)) ** 2
         c["has_offset"] = cal is not None
         c["stale_on"] = cal is not None and cal_state != "recalibrating"
@@ -262,7 +266,9 @@ class OnlineCalibrator:
         """A refit the schedule made due: fit the buffer, judge, take the best if it improves on the
         calibration in force (:func:`pdr_mag.calibration.refit.replaces`)."""
         n = self._n_buf
-        full_fit_allowed = bool(self._state[0]["episode_seen"]) or self.cal_state == "none"
+        full_fit_allowed = (
+            bool(self._state[0]["episode_seen"]) or self.cal_state == "none" or is_prior(self.calibration)
+        )
         judged = refit.candidates(
             self._buf["m"][:n], self._buf["u"][:n], self.calibration, full_fit_allowed, self.field_ref,
             self.sin_dip_ref, self.settings, times=self._buf["t"][:n],
@@ -416,3 +422,14 @@ def _to_json(v):
     if isinstance(v, int | np.integer):
         return int(v)
     return state_float(v)
+
+
+def _prior_offset_sigma(cal: MagCalibration | None) -> float:
+    """The largest offset σ of a prior calibration (``extra["prior"]`` set: the phone's, a store's), µT; 0
+    for any other (a fit, a file) or an unknown covariance."""
+    if not is_prior(cal):
+        return 0.0
+    cov = cal.offset_covariance
+    if cov is None or not np.all(np.isfinite(cov)):
+        return 0.0
+    return float(np.sqrt(max(np.max(np.diag(cov)), 0.0)))

@@ -118,6 +118,12 @@ class DevicePrior:
         }
 
 
+def is_prior(cal: MagCalibration | None) -> bool:
+    """Whether ``cal`` is a prior (the phone's estimate, a store's entry: ``extra["prior"]`` names its
+    source) rather than a fit of this recording's data or a calibration the user gave."""
+    return cal is not None and isinstance(cal.extra, dict) and bool(cal.extra.get("prior"))
+
+
 def phone_prior(meta: dict, settings: PriorSettings | None = None) -> DevicePrior | None:
     """The phone's own calibration as the recording's ``meta`` states it (None when it states none).
 

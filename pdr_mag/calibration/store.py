@@ -23,6 +23,7 @@ import math
 import os
 import re
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from pdr_mag.calibration.model import MagCalibration
@@ -85,6 +86,8 @@ class DeviceStore:
             raise ValueError(f"{p}: device store: malformed entry ({exc})") from None
         if gyro is not None and (len(gyro) != 3 or not all(map(math.isfinite, (*gyro, std)))):
             raise ValueError(f"{p}: device store: gyro_bias_rad_s: expected 3 finite numbers and a σ")
+        if cal is not None:
+            cal = replace(cal, extra={**cal.extra, "prior": "store"})
         prior = DevicePrior(calibration=cal, gyro_bias=gyro, gyro_bias_std=std, source="store")
         return aged(prior, t_unix - t_saved, self.settings)
 

@@ -31,13 +31,12 @@ and world-frame direction from the detectors' references (a disturbance d change
 counts only beyond what the filter's own bias uncertainty explains over the detector's window
 (σ_b = √tr P_bb, W ``ConsistencySettings.window_s``).
 
-Gates.  No update while the interference flag is up (except the first fix, when the detectors against an
-absolute reference — strength and dip — pass it), when the caller disallows it, within ``mag.interval_s`` of
-the last update (the errors are correlated in time), when ``B_h`` < 1e-3 µT, or when ``r² > mag.gate² · S``
-with ``S = h P hᵀ`` plus the *undisturbed* part of σ_ψ² (a suspect field gets less weight; it cannot widen
-the gate).  While a clean-looking field keeps failing the gate, the heading may be what is wrong:
-``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the bias is not
-dragged when the gate opens).
+Gates. No update while the interference flag is up (except the first fix, below), when the caller disallows
+it, within ``mag.interval_s`` of the last update (the errors are correlated in time), when ``B_h`` < 1e-3 µT,
+or when ``r² > mag.gate² · S`` with ``S = h P hᵀ`` plus the *undisturbed* part of σ_ψ² (a suspect field gets
+less weight; it cannot widen the gate). While a clean-looking field keeps failing the gate, the heading may be
+what is wrong: ``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the
+bias is not dragged when the gate opens).
 
 Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
 field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
@@ -57,9 +56,13 @@ heading error *is* that sample's correlated field error, and
     P[δθ_z, ·] = −P[c, ·] − h_t P[δθ_xy, ·]
     P[δθ_z, δθ_z] = σ_ψ² + P_cc + h_t P_tilt h_tᵀ + 2 h_t P[δθ_xy, c]
 
-so a later field with the same offset — a disturbance present since the start — is not read as drift
-(that is, as gyro bias about up).  The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the
-same form with its own c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
+so a later field with the same offset — a disturbance present since the start — is not read as drift (that is,
+as gyro bias about up). A first sample that the detectors flag against an absolute reference (strength or dip:
+a start next to steel) is still taken, as a guess with ``σ_ψ² = π²``: a disturbance may turn the field by
+anything, so the std says 180° until a clean field comes, which the gate then lets in whatever its innovation,
+but the heading meanwhile is the field's rather than the device's +y, which a backend that must start
+somewhere prefers. The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own
+c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
 :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
@@ -111,7 +114,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     # --- gates
     if not allowed:
         return
-    if flag and not (s.init < 2 and det.score_absolute < 1.0):
+    if flag and s.init >= 2:
         return
     if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag.interval_s:
         return
@@ -121,7 +124,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     g = np.empty(3)
     _heading_gradient(R, mwx * f, mwy * f, g)
     _calibration_variance(s, g)
-    _calibration_jump(s, g, mx, my, mz)
+    _calibration_jump(s, g, mx, my, mz, R, t, p)
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
@@ -140,6 +143,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     h[TH_Z] = 1.0
     h[C_ERR] = 1.0
     if s.init < 2:
+        if flag and not det.score_absolute < 1.0:
+            rv = np.pi**2  # a guess from a disturbed field (the module docstring)
         _first_fix(s, h, r, rv, t, p)
         return
     r = wrap(r - s.c)
@@ -229,10 +234,13 @@ def _calibration_variance(s, g):
 
 
 @njit(cache=True, error_model="numpy")
-def _calibration_jump(s, g, mx, my, mz):
+def _calibration_jump(s, g, mx, my, mz, R, t, p):
     """A calibration change noted since the last usable sample (``dm = D m + e``, m this calibrated sample,
     :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`): the heading variance grows by
-    ``(g · dm)²``, capped at π², once the heading is known."""
+    ``(g · dm)²``, capped at π², once the heading is known.  The old calibration's heading error changed
+    as the device turned, and the filter read those changes as gyro drift: the bias variance about up
+    grows by ``min((g · dm / max(Δt, 10 s))², σ_b0²)`` (Δt: how long the old calibration was in force),
+    the drift rate that error implies, as at a re-acquisition."""
     D, e = s.cal_jump_d, s.cal_jump_e
     if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0 and not np.any(D != 0.0):
         return
@@ -242,6 +250,12 @@ def _calibration_jump(s, g, mx, my, mz):
             v += g[i] * (D[i, 0] * mx + D[i, 1] * my + D[i, 2] * mz + e[i])
         P = s.P
         P[TH_Z, TH_Z] = min(P[TH_Z, TH_Z] + v * v, np.pi**2)
+        dt = t - s.t_cal_start if np.isfinite(s.t_cal_start) else 0.0
+        vb = min((v / max(dt, 10.0)) ** 2, bias_prior_var(s, p))
+        for i in range(3):
+            for m in range(3):
+                P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
+        s.t_cal_start = t
     for i in range(3):
         e[i] = 0.0
         for m in range(3):
@@ -308,6 +322,7 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
     s.t_mag_update = t
+    s.t_cal_start = t
     s.mag_used = True
 
 

@@ -80,6 +80,7 @@ STATE = np.dtype(
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
         ("cal_jump_d", np.float64, (3, 3)),  # a calibration change: the old field is m − (D m + e), m the new
         ("cal_jump_e", np.float64, (3,)),  # … (µT, device frame; both zero: no change pending)
+        ("t_cal_start", np.float64),  # since when the calibration in force shapes the heading, s
         ("env_d2", np.float64),  # EW mean of d_min², the disturbances of the recent environment, µT²
         ("t_env", np.float64),  # time of its last sample, s
         ("env_seen2", np.float64),  # the same mean over the samples seen only (no prior), µT²
@@ -126,6 +127,7 @@ def new_state() -> np.ndarray:
         "bh_ref",
         "t_next_out",
         "bias0_var",
+        "t_cal_start",
     ):
         st[name] = np.nan
     st["u_phi"] = 1.0

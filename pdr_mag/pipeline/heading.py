@@ -522,7 +522,7 @@ class HeadingPipeline:
             self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
         if restored:
             return
-        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not self._calibrations:
+        if cal is not None and not self._calibrations:
             self._calibrations.append((-np.inf, cal))
         self.fusion.use_calibration(cal, old)
 

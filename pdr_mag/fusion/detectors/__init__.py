@@ -69,6 +69,7 @@ __all__ = [
     "StrengthSettings",
     "VarianceSettings",
     "detect_step",
+    "forget_learnt",
     "hold_off",
     "new_detector_state",
 ]
@@ -147,7 +148,7 @@ def _check_units() -> None:
         if "score" not in d.STATE.names:
             raise ImportError(f"detector {d.NAME}: its STATE has no 'score'")
         for part in ("observe", "learn", "score", "disturbance2", "tolerance2", "write", "turn", "restart",
-                     "example", "Settings", "COLUMNS", "BAND", "PLOT", "ABSOLUTE"):  # fmt: skip
+                     "example", "Settings", "COLUMNS", "BAND", "PLOT", "ABSOLUTE", "LEARNT"):  # fmt: skip
             if not hasattr(d, part):
                 raise ImportError(f"detector {d.NAME}: no {part} (pdr_mag.fusion.detectors._unit)")
 
@@ -162,6 +163,17 @@ def _fill_nan(rec: np.ndarray) -> None:
             _fill_nan(sub)
         elif sub.dtype.base == np.float64:
             rec[name] = np.nan
+
+
+def forget_learnt(det: np.ndarray) -> None:
+    """The detectors' local references (each detector's ``LEARNT`` fields) forgotten, to be learnt anew from
+    the next clean samples (a running mean, then ``learn_ref_s``): what they learnt was the field calibrated
+    by a calibration no longer in force.  ``det``: the detectors' state (a record of :data:`DETECTOR_STATE`,
+    or a one-element array of it)."""
+    for d in DETECTORS:
+        for name in d.LEARNT:
+            det[d.NAME][name] = np.nan
+    det["n_learn"] = 0
 
 
 def new_detector_state() -> np.void:

@@ -12,6 +12,10 @@ A detector is one module of :mod:`pdr_mag.fusion.detectors` with:
 ``ABSOLUTE``
     whether it compares the field with an absolute reference (then a first heading fix may trust a
     sample it passes while another detector flags it);
+``LEARNT``
+    the fields of its state learnt from the calibrated field (its local reference): a change of the
+    calibration in force makes them stale, and they are learnt anew (:func:`~pdr_mag.fusion.detectors.
+    forget_learnt`); ``()`` when it learns nothing;
 ``COLUMNS``, ``BAND``, ``PLOT``
     the diagnostic columns it writes (name → meaning), its band in them (:class:`Band`, or None) and how
     the rerun sink draws it (:class:`Plot`);

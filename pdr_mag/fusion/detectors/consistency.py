@@ -27,6 +27,7 @@ from pdr_mag.fusion.quat import rotate_vector
 
 NAME = "consistency"
 ABSOLUTE = False
+LEARNT = ()
 
 
 @dataclass(frozen=True)

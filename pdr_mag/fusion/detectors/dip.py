@@ -22,6 +22,7 @@ from pdr_mag.fusion.detectors._unit import Band, Example, Plot, field_example, n
 
 NAME = "dip"
 ABSOLUTE = True
+LEARNT = ("loc",)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from pdr_mag.fusion.detectors._unit import Band, Example, Plot, field_example, n
 
 NAME = "strength"
 ABSOLUTE = True
+LEARNT = ("loc",)
 
 
 @dataclass(frozen=True)

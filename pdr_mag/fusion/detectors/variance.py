@@ -29,6 +29,7 @@ from pdr_mag.fusion.ew import ew_alpha
 
 NAME = "variance"
 ABSOLUTE = False
+LEARNT = ()
 
 
 @dataclass(frozen=True)
