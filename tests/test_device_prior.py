@@ -64,11 +64,11 @@ def test_a_wrong_phone_estimate_is_a_prior_the_data_replace(walk):
     meta = {**walk.meta, "mag_os_bias_uT": list(HARD_IRON + [15.0, -10.0, 5.0])}
     pipe, rows, err = _run(walk, meta)
     replaced = [t for t, c in pipe.calibrations if c.method != "phone"]
-    assert replaced and replaced[0] < 20.0, pipe.calibrations  # measured 16.5 s (a cold start: 15.4 s)
+    assert replaced and replaced[0] < 40.0, pipe.calibrations  # measured 26.5 s (a cold start: 15.4 s)
     e, sd = _within(rows, err, 1.0, 15.0)
     assert np.median(e) > 20.0 and np.all(e < 3.0 * sd)  # measured 40-43° at σ 16-26°
     e, _ = _within(rows, err, 60.0, 120.0)
-    assert np.median(e) < 6.0  # measured 3.4° (from a cold start 1.4°: the bias taught meanwhile fades)
+    assert np.median(e) < 4.0  # measured 2.2° (from a cold start 1.4°: the bias taught meanwhile fades)
 
 
 def test_the_phones_gyro_drift_estimate_starts_the_bias(walk):

@@ -32,7 +32,6 @@ from pdr_mag.calibration.diversity import direction_coverage
 from pdr_mag.calibration.gravity import gravity_aided_offset
 from pdr_mag.calibration.model import _EYE, MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
-from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
@@ -85,9 +84,7 @@ def candidates(
             cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
-    # the very first calibration, or the first fit against a prior: coarse is better than nothing, or than a
-    # prior it improves on (replaces() compares their covariances)
-    first = current is None or is_prior(current)
+    first = current is None
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
 
