@@ -18,11 +18,13 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from multiprocessing import resource_tracker
 from pathlib import Path
 
 from replay.batch.inputs import find_recordings
@@ -191,9 +193,6 @@ def _quiet_resource_tracker() -> None:
     ``KeyError`` tracebacks about semaphores it no longer knows (a CPython quirk with spawned processes);
     the batch itself handles the death (the recording is rescheduled), so they are noise on the terminal.
     """
-    import sys
-    from multiprocessing import resource_tracker
-
     if getattr(resource_tracker._resource_tracker, "_fd", None) is not None:
         return
     try:
@@ -225,8 +224,6 @@ class _Progress:
     """A bar over recordings: done, failed, running, ETA (tqdm on stderr), or nothing."""
 
     def __init__(self, total: int, desc: str, enabled: bool | None):
-        import sys
-
         if enabled is None:
             enabled = sys.stderr.isatty()
         self.bar = None

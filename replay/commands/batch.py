@@ -20,8 +20,12 @@ from pathlib import Path
 
 import click
 
+from replay.batch import execute, headline, plan, write_table
+from replay.batch.engine import Interrupted
 from replay.commands.calibrate import METHODS
+from replay.commands.diagnose import need_matplotlib
 from replay.errors import InputError
+from replay.run import load_calibration
 
 
 def _common(f):
@@ -79,8 +83,6 @@ def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, met
 def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, report, use_truth):
     """Diagnose every recording: diagnose.json per recording (pdr-mag diagnose --json)."""
     if report:
-        from replay.commands.diagnose import need_matplotlib
-
         need_matplotlib()
     return _run("diagnose", inputs, out_dir, {"report": report, "use_truth": use_truth}, None, workers,
                 scheduler, force, progress, top)
@@ -88,14 +90,9 @@ def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, repo
 
 def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler, force, progress,
          top) -> int:
-    from replay.batch import execute, headline, plan, write_table
-    from replay.batch.engine import Interrupted
-
     if scheduler is not None and workers is not None:
         raise click.UsageError("--workers sets the local cluster; with --scheduler the cluster has its own")
     if calibration is not None:
-        from replay.run import load_calibration
-
         load_calibration(calibration)  # a bad file stops the batch here, not once per recording
     t_start = time.perf_counter()
     p = plan(command_name, inputs, out_dir, options=options, calibration=calibration, force=force)

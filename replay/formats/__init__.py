@@ -59,6 +59,7 @@ import importlib
 from pathlib import Path
 
 from replay.errors import InputError
+from replay.formats import _mcap
 from replay.recording import Recording
 
 #: Reader modules (under ``replay.formats``), in detection order: specific layouts before generic ones.
@@ -135,8 +136,6 @@ def _reader(p: Path, fmt: str | None):
         with p.open("rb") as fh:
             head = fh.read(8)
         if head.startswith(b"\x89MCAP"):
-            from replay.formats import _mcap
-
             raise InputError(p, _mcap.why_unknown(p))
         if head.startswith(b"MATLAB"):
             raise InputError(

@@ -28,7 +28,12 @@ reads the files of a folder or a zip export as streams, :func:`iter_csv` reads q
 
 from __future__ import annotations
 
+import csv
+import io
+import itertools
 import math
+import zipfile
+import zlib
 from array import array
 from collections import Counter
 from collections.abc import Iterator
@@ -387,8 +392,6 @@ class Bundle:
     """
 
     def __init__(self, path: Path):
-        import zipfile
-
         self.path = Path(path)
         self.zip = None
         if self.path.is_file():
@@ -430,8 +433,6 @@ class Bundle:
         return f"{self.path}!{name}" if self.zip is not None else str(self.path / name)
 
     def open(self, name: str):
-        import io
-
         if self.zip is None:
             return open_text(self.path / name)
         try:
@@ -447,15 +448,11 @@ class Bundle:
 
 def iter_csv(fh, where: str, delimiter: str = ","):
     """Yield ``(lineno, cells)`` of a CSV text stream; a damaged/truncated compressed member → InputError."""
-    import csv
-    import zlib
-    from zipfile import BadZipFile
-
     reader = csv.reader(fh, delimiter=delimiter)
     try:
         for cells in reader:
             yield reader.line_num, cells
-    except (BadZipFile, EOFError, zlib.error) as exc:
+    except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
         raise InputError(where, f"truncated or damaged archive member ({exc})", reader.line_num + 1) from None
     except csv.Error as exc:
         raise InputError(where, f"bad CSV ({exc})", reader.line_num) from None
@@ -496,8 +493,6 @@ def iter_table(
     :meth:`StreamBuilder.add_block`; a chunk that does not parse (text in a number column, a short row, a
     blank line) is re-read line by line so that the error names the exact line.
     """
-    import itertools
-
     chunk = chunk or CHUNK
     lineno = first_line
     cols = list(range(ncol))

@@ -31,6 +31,7 @@ and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' orig
 from __future__ import annotations
 
 import datetime as dt
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -86,8 +87,6 @@ def _site_location(path: Path, meta: dict) -> None:
     geo = path.parent.parent / "geojson_map.json"
     if not geo.is_file():
         return
-    import json
-
     try:
         features = json.loads(geo.read_text(encoding="utf-8"))["features"]
     except (ValueError, KeyError, TypeError, OSError):

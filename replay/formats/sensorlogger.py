@@ -26,18 +26,20 @@ Without ``Metadata.csv`` Android conventions are assumed (the unit check still c
 from __future__ import annotations
 
 import re
+import zlib
 from collections import Counter
 from pathlib import Path
+from zipfile import BadZipFile
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "sensor-logger"
-GRAVITY = 9.80665
 _MAG_FILES = ("MagnetometerUncalibrated.csv", "Magnetometer.csv")
 
 
@@ -84,9 +86,6 @@ def _metadata(b: Bundle) -> dict:
 
 def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
     """A ``time,seconds_elapsed,z,y,x`` file (columns by name), parsed a chunk at a time (a Feed's chunks)."""
-    import zlib
-    from zipfile import BadZipFile
-
     b = Bundle(p)
     where = b.where(name)
     builder = StreamBuilder(where, key, dropped)

@@ -40,13 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, read_table
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "sunsided-marg"
-GRAVITY = 9.80665
 UT_PER_GAUSS = 100.0
 DEG = np.pi / 180.0
 

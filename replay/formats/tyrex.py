@@ -37,13 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY, rot_to_quat
 from replay.errors import InputError
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "tyrex"
-GRAVITY = 9.80665
 
 # Mocap glitches excluded by hand upstream (qualisys seconds).
 _GLITCHES = {
@@ -126,8 +126,6 @@ def _truth(path: Path, dropped: Counter):
     keep = good & ~glitch
     # Column-major 3×3 per frame: R maps phone-body vectors into the mocap (ENU, true north) world frame.
     mats = rot[:, keep].T.reshape(-1, 3, 3).transpose(0, 2, 1)
-    from pdr_mag.conventions import rot_to_quat
-
     q = rot_to_quat(mats)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     for k in ("truth:nan", "truth:glitch"):

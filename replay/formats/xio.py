@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
 from replay.recording import Recording
@@ -31,7 +32,7 @@ _COL = re.compile(r"^(gyroscope|accelerometer|magnetometer) ([xyz]) \((.+)\)$")
 _KEY = {"gyroscope": "gyro", "accelerometer": "accel", "magnetometer": "mag"}
 _SCALE = {
     "gyro": {"deg/s": np.pi / 180.0, "dps": np.pi / 180.0, "rad/s": 1.0},
-    "accel": {"g": 9.80665, "m/s^2": 1.0, "m/s²": 1.0},
+    "accel": {"g": GRAVITY, "m/s^2": 1.0, "m/s²": 1.0},
     "mag": {"ut": 1.0, "µt": 1.0, "nt": 1e-3, "g": 100.0, "gauss": 100.0, "a.u.": 1.0},
 }
 
