@@ -20,9 +20,12 @@ the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope fro
 ``meta["mag_os_bias_uT"]``. Times are seconds since the header's ``startTime``
 (``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
-header are counted as ``<stream>:saturated``. Other line types (Wi-Fi, beacons, …) are skipped. Choosing
-the streams needs the whole file (and the header's ``endTime`` and the waypoints are spread over it): a
-first pass reads it without keeping samples, the second streams the chosen types.
+header are counted as ``<stream>:saturated``. A line of a type read here with more values than the type has
+(4 with the accuracy, 7 for the uncalibrated types, 2 for a waypoint) or with a field that is not a number
+is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``waypoint:…``); one with
+fewer than the x, y, z (x, y) it needs is a truncated file. Other line types (Wi-Fi, beacons, …) are
+skipped. Choosing the streams needs the whole file (and the header's ``endTime`` and the waypoints are
+spread over it): a first pass reads it without keeping samples, the second streams the chosen types.
 When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
 WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
 and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
@@ -36,7 +39,15 @@ from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._common import (
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    every,
+    garbled,
+    numbers,
+    open_text,
+)
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -50,6 +61,8 @@ _TYPES = {
     "TYPE_GYROSCOPE_UNCALIBRATED": ("gyro", 0, 16),
     "TYPE_GYROSCOPE": ("gyro", 1, 4),
 }
+# values after the type a line may have: x, y, z, accuracy (+ the bias or drift x, y, z); x, y of a waypoint
+_MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | {"TYPE_WAYPOINT": 2}
 
 
 def detect(path: Path) -> bool:
@@ -132,12 +145,18 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         kind = parts[1]
         if kind not in _TYPES and kind != "TYPE_WAYPOINT":
             continue
-        if t0_ms is None:
-            t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
-        vals = floats(p, lineno, [parts[0], *parts[2 : 2 + nval]])
+        fields = [parts[0], *parts[2:]]
+        vals = numbers(fields, 1 + _MOST[kind])
+        if vals is None:
+            key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
+            if kind in kinds or kind == "TYPE_WAYPOINT":
+                found["dropped"][f"{key}:{garbled(fields, 1 + _MOST[kind])}"] += 1
+            continue
+        if t0_ms is None:
+            t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or vals[0]
         t = (vals[0] - t0_ms) / 1000.0
         if kind == "TYPE_WAYPOINT":
             found["waypoints"].append([t, vals[1], vals[2]])
@@ -148,9 +167,9 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         if b is None:
             key, _, android_type = _TYPES[kind]
             b = builders[kind] = StreamBuilder(p, key, found["dropped"], limit=ranges.get(android_type))
-        b.add(lineno, t, vals[1:])
-        if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(parts) >= 8:
-            found["last_bias"] = parts[5:8]
+        b.add(lineno, t, vals[1:4])
+        if kind == "TYPE_MAGNETIC_FIELD_UNCALIBRATED" and len(vals) >= 7:
+            found["last_bias"] = vals[4:7]
 
 
 def _pass(p: Path, dropped: Counter, kinds):
@@ -188,10 +207,7 @@ def open_source(path) -> RecordingSource:
         raise InputError(p, "no magnetometer lines (TYPE_MAGNETIC_FIELD[_UNCALIBRATED])")
     last_bias = found["last_bias"]
     if last_bias is not None and not meta["mag_os_calibrated"]:
-        try:
-            meta["mag_os_bias_uT"] = [float(v) for v in last_bias]
-        except ValueError:
-            pass
+        meta["mag_os_bias_uT"] = list(last_bias)
     if "start_time_unix" in meta:
         meta["date"] = dt.datetime.fromtimestamp(meta["start_time_unix"], dt.UTC).date().isoformat()
     _site_location(p, meta)

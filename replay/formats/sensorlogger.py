@@ -102,9 +102,8 @@ def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
             t_scale = 1.0 if "seconds_elapsed" in cols else 1e-9
             idx = [cols["x"], cols["y"], cols["z"]]
             ncol = max([tcol, *idx]) + 1
-            steps = iter_table(
-                fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol, t_scale=t_scale
-            )
+            steps = iter_table(fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol,
+                               t_scale=t_scale, most=len(header))
             yield from chunks_of(fh, {key: builder}, steps)
     except (BadZipFile, EOFError, zlib.error) as exc:
         raise InputError(where, f"truncated or damaged archive member ({exc})") from None

@@ -11,7 +11,9 @@ Android (Senslogs app), recognised by ``record.properties``:
 ``record.properties``       ``Model``, ``Manufacturer``, ``StartTime`` (Unix s) of the record clock
 ==========================  =======================================================================
 
-Android's device frame is the contract's: no axis change, no unit change.
+Android's device frame is the contract's: no axis change, no unit change. A row with more fields than its
+file has (4, 7, 7 on Android; 4 in every iOS file) or with a field that is not a number is dropped and
+counted (``<stream>:extra_fields``, ``<stream>:non_numeric``).
 
 iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, with
 
@@ -44,6 +46,8 @@ from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "tyrex"
+#: Fields of a row (time first) in each file, per platform: a row with more is garbled.
+FIELDS = {"android": {"mag": 7, "accel": 4, "gyro": 7}, "ios": {"mag": 4, "accel": 4, "gyro": 4}}
 
 # Mocap glitches excluded by hand upstream (qualisys seconds).
 _GLITCHES = {
@@ -83,13 +87,14 @@ def _properties(path: Path) -> configparser.ConfigParser:
     return cp
 
 
-def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
-    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
+def columns_feed(path: Path, key: str, dropped: Counter, most: int, ncol: int = 3) -> Feed:
+    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` of at most ``most`` fields a row,
+    parsed a chunk at a time."""
 
     def chunks():
         b = StreamBuilder(path, key, dropped)
         with open_text(path) as fh:
-            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
+            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1, most=most)
             yield from chunks_of(fh, {key: b}, steps)
 
     return Feed((key,), chunks, path.stat().st_size)
@@ -188,7 +193,7 @@ def open_source(path) -> RecordingSource:
         else StreamSpec(files["accel"], "accel", scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign"),
         "gyro": StreamSpec(files["gyro"], "gyro", t_offset=t_off, unit_hint="rad/s"),
     }
-    feeds = [columns_feed(f, k, dropped) for k, f in files.items()]
+    feeds = [columns_feed(f, k, dropped, FIELDS[platform][k]) for k, f in files.items()]
     truth = _truth(p, dropped)
     if truth is not None:
         meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})

@@ -10,7 +10,9 @@ z lying flat (specific force) and the IMU's own axes are taken as the device fra
 
 The magnetometer is sample-and-hold: it updates at ~20 Hz while rows come at 100 Hz, repeating the last
 value. A row whose magnetometer value equals the previous one exactly is not a new measurement: it is left
-out of the magnetometer stream and counted as ``mag:held_repeat``.
+out of the magnetometer stream and counted as ``mag:held_repeat``. A row with more cells than the header or
+with a cell that is not a number is dropped from every stream and counted (``<stream>:extra_fields``,
+``<stream>:non_numeric``).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 
 from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, garbled, numbers, open_text
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -77,7 +79,11 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
         parts = s.split(",")
         if len(parts) < ncol:
             raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-        vals = floats(p, lineno, parts[:ncol])
+        vals = numbers(parts, ncol)
+        if vals is None:
+            for b in builders.values():
+                b.count(garbled(parts, ncol))
+            continue
         t = vals[0]
         for key, ix in idx.items():
             v = [vals[i] for i in ix]
