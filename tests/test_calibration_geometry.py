@@ -87,7 +87,7 @@ def test_a_sample_at_the_centre_projects_onto_the_end_of_the_shortest_axis():
     b, L = soft_iron_ellipsoid(rng, spread=0.3)
     a, v = np.linalg.eigh(L)
     near = b + directions(rng, 20) @ L.T * rng.uniform(0.9, 1.1, (20, 1))
-    # and one deep inside along the longest axis, where the radial start falls below the pole −a₀²
+    # and one deep inside, along the longest axis, next to the centre (the radial fallback: finite)
     m = np.vstack([near[:10], b, near[10:], b + 1e-3 * v[:, 2]])
     p = Projection(m, b, L)
     assert abs(p.d[10] + a[0]) < 1e-9 * a[0]
