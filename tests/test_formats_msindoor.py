@@ -101,7 +101,6 @@ def _write(tmp_path, replace_from, replace_to):
 @pytest.mark.parametrize(
     "old,new,problem,line",
     [
-        ("72.0\t-85.0", "7x.0\t-85.0", "not a number: '7x.0'", 25),
         (
             "1574562661080\tTYPE_MAGNETIC_FIELD_UNCALIBRATED",
             "1574562661050\tTYPE_MAGNETIC_FIELD_UNCALIBRATED",

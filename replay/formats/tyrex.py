@@ -11,7 +11,9 @@ Android (Senslogs app), recognised by ``record.properties``:
 ``record.properties``       ``Model``, ``Manufacturer``, ``ID``; ``StartTime`` (Unix s) of the record clock
 ==========================  =======================================================================
 
-Android's device frame is the contract's: no axis change, no unit change. The streams read are the raw ones
+Android's device frame is the contract's: no axis change, no unit change. A row with more fields than its
+file has (4, 7, 7 on Android; 4 in every iOS file) or with a field that is not a number is dropped and
+counted (``<stream>:extra_fields``, ``<stream>:non_numeric``). The streams read are the raw ones
 (``mag_os_calibrated`` and ``gyro_os_calibrated`` False). Their last three columns are what the OS states
 about its own calibration (:mod:`replay.formats._phone`): the hard-iron estimate in force at the first
 magnetometer sample, ``mag_os_bias_uT``, and its later changes, ``mag_os_bias_changes`` (the Nexus 5 walks:
@@ -55,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pdr_mag.conventions import quat_multiply
+from pdr_mag.conventions import GRAVITY, quat_multiply, rot_to_quat
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import CHUNK, StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
@@ -64,7 +66,11 @@ from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "tyrex"
-GRAVITY = 9.80665
+#: Fields of a row (time first) in each file, per platform: a row with more is garbled.
+FIELDS = {"android": {"mag": 7, "accel": 4, "gyro": 7}, "ios": {"mag": 4, "accel": 4, "gyro": 4}}
+#: Fields of a row of the phone's own attitude: t, qx, qy, qz, qw, heading accuracy (Android's
+#: ``rotation-vector.txt``); t, qw, qx, qy, qz (iOS's ``attitude.txt``).
+OS_FIELDS = {"android": 6, "ios": 5}
 
 # Mocap glitches excluded by hand upstream (qualisys seconds).
 _GLITCHES = {
@@ -104,13 +110,14 @@ def _properties(path: Path) -> configparser.ConfigParser:
     return cp
 
 
-def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
-    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
+def columns_feed(path: Path, key: str, dropped: Counter, most: int, ncol: int = 3) -> Feed:
+    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` of at most ``most`` fields a row,
+    parsed a chunk at a time."""
 
     def chunks():
         b = StreamBuilder(path, key, dropped, width=ncol)
         with open_text(path) as fh:
-            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
+            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1, most=most)
             yield from chunks_of(fh, {key: b}, steps)
 
     return Feed((key,), chunks, path.stat().st_size)
@@ -189,8 +196,6 @@ def _truth(path: Path, dropped: Counter):
     keep = good & ~glitch
     # Column-major 3×3 per frame: R maps phone-body vectors into the mocap (ENU, true north) world frame.
     mats = rot[:, keep].T.reshape(-1, 3, 3).transpose(0, 2, 1)
-    from pdr_mag.conventions import rot_to_quat
-
     q = rot_to_quat(mats)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     for k in ("truth:nan", "truth:glitch"):
@@ -256,7 +261,7 @@ def open_source(path) -> RecordingSource:
         else StreamSpec(files["accel"], "accel", scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign"),
         "gyro": StreamSpec(files["gyro"], "gyro", t_offset=t_off, unit_hint="rad/s"),
     }
-    feeds = [columns_feed(f, k, dropped) for k, f in files.items()]
+    feeds = [columns_feed(f, k, dropped, FIELDS[platform][k]) for k, f in files.items()]
     meta["mag_os_calibrated"] = meta["gyro_os_calibrated"] = False
     if platform == "android":
         for key, f in (("mag_os_bias", files["mag"]), ("gyro_os_bias", files["gyro"])):
@@ -282,7 +287,7 @@ def _os_attitude(path: Path, platform: str, t_off: float, meta: dict, dropped: C
     if not f.is_file():
         return None
     t, v = [], []
-    for _, chunk in columns_feed(f, "os", dropped, ncol=4).chunks():
+    for _, chunk in columns_feed(f, "os", dropped, OS_FIELDS[platform], ncol=4).chunks():
         if "os" in chunk:
             t.append(chunk["os"][0])
             v.append(chunk["os"][1])
