@@ -20,8 +20,10 @@ magnetometer sample, ``mag_os_bias_uT``, and its later changes, ``mag_os_bias_ch
 (57.96, −35.74, 419.90) µT throughout Dist_Texting, two changes in NoDist_Swinging; the calibration
 recordings change it 12–33 times), and the gyroscope's drift, ``gyro_os_bias_rad_s`` /
 ``gyro_os_bias_changes``. A first pass over the two files collects them (the streams are then read as
-before); a row whose sample is kept but whose estimate is not three numbers counts as ``mag_os_bias:nan`` /
-``gyro_os_bias:nan``, a row of four columns states no estimate. ``ID`` is ``meta["device_id"]``.
+before); a row whose sample is kept but whose estimate is not three finite numbers (NaN, inf, a column
+missing) counts as ``mag_os_bias:nan`` / ``gyro_os_bias:nan``, a row of four columns states no estimate,
+and a garbled row (text in any cell, an eighth field) is dropped whole by the stream and states nothing.
+``ID`` is ``meta["device_id"]``.
 
 iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, with
 
@@ -52,6 +54,7 @@ Grenoble; the values the upstream code uses for the reference field).
 from __future__ import annotations
 
 import configparser
+import itertools
 from collections import Counter
 from pathlib import Path
 
@@ -60,7 +63,16 @@ import numpy as np
 from pdr_mag.conventions import GRAVITY, quat_multiply, rot_to_quat
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
-from replay.formats._common import CHUNK, StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
+from replay.formats._common import (
+    CHUNK,
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    iter_table,
+    numbers,
+    open_text,
+    require,
+)
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
@@ -125,22 +137,21 @@ def columns_feed(path: Path, key: str, dropped: Counter, most: int, ncol: int = 
 
 def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     """The OS's estimate in columns 5–7 of a Senslogs file (a first pass, a chunk at a time): from the rows
-    whose sample the stream keeps (t, x, y, z numbers, not a repeated time); rows that do not parse are left
-    to the stream's own pass, which reports them."""
-    import itertools
-
+    whose sample the stream keeps (t, x, y, z numbers, not a repeated time, the row not garbled); rows that
+    do not parse are left to the stream's own pass, which reports them."""
+    most = FIELDS["android"]["mag"]  # = the gyroscope's: t, x, y, z and the estimate's x, y, z
     est = OsEstimate(key, dropped)
     last_t = -np.inf
     with open_text(path) as fh:
         while lines := list(itertools.islice(fh, CHUNK)):
             try:
-                arr = np.loadtxt(lines, usecols=range(7), ndmin=2, dtype=float, comments=None)
+                arr = np.loadtxt(lines, ndmin=2, dtype=float, comments=None)
                 stated = np.ones(len(arr), dtype=bool)
             except ValueError:
-                arr = np.empty((0, 7))
-            if len(arr) != len(lines):  # a row that does not parse, or blank lines: one by one
-                rows = [_row7(ln) for ln in lines]
-                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, 7)
+                arr = np.empty((0, most))
+            if arr.shape != (len(lines), most):  # a row that does not parse, a short or long one: one by one
+                rows = [r for r in map(_row, lines) if r is not None]
+                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, most)
                 stated = np.array([s for _, s in rows], dtype=bool)
             keep = np.all(np.isfinite(arr[:, :4]), axis=1)
             arr, stated = arr[keep], stated[keep]
@@ -152,17 +163,16 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     return est
 
 
-def _row7(line: str) -> tuple[list[float], bool]:
-    """One Senslogs row as 7 numbers (NaN for a cell that is not a number or is missing), tolerant, and
-    whether it states an estimate (more than t, x, y, z)."""
+def _row(line: str) -> tuple[list[float], bool] | None:
+    """One Senslogs row as 7 numbers (NaN for a missing cell) and whether it states an estimate (more than
+    t, x, y, z); None for a blank row and for a garbled one (more than 7 fields, a field that is not a
+    number: the stream drops it whole)."""
     parts = line.split()
-    out = []
-    for cell in parts[:7]:
-        try:
-            out.append(float(cell))
-        except ValueError:
-            out.append(np.nan)
-    return out + [np.nan] * (7 - len(out)), len(parts) > 4
+    most = FIELDS["android"]["mag"]
+    vals = numbers(parts, most)
+    if not parts or vals is None:
+        return None
+    return vals + [np.nan] * (most - len(vals)), len(parts) > 4
 
 
 def _truth(path: Path, dropped: Counter):
