@@ -17,20 +17,23 @@ from replay.errors import InputError
 COMMANDS = ("simulate", "calibrate", "replay", "diagnose", "batch")
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Commands(click.Group):
+    """The subcommands, each imported when it is used (``replay.commands.<name>``'s ``command``): a command
+    loads only its own dependencies (``simulate`` needs neither the compiled pipeline nor the model check)."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx, name: str):
+        if name not in COMMANDS:
+            return None
+        return importlib.import_module(f"replay.commands.{name}").command
+
+
+@click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="pdr_mag")
 def cli() -> None:
     """pdr_mag — magnetometer calibration and heading for pedestrian navigation with phones."""
-
-
-for _name in COMMANDS:
-    try:
-        _mod = importlib.import_module(f"replay.commands.{_name}")
-    except ModuleNotFoundError as _exc:  # a command not built yet is simply absent
-        if _exc.name != f"replay.commands.{_name}":
-            raise
-        continue
-    cli.add_command(_mod.command, name=_name)
 
 
 def _fail(message: str) -> int:

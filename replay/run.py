@@ -11,18 +11,21 @@ against the walked direction and the reference series.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from pdr_mag.sinks import QuietSink
+from replay.compiling import CompileWatch
 from replay.errors import InputError
 from replay.formats import open_recording
 from replay.heading_scores import HeadingScores
@@ -110,6 +113,8 @@ def load_calibration(path) -> MagCalibration:
 def make_sink(kind: str, path, *, spawn: bool = False, rate_hz: float | None = None):
     """An MCAP or rerun sink (``spawn``: rerun also streams to a live viewer it starts; ``path`` may then be
     None; ``rate_hz``: the MCAP sink's rate limit)."""
+    # imported here, when the output is asked for: the sink modules import mcap / rerun, heavy libraries that
+    # the other outputs never need (optional outputs, house style 9)
     if kind == "mcap":
         from pdr_mag.sinks.mcap import McapSink
 
@@ -135,6 +140,11 @@ def replay(
 ) -> dict:
     """Replay a recording; return the run summary (the ``replay --json`` object).
 
+    Three steps: :meth:`ReplayRun.start` opens the recording, the pipeline and the sinks;
+    :meth:`ReplayRun.stream` pushes the recording through them slice by slice; :meth:`ReplayRun.summary`
+    sums the run up. The time the numba kernels took to compile (a cold cache: the first run only) is
+    reported apart (``compile_s``), not counted as the run's work (``elapsed_s``, ``samples_per_s``).
+
     Parameters
     ----------
     rec_path : path, RecordingSource or Recording
@@ -155,144 +165,203 @@ def replay(
         Thresholds of the drift episodes (:mod:`pdr_mag.episodes`) in the summary's ``episodes``; each
         episode also goes to the sinks as a ``drift_episode`` event when it closes.
     """
-    if slice_s is None:
-        slice_s = SLICE_S
-    if isinstance(rec_path, RecordingSource):
-        src = rec_path
-    elif isinstance(rec_path, Recording):
-        src = RecordingSource.from_recording(rec_path)
-    else:
-        src = open_recording(rec_path)
-    where = src.source or rec_path
-    merge = Merge(src)  # reads the first chunk of every stream
-    for key in ("accel", "gyro"):
-        if key not in merge.present:
-            raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
-    if calibration is not None and not isinstance(calibration, MagCalibration):
-        calibration = load_calibration(calibration)
-    scores = HeadingScores()  # against the walked direction and the references: the summary's figures
-    sinks = [*sinks, scores]
-    if settings is None and any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
-        settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
-    try:
-        pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta)
-    except ValueError as exc:
-        raise InputError(where, str(exc)) from None
-    meta = {
-        **src.meta,
-        "source": src.source,
-        "format": src.format,
-        "north": pipe.north,
-        "t0": merge.t0,
-        "mag_interval_s": pipe.fusion.settings.mag.interval_s,
-    }
-    if pipe.field is not None:
-        meta["field"] = {
-            "model": pipe.field.model,
-            "strength_uT": pipe.field.strength,
-            "inclination_deg": pipe.field.inclination_deg,
-            "declination_deg": pipe.field.declination_deg,
-        }
-    for s in sinks:
-        s.open(meta)
-    if sinks:
-        if src.truth is not None:
-            for s in sinks:
-                s.reference("truth", src.truth[0], src.truth[1])
-        osref = os_reference(src)
-        if osref is not None:
-            for s in sinks:
-                s.reference("os", osref[0], osref[1])
-    if calibration is not None:
-        for s in sinks:
-            s.calibration(merge.t0, calibration)
-    if progress is None:
-        import sys
+    with CompileWatch() as compiling:
+        run = ReplayRun.start(rec_path, calibration, sinks, settings, episode_settings)
+        if progress is None:
+            progress = run.src.size >= PROGRESS_MIN_BYTES and sys.stderr.isatty()
+        t_start, compiled_before = time.perf_counter(), compiling.seconds
+        run.stream(SLICE_S if slice_s is None else slice_s, progress)
+        elapsed = time.perf_counter() - t_start - (compiling.seconds - compiled_before)
+    return run.summary(elapsed, compiling.seconds)
 
-        progress = src.size >= PROGRESS_MIN_BYTES and sys.stderr.isatty()
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        total = src.size or None
-        bar = tqdm(total=total, unit="B", unit_scale=True, desc="replay", leave=False)
-    events: list = []
-    finder = EpisodeFinder(episode_settings, truth=src.truth)
-    state_counts: Counter = Counter()
-    n_cal_seen = len(pipe.calibrations)
-    n_pushed = dict.fromkeys(merge.present, 0)
-    t_start = time.perf_counter()
-    try:
-        for final, blocks in merge.slices(slice_s):
-            for name, block in blocks.items():
-                if block is not None:
-                    t, xyz = block
-                    pipe.push_arrays(name, t, xyz)
-                    for s in sinks:
-                        s.inputs(name, t, xyz)
-                    n_pushed[name] += len(t)
-            batch = pipe.flush() if final else pipe.poll()
-            _emit(pipe, batch, sinks, events, state_counts, finder)
-            cals = pipe.calibrations
-            for t_cal, cal in cals[n_cal_seen:]:
-                for s in sinks:
-                    s.calibration(t_cal, cal)
-            n_cal_seen = len(cals)
-            if bar is not None:
-                bar.update(merge.position - bar.n)
-        _emit_episodes(finder.finish(), sinks)
-    finally:
-        if bar is not None:
-            bar.close()
-        for s in sinks:
-            s.close()
-    elapsed = time.perf_counter() - t_start
-    n_samples = sum(n_pushed.values())
-    summary = pipe.summary()
-    dropped = Counter(src.dropped)
-    dropped.update(pipe.dropped)
-    summary.update(
-        {
+class ReplayRun:
+    """One recording on its way through the pipeline into the sinks: what :func:`replay` sets up, streams
+    and sums up.
+
+    Attributes
+    ----------
+    src : RecordingSource
+        The recording, streamed.
+    merge : Merge
+        Its streams merged into time slices.
+    pipe : HeadingPipeline
+    sinks : list of Sink
+        Opened by :meth:`start`, closed by :meth:`stream`: the sinks given and :attr:`scores`.
+    scores : HeadingScores
+        The heading against the walked direction and the references (the summary's ``heading_error`` and
+        ``walked_direction``), a sink of every run.
+    calibration : MagCalibration or None
+        The device calibration given (None: online calibration only).
+    finder : EpisodeFinder
+        The drift episodes, found as the output rows come.
+    events : list of dict
+        The pipeline's events so far, in order (the summary's ``events``).
+    state_counts : Counter
+        Output rows per ``cal_state`` so far.
+    n_pushed : dict
+        Samples pushed so far, per stream.
+    n_cal_seen : int
+        The pipeline's calibrations already sent to the sinks.
+    """
+
+    def __init__(self, src: RecordingSource, merge: Merge, pipe: HeadingPipeline, sinks: list,
+                 scores: HeadingScores, calibration: MagCalibration | None, finder: EpisodeFinder):
+        self.src = src
+        self.merge = merge
+        self.pipe = pipe
+        self.sinks = sinks
+        self.scores = scores
+        self.calibration = calibration
+        self.finder = finder
+        self.events: list = []
+        self.state_counts: Counter = Counter()
+        self.n_pushed = dict.fromkeys(merge.present, 0)
+        self.n_cal_seen = len(pipe.calibrations)
+
+    @classmethod
+    def start(cls, rec_path, calibration=None, sinks=(), settings: PipelineSettings | None = None,
+              episode_settings: EpisodeSettings | None = None) -> ReplayRun:
+        """Open the recording (its first chunk read: a stream missing is an :class:`InputError` now), the
+        pipeline and the sinks (given the run's metadata, the references and the calibration given)."""
+        if isinstance(rec_path, RecordingSource):
+            src = rec_path
+        elif isinstance(rec_path, Recording):
+            src = RecordingSource.from_recording(rec_path)
+        else:
+            src = open_recording(rec_path)
+        where = src.source or rec_path
+        merge = Merge(src)  # reads the first chunk of every stream
+        for key in ("accel", "gyro"):
+            if key not in merge.present:
+                raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
+        if calibration is not None and not isinstance(calibration, MagCalibration):
+            calibration = load_calibration(calibration)
+        scores = HeadingScores()  # against the walked direction and the references: the summary's figures
+        sinks = [*sinks, scores]
+        if settings is None and any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
+            settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
+        try:
+            pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta)
+        except ValueError as exc:
+            raise InputError(where, str(exc)) from None
+        run = cls(src, merge, pipe, sinks, scores, calibration,
+                  EpisodeFinder(episode_settings, truth=src.truth))
+        run._open_sinks()
+        return run
+
+    def _open_sinks(self) -> None:
+        src, pipe = self.src, self.pipe
+        meta = {
+            **src.meta,
             "source": src.source,
             "format": src.format,
-            "events": events,
-            "dropped_samples": dict(sorted(dropped.items())),
-            "n_samples": n_pushed,
-            "cal_state_rows": dict(sorted(state_counts.items())),
-            "calibration_given": calibration is not None,
-            "episodes": [ep.to_dict() for ep in finder.episodes],
-            "episode_settings": {"truth": finder.has_truth, **asdict(finder.settings)},
-            **scores.summary(),
-            "elapsed_s": elapsed,
-            "samples_per_s": n_samples / elapsed if elapsed > 0 else None,
+            "north": pipe.north,
+            "t0": self.merge.t0,
+            "mag_interval_s": pipe.fusion.settings.mag.interval_s,
         }
-    )
-    return summary
+        if pipe.field is not None:
+            meta["field"] = {
+                "model": pipe.field.model,
+                "strength_uT": pipe.field.strength,
+                "inclination_deg": pipe.field.inclination_deg,
+                "declination_deg": pipe.field.declination_deg,
+            }
+        for s in self.sinks:
+            s.open(meta)
+        if self.sinks:
+            if src.truth is not None:
+                for s in self.sinks:
+                    s.reference("truth", src.truth[0], src.truth[1])
+            osref = os_reference(src)
+            if osref is not None:
+                for s in self.sinks:
+                    s.reference("os", osref[0], osref[1])
+        if self.calibration is not None:
+            for s in self.sinks:
+                s.calibration(self.merge.t0, self.calibration)
 
+    def stream(self, slice_s: float, progress: bool) -> None:
+        """Push the recording through the pipeline in slices of ``slice_s`` s of stream time, polling after
+        each (flushing after the last) and handing everything out to the sinks; close the sinks at the end
+        (also on an error). ``progress``: a bar on stderr over the input bytes read."""
+        bar = None
+        if progress:
+            bar = tqdm(total=self.src.size or None, unit="B", unit_scale=True, desc="replay", leave=False)
+        try:
+            for final, blocks in self.merge.slices(slice_s):
+                self._push(blocks)
+                self._emit(self.pipe.flush() if final else self.pipe.poll())
+                if bar is not None:
+                    bar.update(self.merge.position - bar.n)
+            _emit_episodes(self.finder.finish(), self.sinks)
+        finally:
+            if bar is not None:
+                bar.close()
+            for s in self.sinks:
+                s.close()
 
-def _emit(
-    pipe: HeadingPipeline,
-    batch: EstimateBatch,
-    sinks,
-    events: list,
-    state_counts: Counter,
-    finder: EpisodeFinder,
-) -> None:
-    evs = pipe.pop_events()
-    if pipe.settings.keep_mag_calibrated:
-        tm, xm = pipe.pop_mag_calibrated()
-        if len(tm):
+    def _push(self, blocks: dict) -> None:
+        """One slice's samples, per stream, into the pipeline and the sinks."""
+        for name, block in blocks.items():
+            if block is not None:
+                t, xyz = block
+                self.pipe.push_arrays(name, t, xyz)
+                for s in self.sinks:
+                    s.inputs(name, t, xyz)
+                self.n_pushed[name] += len(t)
+
+    def _emit(self, batch: EstimateBatch) -> None:
+        """What a poll gave out — calibrated magnetometer samples, output rows, events, the drift episodes
+        they close and new calibrations — to the sinks, counted for the summary."""
+        pipe, sinks = self.pipe, self.sinks
+        evs = pipe.pop_events()
+        if pipe.settings.keep_mag_calibrated:
+            tm, xm = pipe.pop_mag_calibrated()
+            if len(tm):
+                for s in sinks:
+                    s.mag_calibrated(tm, xm)
+        if len(batch):
+            _count_states(batch.cal_state, self.state_counts)
             for s in sinks:
-                s.mag_calibrated(tm, xm)
-    if len(batch):
-        _count_states(batch.cal_state, state_counts)
-        for s in sinks:
-            s.estimates(batch)
-    for ev in evs:
-        events.append(ev.to_dict())
-        for s in sinks:
-            s.event(ev)
-    _emit_episodes(finder.update(batch, evs), sinks)
+                s.estimates(batch)
+        for ev in evs:
+            self.events.append(ev.to_dict())
+            for s in sinks:
+                s.event(ev)
+        _emit_episodes(self.finder.update(batch, evs), sinks)
+        cals = pipe.calibrations
+        for t_cal, cal in cals[self.n_cal_seen :]:
+            for s in sinks:
+                s.calibration(t_cal, cal)
+        self.n_cal_seen = len(cals)
+
+    def summary(self, elapsed_s: float, compile_s: float) -> dict:
+        """The run summary (the ``replay --json`` object): the pipeline's own summary and what the run
+        counted. ``elapsed_s``: the work's wall time (reading, pipeline, sinks), s; ``compile_s``: the time
+        spent compiling the numba kernels during the run, s (0 when they came from the cache)."""
+        n_samples = sum(self.n_pushed.values())
+        summary = self.pipe.summary()
+        dropped = Counter(self.src.dropped)
+        dropped.update(self.pipe.dropped)
+        summary.update(
+            {
+                "source": self.src.source,
+                "format": self.src.format,
+                "events": self.events,
+                "dropped_samples": dict(sorted(dropped.items())),
+                "n_samples": self.n_pushed,
+                "cal_state_rows": dict(sorted(self.state_counts.items())),
+                "calibration_given": self.calibration is not None,
+                "episodes": [ep.to_dict() for ep in self.finder.episodes],
+                "episode_settings": {"truth": self.finder.has_truth, **asdict(self.finder.settings)},
+                **self.scores.summary(),
+                "elapsed_s": elapsed_s,
+                "compile_s": compile_s,
+                "samples_per_s": n_samples / elapsed_s if elapsed_s > 0 else None,
+            }
+        )
+        return summary
 
 
 def _count_states(cal_state: np.ndarray, counts: Counter) -> None:
@@ -348,6 +417,9 @@ def summary_table(summary: dict) -> str:
                 f"({summary['elapsed_s']:.2f} s: reading, pipeline, sinks)",
             )
         )
+    if summary.get("compile_s"):
+        what = "numba kernels, first run only; not in the throughput"
+        rows.append(("compiling", f"{summary['compile_s']:.1f} s ({what})"))
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
 

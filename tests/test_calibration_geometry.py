@@ -76,3 +76,25 @@ def test_points_deep_inside_stay_finite():
     p = Projection(m, b, L)
     assert np.all(np.isfinite(p.d)) and np.all(p.d < 0)
     np.testing.assert_allclose(np.linalg.norm(p.u, axis=1), 1.0, atol=1e-9)
+
+
+def test_a_sample_at_the_centre_projects_onto_the_end_of_the_shortest_axis():
+    """A sample exactly at the centre (a phone's all-zero reading under a zero offset) has the ends of the
+    shortest axis as its nearest points: d = −a₀, the normal along that axis; the other samples are projected
+    as without it. Without the closed form, Newton divided by a zero derivative (numpy warned; the tests
+    fail on any warning from pdr_mag)."""
+    rng = np.random.default_rng(5)
+    b, L = soft_iron_ellipsoid(rng, spread=0.3)
+    a, v = np.linalg.eigh(L)
+    near = b + directions(rng, 20) @ L.T * rng.uniform(0.9, 1.1, (20, 1))
+    # and one deep inside, along the longest axis, next to the centre (the radial fallback: finite)
+    m = np.vstack([near[:10], b, near[10:], b + 1e-3 * v[:, 2]])
+    p = Projection(m, b, L)
+    assert abs(p.d[10] + a[0]) < 1e-9 * a[0]
+    assert abs(abs(p.n[10] @ v[:, 0]) - 1.0) < 1e-12
+    np.testing.assert_allclose(np.linalg.norm(p.x[10] - b), a[0], rtol=1e-12)
+    alone = Projection(near, b, L)
+    # the same to the iteration's tolerance (1e-13 relative: its stop is global, so one more step may run)
+    np.testing.assert_allclose(np.delete(p.d, [10, 21]), alone.d, rtol=0, atol=1e-12 * a[0])
+    np.testing.assert_allclose(np.delete(p.x, [10, 21], axis=0), alone.x, rtol=0, atol=1e-12 * a[0])
+    assert np.all(np.isfinite(p.d)) and np.all(np.isfinite(p.n)) and np.all(np.isfinite(p.mean_curv2))

@@ -7,14 +7,17 @@ unreadable folder (claimed by the pdr-csv reader), plus an explicit input no rea
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
-import os
+import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +34,7 @@ BAD = {
     "in/broken.txt": "in/broken.txt:1: ACCE: expected 5 values after the type, got 3 (truncated?)",
     "junk.bin": "junk.bin: not a recording in a known format",
 }
-TIMING = ("elapsed_s", "samples_per_s")  # run-time figures: the only fields two runs may differ in
+TIMING = ("elapsed_s", "samples_per_s", "compile_s")  # run-time figures: the only fields two runs differ in
 
 
 @pytest.fixture(scope="module")
@@ -51,15 +54,32 @@ def site(tmp_path_factory):
 
 
 def _batch(site, *args, timeout=240):
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     return subprocess.run([PDR_MAG, "batch", *args], cwd=site, capture_output=True, text=True,
-                          timeout=timeout, env=env)
+                          timeout=timeout)
+
+
+@contextmanager
+def _dashboard_port_taken():
+    """Port 8787 (Dask's dashboard) in use while the block runs: held here, unless another process has it."""
+    s = socket.socket()
+    try:
+        s.bind(("", 8787))
+        s.listen(1)
+    except OSError:
+        pass  # taken already
+    try:
+        yield
+    finally:
+        s.close()
 
 
 @pytest.fixture(scope="module")
 def local(site):
-    """``pdr-mag batch replay in junk.bin --out out-local`` on the local cluster of 2 processes."""
-    proc = _batch(site, "replay", "in", "junk.bin", "--out", "out-local", "--workers", "2", "--no-progress")
+    """``pdr-mag batch replay in junk.bin --out out-local`` on the local cluster of 2 processes, while another
+    dashboard holds port 8787."""
+    with _dashboard_port_taken():
+        proc = _batch(site, "replay", "in", "junk.bin", "--out", "out-local", "--workers", "2",
+                      "--no-progress")
     return proc, site / "out-local"
 
 
@@ -114,6 +134,23 @@ def test_local_batch_table_complete_errors_named_exit_2(local):
     assert [ln.split()[0] for ln in lines[3:9]] == ["error"] * 3 + ["ok"] * 3
     hidden = [p for p in out.rglob(".*")]
     assert hidden == []  # no staging folder left behind
+
+
+def test_no_dashboard_and_no_warning_text_unless_asked(local, site):
+    """With port 8787 taken (another cluster's dashboard), a run without --dashboard says nothing about
+    it: its stderr is empty (the errors are rows of the table). --dashboard prints where the dashboard is
+    (or, without bokeh, which Dask's dashboard needs, says so in one line)."""
+    proc, _ = local
+    assert proc.stderr == ""
+    with _dashboard_port_taken():
+        dash = _batch(site, "replay", "in/walk", "--out", "out-dash", "--workers", "1", "--no-progress",
+                      "--dashboard")
+    if importlib.util.find_spec("bokeh") is None:
+        assert dash.returncode == 2 and dash.stderr == (
+            "pdr-mag: --dashboard needs bokeh, which is not installed (pip install 'pdr_mag[dashboard]')\n")
+    else:
+        assert dash.returncode == 0, dash.stderr
+        assert re.fullmatch(r"dashboard: http://[\w.:-]+:(\d+)/status\n", dash.stderr), dash.stderr
 
 
 def test_batch_replay_identical_to_the_single_command(local, tmp_path, monkeypatch):

@@ -185,11 +185,15 @@ def test_binary_file_is_a_bad_header_in_one_line(work):
                            line=1)
 
 
-def test_text_in_a_number_column_names_the_line(work):
+def test_text_in_a_number_column_is_an_odd_sample_named_in_the_output(work):
+    """A garbled row inside a good file is dropped and counted: exit 0, the row named in the JSON."""
     rec = _copy(work, "text_cell")
     t = (rec / "accel.csv").read_text().splitlines()[11].split(",")[0]
     _edit_lines(rec / "accel.csv", {12: f"{t},1.0,abc,9.8"})
-    assert_one_line_exit_2(pdr_mag("calibrate", rec, cwd=work), rec / "accel.csv", "'abc'", line=12)
+    res = pdr_mag("calibrate", rec, "--json", work / "text_cell.json", cwd=work)
+    assert res.returncode == 0 and res.stderr == "", res.stderr
+    extra = json.loads((work / "text_cell.json").read_text())["extra"]
+    assert extra["dropped_samples"] == {"accel:non_numeric": 1}
 
 
 def test_time_going_backwards_names_the_line(work):

@@ -30,6 +30,33 @@ def test_list_shows_scenarios_and_effects_with_units(capsys):
         assert re.search(rf"^\s+{e.name}\s+{re.escape(e.unit)}\s", out, re.M)
 
 
+def test_list_columns_line_up_and_help_is_plain_text(capsys):
+    """Every row of a ``--list`` table has its columns at the same place (durations right-aligned, the
+    other cells left-aligned); ``--help`` is text for a terminal, without reStructuredText markup."""
+    assert main(["simulate", "--list"]) == 0
+    out = capsys.readouterr().out
+    # section heading → (a row's pattern, the places that must agree: end of group 1 / start of the others)
+    tables = {
+        "scenarios:": (r"^  \S+ +(\d+ s)  (\S)", lambda m: (m.end(1), m.start(2))),
+        "effects (": (r"^  \S+ +(\S+) +(\S)", lambda m: (m.start(1), m.start(2))),
+        "phones (": (r"^  \S+ +(\S)", lambda m: (m.start(1),)),
+    }
+    rows: dict[str, list[str]] = {h: [] for h in tables}
+    head = None
+    for line in out.splitlines():
+        if not line.startswith(" "):
+            head = next((h for h in tables if line.startswith(h)), None)
+        elif head is not None:
+            rows[head].append(line)
+    assert len(rows["scenarios:"]) == len(SCENARIOS) and len(rows["effects ("]) == len(EFFECTS)
+    for head, (pattern, places) in tables.items():
+        assert rows[head], head
+        assert len({places(re.match(pattern, row)) for row in rows[head]}) == 1, rows[head]
+    assert main(["simulate", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "Write a simulated pdr-csv recording" in text and "`" not in text
+
+
 def test_round_trip_through_the_reader(tmp_path, capsys):
     out = tmp_path / "rec"
     argv = [

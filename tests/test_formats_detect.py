@@ -95,9 +95,11 @@ def _one_line_exit_2(capsys, argv, must_name):
 @pytest.mark.parametrize(
     "name,file,old,new,where",
     [
-        ("sensorlogger_android", "Gyroscope.csv", "0.010000000,", "0.01000x000,", "Gyroscope.csv:3"),
-        ("phyphox", "Magnetometer.csv", "E+01", "E+0x", "Magnetometer.csv:2"),
-        ("msindoor_small.txt", None, "72.0\t-85.0", "7x.0\t-85.0", "msindoor_small.txt:25"),
+        ("sensorlogger_android", "Gyroscope.csv", "0.010000000,", "-0.010000000,", "Gyroscope.csv:3"),
+        ("phyphox", "Magnetometer.csv", "4.000000000E-03,5.010257830E+00,", "4.000000000E-03\n",
+         "Magnetometer.csv:2"),
+        ("msindoor_small.txt", None, "72.0\t-85.0\t-340.0\t50.0\t-90.0\t-300.0\t3", "72.0\t-85.0",
+         "msindoor_small.txt:25"),
         ("ipin_small.txt", None, "MAGN;0.226;5123.022000", "MAGN;0.226;5122.022000", "ipin_small.txt:21"),
     ],
 )
@@ -137,7 +139,7 @@ def test_cli_calibrates_a_raw_tyrex_recording(tmp_path, capsys):
 def _bad_tyrex(tmp_path):
     from tests.test_formats_tyrex import _android
 
-    return _android(tmp_path, "0.0 30 0 -30\n0.02 30 x -30\n"), "magnetometer.txt:2"
+    return _android(tmp_path, "0.0 30 0 -30\n0.02 30\n"), "magnetometer.txt:2"
 
 
 def _bad_sunsided(tmp_path):

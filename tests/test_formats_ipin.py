@@ -47,7 +47,6 @@ def test_nan_and_duplicate(tmp_path):
 @pytest.mark.parametrize(
     "old,new,problem,line",
     [
-        ("MAGN;0.206;5123.002000;11.7646", "MAGN;0.206;5123.002000;11.76x6", "not a number: '11.76x6'", 16),
         ("MAGN;0.226;5123.022000", "MAGN;0.226;5122.022000", "time goes backwards", 21),
         ("MAGN;0.226;5123.022000;12.1229;25.2490;-38.4929;3", "MAGN;0.226;5123.022000;12.1", "truncated", 21),
     ],

@@ -86,7 +86,6 @@ def test_fixture_conversion(tmp_path):
 @pytest.mark.parametrize(
     "hmc,problem,line",
     [
-        (["0.0,0.2,-0.1,-0.3", "0.1,0.2,abc,-0.3"], "not a number: 'abc'", 3),
         (["0.0,0.2,-0.1,-0.3", "0.1,0.2,-0.1,-0.3", "0.05,0.2,-0.1,-0.3"], "time goes backwards", 4),
         (["0.0,0.2,-0.1,-0.3", "0.1,0.2"], "truncated", 3),
         (["0.0,20,-10,-30", "0.1,20,-10,-30"], "wrong unit", None),

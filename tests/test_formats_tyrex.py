@@ -76,7 +76,6 @@ def test_fixture_android_nan_and_duplicate(tmp_path):
 @pytest.mark.parametrize(
     "mag,problem,line",
     [
-        ("0.0 30 0 -30\n0.02 30 x -30\n", "not a number: 'x'", 2),
         ("0.0 30 0 -30\n0.02 30 0 -30\n0.01 30 0 -30\n", "time goes backwards", 3),
         ("0.0 30 0 -30\n0.02 30 0 -30\n0.04 30\n", "truncated", 3),
         ("0.0 30000 0 -30000\n0.02 30000 0 -30000\n", "wrong unit", None),
@@ -155,13 +154,14 @@ def test_ios_states_no_estimate():
 
 def test_fixture_android_estimates(tmp_path):
     """The estimate of the first kept sample; changes at the samples carrying them; odd cells counted; rows
-    the stream drops (NaN, repeated time) say nothing."""
+    the stream drops (NaN, repeated time, garbled: text in a cell, an eighth field) say nothing."""
     mag = (
         "0.00 30 0 -30 1 2 3\n"
         "0.02 nan 1 -30 9 9 9\n"  # dropped sample
         "0.04 30 1 -30 1 2 3\n"
         "0.04 30 1 -30 8 8 8\n"  # repeated time: dropped
-        "0.06 31 1 -30 1 2 x\n"  # odd estimate
+        "0.06 31 1 -30 7 7 x\n"  # garbled (text in the estimate): dropped whole
+        "0.07 31 1 -30 5 5 5 1\n"  # garbled (an eighth field): dropped whole
         "0.08 31 1 -30 1.5 2 3\n"
         "0.10 31 1 -30 1.5 2\n"  # a column missing: odd
         "0.12 31 1 -30\n"  # no estimate stated
@@ -172,10 +172,11 @@ def test_fixture_android_estimates(tmp_path):
         "[Device]\nModel = Phone\nManufacturer = Acme\nID = 0123abcd\n\n[Time]\nStartTime = 1464686052\n"
     )
     rec = read_recording(d)
-    assert len(rec.mag) == 7 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
+    assert len(rec.mag) == 6 and rec.dropped["mag:nan"] == 1 and rec.dropped["mag:duplicate_t"] == 1
+    assert rec.dropped["mag:non_numeric"] == 1 and rec.dropped["mag:extra_fields"] == 1
     assert rec.meta["mag_os_bias_uT"] == [1.0, 2.0, 3.0]
     assert rec.meta["mag_os_bias_changes"] == [[0.08, 1.5, 2.0, 3.0]]
-    assert rec.dropped["mag_os_bias:nan"] == 3
+    assert rec.dropped["mag_os_bias:nan"] == 2
     assert rec.meta["gyro_os_bias_rad_s"] == [0.0, 0.0, 0.0] and rec.meta["gyro_os_bias_changes"] == []
     assert rec.meta["device_id"] == "0123abcd" and rec.meta["device"] == "Acme Phone"
 

@@ -46,7 +46,6 @@ def test_fixture_units(tmp_path):
 @pytest.mark.parametrize(
     "rows,header,problem,line",
     [
-        (["0,0,0,0,0,0,1,20,0,-40", "0.01,0,0,0,0,0,1,2o,0,-40"], HEADER, "not a number: '2o'", 3),
         (["0,0,0,0,0,0,1,20,0,-40", "0.01,0,0,0"], HEADER, "truncated", 3),
         (
             ["0,0,0,0,0,0,1,20,0,-40", "0.01,0,0,0,0,0,1,21,0,-40"],

@@ -122,6 +122,12 @@ class Projection:
     signed orthogonal distance is ``d = t |p / a²|`` (positive outside), the unit normal is
     ``n = V (p/a²) / |p/a²|`` and ``u = L⁻¹(x − b) = V (p / a)``.
 
+    Two samples have no foot point from the iteration, and are set apart where the division would meet
+    zero: one exactly at the centre (``y = 0``: the secular function is −1 for every t, its derivative 0)
+    has the ends of the shortest axis as its nearest points, ``p = (a₀, 0, 0)``, ``t = −a₀²``, ``d = −a₀``
+    (closed form); one whose ``t`` lands exactly on a pole ``t = −a_k²`` (where ``p_k`` is undefined) stops
+    iterating and takes the radial point below, as the samples inside the evolute do.
+
     Attributes
     ----------
     d : (N,) signed orthogonal distance, µT.  x : (N, 3) foot points.  u : (N, 3) unit directions.
@@ -139,23 +145,34 @@ class Projection:
         y = v.T @ (mag - b).T
         yy = y * y
         r = np.sqrt(yy[0] + yy[1] + yy[2])
+        centre = r == 0.0
         s = np.sqrt(yy[0] / a2[0] + yy[1] / a2[1] + yy[2] / a2[2])
-        s[s == 0] = 1.0
+        s[centre] = 1.0
         t = (r / s) ** 2 * (s - 1.0)  # radial approximation a_eff²(s − 1), exact for a sphere
         lo = -a2[0] * (1.0 - 1e-12)
         ay2 = a2[:, None] * yy
+        pole = np.zeros_like(centre)  # t exactly at some −a_k²: no Newton step from there
+        step = np.zeros_like(t)
+        q, qd = np.zeros_like(ay2), np.zeros_like(ay2)  # a_k² y_k² / d_k², and that over d_k (d_k = a_k² + t)
         for _ in range(iters):
-            d0, d1, d2 = a2[0] + t, a2[1] + t, a2[2] + t
-            q0, q1, q2 = ay2[0] / (d0 * d0), ay2[1] / (d1 * d1), ay2[2] / (d2 * d2)
-            f = q0 + q1 + q2 - 1.0
-            fp = -2.0 * (q0 / d0 + q1 / d1 + q2 / d2)
-            step = f / fp
+            dk = a2[:, None] + t
+            pole |= np.any(dk == 0.0, axis=0)
+            go = ~(centre | pole)
+            np.divide(ay2, dk * dk, out=q, where=go)
+            np.divide(q, dk, out=qd, where=go)
+            f = q[0] + q[1] + q[2] - 1.0
+            fp = -2.0 * (qd[0] + qd[1] + qd[2])  # < 0 wherever go (some q_k > 0)
+            np.divide(f, fp, out=step, where=go)
             t = np.maximum(t - step, 0.5 * (t + lo))
             if np.max(np.abs(step)) < tol * (a2[0] + np.max(np.abs(t))):
                 break
-        p = a2[:, None] * y / (a2[:, None] + t)
+        dk = a2[:, None] + t
+        pole |= np.any(dk == 0.0, axis=0)
+        live = ~(centre | pole)
+        p = np.zeros_like(y)
+        np.divide(a2[:, None] * y, dk, out=p, where=live)
         pa = p / a[:, None]
-        bad = ~np.isfinite(t) | (np.abs(pa[0] ** 2 + pa[1] ** 2 + pa[2] ** 2 - 1.0) > 1e-8)
+        bad = pole | (live & (~np.isfinite(t) | (np.abs(pa[0] ** 2 + pa[1] ** 2 + pa[2] ** 2 - 1.0) > 1e-8)))
         if np.any(bad):
             # inside the evolute (deeper than the smallest radius of curvature — never the case for samples
             # within noise of the surface) the secular root can be missing: fall back to the radial point
@@ -163,7 +180,10 @@ class Projection:
             p[:, bad] = pr
             w = pr / a2[:, None]
             t[bad] = np.sum((y[:, bad] - pr) * w, axis=0) / np.sum(w * w, axis=0)
-            pa = p / a[:, None]
+        if np.any(centre):
+            p[:, centre] = np.array([a[0], 0.0, 0.0])[:, None]
+            t[centre] = -a2[0]
+        pa = p / a[:, None]
         pn = p / a2[:, None]
         pn_norm = np.sqrt(pn[0] ** 2 + pn[1] ** 2 + pn[2] ** 2)
         self.d = t * pn_norm

@@ -18,11 +18,15 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
+import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from multiprocessing import resource_tracker
 from pathlib import Path
 
 from replay.batch.inputs import find_recordings
@@ -124,10 +128,31 @@ def default_workers() -> int:
         return os.cpu_count() or 1
 
 
+#: The port Dask's dashboard usually has; a local cluster's dashboard takes it when it is free.
+DASHBOARD_PORT = 8787
+
+
+def _dashboard_address() -> str:
+    """``:8787`` when that port is free here, else ``:0`` (a free port the system picks): Dask would otherwise
+    warn that the port is in use (another cluster's dashboard) before taking another one."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("", DASHBOARD_PORT))
+        except OSError:
+            return ":0"
+    return f":{DASHBOARD_PORT}"
+
+
 @contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None):
+def dask_client(workers: int | None = None, scheduler: str | None = None, dashboard: bool = False):
     """A ``distributed.Client``: of the cluster at ``scheduler``, else of a local cluster of ``workers``
-    single-threaded worker processes (default :func:`default_workers`), started here and stopped on exit."""
+    single-threaded worker processes (default :func:`default_workers`), started here and stopped on exit.
+
+    A local cluster has a dashboard only when asked (``dashboard``: on port :data:`DASHBOARD_PORT` if free,
+    else on any free port; ``client.dashboard_link`` says where). Without one, the scheduler's HTTP endpoints
+    (health checks) listen on a free port of the loopback interface: no port is taken that another
+    cluster's dashboard might hold, and nothing is said about it.
+    """
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -152,8 +177,10 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
         _quiet_resource_tracker()
         try:
+            http = {"dashboard_address": _dashboard_address()} if dashboard else {
+                "dashboard_address": None, "scheduler_kwargs": {"dashboard_address": "127.0.0.1:0"}}
             cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
-                                   processes=True, dashboard_address=None, silence_logs=logging.CRITICAL)
+                                   processes=True, silence_logs=logging.CRITICAL, **http)
         finally:
             if main:
                 signal.signal(signal.SIGINT, handler)
@@ -191,9 +218,6 @@ def _quiet_resource_tracker() -> None:
     ``KeyError`` tracebacks about semaphores it no longer knows (a CPython quirk with spawned processes);
     the batch itself handles the death (the recording is rescheduled), so they are noise on the terminal.
     """
-    import sys
-    from multiprocessing import resource_tracker
-
     if getattr(resource_tracker._resource_tracker, "_fd", None) is not None:
         return
     try:
@@ -225,8 +249,6 @@ class _Progress:
     """A bar over recordings: done, failed, running, ETA (tqdm on stderr), or nothing."""
 
     def __init__(self, total: int, desc: str, enabled: bool | None):
-        import sys
-
         if enabled is None:
             enabled = sys.stderr.isatty()
         self.bar = None
@@ -246,7 +268,8 @@ class _Progress:
 
 
 def execute(tasks, client=None, workers: int | None = None, scheduler: str | None = None,
-            progress: bool | None = None, desc: str = "batch") -> list[dict]:
+            progress: bool | None = None, desc: str = "batch",
+            dashboard: Callable[[str], None] | None = None) -> list[dict]:
     """Run ``tasks`` on Dask and return their rows, in task order.
 
     Parameters
@@ -258,13 +281,18 @@ def execute(tasks, client=None, workers: int | None = None, scheduler: str | Non
         Without ``client``: :func:`dask_client`'s (a local cluster, or the cluster at ``scheduler``).
     progress : bool or None
         Progress bar on stderr (None: when stderr is a terminal).
+    dashboard : callable, optional
+        Without ``client``: ask for the local cluster's dashboard and give its address (or, with
+        ``scheduler``, that cluster's) to this callable once the cluster is up. None: no dashboard.
     """
     tasks = list(tasks)
     if not tasks:
         return []
     if client is None:
         n = min(workers or default_workers(), len(tasks))
-        with dask_client(n, scheduler) as own:
+        with dask_client(n, scheduler, dashboard=dashboard is not None) as own:
+            if dashboard is not None:
+                dashboard(own.dashboard_link)
             return execute(tasks, client=own, progress=progress, desc=desc)
     from distributed import as_completed
 

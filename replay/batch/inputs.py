@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from replay.errors import InputError
+from replay.formats import detect, open_recording
 
 #: File-name suffix of a manifest.
 MANIFEST_SUFFIX = ".manifest"
@@ -62,16 +63,8 @@ class Item:
     error: str | None = None
 
 
-def _detect(path: Path) -> str | None:
-    from replay.formats import detect
-
-    return detect(path)
-
-
 def _unrecognised(path: Path) -> str:
     """The one-line message the single commands give for a path no reader recognises."""
-    from replay.formats import open_recording
-
     try:
         open_recording(path)
     except InputError as exc:
@@ -103,7 +96,7 @@ def _search(folder: Path, label: str, key: str, skip: set[str], seen: set[str]):
             continue
         if is_dir and os.path.realpath(path) in skip:
             continue
-        if _detect(path) is not None:
+        if detect(path) is not None:
             yield Item(sub_label, os.path.abspath(path), sub_key)
         elif is_dir:
             yield from _search(path, sub_label, sub_key, skip, seen)
@@ -147,7 +140,7 @@ def _named(path: Path, label: str, key: str, calibration: str | None = None) -> 
     """A recording named explicitly (on the command line or in a manifest)."""
     if not path.exists():
         return Item(label, str(path), error=f"{label}: no such file or directory")
-    if _detect(path) is None:
+    if detect(path) is None:
         msg = _unrecognised(path)
         return Item(label, str(path), error=msg.replace(str(path), label))
     return Item(label, str(path), key, calibration)
@@ -171,7 +164,7 @@ def find_recordings(inputs, skip=()) -> list[Item]:
         absolute = Path(os.path.abspath(p))
         if p.is_file() and p.name.endswith(MANIFEST_SUFFIX):
             items.extend(_manifest(p, label))
-        elif not p.exists() or _detect(p) is not None or not p.is_dir():
+        elif not p.exists() or detect(p) is not None or not p.is_dir():
             items.append(_named(absolute, label, absolute.name))
         else:
             items.extend(_search(p, label, absolute.name, skip_real, set()))

@@ -36,8 +36,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from replay.batch.metrics import FleetMetrics
 from replay.batch.table import EVENT_COLUMNS, empty_row, error_row
+from replay.commands import calibrate, diagnose
+from replay.commands import replay as replay_command
 from replay.errors import InputError
+from replay.run import load_calibration
 
 #: The file in each output folder holding its fleet-table row and how it was made.
 ROW_FILE = "batch.json"
@@ -120,7 +124,6 @@ def completed_row(task: Task) -> dict | None:
 def run_task(task: Task) -> dict:
     """Process one recording and return its fleet-table row; never raises for the recording's own problems
     (bad input, or any failure inside the work: ``status`` error, the one-line message in ``error``)."""
-    _import(task.command)
     t_start = time.perf_counter()
     out = task.output
     stage = out.with_name(f".{out.name}.part-{uuid.uuid4().hex[:12]}")
@@ -150,18 +153,6 @@ def run_task(task: Task) -> dict:
     finally:
         if stage.exists():
             shutil.rmtree(stage, ignore_errors=True)
-
-
-def _import(command: str) -> None:
-    """Import the command's code before the clock starts: a worker's first task does not count the
-    one-time imports (and the compiled kernels' loading) as its own time."""
-    import importlib
-
-    importlib.import_module(f"replay.commands.{command}")
-    if command == "replay":
-        importlib.import_module("replay.batch.metrics")
-        importlib.import_module("pdr_mag.pipeline")
-        importlib.import_module("replay.formats")
 
 
 def _remove_stale(out: Path) -> None:
@@ -219,14 +210,10 @@ def _calibration(row: dict, cal: dict) -> None:
 
 
 def _run_replay(task: Task, stage: Path) -> dict:
-    from replay.batch.metrics import FleetMetrics
-    from replay.commands import replay as cmd
-    from replay.run import load_calibration
-
     cal = load_calibration(task.calibration_path) if task.calibration_path else None
     metrics = FleetMetrics()
     o = task.options
-    summary = cmd.run(
+    summary = replay_command.run(
         Path(task.path), cal, out_csv=stage / "heading.csv", json_path=stage / "replay.json",
         mcap=stage / "replay.mcap" if o.get("mcap") else None,
         rrd=stage / "replay.rrd" if o.get("rrd") else None,
@@ -267,10 +254,8 @@ def _run_replay(task: Task, stage: Path) -> dict:
 
 
 def _run_calibrate(task: Task, stage: Path) -> dict:
-    from replay.commands import calibrate as cmd
-
-    res = cmd.run(Path(task.path), task.options.get("method", "auto"), source=task.label)
-    cmd.write(res.calibration, stage / "calibration.json")
+    res = calibrate.run(Path(task.path), task.options.get("method", "auto"), source=task.label)
+    calibrate.write(res.calibration, stage / "calibration.json")
     row = empty_row(task.label, task.key)
     _common(row, res.recording)
     _calibration(row, res.calibration.to_dict())
@@ -278,12 +263,10 @@ def _run_calibrate(task: Task, stage: Path) -> dict:
 
 
 def _run_diagnose(task: Task, stage: Path) -> dict:
-    from replay.commands import diagnose as cmd
-
-    res = cmd.run(Path(task.path), use_truth=bool(task.options.get("use_truth")), source=task.label)
-    cmd.write_json(res.result, stage / "diagnose.json")
+    res = diagnose.run(Path(task.path), use_truth=bool(task.options.get("use_truth")), source=task.label)
+    diagnose.write_json(res.result, stage / "diagnose.json")
     if task.options.get("report"):
-        cmd.write_report_dir(res, stage / "report", title=task.label)
+        diagnose.write_report_dir(res, stage / "report", title=task.label)
     row = empty_row(task.label, task.key)
     _common(row, res.recording)
     d = res.result

@@ -10,7 +10,8 @@ redoes them).
 
 By default the recordings run on a local Dask cluster of ``--workers`` processes started and stopped here;
 ``--scheduler tcp://HOST:8786`` sends them to an existing cluster (its workers need pdr_mag installed and
-the recordings and DIR on paths they share).
+the recordings and DIR on paths they share). The local cluster has no dashboard unless ``--dashboard``
+(which prints its address on stderr).
 """
 
 from __future__ import annotations
@@ -20,8 +21,12 @@ from pathlib import Path
 
 import click
 
+from replay.batch import execute, headline, plan, write_table
+from replay.batch.engine import Interrupted
 from replay.commands.calibrate import METHODS
+from replay.commands.diagnose import need_matplotlib
 from replay.errors import InputError
+from replay.run import load_calibration
 
 
 def _common(f):
@@ -39,6 +44,9 @@ def _common(f):
                      help="Progress bar over recordings (default: on a terminal)."),
         click.option("--top", type=click.IntRange(min=0), default=10, show_default=True,
                      help="Rows of the fleet table printed at the end (worst first)."),
+        click.option("--dashboard", is_flag=True,
+                     help="Start the local cluster's Dask dashboard and print its address (port 8787 if "
+                          "free); with --scheduler, print that cluster's."),
     ]
     for opt in reversed(options):
         f = opt(f)
@@ -56,46 +64,55 @@ def command() -> None:
               help="calibrate --json file for every recording a manifest gives none.")
 @click.option("--mcap", is_flag=True, help="Also write replay.mcap per recording.")
 @click.option("--rrd", is_flag=True, help="Also write replay.rrd (rerun) per recording.")
-def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, calibration, mcap, rrd):
+def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, calibration, mcap, rrd):
     """Replay every recording: heading.csv and replay.json per recording (pdr-mag replay's files)."""
     return _run("replay", inputs, out_dir, {"mcap": mcap, "rrd": rrd}, calibration, workers, scheduler,
-                force, progress, top)
+                force, progress, top, dashboard)
 
 
 @command.command("calibrate")
 @_common
 @click.option("--method", type=click.Choice(METHODS),
               default="auto", show_default=True, help="Estimator (as pdr-mag calibrate).")
-def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, method):
+def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, method):
     """Calibrate every recording: calibration.json per recording (pdr-mag calibrate --json)."""
     return _run("calibrate", inputs, out_dir, {"method": method}, None, workers, scheduler, force, progress,
-                top)
+                top, dashboard)
 
 
 @command.command("diagnose")
 @_common
 @click.option("--report", is_flag=True, help="Also write report/ (report.md with plots) per recording.")
 @click.option("--use-truth", is_flag=True, help="Predict along truth.csv (as pdr-mag diagnose).")
-def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, report, use_truth):
+def diagnose_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, report, use_truth):
     """Diagnose every recording: diagnose.json per recording (pdr-mag diagnose --json)."""
     if report:
-        from replay.commands.diagnose import need_matplotlib
-
         need_matplotlib()
     return _run("diagnose", inputs, out_dir, {"report": report, "use_truth": use_truth}, None, workers,
-                scheduler, force, progress, top)
+                scheduler, force, progress, top, dashboard)
+
+
+def _say_dashboard(address: str) -> None:
+    click.echo(f"dashboard: {address}", err=True)
+
+
+def need_bokeh() -> None:
+    """A click error when ``--dashboard`` cannot be served (bokeh missing: Dask's dashboard draws with it)."""
+    try:
+        import bokeh  # noqa: F401
+    except ImportError:
+        raise click.ClickException(
+            "--dashboard needs bokeh, which is not installed (pip install 'pdr_mag[dashboard]')"
+        ) from None
 
 
 def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler, force, progress,
-         top) -> int:
-    from replay.batch import execute, headline, plan, write_table
-    from replay.batch.engine import Interrupted
-
+         top, dashboard=False) -> int:
     if scheduler is not None and workers is not None:
         raise click.UsageError("--workers sets the local cluster; with --scheduler the cluster has its own")
+    if dashboard and scheduler is None:
+        need_bokeh()
     if calibration is not None:
-        from replay.run import load_calibration
-
         load_calibration(calibration)  # a bad file stops the batch here, not once per recording
     t_start = time.perf_counter()
     p = plan(command_name, inputs, out_dir, options=options, calibration=calibration, force=force)
@@ -103,7 +120,7 @@ def _run(command_name, inputs, out_dir, options, calibration, workers, scheduler
         raise InputError(" ".join(str(i) for i in inputs), "no recording found")
     try:
         rows = p.table(execute(p.tasks, workers=workers, scheduler=scheduler, progress=progress,
-                               desc=f"batch {command_name}"))
+                               desc=f"batch {command_name}", dashboard=_say_dashboard if dashboard else None))
     except Interrupted as exc:
         raise click.ClickException(
             f"interrupted after {exc.n_done} of {exc.n_tasks} recordings had reported back; the same command "

@@ -10,17 +10,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
+from pdr_mag.calibration import calibrate
+from pdr_mag.calibration.alignment import quasi_static_accel
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.field import earth_field_from_meta
 from replay.commands._output import writable_file
 from replay.errors import InputError
-
-if TYPE_CHECKING:
-    from pdr_mag.calibration.model import MagCalibration
-    from replay.recording import Recording
+from replay.formats import read_recording
+from replay.recording import Recording
 
 #: the estimators `--method` accepts (also `pdr-mag batch calibrate`)
 METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep")
@@ -59,11 +60,6 @@ class CalibrateResult:
 def run(rec: Path, method: str = "auto", source: str | None = None) -> CalibrateResult:
     """What ``pdr-mag calibrate`` does with one recording (``source``: the name ``extra.source`` gives it,
     when it is read under another path); :class:`InputError` on bad input."""
-    from pdr_mag.calibration import calibrate
-    from pdr_mag.calibration.alignment import quasi_static_accel
-    from pdr_mag.field import earth_field_from_meta
-    from replay.formats import read_recording
-
     recording = read_recording(rec)
     mag_file = rec / "mag.csv" if rec.is_dir() else rec
     mag = np.asarray(recording.mag.xyz, dtype=float)

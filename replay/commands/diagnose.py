@@ -12,16 +12,16 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
+from pdr_mag.modelcheck import diagnose
+from pdr_mag.modelcheck.report import write_report
 from replay.commands._output import writable_dir, writable_file
 from replay.errors import InputError
-
-if TYPE_CHECKING:
-    from replay.recording import Recording
+from replay.formats import read_recording
+from replay.recording import Recording
 
 
 def _temperature(recording):
@@ -98,9 +98,6 @@ def need_matplotlib() -> None:
 def run(rec: Path, use_truth: bool = False, source: str | None = None) -> DiagnoseResult:
     """What ``pdr-mag diagnose`` does with one recording (``source``: the name the result gives it, when it
     is read under another path); :class:`InputError` on bad input."""
-    from pdr_mag.modelcheck import diagnose
-    from replay.formats import read_recording
-
     recording = read_recording(rec)
     if use_truth:
         if recording.truth is None:
@@ -143,8 +140,6 @@ def write_json(out: dict, json_path: Path) -> None:
 
 def write_report_dir(res: DiagnoseResult, report_dir: Path, title: str) -> None:
     """Write ``report.md`` with plots into ``report_dir`` (needs matplotlib)."""
-    from pdr_mag.modelcheck.report import write_report
-
     try:
         write_report(res.diagnosis, report_dir, title=title)
     except OSError as exc:

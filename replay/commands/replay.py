@@ -10,7 +10,10 @@ from pathlib import Path
 import click
 
 from replay.commands._output import writable_file
+from replay.compiling import announced
 from replay.errors import InputError
+from replay.formats import open_recording
+from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
 
 
 @click.command()
@@ -36,8 +39,6 @@ from replay.errors import InputError
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
 def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
-    from replay.run import load_calibration, summary_table
-
     cal = load_calibration(calibration) if calibration is not None else None
     if cal is not None and not cal.accepted:
         why = "; ".join(cal.reasons) or "no reason given"
@@ -45,8 +46,9 @@ def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, 
         click.echo(msg, err=True)
     if mcap_rate is not None and mcap is None:
         raise click.UsageError("--mcap-rate needs --mcap FILE")
-    summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate, rrd=rrd,
-                  viewer=viewer, progress=progress)
+    with announced():
+        summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate,
+                      rrd=rrd, viewer=viewer, progress=progress)
     if not quiet:
         click.echo(summary_table(summary))
     return 0
@@ -81,9 +83,6 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
     dict
         The run summary (the ``replay --json`` object).
     """
-    from replay.formats import open_recording
-    from replay.run import CsvSink, make_sink, replay
-
     for p in (out_csv, json_path, mcap, rrd):
         if p is not None:
             writable_file(p)

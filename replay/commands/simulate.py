@@ -37,16 +37,20 @@ def _fmt_default(v) -> str:
 
 
 def _listing() -> str:
-    lines = ["scenarios:"]
-    for s in SCENARIOS.values():
-        extra = "".join(f"; default {k}={_fmt_default(v)}" for k, v in s.default_effects.items())
-        lines.append(f"  {s.name:<9} {s.default_duration_s:>5.0f} s  {s.description}{extra}")
-    lines.append("effects (NAME=VALUE, NAME=off):")
+    """``--list``: the scenarios, effects and phones, each table's columns as wide as its longest entry."""
+    scenarios = [
+        (s.name, f"{s.default_duration_s:.0f} s",
+         s.description + "".join(f"; default {k}={_fmt_default(v)}" for k, v in s.default_effects.items()))
+        for s in SCENARIOS.values()
+    ]
+    effects = []
     for e in EFFECTS.values():
         d = DEFAULT_EFFECTS.get(e.name)
         dflt = f"  [default {_fmt_default(d)}]" if d is not None else ""
-        lines.append(f"  {e.name:<21} {e.unit:<7} {e.description}; values: {e.cli}{dflt}")
+        effects.append((e.name, e.unit, f"{e.description}; values: {e.cli}{dflt}"))
     ph = PhoneSpec()
+    lines = ["scenarios:", *_columns(scenarios, right=(1,)), "effects (NAME=VALUE, NAME=off):",
+             *_columns(effects)]
     lines.append(
         f"phone: accel/gyro {ph.accel_rate_hz:g} Hz, mag {ph.mag_rate_hz:g} Hz (own jittered clocks, "
         f"{ph.drop_prob:.1%} dropped, gaps), noise accel {ph.accel_noise:g} m/s² "
@@ -55,13 +59,24 @@ def _listing() -> str:
         f"range ±{ph.accel_range:g} m/s² ±{ph.gyro_range:g} rad/s ±{ph.mag_range:g} µT"
     )
     lines.append("phones (--phone NAME; its effects are defaults under --effect):")
-    for p in PHONES.values():
-        lines.append(f"  {p.name:<9} {p.description}")
+    lines.extend(_columns([(p.name, p.description) for p in PHONES.values()]))
     lines.append(
         f"site: lat {DEFAULT_SITE['latitude_deg']}, lon {DEFAULT_SITE['longitude_deg']}, "
         f"{DEFAULT_SITE['date']} (WMM field; truth is device→ENU, true north)"
     )
     return "\n".join(lines)
+
+
+def _columns(rows: list[tuple[str, ...]], right: tuple[int, ...] = ()) -> list[str]:
+    """Rows of cells as indented lines, every column but the last padded to its widest cell (the columns in
+    ``right`` aligned right), so that each column starts at the same place on every line."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    lines = []
+    for r in rows:
+        padded = zip(r[:-1], widths, strict=True)
+        cells = [c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(padded)]
+        lines.append("  " + "  ".join([*cells, r[-1]]))
+    return lines
 
 
 def _parse_effects(items: tuple[str, ...]) -> dict:
@@ -77,7 +92,7 @@ def _parse_effects(items: tuple[str, ...]) -> dict:
     return out
 
 
-@click.command(help=__doc__.split("\n\n")[0])
+@click.command(help="Write a simulated pdr-csv recording (+ truth.csv, truth_position.csv).")
 @click.option("--scenario", help="scenario name (see --list)")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="random seed")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), help="output directory")

@@ -38,13 +38,16 @@ MagneticField).
 
 Errors and odd samples
 ----------------------
-A file that cannot be right (missing stream, bad header, text in a number column, time going backwards —
-also across chunks —, truncated file, implausible unit) raises :class:`~replay.errors.InputError` naming
-the file and, for text, the line. The unit is judged on a stream's first
-:data:`~replay.formats._common.UNIT_CHECK_SAMPLES` samples (median vector norm), a stream too short when it
-ends. Odd samples are counted in ``Recording.dropped`` under ``"<stream>:<reason>"``:
+A file that cannot be right (missing stream, bad header, a row with fewer fields than the format needs —
+a truncated file —, time going backwards — also across chunks —, implausible unit) raises
+:class:`~replay.errors.InputError` naming the file and, for text, the line. The unit is judged on a
+stream's first :data:`~replay.formats._common.UNIT_CHECK_SAMPLES` samples (median vector norm), a stream too
+short when it ends (its message then names the odd samples dropped from it). Odd samples are counted in
+``Recording.dropped`` under ``"<stream>:<reason>"``:
 
 * ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
+* ``extra_fields`` (a text row with more fields than the header or the format defines) and ``non_numeric``
+  (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
   the format states, else from :func:`replay.formats._common.flag_saturation`'s heuristic, run as the
   stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);
@@ -69,6 +72,7 @@ import importlib
 from pathlib import Path
 
 from replay.errors import InputError
+from replay.formats import _mcap
 from replay.recording import Recording
 
 #: Reader modules (under ``replay.formats``), in detection order: specific layouts before generic ones.
@@ -145,8 +149,6 @@ def _reader(p: Path, fmt: str | None):
         with p.open("rb") as fh:
             head = fh.read(8)
         if head.startswith(b"\x89MCAP"):
-            from replay.formats import _mcap
-
             raise InputError(p, _mcap.why_unknown(p))
         if head.startswith(b"MATLAB"):
             raise InputError(

@@ -9,6 +9,12 @@ Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilde
   when the reader knows that limit;
 * stores values in compact ``array('d')`` buffers (8 bytes a number, not a Python float object each).
 
+A garbled text row never reaches a builder as a sample: a row with more fields than the header (or the
+format) defines, :data:`EXTRA_FIELDS`, or with a field anywhere in it that is not a number,
+:data:`NON_NUMERIC`, is dropped and counted (:meth:`StreamBuilder.count`) by the parsers
+(:func:`iter_table`, :func:`numbers`), never read in part. A row with fewer fields than the format needs is a
+truncated file: an :class:`~replay.errors.InputError`.
+
 Readers stream: after every chunk (:data:`CHUNK` lines or messages) a parser hands the rows cleaned so far
 on (:meth:`StreamBuilder.take`), so a builder never holds more than one chunk. A :class:`StreamSpec` says
 how a stream's rows become the contract's units; its :class:`Converter` converts block by block and runs the
@@ -28,7 +34,12 @@ reads the files of a folder or a zip export as streams, :func:`iter_csv` reads q
 
 from __future__ import annotations
 
+import csv
+import io
+import itertools
 import math
+import zipfile
+import zlib
 from array import array
 from collections import Counter
 from collections.abc import Iterator
@@ -48,6 +59,11 @@ UNIT_CHECK_SAMPLES = 4096
 
 Block = tuple[np.ndarray, np.ndarray]
 
+#: Reasons a garbled text row is dropped (``"<stream>:<reason>"`` in ``dropped``): more fields than the
+#: header or the format defines, and a field (any of the row's) that is not a number.
+EXTRA_FIELDS = "extra_fields"
+NON_NUMERIC = "non_numeric"
+
 # Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
 UNIT_RANGES = {
     "mag": (5.0, 2000.0, "µT"),
@@ -64,13 +80,20 @@ def is_float(v: str) -> bool:
         return False
 
 
-def floats(path, lineno: int | None, parts) -> list[float]:
-    """``[float(p) for p in parts]``, or InputError naming the first cell that is not a number."""
+def numbers(parts, most: int) -> list[float] | None:
+    """Every field of a text row as a float, or None when the row is garbled — more than ``most`` fields, or
+    a field that is not a number (:func:`garbled` says which): an odd sample, never read in part."""
+    if len(parts) > most:
+        return None
     try:
         return [float(p) for p in parts]
     except ValueError:
-        bad = next(p for p in parts if not is_float(p))
-        raise InputError(path, f"not a number: {bad.strip()!r}", lineno) from None
+        return None
+
+
+def garbled(parts, most: int) -> str:
+    """Why :func:`numbers` refused a row: :data:`EXTRA_FIELDS` or :data:`NON_NUMERIC`."""
+    return EXTRA_FIELDS if len(parts) > most else NON_NUMERIC
 
 
 def open_text(path: Path):
@@ -150,7 +173,7 @@ class StreamBuilder:
         t = np.asarray(t, dtype=float)
         vals = np.asarray(vals, dtype=float).reshape(len(t), self.width)
         good = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
-        self._count("nan", int((~good).sum()))
+        self.count("nan", int((~good).sum()))
         t, vals = t[good], vals[good]
         rows = np.flatnonzero(good)
         if len(t) == 0:
@@ -163,16 +186,17 @@ class StreamBuilder:
             back, last = float(t[i]), float(prev[i])
             raise InputError(self.path, f"{self.key}: time goes backwards ({back!r} after {last!r})", line)
         keep = t != prev
-        self._count("duplicate_t", int((~keep).sum()))
+        self.count("duplicate_t", int((~keep).sum()))
         t, vals = t[keep], vals[keep]
         if self.limit is not None:
-            self._count("saturated", int(np.any(np.abs(vals) >= self.limit, axis=1).sum()))
+            self.count("saturated", int(np.any(np.abs(vals) >= self.limit, axis=1).sum()))
         if len(t):
             self.last_t = float(t[-1])
             self.t.frombytes(np.ascontiguousarray(t, dtype=float).tobytes())
             self.v.frombytes(np.ascontiguousarray(vals, dtype=float).tobytes())
 
-    def _count(self, reason: str, n: int) -> None:
+    def count(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` odd samples of this stream under ``"<key>:<reason>"``."""
         if n:
             self.dropped[f"{self.key}:{reason}"] += n
 
@@ -331,6 +355,10 @@ class Converter:
         sp = self.spec
         if self.n < sp.min_samples and not (sp.optional and self.n == 0):
             what = "no valid samples" if self.n == 0 else f"only {self.n} valid sample(s)"
+            prefix = f"{sp.key}:"
+            odd = [f"{k[len(prefix):]} {n}" for k, n in sorted(self.dropped.items()) if k.startswith(prefix)]
+            if odd:
+                what += f"; dropped: {', '.join(odd)}"
             raise InputError(sp.path, f"{sp.key}: empty stream ({what})")
         out = self._release() if self.held is not None else []
         if self.sat is not None:
@@ -387,8 +415,6 @@ class Bundle:
     """
 
     def __init__(self, path: Path):
-        import zipfile
-
         self.path = Path(path)
         self.zip = None
         if self.path.is_file():
@@ -430,8 +456,6 @@ class Bundle:
         return f"{self.path}!{name}" if self.zip is not None else str(self.path / name)
 
     def open(self, name: str):
-        import io
-
         if self.zip is None:
             return open_text(self.path / name)
         try:
@@ -447,15 +471,11 @@ class Bundle:
 
 def iter_csv(fh, where: str, delimiter: str = ","):
     """Yield ``(lineno, cells)`` of a CSV text stream; a damaged/truncated compressed member → InputError."""
-    import csv
-    import zlib
-    from zipfile import BadZipFile
-
     reader = csv.reader(fh, delimiter=delimiter)
     try:
         for cells in reader:
             yield reader.line_num, cells
-    except (BadZipFile, EOFError, zlib.error) as exc:
+    except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
         raise InputError(where, f"truncated or damaged archive member ({exc})", reader.line_num + 1) from None
     except csv.Error as exc:
         raise InputError(where, f"bad CSV ({exc})", reader.line_num) from None
@@ -477,6 +497,7 @@ def iter_table(
     tcol: int = 0,
     t_scale: float = 1.0,
     chunk: int | None = None,
+    most: int | None = None,
 ) -> Iterator[int]:
     """Parse numeric rows ``t, v…`` of a text stream in chunks into builders, with exact errors.
 
@@ -485,22 +506,24 @@ def iter_table(
     fh : text stream, positioned after any header.
     path : file named in errors.
     targets : list of (StreamBuilder, column indices of x, y, z).
-    ncol : the number of leading columns every row must have.
+    ncol : the number of leading columns every row must have (fewer: a truncated file, InputError).
     first_line : line number of the stream's next line.
     delimiter : None for whitespace, else e.g. ``","``.
     tcol, t_scale : the time column and its factor to seconds.
     chunk : lines a chunk, default :data:`CHUNK`.
+    most : the most fields a row may have (the header's or the format's count), default ``ncol``; a row
+        with more (:data:`EXTRA_FIELDS`) or with any field that is not a number (:data:`NON_NUMERIC`) is
+        dropped and counted in every target's stream.
 
     Yields the number of lines read so far after each chunk (the builders then hold that chunk's rows).
-    The fast path parses a chunk with :func:`numpy.loadtxt` and cleans it with
-    :meth:`StreamBuilder.add_block`; a chunk that does not parse (text in a number column, a short row, a
-    blank line) is re-read line by line so that the error names the exact line.
+    The fast path parses a chunk, every field of it, with :func:`numpy.loadtxt` and cleans it with
+    :meth:`StreamBuilder.add_block`; a chunk that does not parse that way (text in a field, a short or long
+    row, a blank line) is re-read line by line, so that an error names its exact line and only the garbled
+    rows are dropped.
     """
-    import itertools
-
     chunk = chunk or CHUNK
+    most = ncol if most is None else most
     lineno = first_line
-    cols = list(range(ncol))
     while True:
         lines = list(itertools.islice(fh, chunk))
         if not lines:
@@ -508,12 +531,10 @@ def iter_table(
         arr = None
         if all(ln.strip() for ln in lines):
             try:
-                arr = np.loadtxt(
-                    lines, delimiter=delimiter, usecols=cols, ndmin=2, dtype=float, comments=None
-                )
+                arr = np.loadtxt(lines, delimiter=delimiter, ndmin=2, dtype=float, comments=None)
             except ValueError:
                 arr = None
-        if arr is not None and arr.shape == (len(lines), ncol):
+        if arr is not None and len(arr) == len(lines) and ncol <= arr.shape[1] <= most:
             t = arr[:, tcol] * t_scale if t_scale != 1.0 else arr[:, tcol]
             for b, ix in targets:
                 b.add_block(t, arr[:, ix], first_line=lineno)
@@ -528,7 +549,11 @@ def iter_table(
                         f"expected at least {ncol} columns, got {len(parts)} (truncated file?)",
                         lineno + i,
                     )
-                vals = floats(path, lineno + i, parts[:ncol])
+                vals = numbers(parts, most)
+                if vals is None:
+                    for b, _ in targets:
+                        b.count(garbled(parts, most))
+                    continue
                 for b, ix in targets:
                     b.add(lineno + i, vals[tcol] * t_scale, [vals[j] for j in ix])
         lineno += len(lines)

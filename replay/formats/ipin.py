@@ -12,7 +12,10 @@ A text file: ``%`` lines are comments (the header documents the layout and names
   ``RotVecX()…RotVecZ()``), Accuracy — the phone's own fusion.
 
 Other records (``PRES``, ``WIFI``, ``GNSS``, ``BLE4``, …) are skipped. Android sensors in Android's
-frame and units: nothing is converted.
+frame and units: nothing is converted. An ``ACCE``, ``GYRO``, ``MAGN`` or ``POSI`` record with more fields
+than its type has (the six above) or with a field that is not a number (the floor and building of a ``POSI``
+may be text) is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``position:…``);
+one with fewer is a truncated file.
 
 Time. ``AppTimestamp`` is the app's clock (seconds since logging started), common to all records but
 stamped on delivery, so jittered; ``SensorTimestamp`` is the sensor's own, precise timestamp on its own
@@ -45,7 +48,17 @@ from pathlib import Path
 
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._common import (
+    EXTRA_FIELDS,
+    NON_NUMERIC,
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    every,
+    garbled,
+    numbers,
+    open_text,
+)
 from replay.formats._common import is_float as _is_number
 from replay.formats._phone import put_date
 from replay.recording import Recording
@@ -55,6 +68,7 @@ NAME = "ipin"
 _TYPES = {"ACCE": "accel", "GYRO": "gyro", "MAGN": "mag"}
 _UNITS = {"accel": "m/s²", "gyro": "rad/s", "mag": "µT"}
 _SAME_CLOCK_S = 0.5  # per-stream shifts closer than this: the sensors share one clock
+_FIELDS = 6  # fields after the type of every record read here
 
 
 def detect(path: Path) -> bool:
@@ -72,9 +86,9 @@ def detect(path: Path) -> bool:
 
 
 def _parse(p: Path, fh, builders: dict, found: dict):
-    """Parse the logfile line by line into ``builders`` (yielding after each line); ``found`` collects the
-    delivery-latency floors (``offsets``), the ``positions``, the header's ``model``/``maker``/``created``
-    (the ``Date of creation`` text) and, when
+    """Parse the logfile line by line into ``builders`` (yielding after each line, counting garbled records
+    in ``found["dropped"]``); ``found`` collects the delivery-latency floors (``offsets``), the
+    ``positions``, the header's ``model``/``maker``/``created`` (the ``Date of creation`` text) and, when
     ``found["os"]`` is a builder, the ``AHRS`` rotation vectors (sensor clock) and their floor
     (``os_offset``)."""
     for lineno, line in enumerate(fh, start=1):
@@ -99,7 +113,11 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
                 )
-            app, sensor, x, y, z = floats(p, lineno, parts[1:6])
+            vals = numbers(parts[1:], _FIELDS)
+            if vals is None:
+                builders[key].count(garbled(parts[1:], _FIELDS))
+                continue
+            app, sensor, x, y, z = vals[:5]
             if builders[key].add(lineno, sensor, (x, y, z)):
                 found["offsets"][key] = min(found["offsets"][key], app - sensor)
         elif kind == "POSI":
@@ -107,7 +125,12 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
                 )
-            t, _, lat, lon = floats(p, lineno, parts[1:5])
+            vals = numbers(parts[1:5], 4)  # the floor and building may be text
+            if vals is None or len(parts) > 1 + _FIELDS:
+                why = EXTRA_FIELDS if len(parts) > 1 + _FIELDS else NON_NUMERIC
+                found["dropped"][f"position:{why}"] += 1
+                continue
+            t, _, lat, lon = vals
             rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
             found["positions"].append([t, lat, lon, *rest])
         elif kind == "AHRS" and found.get("os") is not None:
@@ -122,6 +145,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
 
 
 def _chunks(p: Path, dropped: Counter, found: dict):
+    found["dropped"] = dropped
     builders = {k: StreamBuilder(p, k, dropped) for k in _TYPES.values()}
     with open_text(p) as fh:
         yield from chunks_of(fh, builders, every(_parse(p, fh, builders, found)))

@@ -21,17 +21,22 @@ the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope fro
 about its own calibration (:mod:`replay.formats._phone`): the OS's hard-iron estimate (the bias columns of
 ``TYPE_MAGNETIC_FIELD_UNCALIBRATED``) in force at the first magnetometer sample, ``mag_os_bias_uT``, and its
 later changes, ``mag_os_bias_changes`` (one trace of the dataset's 40 changes it, once); the same for the
-gyroscope's drift columns, ``gyro_os_bias_rad_s`` / ``gyro_os_bias_changes``; a bias cell that is not a
-number is counted as ``mag_os_bias:nan`` / ``gyro_os_bias:nan``. The header states no device id. Times are
+gyroscope's drift columns, ``gyro_os_bias_rad_s`` / ``gyro_os_bias_changes``; a bias cell that is NaN or
+infinite, or missing, is counted as ``mag_os_bias:nan`` / ``gyro_os_bias:nan`` (text in a cell makes the
+line garbled, below). The header states no device id. Times are
 seconds since the header's ``startTime``
 (``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
-header are counted as ``<stream>:saturated``. The phone's own fusion (``TYPE_ROTATION_VECTOR``) becomes
-``references["os"]`` (:mod:`replay.formats._attitude`: in the pipeline's north, i.e. turned by the WMM
-declination when the map gives the position; odd rows counted as ``os:<reason>``). Other line types
-(Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole file (and the header's ``endTime``,
-the waypoints and the OS's estimates are spread over it): a first pass reads it without keeping samples
-(but the waypoints, the rotation vectors and the estimates' changes), the second streams the chosen types.
+header are counted as ``<stream>:saturated``. A line of a type read here with more values than the type has
+(4 with the accuracy, 7 for the uncalibrated types, 2 for a waypoint) or with a field that is not a number
+is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``waypoint:…``); one with
+fewer than the x, y, z (x, y) it needs is a truncated file. The phone's own fusion
+(``TYPE_ROTATION_VECTOR``) becomes ``references["os"]`` (:mod:`replay.formats._attitude`: in the pipeline's
+north, i.e. turned by the WMM declination when the map gives the position; odd rows counted as
+``os:<reason>``). Other line types (Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole
+file (and the header's ``endTime``, the waypoints and the OS's estimates are spread over it): a first pass
+reads it without keeping samples (but the waypoints, the rotation vectors and the estimates' changes), the
+second streams the chosen types.
 When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
 WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
 and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
@@ -39,13 +44,22 @@ and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' orig
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._common import (
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    every,
+    garbled,
+    numbers,
+    open_text,
+)
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
@@ -60,6 +74,8 @@ _TYPES = {
     "TYPE_GYROSCOPE_UNCALIBRATED": ("gyro", 0, 16),
     "TYPE_GYROSCOPE": ("gyro", 1, 4),
 }
+# values after the type a line may have: x, y, z, accuracy (+ the bias or drift x, y, z); x, y of a waypoint
+_MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | {"TYPE_WAYPOINT": 2}
 
 
 def detect(path: Path) -> bool:
@@ -97,8 +113,6 @@ def _site_location(path: Path, meta: dict) -> None:
     geo = path.parent.parent / "geojson_map.json"
     if not geo.is_file():
         return
-    import json
-
     try:
         features = json.loads(geo.read_text(encoding="utf-8"))["features"]
     except (ValueError, KeyError, TypeError, OSError):
@@ -149,13 +163,19 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
             continue
         if kind not in _TYPES and kind != "TYPE_WAYPOINT":
             continue
-        if t0_ms is None:
-            t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or floats(p, lineno, parts[:1])[0]
-            found["t0_ms"] = t0_ms
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
-        vals = floats(p, lineno, [parts[0], *parts[2 : 2 + nval]])
+        fields = [parts[0], *parts[2:]]
+        vals = numbers(fields, 1 + _MOST[kind])
+        if vals is None:
+            key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
+            if kind in kinds or kind == "TYPE_WAYPOINT":
+                found["dropped"][f"{key}:{garbled(fields, 1 + _MOST[kind])}"] += 1
+            continue
+        if t0_ms is None:
+            t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or vals[0]
+            found["t0_ms"] = t0_ms
         t = (vals[0] - t0_ms) / 1000.0
         if kind == "TYPE_WAYPOINT":
             found["waypoints"].append([t, vals[1], vals[2]])
@@ -167,8 +187,8 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
             key, _, android_type = _TYPES[kind]
             b = builders[kind] = StreamBuilder(p, key, found["dropped"], limit=ranges.get(android_type))
         est = found["estimates"].get(kind)
-        if b.add(lineno, t, vals[1:]) and est is not None:
-            est.add(t, parts[5:8])
+        if b.add(lineno, t, vals[1:4]) and est is not None:
+            est.add(t, vals[4:7])
 
 
 def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:

@@ -1,10 +1,11 @@
 """The contract's own layout: a directory with mag.csv (+ accel.csv, gyro.csv, meta.json, truth.csv).
 
-Odd rows inside a good file (a NaN value, a duplicate timestamp) are dropped and counted in
-``Recording.dropped``; accelerometer/gyroscope samples clipped at the sensor's range are kept and counted
-as ``<stream>:saturated`` (:func:`replay.formats._common.flag_saturation`); a file that cannot be right
-(missing, bad header, text in a number column, time going backwards, an empty stream, values in the wrong
-unit) raises :class:`InputError` naming the file and line.
+Odd rows inside a good file (a NaN value, a duplicate timestamp, more fields than the header, a field that
+is not a number) are dropped and counted in ``Recording.dropped``; accelerometer/gyroscope samples clipped
+at the sensor's range are kept and counted as ``<stream>:saturated``
+(:func:`replay.formats._common.flag_saturation`); a file that cannot be right (missing, bad header, a row
+with fewer fields than the header, time going backwards, an empty stream, values in the wrong unit) raises
+:class:`InputError` naming the file and line.
 
 ``meta.json`` becomes ``Recording.meta`` as it is: besides the contract's keys it may state what the phone
 knows about itself (INTERFACE.md: ``mag_os_bias_uT``, ``mag_os_bias_changes``, ``gyro_os_bias_rad_s``,
@@ -35,7 +36,9 @@ def detect(path: Path) -> bool:
     return path.is_dir() and (path / "mag.csv").is_file()
 
 
-def _header(fh, path: Path, header: list[str]) -> None:
+def _header(fh, path: Path, header: list[str]) -> int:
+    """Check the header row (``header`` first; more columns may follow); returns its number of fields, the
+    most a row may have."""
     first = fh.readline()
     got = [c.strip() for c in first.strip().split(",")]
     if got[: len(header)] != header:
@@ -44,14 +47,16 @@ def _header(fh, path: Path, header: list[str]) -> None:
             raise InputError(path, f"bad header: not text (a binary file?), expected {','.join(header)!r}", 1)
         shown = shown if len(shown) <= 60 else shown[:60] + "…"
         raise InputError(path, f"bad header {shown!r}, expected {','.join(header)!r}", line=1)
+    return len(got)
 
 
 def _read_builder(path: Path, header: list[str], key: str, dropped: Counter) -> StreamBuilder:
     """Parse one whole file (header row, then ``t`` and values) into a cleaning :class:`StreamBuilder`."""
     b = StreamBuilder(path, key, dropped, width=len(header) - 1)
     with open_text(path) as fh:
-        _header(fh, path, header)
-        read_table(fh, path, [(b, list(range(1, len(header))))], len(header), first_line=2, delimiter=",")
+        most = _header(fh, path, header)
+        read_table(fh, path, [(b, list(range(1, len(header))))], len(header), first_line=2, delimiter=",",
+                   most=most)
     return b
 
 
@@ -61,8 +66,9 @@ def vector_feed(path: Path, key: str, dropped: Counter) -> Feed:
     def chunks():
         b = StreamBuilder(path, key, dropped)
         with open_text(path) as fh:
-            _header(fh, path, VECTOR_HEADER)
-            yield from chunks_of(fh, {key: b}, iter_table(fh, path, [(b, [1, 2, 3])], 4, 2, ","))
+            most = _header(fh, path, VECTOR_HEADER)
+            steps = iter_table(fh, path, [(b, [1, 2, 3])], 4, 2, ",", most=most)
+            yield from chunks_of(fh, {key: b}, steps)
 
     return Feed((key,), chunks, path.stat().st_size)
 

@@ -21,7 +21,8 @@ with a rate limit (``rate_limit_hz`` in the ``pdr_mag`` metadata record) reads t
 decimated streams.
 
 ``t`` is the sample time as float64, so the streams read back bit-identical to what was written.  NaN
-values are dropped as ``<stream>:nan``.  The metadata record ``recording`` becomes ``Recording.meta``
+values are dropped as ``<stream>:nan``, a JSON sample with a value that is not a number (nor ``null``) as
+``<stream>:non_numeric``.  The metadata record ``recording`` becomes ``Recording.meta``
 (values JSON-decoded where they are JSON, else kept as strings).  ``/mag/raw`` is required; the other
 topics are optional.  The file is read twice, front to back (mcap's reader decompresses one chunk at a
 time): first the truth topics (loaded whole, for evaluation), then the sensor topics, streamed; CDR messages
@@ -44,7 +45,7 @@ import numpy as np
 
 from replay.errors import InputError
 from replay.formats import _common, _mcap
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of
+from replay.formats._common import NON_NUMERIC, StreamBuilder, StreamSpec, chunks_of
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -92,6 +93,13 @@ def _meta(path: Path) -> dict:
 
 def _num(v) -> float:
     return float("nan") if v is None else float(v)
+
+
+def _json_numbers(values) -> list[float] | None:
+    """JSON values as floats (``null``: NaN), or None when one is not a JSON number (a string, a bool, …)."""
+    if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
+        return [_num(v) for v in values]
+    return None
 
 
 def _floats(path: Path, topic: str, payloads: list[bytes], size: int) -> np.ndarray:
@@ -173,8 +181,7 @@ def _parse(p: Path, by_topic: dict, keep, offsets: dict, builders: dict, truth: 
                 truth["exact_t"].append(_num(d["t"]))
                 continue
             t = d["t"] if "t" in d else (message.log_time - offsets.get(channel.id, 0)) * 1e-9
-            vals = [_num(d["x"]), _num(d["y"]), _num(d["z"])]
-            t = _num(t)
+            raw = [t, d["x"], d["y"], d["z"]]
         except (
             json.JSONDecodeError,
             UnicodeDecodeError,
@@ -189,7 +196,11 @@ def _parse(p: Path, by_topic: dict, keep, offsets: dict, builders: dict, truth: 
                 f"{topic}: message {n} (log_time {message.log_time}) is not a valid {what} "
                 f"({type(exc).__name__}: {exc})",
             ) from None
-        builders[TOPICS[topic]].add(None, t, vals)
+        vals = _json_numbers(raw)
+        if vals is None:
+            builders[TOPICS[topic]].count(NON_NUMERIC)
+            continue
+        builders[TOPICS[topic]].add(None, vals[0], vals[1:])
     flush()
 
 

@@ -13,7 +13,9 @@ Files are recognised by their column names, not their file names (``Magnetic Fie
 exports comma-separated with decimal points by default; the tab-separated and the semicolon/decimal-comma
 variants are read too. phyphox reports the same axes and units on Android and iOS (its iOS app multiplies
 Core Motion's accelerations in g by −9.81, which gives Android's sign), i.e. the contract's: nothing is
-converted. ``meta/device.csv`` (``property,value``) gives the device name when present.
+converted. ``meta/device.csv`` (``property,value``) gives the device name when present. A row with more
+cells than the header or with a cell that is not a number is dropped and counted
+(``<stream>:extra_fields``, ``<stream>:non_numeric``).
 
 What the phone states about itself (:mod:`replay.formats._phone`): phyphox's sensors are the OS-calibrated
 ones — Android's ``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, iOS's Core Motion device-motion field and
@@ -33,7 +35,16 @@ from collections import Counter
 from pathlib import Path
 
 from replay.errors import InputError
-from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, every, floats, iter_csv
+from replay.formats._common import (
+    Bundle,
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    every,
+    garbled,
+    iter_csv,
+    numbers,
+)
 from replay.formats._phone import put_date, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
@@ -130,11 +141,13 @@ def _member_chunks(p: Path, name: str, key: str, idx: list[int], n_header: int, 
                 continue
             if len(cells) < need:
                 raise InputError(where, f"expected {n_header} columns, got {len(cells)} (truncated?)", lineno)
-            vals = [cells[i] for i in idx]
             if decimal_comma:
-                vals = [v.replace(",", ".") for v in vals]
-            vals = floats(where, lineno, vals)
-            yield builder.add(lineno, vals[0], vals[1:])
+                cells = [c.replace(",", ".") for c in cells]
+            vals = numbers(cells, n_header)
+            if vals is None:
+                builder.count(garbled(cells, n_header))
+                continue
+            yield builder.add(lineno, vals[idx[0]], [vals[i] for i in idx[1:]])
 
     try:
         with b.open(name) as fh:

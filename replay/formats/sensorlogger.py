@@ -32,11 +32,14 @@ another form: ``date_unreadable``) and its ``device id`` gives ``device_id``.
 
 from __future__ import annotations
 
+import zlib
 from collections import Counter
 from pathlib import Path
+from zipfile import BadZipFile
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
 from replay.formats._phone import put_date
@@ -44,7 +47,6 @@ from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "sensor-logger"
-GRAVITY = 9.80665
 _MAG_FILES = ("MagnetometerUncalibrated.csv", "Magnetometer.csv")
 
 
@@ -91,9 +93,6 @@ def _metadata(b: Bundle) -> dict:
 
 def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
     """A ``time,seconds_elapsed,z,y,x`` file (columns by name), parsed a chunk at a time (a Feed's chunks)."""
-    import zlib
-    from zipfile import BadZipFile
-
     b = Bundle(p)
     where = b.where(name)
     builder = StreamBuilder(where, key, dropped)
@@ -110,9 +109,8 @@ def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
             t_scale = 1.0 if "seconds_elapsed" in cols else 1e-9
             idx = [cols["x"], cols["y"], cols["z"]]
             ncol = max([tcol, *idx]) + 1
-            steps = iter_table(
-                fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol, t_scale=t_scale
-            )
+            steps = iter_table(fh, where, [(builder, idx)], ncol, first_line=2, delimiter=",", tcol=tcol,
+                               t_scale=t_scale, most=len(header))
             yield from chunks_of(fh, {key: builder}, steps)
     except (BadZipFile, EOFError, zlib.error) as exc:
         raise InputError(where, f"truncated or damaged archive member ({exc})") from None

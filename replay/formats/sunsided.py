@@ -43,13 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, read_table
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "sunsided-marg"
-GRAVITY = 9.80665
 UT_PER_GAUSS = 100.0
 DEG = np.pi / 180.0
 
@@ -73,9 +73,10 @@ def detect(path: Path) -> bool:
     return (path / "original_mat" / "hmc5883l_compass.mat").is_file()
 
 
-def _open_csv(path: Path, header: list[str], optional: tuple = ()) -> tuple[object, int]:
+def _open_csv(path: Path, header: list[str], optional: tuple = ()) -> tuple[object, int, int]:
     """Open the table and check its header; ``optional`` columns after ``header`` are read when the header
-    has them. Returns the open file (after the header) and how many of the optional columns are present."""
+    has them. Returns the open file (after the header), how many of the optional columns are present and
+    the header's number of fields (the most a row may have)."""
     fh = open_text(path)
     first = fh.readline()
     got = [c.strip() for c in first.strip().split(",")]
@@ -86,7 +87,7 @@ def _open_csv(path: Path, header: list[str], optional: tuple = ()) -> tuple[obje
     n_opt = 0
     while n_opt < min(len(optional), len(extra)) and extra[n_opt] == optional[n_opt]:
         n_opt += 1
-    return fh, n_opt
+    return fh, n_opt, len(got)
 
 
 def _feed(path: Path, header: list[str], targets: dict[str, tuple[float | None, list[int]]], dropped) -> Feed:
@@ -94,22 +95,22 @@ def _feed(path: Path, header: list[str], targets: dict[str, tuple[float | None, 
 
     def chunks():
         builders = {k: StreamBuilder(path, k, dropped, limit=lim) for k, (lim, _) in targets.items()}
-        fh, _ = _open_csv(path, header)
+        fh, _, most = _open_csv(path, header)
         with fh:
             cols = [(builders[k], ix) for k, (_, ix) in targets.items()]
-            yield from chunks_of(fh, builders, iter_table(fh, path, cols, len(header), 2, ","))
+            yield from chunks_of(fh, builders, iter_table(fh, path, cols, len(header), 2, ",", most=most))
 
     return Feed(tuple(targets), chunks, path.stat().st_size)
 
 
 def _temperature(mpu: Path):
     """The MPU6050's temperature column (evaluation only), read whole when asked for, or None."""
-    fh, has_temp = _open_csv(mpu, MPU_HEADER, optional=("temp_C",))
+    fh, has_temp, most = _open_csv(mpu, MPU_HEADER, optional=("temp_C",))
     with fh:
         if not has_temp:
             return None
         b = StreamBuilder(mpu, "temperature", Counter(), width=1)  # rows counted by the accel/gyro stream
-        read_table(fh, mpu, [(b, [7])], len(MPU_HEADER) + 1, first_line=2, delimiter=",")
+        read_table(fh, mpu, [(b, [7])], len(MPU_HEADER) + 1, first_line=2, delimiter=",", most=most)
     t, v = b.arrays()
     return (t, v[:, 0].copy()) if len(t) else None
 

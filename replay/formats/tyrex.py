@@ -11,15 +11,19 @@ Android (Senslogs app), recognised by ``record.properties``:
 ``record.properties``       ``Model``, ``Manufacturer``, ``ID``; ``StartTime`` (Unix s) of the record clock
 ==========================  =======================================================================
 
-Android's device frame is the contract's: no axis change, no unit change. The streams read are the raw ones
+Android's device frame is the contract's: no axis change, no unit change. A row with more fields than its
+file has (4, 7, 7 on Android; 4 in every iOS file) or with a field that is not a number is dropped and
+counted (``<stream>:extra_fields``, ``<stream>:non_numeric``). The streams read are the raw ones
 (``mag_os_calibrated`` and ``gyro_os_calibrated`` False). Their last three columns are what the OS states
 about its own calibration (:mod:`replay.formats._phone`): the hard-iron estimate in force at the first
 magnetometer sample, ``mag_os_bias_uT``, and its later changes, ``mag_os_bias_changes`` (the Nexus 5 walks:
 (57.96, −35.74, 419.90) µT throughout Dist_Texting, two changes in NoDist_Swinging; the calibration
 recordings change it 12–33 times), and the gyroscope's drift, ``gyro_os_bias_rad_s`` /
 ``gyro_os_bias_changes``. A first pass over the two files collects them (the streams are then read as
-before); a row whose sample is kept but whose estimate is not three numbers counts as ``mag_os_bias:nan`` /
-``gyro_os_bias:nan``, a row of four columns states no estimate. ``ID`` is ``meta["device_id"]``.
+before); a row whose sample is kept but whose estimate is not three finite numbers (NaN, inf, a column
+missing) counts as ``mag_os_bias:nan`` / ``gyro_os_bias:nan``, a row of four columns states no estimate,
+and a garbled row (text in any cell, an eighth field) is dropped whole by the stream and states nothing.
+``ID`` is ``meta["device_id"]``.
 
 iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, with
 
@@ -50,21 +54,35 @@ Grenoble; the values the upstream code uses for the reference field).
 from __future__ import annotations
 
 import configparser
+import itertools
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from pdr_mag.conventions import quat_multiply
+from pdr_mag.conventions import GRAVITY, quat_multiply, rot_to_quat
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
-from replay.formats._common import CHUNK, StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, require
+from replay.formats._common import (
+    CHUNK,
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    iter_table,
+    numbers,
+    open_text,
+    require,
+)
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
 NAME = "tyrex"
-GRAVITY = 9.80665
+#: Fields of a row (time first) in each file, per platform: a row with more is garbled.
+FIELDS = {"android": {"mag": 7, "accel": 4, "gyro": 7}, "ios": {"mag": 4, "accel": 4, "gyro": 4}}
+#: Fields of a row of the phone's own attitude: t, qx, qy, qz, qw, heading accuracy (Android's
+#: ``rotation-vector.txt``); t, qw, qx, qy, qz (iOS's ``attitude.txt``).
+OS_FIELDS = {"android": 6, "ios": 5}
 
 # Mocap glitches excluded by hand upstream (qualisys seconds).
 _GLITCHES = {
@@ -104,13 +122,14 @@ def _properties(path: Path) -> configparser.ConfigParser:
     return cp
 
 
-def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
-    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]``, parsed a chunk at a time."""
+def columns_feed(path: Path, key: str, dropped: Counter, most: int, ncol: int = 3) -> Feed:
+    """A header-less, whitespace-separated file ``t v1 v2 v3 [more…]`` of at most ``most`` fields a row,
+    parsed a chunk at a time."""
 
     def chunks():
         b = StreamBuilder(path, key, dropped, width=ncol)
         with open_text(path) as fh:
-            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1)
+            steps = iter_table(fh, path, [(b, list(range(1, ncol + 1)))], ncol + 1, most=most)
             yield from chunks_of(fh, {key: b}, steps)
 
     return Feed((key,), chunks, path.stat().st_size)
@@ -118,22 +137,21 @@ def columns_feed(path: Path, key: str, dropped: Counter, ncol: int = 3) -> Feed:
 
 def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     """The OS's estimate in columns 5–7 of a Senslogs file (a first pass, a chunk at a time): from the rows
-    whose sample the stream keeps (t, x, y, z numbers, not a repeated time); rows that do not parse are left
-    to the stream's own pass, which reports them."""
-    import itertools
-
+    whose sample the stream keeps (t, x, y, z numbers, not a repeated time, the row not garbled); rows that
+    do not parse are left to the stream's own pass, which reports them."""
+    most = FIELDS["android"]["mag"]  # = the gyroscope's: t, x, y, z and the estimate's x, y, z
     est = OsEstimate(key, dropped)
     last_t = -np.inf
     with open_text(path) as fh:
         while lines := list(itertools.islice(fh, CHUNK)):
             try:
-                arr = np.loadtxt(lines, usecols=range(7), ndmin=2, dtype=float, comments=None)
+                arr = np.loadtxt(lines, ndmin=2, dtype=float, comments=None)
                 stated = np.ones(len(arr), dtype=bool)
             except ValueError:
-                arr = np.empty((0, 7))
-            if len(arr) != len(lines):  # a row that does not parse, or blank lines: one by one
-                rows = [_row7(ln) for ln in lines]
-                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, 7)
+                arr = np.empty((0, most))
+            if arr.shape != (len(lines), most):  # a row that does not parse, a short or long one: one by one
+                rows = [r for r in map(_row, lines) if r is not None]
+                arr = np.array([r for r, _ in rows], dtype=float).reshape(-1, most)
                 stated = np.array([s for _, s in rows], dtype=bool)
             keep = np.all(np.isfinite(arr[:, :4]), axis=1)
             arr, stated = arr[keep], stated[keep]
@@ -145,17 +163,16 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     return est
 
 
-def _row7(line: str) -> tuple[list[float], bool]:
-    """One Senslogs row as 7 numbers (NaN for a cell that is not a number or is missing), tolerant, and
-    whether it states an estimate (more than t, x, y, z)."""
+def _row(line: str) -> tuple[list[float], bool] | None:
+    """One Senslogs row as 7 numbers (NaN for a missing cell) and whether it states an estimate (more than
+    t, x, y, z); None for a blank row and for a garbled one (more than 7 fields, a field that is not a
+    number: the stream drops it whole)."""
     parts = line.split()
-    out = []
-    for cell in parts[:7]:
-        try:
-            out.append(float(cell))
-        except ValueError:
-            out.append(np.nan)
-    return out + [np.nan] * (7 - len(out)), len(parts) > 4
+    most = FIELDS["android"]["mag"]
+    vals = numbers(parts, most)
+    if not parts or vals is None:
+        return None
+    return vals + [np.nan] * (most - len(vals)), len(parts) > 4
 
 
 def _truth(path: Path, dropped: Counter):
@@ -189,8 +206,6 @@ def _truth(path: Path, dropped: Counter):
     keep = good & ~glitch
     # Column-major 3×3 per frame: R maps phone-body vectors into the mocap (ENU, true north) world frame.
     mats = rot[:, keep].T.reshape(-1, 3, 3).transpose(0, 2, 1)
-    from pdr_mag.conventions import rot_to_quat
-
     q = rot_to_quat(mats)
     q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
     for k in ("truth:nan", "truth:glitch"):
@@ -256,7 +271,7 @@ def open_source(path) -> RecordingSource:
         else StreamSpec(files["accel"], "accel", scale=-GRAVITY, t_offset=t_off, unit_hint="g, iOS sign"),
         "gyro": StreamSpec(files["gyro"], "gyro", t_offset=t_off, unit_hint="rad/s"),
     }
-    feeds = [columns_feed(f, k, dropped) for k, f in files.items()]
+    feeds = [columns_feed(f, k, dropped, FIELDS[platform][k]) for k, f in files.items()]
     meta["mag_os_calibrated"] = meta["gyro_os_calibrated"] = False
     if platform == "android":
         for key, f in (("mag_os_bias", files["mag"]), ("gyro_os_bias", files["gyro"])):
@@ -282,7 +297,7 @@ def _os_attitude(path: Path, platform: str, t_off: float, meta: dict, dropped: C
     if not f.is_file():
         return None
     t, v = [], []
-    for _, chunk in columns_feed(f, "os", dropped, ncol=4).chunks():
+    for _, chunk in columns_feed(f, "os", dropped, OS_FIELDS[platform], ncol=4).chunks():
         if "os" in chunk:
             t.append(chunk["os"][0])
             v.append(chunk["os"][1])

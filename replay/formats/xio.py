@@ -10,7 +10,9 @@ z lying flat (specific force) and the IMU's own axes are taken as the device fra
 
 The magnetometer is sample-and-hold: it updates at ~20 Hz while rows come at 100 Hz, repeating the last
 value. A row whose magnetometer value equals the previous one exactly is not a new measurement: it is left
-out of the magnetometer stream and counted as ``mag:held_repeat``.
+out of the magnetometer stream and counted as ``mag:held_repeat``. A row with more cells than the header or
+with a cell that is not a number is dropped from every stream and counted (``<stream>:extra_fields``,
+``<stream>:non_numeric``).
 
 A lab IMU, not a phone: its streams are taken as raw (``meta["mag_os_calibrated"]`` and
 ``["gyro_os_calibrated"]`` False), with no estimate of an OS, no date and no device id in the file.
@@ -24,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, floats, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, garbled, numbers, open_text
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -34,7 +37,7 @@ _COL = re.compile(r"^(gyroscope|accelerometer|magnetometer) ([xyz]) \((.+)\)$")
 _KEY = {"gyroscope": "gyro", "accelerometer": "accel", "magnetometer": "mag"}
 _SCALE = {
     "gyro": {"deg/s": np.pi / 180.0, "dps": np.pi / 180.0, "rad/s": 1.0},
-    "accel": {"g": 9.80665, "m/s^2": 1.0, "m/s²": 1.0},
+    "accel": {"g": GRAVITY, "m/s^2": 1.0, "m/s²": 1.0},
     "mag": {"ut": 1.0, "µt": 1.0, "nt": 1e-3, "g": 100.0, "gauss": 100.0, "a.u.": 1.0},
 }
 
@@ -79,7 +82,11 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
         parts = s.split(",")
         if len(parts) < ncol:
             raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-        vals = floats(p, lineno, parts[:ncol])
+        vals = numbers(parts, ncol)
+        if vals is None:
+            for b in builders.values():
+                b.count(garbled(parts, ncol))
+            continue
         t = vals[0]
         for key, ix in idx.items():
             v = [vals[i] for i in ix]
