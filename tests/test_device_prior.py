@@ -108,23 +108,33 @@ def test_a_phone_estimate_changed_mid_recording_replaces_the_first_while_it_is_i
     np.testing.assert_array_equal(got, rows.heading_deg)
 
 
-def test_samples_delivered_twice_are_dropped_and_counted(walk):
+def test_a_stalled_sensors_repeated_samples_are_dropped_and_counted(walk):
     """A logger that writes the latest value on its own clock repeats a stalled sensor's sample (the mall
-    traces: up to 80 gyro and magnetometer samples, 1.6 s, while the phone turns).  Those repeats are not
-    measurements: dropped, counted as ``<stream>:repeated``, and the rows are those of the recording without
-    them."""
+    traces: up to 80 gyro and magnetometer samples, 1.6 s, while the phone turns).  From the third time in a
+    row those repeats are not measurements: dropped, counted as ``<stream>:repeated``, and the rows are
+    those of the recording without them; a value repeated once (a quantised sensor at rest) is kept.  The
+    same in 1-s pushes."""
     t, x = walk.gyro
     stuck = x.copy()
     i0 = int(np.searchsorted(t, 30.0))
     stuck[i0 : i0 + 80] = stuck[i0]  # 80 samples held at one value during a turn
+    stuck[i0 + 200] = stuck[i0 + 199]  # and one value repeated once
     pipe = HeadingPipeline(meta=walk.meta)
-    pipe.run({"accel": walk.accel, "gyro": (t, stuck), "mag": walk.mag})
-    assert pipe.dropped["gyro:repeated"] >= 79
-    keep = np.r_[True, np.any(stuck[1:] != stuck[:-1], axis=1)]
-    same = HeadingPipeline(meta=walk.meta)
-    ref = same.run({"accel": walk.accel, "gyro": (t[keep], stuck[keep]), "mag": walk.mag})
-    again = HeadingPipeline(meta=walk.meta).run({"accel": walk.accel, "gyro": (t, stuck), "mag": walk.mag})
-    np.testing.assert_array_equal(again.heading_deg, ref.heading_deg)
+    rows = pipe.run({"accel": walk.accel, "gyro": (t, stuck), "mag": walk.mag})
+    assert pipe.dropped["gyro:repeated"] == 78
+    keep = np.ones(len(t), dtype=bool)
+    keep[i0 + 2 : i0 + 80] = False
+    clean = {"accel": walk.accel, "gyro": (t[keep], stuck[keep]), "mag": walk.mag}
+    ref = HeadingPipeline(meta=walk.meta).run(clean)
+    np.testing.assert_array_equal(rows.heading_deg, ref.heading_deg)
+    stream = HeadingPipeline(meta=walk.meta)
+    for k in range(int(walk.duration_s) + 1):
+        for name, (tt, xx) in (("accel", walk.accel), ("gyro", (t, stuck)), ("mag", walk.mag)):
+            m = (tt >= k) & (tt < k + 1)
+            stream.push_arrays(name, tt[m], xx[m])
+        stream.poll()
+    stream.flush()
+    assert stream.dropped == pipe.dropped
 
 
 def test_device_store_warm_start_and_refusal_of_a_stale_entry(tmp_path, walk):

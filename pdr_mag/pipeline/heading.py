@@ -293,14 +293,10 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
-            # a sample equal on all three axes to the one before is that sample delivered again (a logger
-            # writing the latest value on its own clock: the mall traces' gyroscope and magnetometer hold it
-            # for up to 1.6 s while the phone turns), never a new noisy measurement
-            rep = np.all(xyz == np.concatenate((s.last_xyz[None, :], xyz[:-1])), axis=1)
-            s.last_xyz = xyz[-1].copy()
-            if rep.any():
-                self.dropped[f"{name}:repeated"] += int(np.count_nonzero(rep))
-                t, xyz = t[~rep], xyz[~rep]
+            stale = s.stale(xyz)
+            if stale.any():
+                self.dropped[f"{name}:repeated"] += int(np.count_nonzero(stale))
+                t, xyz = t[~stale], xyz[~stale]
         if len(t):
             s.append(t, xyz)
         a, g, m = self._streams.values()
@@ -599,7 +595,7 @@ class HeadingPipeline:
         for name, s in self._streams.items():
             t, x = s.pending()
             pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": state_float(s.last_t),
-                          "last_xyz": [state_float(v) for v in s.last_xyz]}
+                          "last_xyz": [state_float(v) for v in s.last_xyz], "repeats": s.repeats}
         st = {
             "version": STATE_VERSION,
             "pending": pend,
@@ -632,6 +628,7 @@ class HeadingPipeline:
                 s.t, s.xyz, s.lo, s.hi = t, x, 0, len(t)
                 s.last_t = float(p["last_t"])
                 s.last_xyz = np.array([float(v) for v in p["last_xyz"]])
+                s.repeats = int(p["repeats"])
             self._done_t = float(state["done_t"])
             self.dropped = Counter(state["dropped"])
             self._pend = np.array([float(v) for v in state["mag_rows"]]).view(PK.MAG_ROW)

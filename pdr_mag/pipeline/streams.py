@@ -27,7 +27,7 @@ class PendingStream:
     """Pending samples of one input stream, in time order: rows ``[lo, hi)`` of a buffer that grows
     (doubling) when a push does not fit after moving the pending rows to its start."""
 
-    __slots__ = ("t", "xyz", "lo", "hi", "last_t", "last_xyz")
+    __slots__ = ("t", "xyz", "lo", "hi", "last_t", "last_xyz", "repeats")
 
     def __init__(self):
         self.t = np.empty(0)
@@ -35,7 +35,8 @@ class PendingStream:
         self.lo = 0
         self.hi = 0
         self.last_t = -np.inf  # the latest sample pushed
-        self.last_xyz = np.full(3, np.nan)  # its value (a repeat of it is the same sample again)
+        self.last_xyz = np.full(3, np.nan)  # its value
+        self.repeats = 0  # how many samples in a row repeated it exactly
 
     @property
     def n(self) -> int:
@@ -57,6 +58,21 @@ class PendingStream:
         self.xyz[self.hi : self.hi + k] = xyz
         self.hi += k
         self.last_t = float(t[-1])
+
+    def stale(self, xyz: np.ndarray) -> np.ndarray:
+        """Which of these new values (N, 3), in order, are a stalled sensor's sample delivered again: the
+        same value on all three axes for the third time or more in a row.  A quantised sensor at rest
+        repeats a value now and then (the tyrex phones: single repeats, never two in a row); a logger that
+        writes the latest value on its own clock repeats a stalled one many times (the mall traces' gyroscope
+        and magnetometer: runs of up to 80 samples, 1.6 s, while the phone turns).  Updates the run."""
+        n = len(xyz)
+        rep = np.all(xyz == np.concatenate((self.last_xyz[None, :], xyz[:-1])), axis=1)
+        idx = np.arange(n)
+        last_new = np.maximum.accumulate(np.where(rep, -1, idx))  # the latest sample that was not a repeat
+        run = np.where(last_new < 0, idx + 1 + self.repeats, idx - last_new)  # repeats in a row up to each
+        self.repeats = int(run[-1])
+        self.last_xyz = xyz[-1].copy()
+        return run >= 2
 
     def pending(self) -> tuple[np.ndarray, np.ndarray]:
         """A copy of the pending samples ``(t, xyz)``."""
