@@ -14,13 +14,14 @@ from __future__ import annotations
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
@@ -137,6 +138,7 @@ def replay(
     progress: bool | None = None,
     slice_s: float | None = None,
     episode_settings: EpisodeSettings | None = None,
+    device_store: DeviceStore | None = None,
 ) -> dict:
     """Replay a recording; return the run summary (the ``replay --json`` object).
 
@@ -164,13 +166,19 @@ def replay(
     episode_settings : EpisodeSettings, optional
         Thresholds of the drift episodes (:mod:`pdr_mag.episodes`) in the summary's ``episodes``; each
         episode also goes to the sinks as a ``drift_episode`` event when it closes.
+    device_store : DeviceStore, optional
+        A backend's store of its devices' calibrations (``replay --device-store DIR``): the run starts from
+        the entry of the recording's device (a prior, aged to the recording's start) and leaves what it
+        learnt there at the end (:meth:`ReplayRun.keep`); the summary's ``device_store`` says what was read
+        and written.
     """
     with CompileWatch() as compiling:
-        run = ReplayRun.start(rec_path, calibration, sinks, settings, episode_settings)
+        run = ReplayRun.start(rec_path, calibration, sinks, settings, episode_settings, device_store)
         if progress is None:
             progress = run.src.size >= PROGRESS_MIN_BYTES and sys.stderr.isatty()
         t_start, compiled_before = time.perf_counter(), compiling.seconds
         run.stream(SLICE_S if slice_s is None else slice_s, progress)
+        run.keep()
         elapsed = time.perf_counter() - t_start - (compiling.seconds - compiled_before)
     return run.summary(elapsed, compiling.seconds)
 
@@ -203,10 +211,15 @@ class ReplayRun:
         Samples pushed so far, per stream.
     n_cal_seen : int
         The pipeline's calibrations already sent to the sinks.
+    store : DeviceStore or None
+        The device store the run started from and leaves its knowledge in.
+    store_use : dict
+        What was read from and written to the store (the summary's ``device_store``).
     """
 
     def __init__(self, src: RecordingSource, merge: Merge, pipe: HeadingPipeline, sinks: list,
-                 scores: HeadingScores, calibration: MagCalibration | None, finder: EpisodeFinder):
+                 scores: HeadingScores, calibration: MagCalibration | None, finder: EpisodeFinder,
+                 store: DeviceStore | None = None, store_use: dict | None = None):
         self.src = src
         self.merge = merge
         self.pipe = pipe
@@ -218,12 +231,16 @@ class ReplayRun:
         self.state_counts: Counter = Counter()
         self.n_pushed = dict.fromkeys(merge.present, 0)
         self.n_cal_seen = len(pipe.calibrations)
+        self.store = store
+        self.store_use = store_use
 
     @classmethod
     def start(cls, rec_path, calibration=None, sinks=(), settings: PipelineSettings | None = None,
-              episode_settings: EpisodeSettings | None = None) -> ReplayRun:
+              episode_settings: EpisodeSettings | None = None,
+              device_store: DeviceStore | None = None) -> ReplayRun:
         """Open the recording (its first chunk read: a stream missing is an :class:`InputError` now), the
-        pipeline and the sinks (given the run's metadata, the references and the calibration given)."""
+        pipeline (from the device store's entry, when there is one) and the sinks (given the run's metadata,
+        the references and the calibration given)."""
         if isinstance(rec_path, RecordingSource):
             src = rec_path
         elif isinstance(rec_path, Recording):
@@ -239,14 +256,19 @@ class ReplayRun:
             calibration = load_calibration(calibration)
         scores = HeadingScores()  # against the walked direction and the references: the summary's figures
         sinks = [*sinks, scores]
-        if settings is None and any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
-            settings = PipelineSettings(keep_mag_calibrated=True)  # the heavy sinks draw the calibrated field
+        wants = any(getattr(s, "wants_mag_calibrated", True) for s in sinks)
+        if wants and (settings is None or not settings.keep_mag_calibrated):
+            # the heavy sinks draw the calibrated field
+            settings = replace(settings or PipelineSettings(), keep_mag_calibrated=True)
+        prior, store_use = None, None
+        if device_store is not None:
+            prior, store_use = _load_device(device_store, src.meta)
         try:
-            pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta)
+            pipe = HeadingPipeline(settings=settings, calibration=calibration, meta=src.meta, prior=prior)
         except ValueError as exc:
             raise InputError(where, str(exc)) from None
         run = cls(src, merge, pipe, sinks, scores, calibration,
-                  EpisodeFinder(episode_settings, truth=src.truth))
+                  EpisodeFinder(episode_settings, truth=src.truth), device_store, store_use)
         run._open_sinks()
         return run
 
@@ -336,6 +358,19 @@ class ReplayRun:
                 s.calibration(t_cal, cal)
         self.n_cal_seen = len(cals)
 
+    def keep(self) -> None:
+        """Leave what the run learnt of the device in the device store (nothing without one, or when the
+        recording names no device): the calibration the data supported and the gyro bias
+        (:meth:`~pdr_mag.pipeline.HeadingPipeline.device_knowledge`), stamped with the recording's end."""
+        if self.store is None or self.store_use is None or self.store_use["file"] is None:
+            return
+        end = self.store_use["t_unix"] + (self.pipe.summary()["duration_s"] or 0.0)
+        try:
+            self.store.save(self.src.meta, self.pipe.device_knowledge(), end)
+        except (OSError, ValueError) as exc:
+            raise InputError(self.store.folder, f"device store: cannot write ({exc})") from None
+        self.store_use["saved"] = True
+
     def summary(self, elapsed_s: float, compile_s: float) -> dict:
         """The run summary (the ``replay --json`` object): the pipeline's own summary and what the run
         counted. ``elapsed_s``: the work's wall time (reading, pipeline, sinks), s; ``compile_s``: the time
@@ -353,6 +388,8 @@ class ReplayRun:
                 "n_samples": self.n_pushed,
                 "cal_state_rows": dict(sorted(self.state_counts.items())),
                 "calibration_given": self.calibration is not None,
+                "device_store": None if self.store_use is None else {
+                    k: v for k, v in self.store_use.items() if k != "t_unix"},
                 "episodes": [ep.to_dict() for ep in self.finder.episodes],
                 "episode_settings": {"truth": self.finder.has_truth, **asdict(self.finder.settings)},
                 **self.scores.summary(),
@@ -362,6 +399,22 @@ class ReplayRun:
             }
         )
         return summary
+
+
+def _load_device(store: DeviceStore, meta: dict) -> tuple:
+    """The store's prior for this recording's device, aged to its start (the clock when the recording
+    states no time), and what the summary says of it: ``file``, ``loaded``, ``age_s``, ``saved``."""
+    t_unix = DeviceStore.recording_time(meta)
+    if t_unix is None:
+        t_unix = time.time()
+    path = store.path(meta)
+    try:
+        prior = store.load(meta, t_unix)
+    except ValueError as exc:
+        raise InputError(path or store.folder, str(exc).split(": ", 1)[-1]) from None
+    use = {"file": None if path is None else str(path), "loaded": prior is not None,
+           "age_s": None if prior is None else round(prior.age_s, 1), "saved": False, "t_unix": t_unix}
+    return prior, use
 
 
 def _count_states(cal_state: np.ndarray, counts: Counter) -> None:
@@ -387,6 +440,7 @@ def summary_table(summary: dict) -> str:
         ("outputs", f"{summary['n_outputs']} over {summary['duration_s']:.1f} s"),
         ("north", summary["north"]),
         ("calibration", "given" if summary.get("calibration_given") else "online only"),
+        ("prior", _prior_line(summary)),
         ("final cal_state", summary.get("cal_state", "")),
     ]
     rows.append(
@@ -445,3 +499,19 @@ def _score_rows(summary: dict) -> list[tuple[str, str]]:
     elif w:
         rows.append(("heading vs walked", "no segment (waypoints ≥ 4 m and 3 s apart)"))
     return rows
+
+
+def _prior_line(summary: dict) -> str:
+    """The summary table's line on what the run started from: the phone's own estimates, the device store."""
+    p = summary.get("prior")
+    store = summary.get("device_store")
+    parts = []
+    if p is not None:
+        what = [w for w, k in (("hard iron", "offset_uT"), ("gyro bias", "gyro_bias_rad_s")) if p.get(k)]
+        stored = "store" in p.get("source", "") and p.get("age_s")
+        age = f", {p['age_s'] / 3600:.1f} h old" if stored else ""
+        parts.append(f"{' and '.join(what)} from the {p['source'].replace('+', ' and the ')}{age}")
+    if store is not None:
+        saved = "saved" if store["saved"] else "not saved"
+        parts.append(f"device store {saved} ({store['file'] or 'the recording names no device'})")
+    return "; ".join(parts) or "none"

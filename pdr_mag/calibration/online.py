@@ -36,6 +36,7 @@ from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior
+from pdr_mag.field import EARTH_STRENGTH_RANGE_UT
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
 
@@ -236,18 +237,18 @@ class OnlineCalibrator:
         f = self.field_ref
         sd = self.sin_dip_ref
         c = self._cal[0]
-        c["check"] = cal is not None and f is not None and cal_state not in ("none", "recalibrating")
+        # a prior is not yet the data's: every sample may enter the buffer, as before any calibration, so
+        # that a wrong one is seen to be wrong (the refit's plausibility test) and a fit can replace it
+        c["check"] = (cal is not None and f is not None and cal_state not in ("none", "recalibrating")
+                      and not is_prior(cal))  # fmt: skip
         if cal is not None:
             c["matrix"] = cal.matrix
             c["offset"] = cal.offset_array
-        # a prior (the phone's, a store's) is only as good as its covariance: the samples it admits may be off
-        # by what its offset may be off (3σ), or a wrong prior would keep out the very samples that correct it
-        widen = 3.0 * _prior_offset_sigma(cal)
         c["strength"] = np.nan if f is None else f
-        c["strength_tol"] = np.nan if f is None else s.add_tol_frac * f + widen
+        c["strength_tol"] = np.nan if f is None else s.add_tol_frac * f
         c["dip_check"] = sd is not None
         c["dip_deg"] = np.nan if sd is None else np.degrees(np.arcsin(sd))
-        c["dip_tol_deg"] = s.add_dip_tol_deg + (np.degrees(widen / f) if f else 0.0)
+        c["dip_tol_deg"] = s.add_dip_tol_deg
         c["sep2"] = (s.min_sep_frac * (f or 50.0)) ** 2
         c["has_offset"] = cal is not None
         c["stale_on"] = cal is not None and cal_state != "recalibrating"
@@ -266,6 +267,8 @@ class OnlineCalibrator:
         """A refit the schedule made due: fit the buffer, judge, take the best if it improves on the
         calibration in force (:func:`pdr_mag.calibration.refit.replaces`)."""
         n = self._n_buf
+        if is_prior(self.calibration) and n >= self.settings.prior_min_samples:
+            self._check_prior(t, n, events)
         full_fit_allowed = (
             bool(self._state[0]["episode_seen"]) or self.cal_state == "none" or is_prior(self.calibration)
         )
@@ -298,6 +301,38 @@ class OnlineCalibrator:
         self._use(cal, refit.state_of(cal))
         self._n_refits += 1
         events.append((t, "calibration_accepted", refit.summary(cal)))
+
+    def _check_prior(self, t: float, n: int, events: list) -> None:
+        """Refuse the prior in force when the field it calibrates cannot be the Earth's (OnlineSettings
+        ``prior_band_frac``): a store's entry of another phone of the same model, an OS estimate gone
+        stale.  A ``prior_refused`` event; nothing is in force then, and the refit that follows is judged as
+        a first calibration."""
+        s = self.settings
+        cal = self.calibration
+        mc = cal.apply(self._buf["m"][:n])
+        norm = np.linalg.norm(mc, axis=1)
+        strength = float(np.median(norm))
+        margin = 3.0 * _prior_offset_sigma(cal)
+        f = self.field_ref
+        dip = float(np.degrees(np.arcsin(np.clip(np.median(-np.einsum("ij,ij->i", mc, self._buf["u"][:n])
+                                                            / np.maximum(norm, 1e-9)), -1.0, 1.0))))
+        sd = self.sin_dip_ref
+        dip_ok = sd is None or abs(dip - np.degrees(np.arcsin(sd))) <= s.prior_band_dip_deg + np.degrees(
+            margin / max(strength, 1.0))
+        if f is not None:
+            plausible = dip_ok and abs(strength - f) <= s.prior_band_frac * f + margin
+        else:
+            lo, hi = EARTH_STRENGTH_RANGE_UT
+            k = s.prior_band_frac
+            plausible = dip_ok and lo * (1 - k) - margin <= strength <= hi * (1 + k) + margin
+        if plausible:
+            return
+        data = {"source": cal.extra.get("prior"), "offset_uT": [round(float(v), 3) for v in cal.offset],
+                "median_strength_uT": round(strength, 3), "reference_uT": None if f is None else round(f, 3),
+                "median_dip_deg": round(dip, 2)}
+        events.append((t, "prior_refused", data))
+        self.provided = False
+        self._use(None, "none")
 
     def _stale_test(self, t: float, events: list) -> None:
         """The stale test's fits on the recent window (its first part found the strength deviating); the

@@ -99,6 +99,13 @@ class OnlineSettings:
         Time over which the errors of buffered samples stay correlated (the local field of the place, the
         priors' error), s: a gravity-aided fit's offset covariance is scaled by ``N / N_eff``,
         ``N_eff = min(N, 1 + span / field_corr_s)`` (:func:`.refit.with_correlated_errors`).
+    prior_band_frac, prior_band_dip_deg, prior_min_samples : float, float, int
+        A prior calibration (the phone's, a store's: :mod:`.prior`) is refused when, over at least
+        ``prior_min_samples`` buffered samples, the median strength of the field it calibrates is farther
+        from the reference than ``prior_band_frac · F``, or its median dip farther than
+        ``prior_band_dip_deg`` from the reference inclination, each widened by what 3σ of the prior's offset
+        can do (the interference detectors' loose bands: no place indoors departs that far for long);
+        without a reference, when the strength is outside the Earth's range widened by that share.
     """
 
     buffer_size: int = 400
@@ -133,3 +140,6 @@ class OnlineSettings:
     episode_rate: float = 1.5
     recal_fallback_s: float = 20.0
     field_corr_s: float = 2.0
+    prior_band_frac: float = 0.4
+    prior_band_dip_deg: float = 25.0
+    prior_min_samples: int = 20

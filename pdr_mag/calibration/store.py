@@ -18,6 +18,7 @@ naming it), never silently replaced.
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
@@ -57,6 +58,23 @@ class DeviceStore:
             return None
         dev_id = meta.get("device_id")
         return f"{model.strip()}#{dev_id}" if dev_id not in (None, "") else model.strip()
+
+    @staticmethod
+    def recording_time(meta: dict) -> float | None:
+        """When a recording started, Unix time, from what its metadata states: ``start_time_unix``, else
+        noon UTC of its ``date`` (an entry's age then counts in days); None when it states neither (a live
+        backend uses the clock)."""
+        t = meta.get("start_time_unix")
+        if isinstance(t, int | float) and math.isfinite(t):
+            return float(t)
+        d = meta.get("date")
+        if isinstance(d, str):
+            try:
+                day = datetime.date.fromisoformat(d[:10])
+            except ValueError:
+                return None
+            return datetime.datetime(day.year, day.month, day.day, 12, tzinfo=datetime.UTC).timestamp()
+        return None
 
     def path(self, meta: dict) -> Path | None:
         """The file of this recording's device (None without a device)."""

@@ -94,7 +94,7 @@ from pdr_mag.fusion.detectors import forget_learnt
 from pdr_mag.fusion.kinds import GYRO, check_kinds
 from pdr_mag.fusion.rows import DIAG_NAMES, new_rows
 from pdr_mag.fusion.settings import FusionSettings
-from pdr_mag.fusion.state import BIAS, STATE, new_state, state_from_json, state_to_json
+from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 7
@@ -242,13 +242,30 @@ class FusionCore:
           gets the variance of what the change removes;
         * its radius becomes the detectors' reference strength (:meth:`set_reference_strength`; a
           calibration without a radius leaves the reference as it was);
-        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`).
+        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`);
+        * none after one (a prior refused): the heading it gave is forgotten (:meth:`forget_heading`).
         """
         if cal is not None and previous is not None and cal is not previous:
             self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
+        if cal is None and previous is not None:
+            self.forget_heading()
         if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
+
+    def forget_heading(self) -> None:
+        """The heading so far came from a calibration found wrong and withdrawn (a prior refused): it is
+        unknown again (``heading_std_deg`` 180°, its covariance with the rest dropped), the detectors learn
+        their local references anew, and the next usable magnetometer sample fixes it as the first did."""
+        st = self._st[0]
+        if st["init"] < 2:
+            return
+        st["init"] = 1
+        for m in (st["P"], st["U"]):
+            m[TH_Z, :] = 0.0
+            m[:, TH_Z] = 0.0
+        st["P"][TH_Z, TH_Z] = np.pi**2
+        forget_learnt(st["det"])
 
     def set_gyro_prior(self, bias, std: float) -> None:
         """What is known of the gyroscope bias before the first sample: ``bias`` (3, rad/s, device frame)

@@ -1,5 +1,5 @@
-"""``pdr-mag replay REC [--calibration FILE] [--out-csv FILE] [--mcap FILE [--mcap-rate HZ]] [--rrd FILE]
-[--json FILE]``."""
+"""``pdr-mag replay REC [--calibration FILE] [--device-store DIR] [--ignore-phone-calibration]
+[--out-csv FILE] [--mcap FILE [--mcap-rate HZ]] [--rrd FILE] [--json FILE]``."""
 
 from __future__ import annotations
 
@@ -9,6 +9,9 @@ from pathlib import Path
 
 import click
 
+from pdr_mag.calibration.prior import PriorSettings
+from pdr_mag.calibration.store import DeviceStore
+from pdr_mag.pipeline import PipelineSettings
 from replay.commands._output import writable_file
 from replay.compiling import announced
 from replay.errors import InputError
@@ -19,6 +22,18 @@ from replay.run import CsvSink, load_calibration, make_sink, replay, summary_tab
 @click.command()
 @click.argument("rec", type=click.Path(path_type=Path))
 @click.option("--calibration", type=click.Path(path_type=Path), help="calibrate --json file of the device.")
+@click.option(
+    "--device-store",
+    type=click.Path(path_type=Path, file_okay=False),
+    metavar="DIR",
+    help="A store of the devices' calibrations: start from this device's entry (aged; a prior the data may "
+    "replace) and leave what the run learnt there.",
+)
+@click.option(
+    "--ignore-phone-calibration",
+    is_flag=True,
+    help="Do not start from the phone's own hard-iron and gyro estimates that the recording carries.",
+)
 @click.option("--out-csv", type=click.Path(path_type=Path), help="Estimates, one row per output epoch.")
 @click.option(
     "--mcap", type=click.Path(path_type=Path), help="MCAP file with inputs, outputs and references."
@@ -37,7 +52,8 @@ from replay.run import CsvSink, load_calibration, make_sink, replay, summary_tab
     "--progress/--no-progress", default=None, help="Progress bar (default: long recordings on a tty)."
 )
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
-def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
+def command(rec, calibration, device_store, ignore_phone_calibration, out_csv, mcap, mcap_rate, rrd, viewer,
+            json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
     cal = load_calibration(calibration) if calibration is not None else None
     if cal is not None and not cal.accepted:
@@ -48,14 +64,15 @@ def command(rec, calibration, out_csv, mcap, mcap_rate, rrd, viewer, json_path, 
         raise click.UsageError("--mcap-rate needs --mcap FILE")
     with announced():
         summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate,
-                      rrd=rrd, viewer=viewer, progress=progress)
+                      rrd=rrd, viewer=viewer, progress=progress, device_store=device_store,
+                      use_phone=not ignore_phone_calibration)
     if not quiet:
         click.echo(summary_table(summary))
     return 0
 
 
 def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=None, rrd=None, viewer=False,
-        progress=None, sinks=(), source=None) -> dict:
+        progress=None, sinks=(), source=None, device_store=None, use_phone=True) -> dict:
     """What ``pdr-mag replay`` does with one recording: replay it into the requested files.
 
     Parameters
@@ -77,6 +94,10 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
         More sinks fed with the same run (``pdr-mag batch``'s fleet-table metrics).
     source : str, optional
         The name the outputs give the recording (``source``), when ``rec`` is opened under another path.
+    device_store : path or None
+        ``--device-store``: the folder of the device calibration store.
+    use_phone : bool
+        False: ``--ignore-phone-calibration``.
 
     Returns
     -------
@@ -96,7 +117,15 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
     if source is not None:
         rec = open_recording(rec)
         rec.source = source
-    summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress)
+    store = None
+    if device_store is not None:
+        try:
+            store = DeviceStore(device_store)
+        except ValueError as exc:
+            raise InputError(device_store, str(exc).split(": ", 1)[-1]) from None
+    settings = None if use_phone else PipelineSettings(prior=PriorSettings(use_phone=False))
+    summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress, settings=settings,
+                     device_store=store)
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
