@@ -125,9 +125,9 @@ def main() -> None:
         text = "\n".join([
             SECTION, "",
             f"`python benchmarks/walked.py --write-results` ({len(paths)} traces of "
-            "`../shared/datasets/ms-indoor-location-2020`, in time order). |error| of the circular mean heading "
-            "over the middle half of each segment between surveyed waypoints against its bearing, deg "
-            "(`../shared/tools/walked-direction`'s scoring, `replay.heading_scores`); peers from "
+            "`../shared/datasets/ms-indoor-location-2020`, in time order). |error| of the circular mean "
+            "heading over the middle half of each segment between surveyed waypoints against its bearing, "
+            "deg (`../shared/tools/walked-direction`'s scoring, `replay.heading_scores`); peers from "
             "`../shared/benchmarks/walked_peers.csv` on the same segments.", "", *lines, ""])
         write_section(SECTION, text)
 

@@ -46,6 +46,10 @@ _EXPORTS = {
     "earth_field_from_meta": "pdr_mag.field",
     # calibration ([Long2013], [Zhong2017], [Liu2018], [Huang2018]: pdr_mag.references)
     "MagCalibration": "pdr_mag.calibration",
+    "DevicePrior": "pdr_mag.calibration.prior",
+    "PriorSettings": "pdr_mag.calibration.prior",
+    "phone_prior": "pdr_mag.calibration.prior",
+    "DeviceStore": "pdr_mag.calibration.store",
     "calibrate": "pdr_mag.calibration",
     "fit_sphere": "pdr_mag.calibration",
     "fit_twostep": "pdr_mag.calibration",

@@ -130,7 +130,7 @@ def _run(cmd: str) -> None:
 def test_every_block_is_run_or_checked():
     """A block of a new kind, or a command that is neither run nor listed in NOT_RUN, fails here."""
     langs = [b.lang for b in BLOCKS]
-    assert langs.count("python") == 2 and set(langs) == {"bash", "python", ""}, langs
+    assert langs.count("python") == 3 and set(langs) == {"bash", "python", ""}, langs
     shell = [c for b in BLOCKS if b.lang == "bash" for c in _commands(b)]
     assert len(shell) == 10
     for cmd in shell:
@@ -188,9 +188,16 @@ def test_command_1_and_the_library_example_give_the_same_rows(checkout):
     assert pipe.north == summary["north"] == "true"
     assert pipe.field.declination_deg == pytest.approx(summary["field"]["declination_deg"], abs=1e-9)
     json.dumps(ns["state"])  # JSON-serialisable, as the comment says
+    # the device-store example continues it (its rec): the first run finds no entry and leaves one, the
+    # second starts from it
+    store_block = [b for b in BLOCKS if b.lang == "python"][1]
+    exec(compile(store_block.text, f"README.md:{store_block.line}", "exec"), ns)  # noqa: S102
+    assert ns["pipe"].prior is None and ns["store"].path(ns["rec"].meta).is_file()
+    exec(compile(store_block.text, f"README.md:{store_block.line}", "exec"), ns)  # noqa: S102
+    assert ns["pipe"].prior.source == "store" and len(ns["rows"]) == len(cli_rows)
     # the settings example continues this one (its rec): the pipeline it builds has the settings it writes
     # (the defaults are gate 4.0 and tol_deg 15.0) and the recording's place and date
-    grouped = [b for b in BLOCKS if b.lang == "python"][1]
+    grouped = [b for b in BLOCKS if b.lang == "python"][2]
     exec(compile(grouped.text, f"README.md:{grouped.line}", "exec"), ns)  # noqa: S102 — the README's own code
     fusion = ns["pipe"].fusion.settings
     assert (fusion.mag.gate, fusion.interference.dip.tol_deg) == (3.0, 10.0)

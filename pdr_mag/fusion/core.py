@@ -211,9 +211,9 @@ class FusionCore:
         taken from the old fields, so it carries the heading error ``g · dm`` that the change removes
         (``g = ∂ψ/∂m_d``): at the next usable magnetometer sample that variance joins the heading's, and a
         field the new calibration turns by tens of degrees is then within the gate rather than rejected until
-        a re-acquisition.  Changes before that sample add up (to first order).  A change larger than the
-        magnetometer's noise also makes the detectors learn their local references anew
-        (:func:`~pdr_mag.fusion.detectors.forget_learnt`): they were the old calibration's."""
+        a re-acquisition.  Changes before that sample add up (to first order).  (The detectors' local
+        references, learnt from the old fields, follow the new ones at their own pace: relearning them at
+        every change cost the tyrex walks more than it gained.)"""
         arrays = []
         for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
                                ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
@@ -227,11 +227,6 @@ class FusionCore:
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
-        # the detectors' local references were learnt from the old fields: beyond the magnetometer's own
-        # noise (|dm| ≤ ‖D‖ F + |e| for a field of strength F), they are learnt anew
-        f = st["f_ref"] if np.isfinite(st["f_ref"]) else 60.0
-        if np.linalg.norm(d, 2) * f + np.linalg.norm(e) > self.settings.mag.noise_uT:
-            forget_learnt(st["det"])
 
     def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:
         """The magnetometer calibration in force is now ``cal`` (the samples the filter takes are calibrated
