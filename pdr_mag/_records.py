@@ -68,23 +68,37 @@ def settings_dtype(cls) -> np.dtype:
     return np.dtype(spec, align=True)
 
 
-def _fill(rec: np.ndarray, settings) -> None:
+def _values(settings) -> tuple:
+    """The record's values, in its fields' order (nested settings as nested tuples)."""
+    out = []
     for f in fields(settings):
         v = getattr(settings, f.name)
         if "kernel" in f.metadata:
-            name, convert = f.metadata["kernel"]
-            rec[name] = convert(v)
+            out.append(f.metadata["kernel"][1](v))
         elif is_dataclass(v):
-            _fill(rec[f.name], v)
+            out.append(_values(v))
         else:
-            rec[f.name] = v
+            out.append(v)
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=64)
+def _record(settings) -> np.ndarray:
+    return np.array([_values(settings)], dtype=settings_dtype(type(settings)))
 
 
 def settings_record(settings) -> np.ndarray:
-    """``settings`` as the one-element array of :func:`settings_dtype` that a kernel takes."""
-    rec = np.zeros(1, dtype=settings_dtype(type(settings)))
-    _fill(rec, settings)
-    return rec
+    """``settings`` as the one-element array of :func:`settings_dtype` that a kernel takes (a fresh copy;
+    the settings are frozen, so the record of equal settings is built once)."""
+    return copy_record(_record(settings))
+
+
+def copy_record(rec: np.ndarray) -> np.ndarray:
+    """A copy of a structured array as a copy of its bytes (numpy's copy of nested records goes field by
+    field, tens of µs for the filter's state)."""
+    out = np.empty(rec.shape, dtype=rec.dtype)
+    out.view(np.uint8)[:] = rec.view(np.uint8)
+    return out
 
 
 def check_numbers(settings, positive: tuple = (), skip: tuple = ()) -> None:

@@ -231,28 +231,26 @@ def test_state_round_trip_through_json(walk):
 
 
 def test_the_kernel_writes_every_output_column(walk):
-    """Every field of :data:`pdr_mag.fusion.rows.ROWS` is written for every row the kernel reports (a
-    sentinel put there before the run is gone), and the rows' diagnostics are exactly DIAG_NAMES."""
+    """Every column of :mod:`pdr_mag.fusion.rows` is written for every row the kernel reports (a sentinel
+    put there before the run is gone), and the rows' diagnostics are exactly DIAG_NAMES."""
     from pdr_mag.fusion import Span, kernel
-    from pdr_mag.fusion.rows import DIAG_NAMES, ROWS
+    from pdr_mag.fusion.rows import DIAG_NAMES, FLAG_COLUMNS, FLOAT_COLUMNS, columns, new_rows
     from pdr_mag.fusion.state import STATE
 
     kind, t, xyz = merge(walk)
     core = FusionCore(field=walk.field)
-    out = np.zeros(len(t), dtype=ROWS)
-    for name in ROWS.names:
-        out[name] = -12345.0 if out[name].dtype.kind == "f" else True
-    allowed = np.ones(len(t), dtype=np.bool_)
-    no_cut = np.empty(0, dtype=np.intp)
-    span = Span(kind, t, xyz, allowed, len(t))
-    k = kernel.run_cut(span, core._st, core._p, no_cut, np.empty(0, STATE), out)
+    out = new_rows(len(t))
+    out.floats[:] = -12345.0
+    out.q[:] = -12345.0
+    out.flags[:] = True
+    span = Span(kind, t, xyz, np.ones(len(t), dtype=np.bool_), len(t))
+    k = kernel.run_cut(span, core._st, core._p, np.empty(0, dtype=np.intp), np.empty(0, STATE), out)
     assert k > 100
-    for name in ROWS.names:
-        col = out[name][:k]
-        if col.dtype.kind == "f":
-            assert not np.any(col == -12345.0), name
-        else:
-            assert not np.all(col), name  # some rows without a correction or a flag
+    col = columns(out, k)
+    for name in (*FLOAT_COLUMNS, "q"):
+        assert not np.any(col[name] == -12345.0), name
+    for name in FLAG_COLUMNS:
+        assert not np.all(col[name]), name  # some rows without a correction or a flag
     assert set(core.process(kind, t, xyz).diag) == set(DIAG_NAMES)
 
 

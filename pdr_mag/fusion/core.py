@@ -92,7 +92,7 @@ from pdr_mag.field import EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.detectors import forget_learnt
 from pdr_mag.fusion.kinds import GYRO, check_kinds
-from pdr_mag.fusion.rows import DIAG_NAMES, new_rows
+from pdr_mag.fusion.rows import DIAG_NAMES, columns, new_rows
 from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
@@ -322,19 +322,19 @@ class FusionCore:
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
         k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
-        out = out[:k]
-        heading = np.arctan2(out["h_y"], out["h_x"])
+        col = columns(out, k)
+        heading = np.arctan2(col["h_y"], col["h_x"])
         np.degrees(heading, out=heading)
         np.mod(heading, 360.0, out=heading)
         rows = EstimateBatch(
-            t=out["t"],
-            q_wd=out["q"],
+            t=col["t"],
+            q_wd=col["q"],
             heading_deg=heading,
-            heading_std_deg=out["heading_std_deg"],
-            mag_used=out["mag_used"],
-            interference=out["interference"],
+            heading_std_deg=col["heading_std_deg"],
+            mag_used=col["mag_used"],
+            interference=col["interference"],
             cal_state=np.full(k, "none", dtype="<U13"),
-            diag={name: out[name] for name in DIAG_NAMES},
+            diag={name: col[name] for name in DIAG_NAMES},
         )
         return Advanced(rows, Snapshots(snaps, self._ref_strength))
 

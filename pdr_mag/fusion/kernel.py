@@ -27,13 +27,14 @@ from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 from pdr_mag.fusion.mag import mag_step
 from pdr_mag.fusion.quat import heading_deg
+from pdr_mag.fusion.rows import COL, FLAG
 from pdr_mag.fusion.state import TH_Z
 
 
 @njit(cache=True, error_model="numpy")
 def run(kind, t, xyz, allowed, st, p, out, k0):
     """Process a chunk (``kind``: :mod:`pdr_mag.fusion.kinds`) with the state record ``st``, writing rows
-    into ``out`` (:data:`~pdr_mag.fusion.rows.ROWS`) from row ``k0`` on; returns the number of rows
+    into ``out`` (:class:`~pdr_mag.fusion.rows.Rows`) from row ``k0`` on; returns the number of rows
     written."""
     R = np.empty((3, 3))
     work = np.empty(1, dtype=PREDICT_WORK)  # gyro_step's scratch
@@ -62,31 +63,32 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
                 while nxt <= ti:
                     nxt += p.out_dt_s
                 st.t_next_out = nxt
-            _write_row(st, ti, out[n_out])
+            _write_row(st, ti, out, n_out)
             n_out += 1
     return n_out - k0
 
 
 @njit(cache=True, error_model="numpy")
-def _write_row(st, ti, row):
-    """The output ``row`` (a record of :data:`~pdr_mag.fusion.rows.ROWS`) from the state at gyroscope time
-    ti; resets the since-last-row flags."""
-    row.t = ti
+def _write_row(st, ti, out, n):
+    """Row ``n`` of ``out`` (:class:`~pdr_mag.fusion.rows.Rows`) from the state at gyroscope time ti; resets
+    the since-last-row flags."""
+    f = out.floats
+    f[COL.t, n] = ti
     for c in range(4):
-        row.q[c] = st.q[c]
+        out.q[n, c] = st.q[c]
     var = min(st.P[TH_Z, TH_Z] + heading_var_u(st), np.pi**2)  # the filter's and the consider covariance's
-    row.heading_std_deg = np.degrees(np.sqrt(max(var, 0.0)))
-    row.mag_used = st.mag_used
-    row.interference = st.det.flag or st.interference_seen
+    f[COL.heading_std_deg, n] = np.degrees(np.sqrt(max(var, 0.0)))
+    out.flags[FLAG.mag_used, n] = st.mag_used
+    out.flags[FLAG.interference, n] = st.det.flag or st.interference_seen
     st.mag_used = False
     st.interference_seen = False
-    row.gyro_heading_deg = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
-    detectors.write(st.det, row)
-    row.interference_score = st.det.score
-    row.gyro_bias_x = st.b[0]
-    row.gyro_bias_y = st.b[1]
-    row.gyro_bias_z = st.b[2]
-    row.heading_reset_deg = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
+    f[COL.gyro_heading_deg, n] = heading_deg(st.q_gyro) if st.init >= 2 else np.nan
+    detectors.write(st.det, f, n, COL)
+    f[COL.interference_score, n] = st.det.score
+    f[COL.gyro_bias_x, n] = st.b[0]
+    f[COL.gyro_bias_y, n] = st.b[1]
+    f[COL.gyro_bias_z, n] = st.b[2]
+    f[COL.heading_reset_deg, n] = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
     st.reset_jump = 0.0
 
 
@@ -96,7 +98,7 @@ def run_cut(span, state, params, cuts, snaps, out):
     in ``snaps[j]`` before sample ``cuts[j]`` (increasing); then each row's quaternion sign made
     non-negative in w and its heading's ``arctan2`` arguments written (``h_y``, ``h_x``).  ``state`` and
     ``params`` are one-element arrays of :data:`~pdr_mag.fusion.state.STATE` and
-    :data:`~pdr_mag.fusion.state.PARAMS`; ``out`` the rows (:data:`~pdr_mag.fusion.rows.ROWS`).  Returns the
+    :data:`~pdr_mag.fusion.state.PARAMS`; ``out`` the rows (:class:`~pdr_mag.fusion.rows.Rows`).  Returns the
     number of rows (the rows of one :func:`run` call per piece: the same rows, cut or not)."""
     kind, t, xyz, allowed = span.kind, span.t, span.xyz, span.mag_allowed
     st = state[0]
@@ -111,18 +113,17 @@ def run_cut(span, state, params, cuts, snaps, out):
         if j < len(cuts):
             snaps[j] = st
         a = b
+    q = out.q
     for i in range(k):
-        row = out[i]
-        q = row.q
-        s = -1.0 if q[0] < 0 else 1.0
+        s = -1.0 if q[i, 0] < 0 else 1.0
         for c in range(4):
-            q[c] = q[c] * s
-        w = q[0]
-        x = q[1]
-        y = q[2]
-        z = q[3]
-        row.h_y = 2.0 * (x * y - w * z)
-        row.h_x = 1.0 - 2.0 * (x * x + z * z)
+            q[i, c] = q[i, c] * s
+        w = q[i, 0]
+        x = q[i, 1]
+        y = q[i, 2]
+        z = q[i, 3]
+        out.floats[COL.h_y, i] = 2.0 * (x * y - w * z)
+        out.floats[COL.h_x, i] = 1.0 - 2.0 * (x * x + z * z)
     return k
 
 

@@ -1,14 +1,20 @@
-"""The filter's output rows: one structured array, its columns by name, defined here only.
+"""The filter's output rows: their columns by name, defined here only.
 
-The kernel (:func:`pdr_mag.fusion.kernel.run_cut`) writes one record of :data:`ROWS` per output gyroscope
-sample, field by field (``row.heading_std_deg = …``; each detector writes its own columns,
-:func:`pdr_mag.fusion.detectors.write`); :class:`pdr_mag.fusion.FusionCore` reads the columns by the same
-names into an :class:`pdr_mag.estimates.EstimateBatch` (views, no copy).  The diagnostic columns are
-:data:`DIAG_COLUMNS`: the filter's own and every registered detector's
+The kernel (:func:`pdr_mag.fusion.kernel.run_cut`) writes the rows into :class:`Rows`: a block of float
+columns (one row of the block per column, so each column is contiguous), the attitudes and a block of flag
+columns.  It addresses a column by its name only, ``out.floats[COL.heading_std_deg, n]``: :data:`COL` and
+:data:`FLAG` name each column's row in its block (numba reads them as constants), and each detector writes
+its own columns the same way (:func:`pdr_mag.fusion.detectors.write`).  :class:`pdr_mag.fusion.FusionCore`
+reads the columns by the same names into an :class:`pdr_mag.estimates.EstimateBatch` (views, no copy).
+
+The diagnostic columns are :data:`DIAG_COLUMNS`: the filter's own and every registered detector's
 (:data:`pdr_mag.fusion.detectors.COLUMNS`); :data:`pdr_mag.estimates.DIAG_KEYS` is built from them.
 """
 
 from __future__ import annotations
+
+from collections import namedtuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,25 +39,37 @@ DIAG_NAMES = tuple(DIAG_COLUMNS)
 #: ``tests/fixtures/pdrmcap_v2_handwritten.mcap`` holds byte for byte)
 INTERNAL_DIAG = ("consistency_deg", "heading_reset_deg")
 
-#: one output row: time (the gyroscope sample's, s), attitude ``q`` (w-first, w ≥ 0), heading std (deg),
-#: the arguments ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, whether
-#: the magnetometer corrected the heading and whether the interference flag was up since the previous row,
-#: and the diagnostics
-ROWS = np.dtype(
-    [
-        ("t", np.float64),
-        ("q", np.float64, (4,)),
-        ("heading_std_deg", np.float64),
-        ("h_y", np.float64),
-        ("h_x", np.float64),
-        ("mag_used", np.bool_),
-        ("interference", np.bool_),
-        *((name, np.float64) for name in DIAG_NAMES),
-    ],
-    align=True,
-)
+#: the float columns: time (the gyroscope sample's, s), heading std (deg), the arguments
+#: ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, and the diagnostics
+FLOAT_COLUMNS = ("t", "heading_std_deg", "h_y", "h_x", *DIAG_NAMES)
+#: the flag columns: the magnetometer corrected the heading / the interference flag was up, since the
+#: previous row
+FLAG_COLUMNS = ("mag_used", "interference")
+#: each float column's row in :attr:`Rows.floats`, by name
+COL = namedtuple("FloatColumns", FLOAT_COLUMNS)(*range(len(FLOAT_COLUMNS)))
+#: each flag column's row in :attr:`Rows.flags`, by name
+FLAG = namedtuple("FlagColumns", FLAG_COLUMNS)(*range(len(FLAG_COLUMNS)))
 
 
-def new_rows(m: int) -> np.ndarray:
+class Rows(NamedTuple):
+    """Room for ``m`` output rows: ``floats`` (len(FLOAT_COLUMNS), m), the attitudes ``q`` (m, 4; w-first,
+    w ≥ 0) and ``flags`` (len(FLAG_COLUMNS), m) bool."""
+
+    floats: np.ndarray
+    q: np.ndarray
+    flags: np.ndarray
+
+
+def new_rows(m: int) -> Rows:
     """Room for ``m`` output rows."""
-    return np.empty(m, dtype=ROWS)
+    return Rows(
+        np.empty((len(FLOAT_COLUMNS), m)), np.empty((m, 4)), np.empty((len(FLAG_COLUMNS), m), dtype=np.bool_)
+    )
+
+
+def columns(rows: Rows, k: int) -> dict:
+    """The first ``k`` rows' columns by name (views): every float and flag column, and ``q``."""
+    out = dict(zip(FLOAT_COLUMNS, rows.floats[:, :k], strict=True))
+    out.update(zip(FLAG_COLUMNS, rows.flags[:, :k], strict=True))
+    out["q"] = rows.q[:k]
+    return out

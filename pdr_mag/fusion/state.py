@@ -2,8 +2,8 @@
 
 The compiled kernels (:mod:`pdr_mag.fusion.kernel` and the modules it calls) read and write one record of
 :data:`STATE`, read one record of :data:`PARAMS` (the :class:`~pdr_mag.fusion.settings.FusionSettings` in
-the kernel's units, the detectors' thresholds nested in it), and write their output into the named fields of
-:data:`pdr_mag.fusion.rows.ROWS`.  A numpy record is what numba compiles against with ``cache=True``: its
+the kernel's units, the detectors' thresholds nested in it), and write their output into the named columns of
+:class:`pdr_mag.fusion.rows.Rows`.  A numpy record is what numba compiles against with ``cache=True``: its
 fields are read by name at native speed, a copy of the record is a snapshot, and :func:`state_to_json` /
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
@@ -13,10 +13,12 @@ error), ``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from pdr_mag._json import state_float
-from pdr_mag._records import settings_dtype
+from pdr_mag._records import copy_record, settings_dtype
 from pdr_mag.fusion.detectors import DETECTOR_STATE, new_detector_state
 from pdr_mag.fusion.settings import FusionSettings
 
@@ -107,6 +109,11 @@ PARAMS = settings_dtype(FusionSettings)
 
 def new_state() -> np.ndarray:
     """A filter that has seen nothing: a one-element array of :data:`STATE` (the kernels take its record)."""
+    return copy_record(_fresh_state())
+
+
+@functools.cache
+def _fresh_state() -> np.ndarray:
     st = np.zeros(1, dtype=STATE)
     st["q"] = st["q_gyro"] = (1.0, 0.0, 0.0, 0.0)
     for name in (

@@ -335,10 +335,10 @@ def reference_horizontal(det):
 
 
 @njit(cache=True, error_model="numpy")
-def write(det, row):
-    """Each detector's diagnostic columns into the output row (a record of
-    :data:`pdr_mag.fusion.rows.ROWS`)."""
-    _write(det, row)
+def write(det, out, n, col):
+    """Each detector's diagnostic columns into row ``n`` of the output's float block ``out``, column
+    ``col.<name>`` (:data:`pdr_mag.fusion.rows.COL`)."""
+    _write(det, out, n, col)
 
 
 @njit(cache=True, error_model="numpy")

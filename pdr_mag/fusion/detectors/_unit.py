@@ -27,7 +27,8 @@ compiled steps (numba), each given the detectors' state ``det`` (the sample in `
     ``disturbance2(det, p)`` its part of ``d_min²``, the smallest disturbance that explains the deviations
     (µT², ``p`` the fusion's settings record);
     ``tolerance2(det)`` its tolerance as a disturbance (µT²);
-    ``write(det, row)`` its diagnostic columns into an output row;
+    ``write(det, out, n, col)`` its diagnostic columns into row ``n`` of the output's float block ``out``
+    (its column ``c`` is ``out[col.c, n]``, :data:`pdr_mag.fusion.rows.COL`);
     ``turn(det, ex, ey, ez)`` / ``restart(det)`` what a world-frame correction / a jump of the filter's
     attitude (a heading re-acquisition, a tilt reset) does to its state;
 ``example()``

@@ -134,8 +134,8 @@ def restart(det):
 
 
 @njit(cache=True, error_model="numpy")
-def write(det, row):
-    row.consistency_deg = det.consistency.angle
+def write(det, out, n, col):
+    out[col.consistency_deg, n] = det.consistency.angle
 
 
 def consistency_angle_deg(t: np.ndarray, mag_w: np.ndarray, window_s: float) -> np.ndarray:

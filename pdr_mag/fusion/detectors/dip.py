@@ -117,10 +117,10 @@ restart = no_restart
 
 
 @njit(cache=True, error_model="numpy")
-def write(det, row):
-    row.dip_deg = det.x.dip
-    row.dip_ref_deg = det.dip.loc
-    row.dip_tol_deg = det.dip.tol
+def write(det, out, n, col):
+    out[col.dip_deg, n] = det.x.dip
+    out[col.dip_ref_deg, n] = det.dip.loc
+    out[col.dip_tol_deg, n] = det.dip.tol
 
 
 def dip_deg(mag_d: np.ndarray, up_d: np.ndarray) -> np.ndarray:

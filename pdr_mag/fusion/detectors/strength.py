@@ -118,10 +118,10 @@ restart = no_restart
 
 
 @njit(cache=True, error_model="numpy")
-def write(det, row):
-    row.field_strength_uT = det.x.f
-    row.field_ref_uT = det.strength.loc
-    row.strength_tol_uT = det.strength.tol
+def write(det, out, n, col):
+    out[col.field_strength_uT, n] = det.x.f
+    out[col.field_ref_uT, n] = det.strength.loc
+    out[col.strength_tol_uT, n] = det.strength.tol
 
 
 def strength_score(mag_d: np.ndarray, ref_uT: float, settings: StrengthSettings | None = None):

@@ -101,8 +101,8 @@ restart = no_restart
 
 
 @njit(cache=True, error_model="numpy")
-def write(det, row):
-    row.strength_var_uT2 = det.variance.var
+def write(det, out, n, col):
+    out[col.strength_var_uT2, n] = det.variance.var
 
 
 def windowed_variance(t: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
