@@ -5,7 +5,7 @@ bound, noise bias, speed, real data.
     python benchmarks/calibration.py --suite          # the acceptance suite only (≈ 20 s)
 
 **Acceptance suite** (issue 11): seeded phone-like calibration recordings made with the project's
-simulator (motions of ``pdr_mag.sim`` modes, ``pdr_mag.sensor_model`` with hard iron, soft iron, noise,
+simulator (motions of ``pdr_mag.sim`` modes, ``pdr_mag.sim.sensor_model`` with hard iron, soft iron, noise,
 the phone's resolution and clock; ``tests/_calibration_sim.phone_recording``): figure-8s, partial
 figure-8s, screen-up motions (a hemisphere or less), near-planar rotations, yaw only, strong soft iron,
 and disturbed ones (a steel dipole near the moving hand).  Each is judged against its own Cramér–Rao

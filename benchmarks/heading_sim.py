@@ -51,7 +51,7 @@ T_SKIP = 5.0
 
 
 def phone_spec(name: str):
-    from pdr_mag.sensor_model import PhoneSpec
+    from pdr_mag.sim.sensor_model import PhoneSpec
 
     if name == "default":
         return PhoneSpec()
@@ -62,8 +62,8 @@ def phone_spec(name: str):
 
 def case(scenario: str, seed: int, phone: str = "default"):
     """A simulated recording and its exact magnetometer calibration."""
-    from pdr_mag.sensor_model import SensorModel
     from pdr_mag.sim import simulate
+    from pdr_mag.sim.sensor_model import SensorModel
 
     res = simulate(scenario, seed=seed, phone=phone_spec(phone))
     eff = {k: v for k, v in res.model.effects.items() if k in ("hard_iron", "soft_iron")}
@@ -82,7 +82,7 @@ def merged(res, mag_cal):
 
 def errors(t, q_est, truth):
     """(heading error, tilt error) in degrees at times t; heading error signed (twist about up)."""
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     tt, qt = truth
     q_true = quat_slerp(tt, qt, t)
@@ -142,7 +142,7 @@ def run_peer(name, res, cal, remove_bias):
 
 def run_compass(res, cal):
     """Heading of a perfect-tilt compass from each calibrated magnetometer sample (truth tilt)."""
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     tm, m = res.mag
     mc = cal.apply(m)

@@ -24,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from pdr_mag.sensor_model import PhoneSpec  # noqa: E402
 from pdr_mag.sim import simulate  # noqa: E402
+from pdr_mag.sim.sensor_model import PhoneSpec  # noqa: E402
 
 
 def _time_sim(repeat: int, **kw) -> dict:

@@ -8,7 +8,7 @@
     The lumped error model ``H_m = S·H_i + b + ε`` (eqs. 3–4), its ellipsoid (eqs. 4–7, the likelihood
     eq. 7), the radial objective solved by Newton's method (eq. 10), the alignment by a least-squares
     rotation (eq. 12): :mod:`pdr_mag.calibration.ml`, :mod:`~pdr_mag.calibration.geometry`,
-    :mod:`~pdr_mag.calibration.alignment`, :mod:`pdr_mag.sensor_model`.
+    :mod:`~pdr_mag.calibration.alignment`, :mod:`pdr_mag.sim.sensor_model`.
 [Zhong2017]
     Zhong Hao, Zhang Weiguo, Liu Xiaoxiong: *Research on calibration methods of three-axis magnetometer
     based on vector norm estimation*.  Chinese Journal of Sensors and Actuators, 2017, no. 10,

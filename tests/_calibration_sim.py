@@ -91,7 +91,7 @@ def seed001(rng: np.random.Generator, n: int = 1000):
 
 
 # ------------------------------------------------------------------------------ phone-like recordings
-# Calibration motions through the project's simulator (pdr_mag.sim modes / trajectory, pdr_mag.sensor_model):
+# Calibration motions through the project's simulator (pdr_mag.sim: modes, trajectory, sensor_model):
 # a standing user turns the phone; the chain angles (yaw, pitch about the device x, roll about y, twist about
 # z; pdr_mag.sim.kinematics) are sines, so the motion is smooth and its range is what the kind says.
 
@@ -154,7 +154,7 @@ def phone_recording(kind: str, seed: int, duration_s: float, noise_uT: float, of
 
     Hard iron of norm ``offset_norm_uT`` in a random direction, soft iron with eigenvalue ratio
     ``soft_ratio`` (:func:`soft_iron_with_ratio`), white noise ``noise_uT`` per axis, the phone's 0.15 µT
-    resolution, 50 Hz with the jitter and drops of :class:`pdr_mag.sensor_model.PhoneSpec`.
+    resolution, 50 Hz with the jitter and drops of :class:`pdr_mag.sim.sensor_model.PhoneSpec`.
     ``disturbance_uT`` > 0 puts a steel dipole 0.5 m from the phone, scaled so that the field it adds
     varies by that much (RMS about its mean) as the phone moves: a field that is not constant.
 
@@ -163,8 +163,8 @@ def phone_recording(kind: str, seed: int, duration_s: float, noise_uT: float, of
     ``sigma`` (noise σ including the resolution), ``field`` (EarthField).
     """
     from pdr_mag.field import earth_field
-    from pdr_mag.sensor_model import DipoleField, PhoneSpec, SensorModel, measure_mag, predict_mag
     from pdr_mag.sim.sampling import sample_times
+    from pdr_mag.sim.sensor_model import DipoleField, PhoneSpec, SensorModel, measure_mag, predict_mag
     from pdr_mag.sim.trajectory import Heading, Trajectory
 
     rng = np.random.default_rng(seed)

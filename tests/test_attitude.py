@@ -105,7 +105,7 @@ def test_simulated_walk_with_ideal_calibration(scenario):
     mean tilt error < 1.5°.  Heading: a perfect-tilt compass has σ₁ = σ_m / B_h ≈ 1.1° per sample; the
     heading-only magnetometer update adds the tilt error about north × tan I (≈ 2 at I = 63.5°), so the mean
     |heading error| < σ₁ + tan I · (the measured mean tilt error) per walk, and < 2 σ₁ over the seeds."""
-    from pdr_mag.sensor_model import SensorModel
+    from pdr_mag.sim.sensor_model import SensorModel
 
     heads, tilts = [], []
     for seed in (1, 2, 3):
@@ -348,7 +348,7 @@ def error_at_truth(batch, tt, qt):
 @pytest.mark.parametrize("rates", [(100.0, 50.0), (200.0, 100.0), (400.0, 100.0)])
 def test_other_phones_sample_rates(rates):
     """The noise model is per second, not per sample: the same walk at other IMU / magnetometer rates."""
-    from pdr_mag.sensor_model import PhoneSpec
+    from pdr_mag.sim.sensor_model import PhoneSpec
 
     imu, mag = rates
     res = _big_offset_walk(11, PhoneSpec(accel_rate_hz=imu, gyro_rate_hz=imu, mag_rate_hz=mag))
@@ -366,7 +366,7 @@ def test_other_phones_sample_rates(rates):
 def _coverage_cases():
     """(|heading error|, reported std) over t > 5 s of simulated walks with the exact magnetometer
     calibration (the cases of benchmarks/heading_sim.py, 60 s each), and the total scored duration."""
-    from pdr_mag.sensor_model import SensorModel
+    from pdr_mag.sim.sensor_model import SensorModel
 
     errs, stds, dur = [], [], 0.0
     for scenario in ("walk", "swing", "pocket"):
@@ -422,7 +422,7 @@ def test_unflagged_field_rotation_at_the_start_does_not_become_gyro_bias(walk):
     test_raw_gyro_offset_is_estimated).  Measured: |δb| 2.0 / 4.3 °/s for (A, T) = (20°, 4 s) / (30°, 6 s)."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     tm, m = walk.mag
     tt, qt = walk.truth
@@ -453,7 +453,7 @@ def test_tilt_waits_for_the_gyroscope():
     first accelerometer sample it is 10–22° off on these seeds."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     for seed in (1, 2, 3):
         res = simulate("figure8", seed=seed, effects={"hard_iron": None, "soft_iron": None}, duration_s=20)
@@ -479,7 +479,7 @@ def test_a_tilt_started_upside_down_is_reset_not_learnt_as_bias(scenario):
     linearised updates alone take much longer on a still phone and a running one (> 15° from 4 to 10 s)."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     bias = np.array([0.02, -0.03, 0.07])
     res = simulate(scenario, seed=3, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": tuple(bias)})
@@ -519,7 +519,7 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     from scipy.spatial.transform import Rotation
 
     from pdr_mag.fusion import heading_reset_events
-    from pdr_mag.sensor_model import quat_slerp
+    from pdr_mag.sim.sensor_model import quat_slerp
 
     tm, m = walk.mag
     tt, qt = walk.truth

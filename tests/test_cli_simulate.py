@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pdr_mag.sensor_model import EFFECTS
 from pdr_mag.sim import SCENARIOS, simulate
+from pdr_mag.sim.sensor_model import EFFECTS
 from replay.cli import main
 from replay.formats import pdrcsv
 

@@ -230,7 +230,7 @@ def test_local_anomaly():
 def test_diagnosis_replays_in_the_simulator():
     """The found model, simulated along the recording's true motion, reproduces what was measured down to
     the noise; and a new recording simulated with the found values is diagnosed alike."""
-    from pdr_mag.sensor_model import SensorModel, predict_mag
+    from pdr_mag.sim.sensor_model import SensorModel, predict_mag
 
     r, d = _cached("time_offset", "figure8", {"time_offset": 0.04})
     est = d.final.estimate

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pdr_mag.conventions import GRAVITY, quat_to_rot, rotation_to_quat
-from pdr_mag.sensor_model import (
+from pdr_mag.sim.sensor_model import (
     EFFECT_SIZES,
     EFFECTS,
     DipoleField,

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pdr_mag.conventions import GRAVITY
-from pdr_mag.sensor_model import (
+from pdr_mag.sim import SCENARIOS, simulate
+from pdr_mag.sim.sensor_model import (
     EFFECTS,
     Motion,
     PhoneSpec,
@@ -18,7 +19,6 @@ from pdr_mag.sensor_model import (
     quat_multiply,
     quat_rotate,
 )
-from pdr_mag.sim import SCENARIOS, simulate
 
 WALKING = ("walk", "swing", "pocket")
 

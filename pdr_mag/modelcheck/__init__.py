@@ -2,7 +2,7 @@
 
 ``diagnose(...)`` estimates the orientation from the recording's gyroscope and accelerometer
 (:mod:`.orientation`; ``truth`` only with ``use_truth=True``), fits the baseline model (hard_iron + noise)
-along it (:mod:`.fit`), simulates the magnetometer with :mod:`pdr_mag.sensor_model` (:mod:`.predict`) and
+along it (:mod:`.fit`), simulates the magnetometer with :mod:`pdr_mag.sim.sensor_model` (:mod:`.predict`) and
 adds candidate effects one at a time by a penalised likelihood (:mod:`.select`) until nothing significant
 is left.  :mod:`.report` writes the human report.
 

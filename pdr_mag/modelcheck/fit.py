@@ -1,6 +1,6 @@
 """Fit the magnetometer model along an estimated orientation: baseline plus any set of candidate effects.
 
-The prediction is the one of :mod:`pdr_mag.sensor_model` (same symbols)::
+The prediction is the one of :mod:`pdr_mag.sim.sensor_model` (same symbols)::
 
     m_i = S⁻¹ Mᵀ R_dw(t_i − Δt) Rz(ψ_i) (B_w + ΔB(t_i − Δt)) + b + d (t_i − t_ref)/60 + c (T_i − T_ref)
 
@@ -44,7 +44,7 @@ from scipy.sparse.linalg import splu
 from pdr_mag.conventions import quat_slerp, rotvec_to_matrix
 from pdr_mag.modelcheck.orientation import OrientationTrack
 
-#: Effects every model has (seed 003's sphere: hard-iron offset and white noise).
+#: Effects every model has ([Liu2018]'s sphere: hard-iron offset and white noise).
 BASELINE = ("hard_iron", "noise")
 #: Candidate effects, in the order they are tried.
 CANDIDATES = (

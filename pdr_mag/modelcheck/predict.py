@@ -1,4 +1,4 @@
-"""Adapter from a fitted model to :mod:`pdr_mag.sensor_model`: the simulated magnetometer of the model check.
+"""Adapter from a fitted model to :mod:`pdr_mag.sim.sensor_model`: the model check's simulated magnetometer.
 
 Every gap the model check reports is ``rms(measured − predict_mag(SensorModel(...), …))`` — the prediction
 of THE forward model, with the fitted values put in under the shared effect names.  What the sensor model
@@ -23,7 +23,7 @@ import numpy as np
 
 from pdr_mag.conventions import quat_multiply, quat_slerp
 from pdr_mag.modelcheck.fit import FitResult, Problem, soft_iron_distortion
-from pdr_mag.sensor_model import SensorModel, predict_mag
+from pdr_mag.sim.sensor_model import SensorModel, predict_mag
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,7 +50,7 @@ class TimeKnotField:
 
 @dataclass(frozen=True, eq=False)
 class TrackMotion:
-    """The orientation track as a :class:`~pdr_mag.sensor_model.MotionLike`, with the heading drift of a
+    """The orientation track as a :class:`~pdr_mag.sim.sensor_model.MotionLike`, with the heading drift of a
     residual gyro bias δ applied (``q' = qz(−ψ) ⊗ q``, ``ψ = δ · ∫up_d dt``) and time as position."""
 
     problem: Problem

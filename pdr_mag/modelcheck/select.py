@@ -34,16 +34,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from pdr_mag.conventions import quat_slerp
 from pdr_mag.modelcheck.fit import (
     BASELINE,
     CANDIDATES,
     FitResult,
     Problem,
+    _quat_to_matrix,
     fit_along,
     fit_model,
     integrated_autocorr_time,
     make_problem,
     sample_matrices,
+    soft_iron_distortion,
     with_track,
 )
 from pdr_mag.modelcheck.null import NullSettings, null_threshold, stride_for, subsample, surrogate_residuals
@@ -53,7 +56,7 @@ from pdr_mag.modelcheck.orientation import (
     estimate_orientation,
     track_from_truth,
 )
-from pdr_mag.modelcheck.predict import anomaly_field, gap
+from pdr_mag.modelcheck.predict import anomaly_field, gap, offset_change
 from pdr_mag.modelcheck.support import anomaly_support
 
 GAP_METRIC = "rms of measured minus simulated magnetometer, µT"
@@ -233,8 +236,6 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3),
                       "std_deg": _vec(np.degrees(sd[e]), 3)}
         elif e == "soft_iron":
-            from pdr_mag.modelcheck.fit import soft_iron_distortion
-
             s = np.linalg.inv(soft_iron_distortion(nl[e]))
             s = 0.5 * (s + s.T)
             s = s / np.cbrt(np.linalg.det(s))
@@ -258,8 +259,6 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
                       "along_up_rad_per_s": _r(up @ total, 5),
                       "along_up_std": _r(up_std, 5)}
         elif e == "hard_iron_change":
-            from pdr_mag.modelcheck.predict import offset_change
-
             db = offset_change(problem, fit)
             mags = np.linalg.norm(db, axis=1)
             i = int(np.argmax(mags))
@@ -295,9 +294,6 @@ def _heading_drift_init(problem: Problem, fit: FitResult) -> np.ndarray:
     In the track's world frame the measured field ``R_wd (m − b)`` turns by ``−ψ(t)``, ``ψ = δ·∫up_d dt``,
     so δ is the least-squares solution of ``−unwrap(φ − φ_0) = ∫up_d dt · δ``.
     """
-    from pdr_mag.conventions import quat_slerp
-    from pdr_mag.modelcheck.fit import _quat_to_matrix
-
     q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
     h_w = np.einsum("nij,nj->ni", _quat_to_matrix(q), problem.mag - fit.linear["hard_iron"])
     phi = np.unwrap(np.arctan2(h_w[:, 0], h_w[:, 1]))

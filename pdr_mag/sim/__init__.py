@@ -1,4 +1,4 @@
-"""Phone-sensor simulator: scenario trajectories through :mod:`pdr_mag.sensor_model`.
+"""Phone-sensor simulator: scenario trajectories through :mod:`pdr_mag.sim.sensor_model`.
 
 >>> from pdr_mag.sim import simulate
 >>> res = simulate("mixed", seed=1, effects={"time_offset": 0.04})

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pdr_mag.conventions import GRAVITY
+
 DEG = np.pi / 180.0
 
 
@@ -256,8 +258,6 @@ def _run_bounce(rng: np.random.Generator, w: float) -> tuple[Sines, Sines, Sines
     (first :data:`RUN_HARMONICS` harmonics).  Lateral sway ±2–3 cm at the stride frequency, fore-aft surge
     ±1–2 cm at the step frequency.
     """
-    from pdr_mag.conventions import GRAVITY
-
     duty = _u(rng, 0.53, 0.7)
     period = 2.0 * np.pi / w
     peak = np.pi * GRAVITY / (2.0 * duty)

@@ -1,9 +1,9 @@
-"""Named phones: the hardware (:class:`~pdr_mag.sensor_model.PhoneSpec`) and the phone's own magnetisation.
+"""Named phones: the hardware (:class:`~pdr_mag.sim.sensor_model.PhoneSpec`) and its own magnetisation.
 
 A phone here is what differs between handsets of the tyrex recordings (``../shared/datasets``) beyond the
 scenario: sample rates, the accelerometer's full scale — ±2 g on the iPhone 4S and the Nexus 5, so a run
 clips it many times a second (``accel_range``: samples saturate at the limit,
-:func:`~pdr_mag.sensor_model.digitise`) — and a hard-iron offset of the size those phones have (the day's
+:func:`~pdr_mag.sim.sensor_model.digitise`) — and a hard-iron offset of the size those phones have (the day's
 ``pdr-mag calibrate`` fits: iPhone 4S ≈ (85, 205, −550) µT, |b| ≈ 593 µT, twelve times the Earth's field;
 Nexus 5 ≈ (58, −74, 412) µT).  ``effects`` are the phone's defaults on top of the scenario's (an
 ``--effect`` still overrides them).
@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from pdr_mag.conventions import GRAVITY
-from pdr_mag.sensor_model import PhoneSpec
+from pdr_mag.sim.sensor_model import PhoneSpec
 
 #: ±2 g, m/s² (an accelerometer's full scale is set in units of standard gravity)
 TWO_G = 2.0 * GRAVITY

@@ -19,13 +19,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pdr_mag.sensor_model import DipoleField
 from pdr_mag.sim import modes as M
+from pdr_mag.sim.sensor_model import DipoleField
 from pdr_mag.sim.trajectory import Heading, Trajectory
 
 DEG = np.pi / 180.0
 
-#: Range of each laid-out steel dipole, m (see :class:`~pdr_mag.sensor_model.DipoleField`).
+#: Range of each laid-out steel dipole, m (see :class:`~pdr_mag.sim.sensor_model.DipoleField`).
 DIPOLE_CUTOFF_M = 25.0
 
 DEFAULT_EFFECTS: dict[str, object] = {

@@ -13,7 +13,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from pdr_mag.field import EarthField, earth_field
-from pdr_mag.sensor_model import (
+from pdr_mag.sim.phones import PHONES, Phone
+from pdr_mag.sim.sampling import sample_times
+from pdr_mag.sim.scenarios import DEFAULT_EFFECTS, SCENARIOS, Plan, layout_dipoles
+from pdr_mag.sim.sensor_model import (
     EFFECTS,
     PhoneSpec,
     SensorModel,
@@ -21,9 +24,6 @@ from pdr_mag.sensor_model import (
     measure_gyro,
     measure_mag,
 )
-from pdr_mag.sim.phones import PHONES, Phone
-from pdr_mag.sim.sampling import sample_times
-from pdr_mag.sim.scenarios import DEFAULT_EFFECTS, SCENARIOS, Plan, layout_dipoles
 from pdr_mag.sim.trajectory import Trajectory
 
 #: Where the simulated phone is (Zürich) and when: sets the WMM field of the simulation.
@@ -133,7 +133,7 @@ def simulate(
     duration_s : float, optional
         Length, s (the scenario's default when omitted).
     effects : mapping, optional
-        Effect overrides on top of the defaults (names of :data:`~pdr_mag.sensor_model.EFFECTS`; None = off).
+        Effect overrides on top of the defaults (:data:`~pdr_mag.sim.sensor_model.EFFECTS` names; None = off).
         ``local_anomaly`` may be a peak strength in µT (laid out as dipoles by the scenario) or a field
         object.
     defaults : bool

@@ -2,7 +2,7 @@
 
 Estimates the orientation from the recording's gyroscope and accelerometer (``truth.csv`` only with
 ``--use-truth``), fits the baseline sensor model (hard_iron + noise), simulates the magnetometer with
-:mod:`pdr_mag.sensor_model`, names the missing effects one by one and shows the gap shrink.  Writes the
+:mod:`pdr_mag.sim.sensor_model`, names the missing effects one by one and shows the gap shrink.  Writes the
 ``diagnose --json`` object of INTERFACE.md (``--json -``: to stdout) and, with ``--report DIR``, a Markdown
 report with plots (needs matplotlib: the ``report`` extra).
 """

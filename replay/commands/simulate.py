@@ -20,8 +20,8 @@ import click
 import numpy as np
 
 from pdr_mag.field import EarthField, decimal_year
-from pdr_mag.sensor_model import EFFECTS, PhoneSpec, parse_effect_value
 from pdr_mag.sim import DEFAULT_EFFECTS, DEFAULT_SITE, PHONES, SCENARIOS, simulate
+from pdr_mag.sim.sensor_model import EFFECTS, PhoneSpec, parse_effect_value
 from replay.commands._output import writable_dir
 from replay.errors import InputError
 from replay.formats import pdrcsv

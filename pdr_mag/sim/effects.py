@@ -2,7 +2,7 @@
 normalised, read from ``--effect NAME=VALUE`` and packed into flat parameters for fitting; and the
 ``local_anomaly`` value of the simulator, a field of point dipoles.
 
-The model that applies them is :mod:`pdr_mag.sensor_model` (which re-exports these names).
+The model that applies them is :mod:`pdr_mag.sim.sensor_model` (which re-exports these names).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 # ---------------------------------------------------------------------------------------------- anomalies
 
@@ -61,8 +62,6 @@ class DipoleField:
         if len(pos) == 0 or len(self.positions_w) == 0:
             return out
         if np.isfinite(self.cutoff_m):
-            from scipy.spatial import cKDTree
-
             near = cKDTree(pos).query_ball_point(self.positions_w, self.cutoff_m, return_sorted=True)
         else:
             near = [None] * len(self.positions_w)

@@ -16,7 +16,7 @@ A magnetometer sample stamped ``t`` (magnetometer clock) is, with the symbols of
     m_raw(t) = soft_iron⁻¹ · m_mag + b(t) + n,   n ~ N(0, diag(noise²))
 
 then saturation at the sensor's range and rounding to its resolution (:class:`PhoneSpec`).  This is the
-lumped error model ``H_m = S·H_i + b + ε`` of seed 000 (eqs. 3–4, ``S = C_k C_n C_s``) with
+lumped error model ``H_m = S·H_i + b + ε`` of [Long2013] (eqs. 3–4, ``S = C_k C_n C_s``) with
 ``S = soft_iron⁻¹ · mag_to_imuᵀ``, plus the time and position dependence a moving phone adds.
 
 ``soft_iron`` is the *correction* matrix, the very one :class:`~pdr_mag.calibration.model.MagCalibration`
@@ -62,6 +62,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.conventions import (  # noqa: F401  (quaternion helpers re-exported for callers)
     GRAVITY,
     quat_multiply,
@@ -69,7 +70,7 @@ from pdr_mag.conventions import (  # noqa: F401  (quaternion helpers re-exported
     quat_slerp,
     rotvec_to_matrix,
 )
-from pdr_mag.effects import (  # noqa: F401  (the effects' names re-exported for callers)
+from pdr_mag.sim.effects import (  # noqa: F401  (the effects' names re-exported for callers)
     _NEUTRAL,
     EFFECT_SIZES,
     EFFECTS,
@@ -260,8 +261,6 @@ class SensorModel:
         """The exact :class:`~pdr_mag.calibration.model.MagCalibration` of this phone at time ``t_mag``
         (default ``t_ref``): ``offset = b(t)``, ``soft_iron``, ``mag_to_imu`` (None without misalignment),
         ``field_uT`` NaN (it belongs to the place, not the phone), method ``"truth"``."""
-        from pdr_mag.calibration.model import MagCalibration
-
         t = self.t_ref if t_mag is None else float(t_mag)
         mis = self.mag_to_imu if "mag_imu_misalignment" in self.effects else None
         return MagCalibration.from_arrays(
