@@ -235,6 +235,48 @@ COST = (
 )
 
 
+#: Gyro biases of real phones, rad/s: the median gyro of the tyrex static recordings (calib_gyr_Nexus5_d1,
+#: calib_gyr_iPhone5_d3, calib_gyr_iPhone4S_d3 in ``../shared/datasets/tyrex-pdrcsv``; 21, 8 and 31 s, std
+#: ≤ 0.004 rad/s per axis): 4.3, 6.1 and 0.5 °/s.
+REAL_GYRO_BIAS = {
+    "Nexus 5": (0.01181, 0.00017, 0.07463),
+    "iPhone 5": (0.1035, -0.0219, 0.0197),
+    "iPhone 4S": (-0.0088, -0.0012, 0.0009),
+}
+MISALIGN = (3.0, -2.0, 1.5)
+DRIFT = (6.0, -4.0, 3.0)
+
+#: Two hidden effects at once on calibration + texting walk recordings (1.5–2.5 min): every pair of the six
+#: effects a recording can show, nothing else (no steel unless local_anomaly is one of the two).
+MIXED_PAIRS = tuple(
+    ((a, va), (b, vb))
+    for i, (a, va) in enumerate((("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT),
+                                 ("bias_drift", DRIFT), ("gyro_bias", (0.01047, -0.01396, 0.00873)),
+                                 ("local_anomaly", 30.0)))
+    for b, vb in (("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT),
+                  ("bias_drift", DRIFT), ("gyro_bias", (0.01047, -0.01396, 0.00873)),
+                  ("local_anomaly", 30.0))[i + 1:]
+)
+
+#: Walking only (``walk``: 3 s standing, then a texting walk with turns every 8–20 s), 3–6 min, each with
+#: a real phone's gyro bias (cycled through :data:`REAL_GYRO_BIAS`) and two hidden effects; the
+#: misalignment with soft iron three times (the issue's unnamed pair).  ``None``: the walk's controls —
+#: the phone's gyro bias alone, or nothing at all (``"none"``).
+WALK_PAIRS = (
+    (("time_offset", 0.04), ("soft_iron", SOFT)),
+    (("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT)),
+    (("mag_imu_misalignment", (-2.0, 2.5, 1.0)), ("soft_iron", SOFT_WEAK)),
+    (("mag_imu_misalignment", (1.5, 1.5, -3.0)), ("soft_iron", SOFT)),
+    (("time_offset", 0.04), ("bias_drift", DRIFT)),
+    (("soft_iron", SOFT), ("bias_drift", DRIFT)),
+    (("mag_imu_misalignment", MISALIGN), ("time_offset", 0.04)),
+    (("mag_imu_misalignment", MISALIGN), ("bias_drift", DRIFT)),
+    (("time_offset", 0.015), ("soft_iron", SOFT_WEAK)),
+    (("bias_drift", (0.7, -0.7, 0.7)), ("time_offset", 0.04)),
+    None, None, None, "none", "none",
+)
+
+
 def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=None) -> dict:
     from pdr_mag.modelcheck import diagnose
     from pdr_mag.sim import simulate
@@ -254,6 +296,105 @@ def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=N
     return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "effect": effect,
             "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "final_gap": d.final.gap,
             "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall, "cpu_s": cpu}
+
+
+def _pair_run(scenario, duration, seed, t0, hidden: dict, background: dict) -> dict:
+    """One recording with ``hidden`` effects (scored) and ``background`` ones (a real phone's gyro bias):
+    what ``diagnose`` names, and for each hidden effect it does not name, what it says of it."""
+    from pdr_mag.modelcheck import diagnose
+    from pdr_mag.sim import simulate
+
+    effects = {"hard_iron": HARD_IRON, "noise": NOISE, **background, **hidden}
+    r = simulate(scenario, seed=seed, duration_s=duration, effects=effects, defaults=False)
+
+    def shift(stream):
+        return stream[0] + t0, stream[1]
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    d = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel))
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    dd = d.to_dict()
+    ident = dd.get("identifiability", {})
+    found = list(d.missing_effects)
+    status = {}
+    for e in (*hidden, *background):
+        status[e] = "named" if e in found else ident.get(e, {}).get("status", "missed")
+    return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "hidden": list(hidden),
+            "background": list(background), "found": found, "status": status,
+            "extra": [e for e in found if e not in hidden and e not in background],
+            "not_identifiable": [e for e, v in ident.items() if v.get("status") == "not_identifiable"],
+            "baseline_gap": d.baseline.gap, "final_gap": d.final.gap, "wall_s": wall, "cpu_s": cpu}
+
+
+def _pair_row(label: str, r: dict) -> str:
+    def say(e):
+        st = r["status"][e]
+        return e if st == "named" else f"~~{e}~~ ({st.replace('_', ' ')})"
+
+    hidden = ", ".join(say(e) for e in r["hidden"]) or "—"
+    bg = ", ".join(say(e) for e in r["background"]) or "—"
+    return (f"| {label} | {r['duration_s']:.0f} | {hidden} | {bg} | {', '.join(r['found']) or 'null'} "
+            f"| {', '.join(r['extra']) or '—'} | {', '.join(r['not_identifiable']) or '—'} "
+            f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} | {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
+
+
+def _pair_summary(name: str, rows: list[dict]) -> None:
+    hid = [(r, e) for r in rows for e in r["hidden"]]
+    named = sum(r["status"][e] == "named" for r, e in hid)
+    unident = sum(r["status"][e] == "not_identifiable" for r, e in hid)
+    other = len(hid) - named - unident
+    extra = sum(len(r["extra"]) for r in rows if r["hidden"])
+    ctrl = [r for r in rows if not r["hidden"]]
+    fa = sum(len(r["extra"]) for r in ctrl)
+    bg = [(r, e) for r in rows for e in r["background"]]
+    bg_named = sum(r["status"][e] == "named" for r, e in bg)
+    print(f"\n{name}: hidden effects named {named} of {len(hid)}, reported not identifiable {unident}, "
+          f"missed (not named, not reported) {other}; extra effects on recordings with hidden ones {extra}; "
+          f"false alarms on the {len(ctrl)} controls {fa}; the phone's gyro bias named on {bg_named} of "
+          f"{len(bg)}")
+
+
+def pairs(only: str = "") -> list[dict]:
+    """Two hidden effects at once: calibration + walk recordings (:data:`MIXED_PAIRS`) and walking-only
+    recordings with a real phone's gyro bias (:data:`WALK_PAIRS`)."""
+    head = ("| recording | s | hidden (struck: not named, and what diagnose says) | background | found "
+            "(in order) | extra | reported not identifiable | gap before → after (µT) | wall / CPU (s) |")
+    out = []
+    print("### Two hidden effects: calibration figure-8 + texting walk, 1.5–2.5 min\n")
+    print(head)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    mixed = []
+    for i, pair in enumerate(MIXED_PAIRS):
+        label = f"mixed {i + 1}"
+        if only not in f"{label} {pair[0][0]} {pair[1][0]}":
+            continue
+        dur = 90.0 + 60.0 * ((5 * i) % 13) / 12.0
+        r = _pair_run("mixed", dur, 501 + i, 1000.0 * (i % 2), dict(pair), {})
+        r["label"] = label
+        mixed.append(r)
+        print(_pair_row(label, r), flush=True)
+    if mixed:
+        _pair_summary("mixed, two hidden", mixed)
+    print("\n### Walking only: texting walks with turns, 3–6 min, a real phone's gyro bias\n")
+    print(head)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    walks = []
+    phones = list(REAL_GYRO_BIAS)
+    for i, pair in enumerate(WALK_PAIRS):
+        phone = phones[i % len(phones)]
+        hidden = {} if pair in (None, "none") else dict(pair)
+        background = {} if pair == "none" else {"gyro_bias": REAL_GYRO_BIAS[phone]}
+        label = f"walk {i + 1}" + ("" if pair == "none" else f" ({phone})")
+        if only not in f"{label} {' '.join(hidden)} walk":
+            continue
+        dur = 180.0 + 180.0 * ((7 * i) % 11) / 10.0
+        r = _pair_run("walk", dur, 601 + i, 1.7e9 * (i % 2), hidden, background)
+        r["label"] = label
+        walks.append(r)
+        print(_pair_row(label, r), flush=True)
+    if walks:
+        _pair_summary("walking only, two hidden", walks)
+    return mixed + walks
 
 
 def suite(only: str = "") -> list[dict]:
@@ -336,13 +477,15 @@ def main() -> int:
     ap.add_argument("--no-truth", action="store_true", help="skip the evaluation-mode runs")
     ap.add_argument("--synthetic", action="store_true", help="the simulator table (each effect hidden)")
     ap.add_argument("--suite", action="store_true", help="controls and the hidden-effect suites")
+    ap.add_argument("--pairs", action="store_true",
+                    help="two hidden effects at once: calibration + walk, and walking only")
     ap.add_argument("--all-tyrex", action="store_true", help="every tyrex walk, not only those of the table")
     args = ap.parse_args()
     if args.synthetic:
         synthetic()
         return 0
-    if args.suite:
-        rows = suite(args.only)
+    if args.suite or args.pairs:
+        rows = suite(args.only) if args.suite else pairs(args.only)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
         return 0
