@@ -248,15 +248,9 @@ DRIFT = (6.0, -4.0, 3.0)
 
 #: Two hidden effects at once on calibration + texting walk recordings (1.5–2.5 min): every pair of the six
 #: effects a recording can show, nothing else (no steel unless local_anomaly is one of the two).
-MIXED_PAIRS = tuple(
-    ((a, va), (b, vb))
-    for i, (a, va) in enumerate((("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT),
-                                 ("bias_drift", DRIFT), ("gyro_bias", (0.01047, -0.01396, 0.00873)),
-                                 ("local_anomaly", 30.0)))
-    for b, vb in (("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT),
-                  ("bias_drift", DRIFT), ("gyro_bias", (0.01047, -0.01396, 0.00873)),
-                  ("local_anomaly", 30.0))[i + 1:]
-)
+_SIX = (("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT), ("bias_drift", DRIFT),
+        ("gyro_bias", (0.01047, -0.01396, 0.00873)), ("local_anomaly", 30.0))
+MIXED_PAIRS = tuple((a, b) for i, a in enumerate(_SIX) for b in _SIX[i + 1:])
 
 #: Walking only (``walk``: 3 s standing, then a texting walk with turns every 8–20 s), 3–6 min, each with
 #: a real phone's gyro bias (cycled through :data:`REAL_GYRO_BIAS`) and two hidden effects; the
@@ -359,7 +353,6 @@ def pairs(only: str = "") -> list[dict]:
     recordings with a real phone's gyro bias (:data:`WALK_PAIRS`)."""
     head = ("| recording | s | hidden (struck: not named, and what diagnose says) | background | found "
             "(in order) | extra | reported not identifiable | gap before → after (µT) | wall / CPU (s) |")
-    out = []
     print("### Two hidden effects: calibration figure-8 + texting walk, 1.5–2.5 min\n")
     print(head)
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
