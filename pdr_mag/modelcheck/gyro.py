@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from pdr_mag.modelcheck.fit import (
     FitResult,
@@ -29,19 +28,25 @@ from pdr_mag.modelcheck.orientation import OrientationSettings, estimate_orienta
 def heading_drift_start(problem: Problem, fit: FitResult, max_rate: float = 0.4, rate_hz: float = 2.0,
                         chunk: int = 64) -> np.ndarray:
     """Start value of δ: the bias along the phone's mean up axis μ whose heading drift best explains the
-    measured field (rad/s, device axes).
+    measured field (rad/s, device axes; along μ as far as the accelerometer leaves it free).
 
     For a rate r the prediction is ``m_i = P_i Rz(r s_i) B_w + b`` (``P_i`` the current model's map of
-    sample i, ``s_i = μ · ∫up_d dt``): linear in ``B_w`` and ``b``, solved by their 6 × 6 normal equations
-    for every r of a grid over ±``max_rate`` whose step turns the heading by at most 45° over the
-    recording (so the fit that starts from the best one is within its basin); the samples are thinned to
-    ``rate_hz``, which a drift does not need more of.
+    sample i, ``s_i = a · ∫up_d dt``, ``a`` that axis scaled to ``a · μ = 1``): linear in ``B_w`` and
+    ``b``, solved by their 6 × 6 normal equations for every r of a grid over ±``max_rate`` whose step turns
+    the heading by at most 45° over the recording (so the fit that starts from the best one is within its
+    basin); the samples are thinned to ``rate_hz``, which a drift does not need more of.
     """
     sub = subsample(problem, stride_for(problem, rate_hz))
     nl = {k: v for k, v in fit.nonlinear.items() if k != "gyro_bias"}
     up = sub.r_dw0[:, :, 2].mean(axis=0)
     mu = up / np.linalg.norm(up)
-    s = sub.track.up_integral(measurement_times(sub, nl)) @ mu
+    # along μ, but with no part in the directions the accelerometer estimated (its prior holds them to
+    # 10⁻⁴ rad/s, and they are a few degrees off perpendicular to μ: a start of 0.06 rad/s along μ would
+    # sit far up that prior's wall, and the fit slide away from the drift's basin)
+    est = sub.track.tilt_bias.estimated
+    free = mu - est.T @ (est @ mu)
+    axis = free / float(free @ mu) if np.linalg.norm(free) > 0.5 else mu
+    s = sub.track.up_integral(measurement_times(sub, nl)) @ axis
     span = max(float(np.ptp(s)), 1e-9)
     step = 0.25 * np.pi / span
     rates = np.arange(-max_rate, max_rate + 0.5 * step, step)
@@ -69,7 +74,7 @@ def heading_drift_start(problem: Problem, fit: FitResult, max_rate: float = 0.4,
         i = int(np.argmin(rss))
         if rss[i] < best_rss:
             best, best_rss = float(r[i]), float(rss[i])
-    return best * mu
+    return best * axis
 
 
 def replay(problem: Problem, fit: FitResult, gyro, accel, settings: OrientationSettings, max_nfev: int):
@@ -94,20 +99,22 @@ def replay(problem: Problem, fit: FitResult, gyro, accel, settings: OrientationS
 @dataclass(frozen=True)
 class AccelerometerBias:
     """The part of the gyro bias the accelerometer sees (the drift of gravity in the gyro frame,
-    :class:`~pdr_mag.modelcheck.orientation.TiltBias`), already in the orientation, and whether it names
-    ``gyro_bias`` as a missing effect.
-
-    It does when it is significant — Hotelling's ``T² = bᵀ C⁻¹ b`` over the k directions estimated, with C
-    the jackknife covariance of n segments, exceeds ``k(n−1)/(n−k) F_{k,n−k}(1 − false_alarm)`` — and at
-    least the smallest gyro bias worth naming (:data:`~pdr_mag.modelcheck.identify.SMALLEST`, 0.3 °/s).
-    ``gap_raw_gyro``: the baseline's gap along the gyro integrated without it (the gap it shrinks), µT.
+    :class:`~pdr_mag.modelcheck.orientation.TiltBias`), already in the orientation when significant, and
+    whether it names ``gyro_bias`` as a missing effect: it does when it is significant and worth naming by
+    the search's gap rule — the final model's gap (its linear parameters refitted, the magnetometer's own
+    part of the bias left out) along the orientation with it, above the white noise, is at least
+    ``min_gap_reduction`` below the same along the gyro integrated without it (``gap_with``,
+    ``gap_raw_gyro``, µT).
+    Judged at the end, not before the first round: a large effect still missing (a steel area) would make
+    any part of the gap look small.
     """
 
     rad_per_s: np.ndarray
     t2: float
     threshold: float
-    named: bool
+    named: bool = False
     gap_raw_gyro: float | None = None
+    gap_with: float | None = None
 
     def to_dict(self) -> dict:
         def r(v, nd=5):
@@ -115,16 +122,22 @@ class AccelerometerBias:
 
         return {"rad_per_s": [r(v) for v in self.rad_per_s], "t2": r(self.t2, 2),
                 "threshold": r(self.threshold, 2), "named": self.named,
-                "gap_raw_gyro": None if self.gap_raw_gyro is None else r(self.gap_raw_gyro, 4)}
+                "gap_raw_gyro": None if self.gap_raw_gyro is None else r(self.gap_raw_gyro, 4),
+                "gap_with": None if self.gap_with is None else r(self.gap_with, 4)}
 
 
-def accelerometer_bias(track, false_alarm: float, smallest: float) -> AccelerometerBias:
-    """The verdict of :class:`AccelerometerBias` on a track's accelerometer part of the gyro bias."""
-    tb = track.tilt_bias
-    k, n = len(tb.estimated), tb.n_segments
-    b = np.asarray(tb.correction, dtype=float)
-    if k == 0 or n <= k:
-        return AccelerometerBias(b, float("nan"), float("inf"), False)
-    t2 = float(b @ tb.prior_information @ b)
-    thr = float(k * (n - 1) / (n - k) * stats.f.ppf(1.0 - false_alarm, k, n - k))
-    return AccelerometerBias(b, t2, thr, bool(t2 > thr and np.linalg.norm(b) >= smallest))
+def accelerometer_bias(tilt, gap_now: float, raw_gap, white: float,
+                       min_gap_reduction: float) -> AccelerometerBias:
+    """The verdict of :class:`AccelerometerBias` on a track's ``tilt_bias``: ``gap_now`` is the final
+    model's gap with it (µT), ``raw_gap()`` computes the same along the gyro integrated without it (called
+    only when the bias is significant), ``white`` the white noise (µT)."""
+    if not tilt.significant:
+        return AccelerometerBias(np.asarray(tilt.correction, float), tilt.t2, tilt.threshold)
+    g_raw = float(raw_gap())
+
+    def excess(g: float) -> float:
+        return float(np.sqrt(max(g * g - white * white, 0.0)))
+
+    named = excess(gap_now) <= (1.0 - min_gap_reduction) * excess(g_raw)
+    return AccelerometerBias(np.asarray(tilt.correction, float), tilt.t2, tilt.threshold, bool(named), g_raw,
+                             float(gap_now))

@@ -49,9 +49,10 @@ from pdr_mag.modelcheck.fit import (
     integrated_autocorr_time,
     make_problem,
     sample_matrices,
+    with_track,
 )
 from pdr_mag.modelcheck.gyro import accelerometer_bias, heading_drift_start, replay
-from pdr_mag.modelcheck.identify import SMALLEST, identifiability
+from pdr_mag.modelcheck.identify import identifiability
 from pdr_mag.modelcheck.null import (
     NullSettings,
     null_threshold,
@@ -515,8 +516,6 @@ def diagnose(
         accel_pair = (np.asarray(t_accel, float) - t_origin, np.asarray(accel, float))
         track = estimate_orientation(*gyro_pair, *accel_pair, settings=settings.orientation)
         source = "gyro+accel"
-    accel_bias = None if use_truth else accelerometer_bias(track, settings.null.false_alarm,
-                                                           SMALLEST["gyro_bias"])
     temp = None
     if temperature is not None:
         temp = np.interp(t_mag, np.asarray(temperature[0], float), np.asarray(temperature[1], float))
@@ -527,12 +526,7 @@ def diagnose(
     w = float(np.sqrt(np.mean(base.residual**2)) * np.sqrt(integrated_autocorr_time(base.residual)))
     problem = replace(problem, prior_weight=max(w, 1e-3))
     baseline = ModelSummary(BASELINE, gap(problem, base), estimates(problem, base, BASELINE), base, problem)
-    if accel_bias is not None and accel_bias.named:  # the gap it shrank: along the gyro integrated without it
-        raw = estimate_orientation(*gyro_pair, *accel_pair,
-                                   settings=replace(settings.orientation, bias_from_tilt=False))
-        p_raw = make_problem(t_mag - t_origin, mag, raw, temp, settings.anomaly_knot_s, t_origin=t_origin)
-        f_raw = fit_model(p_raw, (), None, settings.max_nfev)
-        accel_bias = replace(accel_bias, gap_raw_gyro=gap(p_raw, f_raw))
+    white = float(np.sqrt(np.mean([robust_sigma(base.residual[:, k]) ** 2 for k in range(3)])))
 
     candidates = [c for c in settings.candidates if c != "temperature_offset" or temp is not None]
     if use_truth:
@@ -546,7 +540,6 @@ def diagnose(
     tau_int = integrated_autocorr_time(f_full.residual)
     n_eff = n / tau_int
 
-    white = float(np.sqrt(np.mean([robust_sigma(base.residual[:, k]) ** 2 for k in range(3)])))
     current, cur_problem, added = base, problem, []
     notes: dict[str, dict] = {}
     rounds: list[tuple[Candidate, ...]] = []
@@ -594,8 +587,22 @@ def diagnose(
                     "ambiguous": bool(abs(o.gap - best[0].gap) < best[0].gap * _LOCAL_MARGIN),
                 }
 
-    if accel_bias is not None and accel_bias.named and "gyro_bias" not in added:
-        added.insert(0, "gyro_bias")  # named by the accelerometer, in the orientation from the start
+    accel_bias = None
+    if not use_truth:  # the accelerometer's part of the gyro bias, judged by the final model's gap with it
+        def final_gap(tr: OrientationTrack) -> float:
+            p = with_track(cur_problem, tr)
+            others = tuple(e for e in added if e != "gyro_bias")
+            nl = {k: v for k, v in current.nonlinear.items() if k != "gyro_bias"}
+            return gap(p, fit_model(p, others, nl, 0))
+
+        def raw_gap() -> float:
+            return final_gap(estimate_orientation(*gyro_pair, *accel_pair, settings=replace(
+                settings.orientation, bias_from_tilt=False)))
+
+        accel_bias = accelerometer_bias(track.tilt_bias, final_gap(track), raw_gap, white,
+                                        settings.min_gap_reduction)
+        if accel_bias.named and "gyro_bias" not in added:
+            added.insert(0, "gyro_bias")  # named by the accelerometer, in the orientation from the start
     final_effects = (*BASELINE, *added)
     final_est = estimates(cur_problem, current, final_effects)
     for eff, note in notes.items():

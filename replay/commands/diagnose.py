@@ -161,8 +161,8 @@ def summary(d: dict, rec) -> str:
     if acc.get("named"):
         b = np.degrees(np.linalg.norm(acc["rad_per_s"]))
         lines.append(f"  accelerometer: gyro_bias (|b| {b:.2f} °/s where it sees it, T² {acc['t2']} > "
-                     f"{acc['threshold']}; taken into the orientation: gap along the raw gyro "
-                     f"{acc['gap_raw_gyro']:.3f} µT → baseline {d['baseline']['gap']:.3f} µT) — added")
+                     f"{acc['threshold']}; in the orientation from the start: the final model's gap along "
+                     f"the raw gyro {acc['gap_raw_gyro']:.3f} µT, {acc['gap_with']:.3f} µT with it) — added")
         added = [e for e in added if e != "gyro_bias" or any(
             c["effect"] == "gyro_bias" and c["significant"] for r in d["rounds"] for c in r)]
     for i, rnd in enumerate(d["rounds"]):
