@@ -75,7 +75,6 @@ _SIZE_TEXT = {"time_offset": "15 ms", "mag_imu_misalignment": "2°", "soft_iron"
 _UNIT = {"time_offset": ("s", 1.0), "mag_imu_misalignment": ("deg", np.degrees(1.0)), "soft_iron": ("1", 1.0),
          "gyro_bias": ("rad/s", 1.0), "bias_drift": ("uT/min", 1.0), "temperature_offset": ("uT/degC", 1.0)}
 _NL_SIZE = {"time_offset": 1, "gyro_bias": 3, "mag_imu_misalignment": 3, "soft_iron": 5}
-_LINEAR = ("bias_drift", "temperature_offset")
 _LOCAL = ("local_anomaly", "hard_iron_change")
 _PART = {"field_w": "the heading reference (the field's direction, fitted: the orientation has no heading)",
          "hard_iron": "the hard-iron offset"}
@@ -287,7 +286,7 @@ def _e_matrix(e: np.ndarray) -> np.ndarray:
     return np.array([[exx, exy, exz], [exy, eyy, eyz], [exz, eyz, -exx - eyy]])
 
 
-def _reveal(effect: str, unexcited: list[np.ndarray], motion: dict) -> str:
+def _reveal(effect: str, motion: dict) -> str:
     w, spread = _axis(motion["least_swept_axis_d"]), motion["least_swept_deg"]
     if effect in ("mag_imu_misalignment", "soft_iron"):
         return (f"rotations about axes across device axis {w} by tens of degrees (a figure-8, or turning the "
@@ -405,8 +404,7 @@ def identifiability(problem: Problem, fit: FitResult, added: tuple[str, ...], tr
         else:
             status = "not_identifiable" if len(bad) == len(dirs) else "partly_identifiable"
         reason = "; ".join(f"{d.text}: {_why_text(d, e, motion)}" for d in bad)
-        structural = [np.asarray(d.vector) for d in bad if d.why != "masked"]
-        reveal = _reveal(e, structural, motion) if structural else ""
+        reveal = _reveal(e, motion) if any(d.why != "masked" for d in bad) else ""
         out[e] = Identifiability(e, status, reason, reveal, _UNIT[e][0], dirs)
     return out, motion
 

@@ -38,6 +38,15 @@ def _series(summary):
     }
 
 
+def _accelerometer_lines(acc: dict) -> list[str]:
+    if not acc.get("named"):
+        return []
+    b = np.degrees(np.linalg.norm(acc["rad_per_s"]))
+    return [f"- gyro_bias named by the accelerometer (the drift of gravity in the gyro frame): {b:.2f} °/s, "
+            f"T² {acc['t2']} > {acc['threshold']}, in the orientation from the start; the final model's gap "
+            f"{acc['gap_with']:.3f} µT with it, {acc['gap_raw_gyro']:.3f} µT along the raw gyro"]
+
+
 def _motion_text(m: dict) -> str:
     if not m:
         return "—"
@@ -108,6 +117,7 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
         f"- baseline ({', '.join(d['baseline']['effects'])}): gap **{d['baseline']['gap']:.3f} µT**",
         f"- missing effects, in the order added: **{', '.join(d['missing_effects']) or 'none'}**",
         f"- final ({', '.join(d['final']['effects'])}): gap **{d['final']['gap']:.3f} µT**",
+        *_accelerometer_lines(d.get("gyro_bias_from_accelerometer") or {}),
         "",
         "## Candidates by round",
         "",
