@@ -100,13 +100,13 @@ def replay(problem: Problem, fit: FitResult, gyro, accel, settings: OrientationS
 class AccelerometerBias:
     """The part of the gyro bias the accelerometer sees (the drift of gravity in the gyro frame,
     :class:`~pdr_mag.modelcheck.orientation.TiltBias`), already in the orientation when significant, and
-    whether it names ``gyro_bias`` as a missing effect: it does when it is significant and worth naming by
-    the search's gap rule — the final model's gap (its linear parameters refitted, the magnetometer's own
-    part of the bias left out) along the orientation with it, above the white noise, is at least
-    ``min_gap_reduction`` below the same along the gyro integrated without it (``gap_with``,
-    ``gap_raw_gyro``, µT).
-    Judged at the end, not before the first round: a large effect still missing (a steel area) would make
-    any part of the gap look small.
+    whether it names ``gyro_bias`` as a missing effect: it does when it is significant and worth naming —
+    at least the smallest gyro bias worth naming (0.3 °/s, :data:`~pdr_mag.modelcheck.identify.SMALLEST`),
+    or smaller but passing the search's gap rule: the final model's gap (its linear parameters refitted,
+    the magnetometer's own part of the bias left out) along the orientation with it, above the white noise,
+    is at least ``min_gap_reduction`` below the same along the gyro integrated without it (``gap_with``,
+    ``gap_raw_gyro``, µT).  The gap alone would not do: what the final model still leaves unexplained (a
+    steel area named as the wrong kind of disturbance) can make a 1.1 °/s bias look small.
     """
 
     rad_per_s: np.ndarray
@@ -126,18 +126,19 @@ class AccelerometerBias:
                 "gap_with": None if self.gap_with is None else r(self.gap_with, 4)}
 
 
-def accelerometer_bias(tilt, gap_now: float, raw_gap, white: float,
-                       min_gap_reduction: float) -> AccelerometerBias:
+def accelerometer_bias(tilt, gap_now: float, raw_gap, white: float, min_gap_reduction: float,
+                       smallest: float) -> AccelerometerBias:
     """The verdict of :class:`AccelerometerBias` on a track's ``tilt_bias``: ``gap_now`` is the final
     model's gap with it (µT), ``raw_gap()`` computes the same along the gyro integrated without it (called
-    only when the bias is significant), ``white`` the white noise (µT)."""
+    only when the bias is significant), ``white`` the white noise (µT), ``smallest`` the smallest gyro bias
+    worth naming (rad/s)."""
+    b = np.asarray(tilt.correction, float)
     if not tilt.significant:
-        return AccelerometerBias(np.asarray(tilt.correction, float), tilt.t2, tilt.threshold)
+        return AccelerometerBias(b, tilt.t2, tilt.threshold)
     g_raw = float(raw_gap())
 
     def excess(g: float) -> float:
         return float(np.sqrt(max(g * g - white * white, 0.0)))
 
-    named = excess(gap_now) <= (1.0 - min_gap_reduction) * excess(g_raw)
-    return AccelerometerBias(np.asarray(tilt.correction, float), tilt.t2, tilt.threshold, bool(named), g_raw,
-                             float(gap_now))
+    named = np.linalg.norm(b) >= smallest or excess(gap_now) <= (1.0 - min_gap_reduction) * excess(g_raw)
+    return AccelerometerBias(b, tilt.t2, tilt.threshold, bool(named), g_raw, float(gap_now))

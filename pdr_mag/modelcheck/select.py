@@ -52,7 +52,7 @@ from pdr_mag.modelcheck.fit import (
     with_track,
 )
 from pdr_mag.modelcheck.gyro import accelerometer_bias, heading_drift_start, replay
-from pdr_mag.modelcheck.identify import identifiability
+from pdr_mag.modelcheck.identify import SMALLEST, identifiability
 from pdr_mag.modelcheck.null import (
     NullSettings,
     null_threshold,
@@ -600,7 +600,7 @@ def diagnose(
                 settings.orientation, bias_from_tilt=False)))
 
         accel_bias = accelerometer_bias(track.tilt_bias, final_gap(track), raw_gap, white,
-                                        settings.min_gap_reduction)
+                                        settings.min_gap_reduction, SMALLEST["gyro_bias"])
         if accel_bias.named and "gyro_bias" not in added:
             added.insert(0, "gyro_bias")  # named by the accelerometer, in the orientation from the start
     final_effects = (*BASELINE, *added)
