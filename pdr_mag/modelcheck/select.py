@@ -184,7 +184,11 @@ class ModelSummary:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """What :func:`diagnose` found (``to_dict()`` is the ``diagnose --json`` object of INTERFACE.md)."""
+    """What :func:`diagnose` found (``to_dict()`` is the ``diagnose --json`` object of INTERFACE.md).
+
+    ``identifiability``: every candidate's verdict (:class:`~pdr_mag.modelcheck.identify.Identifiability`),
+    ``motion`` the motion it was judged on; ``gyro_bias_from_accelerometer``: the accelerometer's part of
+    the gyro bias (:class:`~pdr_mag.modelcheck.gyro.AccelerometerBias`), empty along the truth."""
 
     baseline: ModelSummary
     candidates: tuple[Candidate, ...]
@@ -609,9 +613,9 @@ def diagnose(
         final_est[eff].update(note)
     final = ModelSummary(final_effects, gap(cur_problem, current), final_est, current, cur_problem)
     last = {c.effect for c in rounds[-1]} if rounds else set()
-    tried = {e: _why_not_tried(e, e in last, candidates, temp is not None, use_truth, settings)
-             for e in settings.candidates}
-    ident, motion = identifiability(cur_problem, current, tuple(added), tried, n_eff,
+    why_not = {e: _why_not_tried(e, e in last, candidates, temp is not None, use_truth, settings)
+               for e in settings.candidates}
+    ident, motion = identifiability(cur_problem, current, tuple(added), why_not, n_eff,
                                     (settings.score_threshold, settings.min_gap_reduction), notes, white)
     return Diagnosis(
         baseline=baseline,
