@@ -13,7 +13,9 @@ the recording's null, and the wall time.
 real phone's gyro bias, :data:`REAL_GYRO_BIAS`).  Per hidden effect: named, reported not identifiable (the
 verdict ``not_identifiable``, or ``partly_identifiable`` with the hidden value's part in the identifiable
 directions below the smallest size worth naming: "not identifiable here"), or missed; extras and false
-alarms on the controls; and whether the phone's gyro bias was named.
+alarms on the controls; and whether the phone's gyro bias was named.  "Gap before" is the baseline's, or,
+when the accelerometer named gyro_bias (its part of the bias is in the baseline's orientation from the
+start), the final model's along the raw gyro if larger (:func:`_gap_before`).
 
 Real recordings: the baseline gap (hard_iron + noise along the gyro + accelerometer orientation), the
 missing effects in the order added with their key estimates, the final gap, how much it shrank, and the
@@ -296,8 +298,19 @@ def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=N
     stopped = sorted({c.effect for rnd in d.rounds for c in rnd if c.null is not None and not c.null.passed})
     n_tested = sum(c.null is not None for rnd in d.rounds for c in rnd)
     return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "effect": effect,
-            "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "final_gap": d.final.gap,
-            "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall, "cpu_s": cpu}
+            "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "gap_before": _gap_before(d),
+            "final_gap": d.final.gap, "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall,
+            "cpu_s": cpu}
+
+
+def _gap_before(d) -> float:
+    """The gap before the missing effects: the baseline's, or — when the accelerometer named gyro_bias, its
+    part of the bias being in the baseline's orientation from the start — the final model's along the raw
+    gyro, if larger (for a gyro bias alone that is the baseline along the raw gyro)."""
+    acc = d.gyro_bias_from_accelerometer
+    if acc.get("named") and acc.get("gap_raw_gyro") is not None:
+        return max(d.baseline.gap, acc["gap_raw_gyro"])
+    return d.baseline.gap
 
 
 def _pair_run(scenario, duration, seed, t0, hidden: dict, background: dict) -> dict:
@@ -327,7 +340,8 @@ def _pair_run(scenario, duration, seed, t0, hidden: dict, background: dict) -> d
             "background": list(background), "found": found, "status": status,
             "extra": [e for e in found if e not in hidden and e not in background],
             "not_identifiable": [e for e, v in ident.items() if v.get("status") == "not_identifiable"],
-            "baseline_gap": d.baseline.gap, "final_gap": d.final.gap, "wall_s": wall, "cpu_s": cpu}
+            "baseline_gap": d.baseline.gap, "gap_before": _gap_before(d), "final_gap": d.final.gap,
+            "wall_s": wall, "cpu_s": cpu}
 
 
 def _true_parameters(effect: str, value) -> np.ndarray:
@@ -364,7 +378,7 @@ def _pair_row(label: str, r: dict) -> str:
     bg = ", ".join(say(e) for e in r["background"]) or "—"
     return (f"| {label} | {r['duration_s']:.0f} | {hidden} | {bg} | {', '.join(r['found']) or 'null'} "
             f"| {', '.join(r['extra']) or '—'} | {', '.join(r['not_identifiable']) or '—'} "
-            f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} | {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
+            f"| {r['gap_before']:.2f} → {r['final_gap']:.2f} | {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
 
 
 def _pair_summary(name: str, rows: list[dict]) -> None:
@@ -454,8 +468,8 @@ def suite(only: str = "") -> list[dict]:
             r["label"] = label
             out.append(r)
             print(f"| {label} | {'AB'[k]} | {dur:.0f} | {', '.join(r['found']) or 'null'} "
-                  f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} "
-                  f"| {r['baseline_gap'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
+                  f"| {r['gap_before']:.2f} → {r['final_gap']:.2f} "
+                  f"| {r['gap_before'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
                   f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |", flush=True)
     if out:
         _suite_summary(out)
@@ -491,7 +505,7 @@ def _suite_summary(rows: list[dict]) -> None:
     hid = [r for r in rows if r["effect"] not in (None, "noise")]
     named = [r for r in hid if r["found"][:1] == [r["effect"]]]
     extra = [r for r in named if len(r["found"]) > 1]
-    shrink = [r["baseline_gap"] / r["final_gap"] for r in named]
+    shrink = [r["gap_before"] / r["final_gap"] for r in named]
     print(f"\nfalse alarms: {len(fa)} of {len(nulls)} recordings with nothing missing; "
           f"hidden effect named first: {len(named)} of {len(hid)} "
           f"(with an extra effect: {len(extra)}), gap shrink median "
