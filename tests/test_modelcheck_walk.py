@@ -49,7 +49,10 @@ def test_the_accelerometer_takes_the_bias_across_the_up_axis(bias):
     up = _mean_up(r)
     err = tr.gyro_bias - b
     assert np.degrees(np.linalg.norm(np.cross(err, up))) < 0.1
-    assert len(tr.tilt_bias.estimated) == 2 and np.all(np.abs(tr.tilt_bias.estimated @ up) < 0.1)
+    if np.any(b):  # applied across the up axis, where it is significant ...
+        assert len(tr.tilt_bias.estimated) == 2 and np.all(np.abs(tr.tilt_bias.estimated @ up) < 0.1)
+    else:  # ... and nowhere without a bias (t² 0.33 measured, threshold 34)
+        assert not tr.tilt_bias.significant and not np.any(tr.tilt_bias.correction)
     tt, qt = r.truth
     m = (tt > tr.t[0] + 5) & (tt < tr.t[-1] - 5)
     rot = Rotation.from_quat(qt[m][:, [1, 2, 3, 0]])

@@ -40,12 +40,12 @@ def heading_drift_start(problem: Problem, fit: FitResult, max_rate: float = 0.4,
     nl = {k: v for k, v in fit.nonlinear.items() if k != "gyro_bias"}
     up = sub.r_dw0[:, :, 2].mean(axis=0)
     mu = up / np.linalg.norm(up)
-    # along μ, but with no part in the directions the accelerometer estimated (its prior holds them to
-    # 10⁻⁴ rad/s, and they are a few degrees off perpendicular to μ: a start of 0.06 rad/s along μ would
-    # sit far up that prior's wall, and the fit slide away from the drift's basin)
-    est = sub.track.tilt_bias.estimated
-    free = mu - est.T @ (est @ mu)
-    axis = free / float(free @ mu) if np.linalg.norm(free) > 0.5 else mu
+    # the direction with a unit part along μ that the accelerometer's prior holds least, I⁻¹μ (its prior
+    # holds the directions it observes to 10⁻⁴ rad/s, a few degrees off perpendicular to μ: a start of
+    # 0.06 rad/s along μ itself would sit far up that prior's wall, and the fit slide out of the basin)
+    info = sub.track.tilt_bias.prior_information
+    axis = np.linalg.solve(info + 1e-9 * max(float(np.trace(info)), 1.0) * np.eye(3), mu)
+    axis = axis / float(axis @ mu)
     s = sub.track.up_integral(measurement_times(sub, nl)) @ axis
     span = max(float(np.ptp(s)), 1e-9)
     step = 0.25 * np.pi / span
