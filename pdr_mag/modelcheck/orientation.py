@@ -24,8 +24,10 @@ Model (batch, vectorised)
    integration, so without it a bias across the up axis tilts ``R_g`` without bound (1°/s: 120° in two
    minutes), and the minimal rotation that takes such a tilt back turns the heading by an amount that is
    no function of ``∫up_d dt`` — which the ``gyro_bias`` candidate's heading drift then cannot fit.
-   The component along the up axis (about which a texting walk turns) is invisible to the accelerometer;
-   left over, it shows as a heading drift ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
+   It is applied direction by direction, where significant; the component along an axis that points up
+   most of the time (about which a texting walk turns) the accelerometer sees only through the phone's
+   wobble, and it is left to the magnetometer: left over, it shows as a heading drift
+   ``ψ̇ = up_d · δb_g`` that the ``gyro_bias`` candidate fits.
 """
 
 from __future__ import annotations
