@@ -8,6 +8,15 @@ time) — each with one effect hidden (or none), at a typical and a weak strengt
 ``diagnose`` names, the gap before and after, which candidates passed the fixed ΔBIC and gap rules but not
 the recording's null, and the wall time.
 
+``--pairs``: two hidden effects at once — every pair of six effects on calibration + walk recordings
+(:data:`MIXED_PAIRS`), and walking only (:data:`WALK_PAIRS`: texting walks of 3–6 min with turns, each with a
+real phone's gyro bias, :data:`REAL_GYRO_BIAS`).  Per hidden effect: named, reported not identifiable (the
+verdict ``not_identifiable``, or ``partly_identifiable`` with the hidden value's part in the identifiable
+directions below the smallest size worth naming: "not identifiable here"), or missed; extras and false
+alarms on the controls; and whether the phone's gyro bias was named.  "Gap before" is the baseline's, or,
+when the accelerometer named gyro_bias (its part of the bias is in the baseline's orientation from the
+start), the final model's along the raw gyro if larger (:func:`_gap_before`).
+
 Real recordings: the baseline gap (hard_iron + noise along the gyro + accelerometer orientation), the
 missing effects in the order added with their key estimates, the final gap, how much it shrank, and the
 wall time.  The tyrex recordings are also run in evaluation mode (``use_truth``: along the mocap
@@ -16,6 +25,7 @@ The sunsided breadboard gets its MPU6050 temperature channel (read here from ``m
 reader does not expose it yet), which enables the ``temperature_offset`` candidate.
 
     python benchmarks/diagnose.py --suite [--only SUBSTRING|cost] [--json OUT]   # ~15 min on 2 busy cores
+    python benchmarks/diagnose.py --pairs [--only SUBSTRING] [--json OUT]        # ~15 min on 2 busy cores
     python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth] [--all-tyrex]
     python benchmarks/diagnose.py --synthetic                                  # one recording per effect
 
@@ -235,6 +245,42 @@ COST = (
 )
 
 
+#: Gyro biases of real phones, rad/s: the median gyro of the tyrex static recordings (calib_gyr_Nexus5_d1,
+#: calib_gyr_iPhone5_d3, calib_gyr_iPhone4S_d3 in ``../shared/datasets/tyrex-pdrcsv``; 21, 8 and 31 s, std
+#: ≤ 0.004 rad/s per axis): 4.3, 6.1 and 0.5 °/s.
+REAL_GYRO_BIAS = {
+    "Nexus 5": (0.01181, 0.00017, 0.07463),
+    "iPhone 5": (0.1035, -0.0219, 0.0197),
+    "iPhone 4S": (-0.0088, -0.0012, 0.0009),
+}
+MISALIGN = (3.0, -2.0, 1.5)
+DRIFT = (6.0, -4.0, 3.0)
+
+#: Two hidden effects at once on calibration + texting walk recordings (1.5–2.5 min): every pair of the six
+#: effects a recording can show, nothing else (no steel unless local_anomaly is one of the two).
+_SIX = (("time_offset", 0.04), ("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT), ("bias_drift", DRIFT),
+        ("gyro_bias", (0.01047, -0.01396, 0.00873)), ("local_anomaly", 30.0))
+MIXED_PAIRS = tuple((a, b) for i, a in enumerate(_SIX) for b in _SIX[i + 1:])
+
+#: Walking only (``walk``: 3 s standing, then a texting walk with turns every 8–20 s), 3–6 min, each with
+#: a real phone's gyro bias (cycled through :data:`REAL_GYRO_BIAS`) and two hidden effects; the
+#: misalignment with soft iron three times (the issue's unnamed pair).  ``None``: the walk's controls —
+#: the phone's gyro bias alone, or nothing at all (``"none"``).
+WALK_PAIRS = (
+    (("time_offset", 0.04), ("soft_iron", SOFT)),
+    (("mag_imu_misalignment", MISALIGN), ("soft_iron", SOFT)),
+    (("mag_imu_misalignment", (-2.0, 2.5, 1.0)), ("soft_iron", SOFT_WEAK)),
+    (("mag_imu_misalignment", (1.5, 1.5, -3.0)), ("soft_iron", SOFT)),
+    (("time_offset", 0.04), ("bias_drift", DRIFT)),
+    (("soft_iron", SOFT), ("bias_drift", DRIFT)),
+    (("mag_imu_misalignment", MISALIGN), ("time_offset", 0.04)),
+    (("mag_imu_misalignment", MISALIGN), ("bias_drift", DRIFT)),
+    (("time_offset", 0.015), ("soft_iron", SOFT_WEAK)),
+    (("bias_drift", (0.7, -0.7, 0.7)), ("time_offset", 0.04)),
+    None, None, None, "none", "none",
+)
+
+
 def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=None) -> dict:
     from pdr_mag.modelcheck import diagnose
     from pdr_mag.sim import simulate
@@ -252,8 +298,145 @@ def _suite_run(scenario, duration, seed, t0, effect=None, value=None, settings=N
     stopped = sorted({c.effect for rnd in d.rounds for c in rnd if c.null is not None and not c.null.passed})
     n_tested = sum(c.null is not None for rnd in d.rounds for c in rnd)
     return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "effect": effect,
-            "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "final_gap": d.final.gap,
-            "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall, "cpu_s": cpu}
+            "found": list(d.missing_effects), "baseline_gap": d.baseline.gap, "gap_before": _gap_before(d),
+            "final_gap": d.final.gap, "stopped_by_null": stopped, "n_tested": n_tested, "wall_s": wall,
+            "cpu_s": cpu}
+
+
+def _gap_before(d) -> float:
+    """The gap before the missing effects: the baseline's, or — when the accelerometer named gyro_bias, its
+    part of the bias being in the baseline's orientation from the start — the final model's along the raw
+    gyro, if larger (for a gyro bias alone that is the baseline along the raw gyro)."""
+    acc = d.gyro_bias_from_accelerometer
+    if acc.get("named") and acc.get("gap_raw_gyro") is not None:
+        return max(d.baseline.gap, acc["gap_raw_gyro"])
+    return d.baseline.gap
+
+
+def _pair_run(scenario, duration, seed, t0, hidden: dict, background: dict) -> dict:
+    """One recording with ``hidden`` effects (scored) and ``background`` ones (a real phone's gyro bias):
+    what ``diagnose`` names, and for each hidden effect it does not name, what it says of it."""
+    from pdr_mag.modelcheck import diagnose
+    from pdr_mag.sim import simulate
+
+    effects = {"hard_iron": HARD_IRON, "noise": NOISE, **background, **hidden}
+    r = simulate(scenario, seed=seed, duration_s=duration, effects=effects, defaults=False)
+
+    def shift(stream):
+        return stream[0] + t0, stream[1]
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    d = diagnose(*shift(r.mag), *shift(r.gyro), *shift(r.accel))
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    dd = d.to_dict()
+    ident = dd.get("identifiability", {})
+    found = list(d.missing_effects)
+    status = {}
+    for e, v in {**hidden, **background}.items():
+        status[e] = "named" if e in found else ident.get(e, {}).get("status", "missed")
+        if status[e] == "partly_identifiable" and _in_open_directions(e, v, ident[e]):
+            status[e] = "not_identifiable_here"  # what was hidden lies where the motion cannot see
+    return {"scenario": scenario, "duration_s": duration, "seed": seed, "t0": t0, "hidden": list(hidden),
+            "background": list(background), "found": found, "status": status,
+            "extra": [e for e in found if e not in hidden and e not in background],
+            "not_identifiable": [e for e, v in ident.items() if v.get("status") == "not_identifiable"],
+            "baseline_gap": d.baseline.gap, "gap_before": _gap_before(d), "final_gap": d.final.gap,
+            "wall_s": wall, "cpu_s": cpu}
+
+
+def _true_parameters(effect: str, value) -> np.ndarray:
+    """A hidden effect's value in the fit's parameters (those of the identifiability directions)."""
+    from scipy.linalg import logm
+
+    if effect == "mag_imu_misalignment":
+        return np.radians(np.asarray(value, float))
+    if effect == "soft_iron":  # the value is the correction S; the fit's distortion is S⁻¹ = expm(E)
+        e = np.real(logm(np.linalg.inv(np.asarray(value, float))))
+        e = 0.5 * (e + e.T) - np.trace(e) / 3.0 * np.eye(3)
+        return np.array([e[0, 0], e[1, 1], e[0, 1], e[0, 2], e[1, 2]])
+    return np.atleast_1d(np.asarray(value, float))
+
+
+def _in_open_directions(effect: str, value, verdict: dict) -> bool:
+    """Whether a hidden effect that a partly identifiable verdict leaves unnamed lies in the directions the
+    verdict calls not identifiable: its part in the identifiable ones is below the smallest size worth
+    naming.  Otherwise it is a miss."""
+    from pdr_mag.modelcheck.identify import SMALLEST
+
+    theta = _true_parameters(effect, value)
+    dirs = [np.asarray(x["vector"]) for x in verdict.get("directions", []) if x["identifiable"]]
+    seen = sum(((v @ theta) * v for v in dirs), np.zeros_like(theta))
+    return bool(np.linalg.norm(seen) < SMALLEST[effect])
+
+
+def _pair_row(label: str, r: dict) -> str:
+    def say(e):
+        st = r["status"][e]
+        return e if st == "named" else f"~~{e}~~ ({st.replace('_', ' ')})"
+
+    hidden = ", ".join(say(e) for e in r["hidden"]) or "—"
+    bg = ", ".join(say(e) for e in r["background"]) or "—"
+    return (f"| {label} | {r['duration_s']:.0f} | {hidden} | {bg} | {', '.join(r['found']) or 'null'} "
+            f"| {', '.join(r['extra']) or '—'} | {', '.join(r['not_identifiable']) or '—'} "
+            f"| {r['gap_before']:.2f} → {r['final_gap']:.2f} | {r['wall_s']:.1f} / {r['cpu_s']:.1f} |")
+
+
+def _pair_summary(name: str, rows: list[dict]) -> None:
+    hid = [(r, e) for r in rows for e in r["hidden"]]
+    named = sum(r["status"][e] == "named" for r, e in hid)
+    unident = sum(r["status"][e] in ("not_identifiable", "not_identifiable_here") for r, e in hid)
+    other = len(hid) - named - unident
+    extra = sum(len(r["extra"]) for r in rows if r["hidden"])
+    ctrl = [r for r in rows if not r["hidden"]]
+    fa = sum(len(r["extra"]) for r in ctrl)
+    bg = [(r, e) for r in rows for e in r["background"]]
+    bg_named = sum(r["status"][e] == "named" for r, e in bg)
+    print(f"\n{name}: hidden effects named {named} of {len(hid)}, reported not identifiable {unident}, "
+          f"missed (not named, not reported) {other}; extra effects on recordings with hidden ones {extra}; "
+          f"false alarms on the {len(ctrl)} controls {fa}; the phone's gyro bias named on {bg_named} of "
+          f"{len(bg)}")
+
+
+def pairs(only: str = "") -> list[dict]:
+    """Two hidden effects at once: calibration + walk recordings (:data:`MIXED_PAIRS`) and walking-only
+    recordings with a real phone's gyro bias (:data:`WALK_PAIRS`)."""
+    head = ("| recording | s | hidden (struck: not named, and what diagnose says) | background | found "
+            "(in order) | extra | reported not identifiable | gap before → after (µT) | wall / CPU (s) |")
+    print("### Two hidden effects: calibration figure-8 + texting walk, 1.5–2.5 min\n")
+    print(head)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    mixed = []
+    for i, pair in enumerate(MIXED_PAIRS):
+        label = f"mixed {i + 1}"
+        if only not in f"{label} {pair[0][0]} {pair[1][0]}":
+            continue
+        dur = 90.0 + 60.0 * ((5 * i) % 13) / 12.0
+        r = _pair_run("mixed", dur, 501 + i, 1000.0 * (i % 2), dict(pair), {})
+        r["label"] = label
+        mixed.append(r)
+        print(_pair_row(label, r), flush=True)
+    if mixed:
+        _pair_summary("mixed, two hidden", mixed)
+    print("\n### Walking only: texting walks with turns, 3–6 min, a real phone's gyro bias\n")
+    print(head)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    walks = []
+    phones = list(REAL_GYRO_BIAS)
+    for i, pair in enumerate(WALK_PAIRS):
+        phone = phones[i % len(phones)]
+        hidden = {} if pair in (None, "none") else dict(pair)
+        background = {} if pair == "none" else {"gyro_bias": REAL_GYRO_BIAS[phone]}
+        label = f"walk {i + 1}" + ("" if pair == "none" else f" ({phone})")
+        if only not in f"{label} {' '.join(hidden)} walk":
+            continue
+        dur = 180.0 + 180.0 * ((7 * i) % 11) / 10.0
+        r = _pair_run("walk", dur, 601 + i, 1.7e9 * (i % 2), hidden, background)
+        r["label"] = label
+        walks.append(r)
+        print(_pair_row(label, r), flush=True)
+    if walks:
+        _pair_summary("walking only, two hidden", walks)
+    return mixed + walks
 
 
 def suite(only: str = "") -> list[dict]:
@@ -285,8 +468,8 @@ def suite(only: str = "") -> list[dict]:
             r["label"] = label
             out.append(r)
             print(f"| {label} | {'AB'[k]} | {dur:.0f} | {', '.join(r['found']) or 'null'} "
-                  f"| {r['baseline_gap']:.2f} → {r['final_gap']:.2f} "
-                  f"| {r['baseline_gap'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
+                  f"| {r['gap_before']:.2f} → {r['final_gap']:.2f} "
+                  f"| {r['gap_before'] / r['final_gap']:.2f}× | {', '.join(r['stopped_by_null']) or '—'} "
                   f"| {r['wall_s']:.1f} / {r['cpu_s']:.1f} |", flush=True)
     if out:
         _suite_summary(out)
@@ -322,7 +505,7 @@ def _suite_summary(rows: list[dict]) -> None:
     hid = [r for r in rows if r["effect"] not in (None, "noise")]
     named = [r for r in hid if r["found"][:1] == [r["effect"]]]
     extra = [r for r in named if len(r["found"]) > 1]
-    shrink = [r["baseline_gap"] / r["final_gap"] for r in named]
+    shrink = [r["gap_before"] / r["final_gap"] for r in named]
     print(f"\nfalse alarms: {len(fa)} of {len(nulls)} recordings with nothing missing; "
           f"hidden effect named first: {len(named)} of {len(hid)} "
           f"(with an extra effect: {len(extra)}), gap shrink median "
@@ -336,13 +519,15 @@ def main() -> int:
     ap.add_argument("--no-truth", action="store_true", help="skip the evaluation-mode runs")
     ap.add_argument("--synthetic", action="store_true", help="the simulator table (each effect hidden)")
     ap.add_argument("--suite", action="store_true", help="controls and the hidden-effect suites")
+    ap.add_argument("--pairs", action="store_true",
+                    help="two hidden effects at once: calibration + walk, and walking only")
     ap.add_argument("--all-tyrex", action="store_true", help="every tyrex walk, not only those of the table")
     args = ap.parse_args()
     if args.synthetic:
         synthetic()
         return 0
-    if args.suite:
-        rows = suite(args.only)
+    if args.suite or args.pairs:
+        rows = suite(args.only) if args.suite else pairs(args.only)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
         return 0

@@ -46,7 +46,12 @@ def test_diagnose_json_has_the_interface_keys_and_report(rec_dir, tmp_path, caps
     assert added["null"]["statistic"] > added["null"]["threshold"] > added["null"]["null_mean"]
     assert d["rules"]["null_replicates"] == added["null"]["replicates"] > 0
     assert "missing effects: time_offset" in capsys.readouterr().out
-    assert "time_offset" in (rep / "report.md").read_text()
+    report = (rep / "report.md").read_text()
+    assert "time_offset" in report
+    # every candidate has its verdict in the report's table, as in the JSON
+    assert "## What this motion can reveal" in report
+    verdicts = d["identifiability"]
+    assert all(f"| {e} | {v['status'].replace('_', ' ')} |" in report for e, v in verdicts.items())
     for png in ("residual_vs_time.png", "residual_vs_heading.png", "residual_vs_strength.png",
                 "residual_vs_rate.png", "field_strength.png"):
         assert (rep / png).stat().st_size > 1000

@@ -4,7 +4,11 @@
 (:mod:`.orientation`; ``truth`` only with ``use_truth=True``), fits the baseline model (hard_iron + noise)
 along it (:mod:`.fit`), simulates the magnetometer with :mod:`pdr_mag.sim.sensor_model` (:mod:`.predict`) and
 adds candidate effects one at a time by a penalised likelihood (:mod:`.select`) until nothing significant
-is left.  :mod:`.report` writes the human report.
+is left.  Then it says, for every candidate, what the recording's motion can reveal of it (:mod:`.identify`:
+the Fisher information of its parameters against the final model — a texting walk turns about one axis and
+leaves directions that the hard iron or the heading reference take) — nothing is left out silently.
+:mod:`.gyro` finds the ``gyro_bias`` candidate's start value and replays the orientation with it;
+:mod:`.report` writes the human report.
 
 Heading reference: the gyro + accelerometer orientation fixes tilt but not heading, so its world frame has
 an arbitrary yaw; the predicted field ``m_d(t) = S⁻¹ Mᵀ R_dw(t) B_w + b`` fits ``B_w`` (3 components, in

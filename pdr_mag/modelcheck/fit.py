@@ -290,6 +290,17 @@ def measurement_times(problem: Problem, nl: dict[str, np.ndarray]) -> np.ndarray
     return problem.t - (float(nl["time_offset"][0]) if "time_offset" in nl else 0.0)
 
 
+def linear_ridge(problem: Problem, layout: Layout, diag: np.ndarray) -> np.ndarray:
+    """The ridge added to the normal matrix ``AᵀA`` (diagonal ``diag``) of the linear parameters: a
+    vanishing one everywhere (a motion that leaves a combination undetermined gets its minimum-norm value)
+    and the weak prior ``1/anomaly_prior_uT²`` on the knots of the local effects (σ_noise ~ 1 µT)."""
+    ridge = 1e-9 * (diag.mean() if diag.size else 1.0) * np.ones(layout.size)
+    for name in ("local_anomaly", "hard_iron_change"):
+        if name in layout.blocks:
+            ridge[layout.blocks[name]] += 1.0 / problem.anomaly_prior_uT**2
+    return ridge
+
+
 def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, with_normal: bool = False,
                  along: np.ndarray | None = None):
     """Linear parameters x̂ and the residual ``y − A x̂`` (3N,) for given per-sample maps
@@ -307,14 +318,7 @@ def solve_linear(problem: Problem, nl: dict, mats: np.ndarray, layout: Layout, w
         a, y = proj @ a, proj @ y
     ata = (a.T @ a).tocsc()
     aty = a.T @ y
-    diag = ata.diagonal()
-    ridge = 1e-9 * (diag.mean() if diag.size else 1.0) * np.ones(layout.size)
-    if "local_anomaly" in layout.blocks:
-        # weak prior on the knots: σ_noise²/σ_prior² with σ_noise ~ 1 µT
-        ridge[layout.blocks["local_anomaly"]] += 1.0 / problem.anomaly_prior_uT**2
-    if "hard_iron_change" in layout.blocks:
-        ridge[layout.blocks["hard_iron_change"]] += 1.0 / problem.anomaly_prior_uT**2
-    ata = (ata + sp.diags(ridge)).tocsc()
+    ata = (ata + sp.diags(linear_ridge(problem, layout, ata.diagonal()))).tocsc()
     # sparse LU (SuperLU): the normal matrix is banded (anomaly knots) with a small dense border, and
     # unlike dense LAPACK it does not slow down when BLAS threads compete for the two cores
     try:
@@ -376,8 +380,16 @@ def n_params(problem: Problem, effects) -> int:
 
 
 def _start(problem: Problem, effects, init: dict | None, hold=()):
-    """Start values, scales, prior weights and free-parameter mask of the nonlinear parameters of
-    ``effects`` (those of the effects in ``hold`` are held at ``init``)."""
+    """Start values, scales, the priors' residual rows (a function of the parameters) and the
+    free-parameter mask of the nonlinear parameters of ``effects`` (those of the effects in ``hold`` are
+    held at ``init``).
+
+    Priors, each weighted by ``prior_weight`` so that it counts against the magnetometer's residual as a
+    χ² term: the weak Gaussians of :data:`_NL_PRIOR`, and for ``gyro_bias`` what the accelerometer says of
+    it (``δᵀ I_acc δ``, ``I_acc`` the information of :class:`~pdr_mag.modelcheck.orientation.TiltBias`
+    within the directions it estimated; the track's bias already holds that estimate, so δ's prior is
+    centred at zero).
+    """
     nl_names = [e for e in _NL_ORDER if e in effects]
     p0, scale, lo, hi, free = [], [], [], [], []
     for name in nl_names:
@@ -389,10 +401,21 @@ def _start(problem: Problem, effects, init: dict | None, hold=()):
         hi.extend([_NL_BOUND[name]] * size)
         free.extend([name not in hold] * size)
     p0 = np.clip(np.asarray(p0, float), np.asarray(lo), np.asarray(hi))
-    prior = problem.prior_weight * np.asarray(
+    diag = problem.prior_weight * np.asarray(
         [1.0 / _NL_PRIOR[name] for name in nl_names for _ in range(_NONLINEAR[name])]
     )
-    return p0, np.asarray(scale), prior, np.asarray(free, dtype=bool)
+    accel = None
+    info = problem.track.tilt_bias.prior_information
+    if "gyro_bias" in nl_names and np.any(info):
+        i0 = 1 if "time_offset" in nl_names else 0
+        lam, vec = np.linalg.eigh(info)
+        accel = (slice(i0, i0 + 3), problem.prior_weight * np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T)
+
+    def prior_rows(p: np.ndarray) -> np.ndarray:
+        rows = p * diag
+        return rows if accel is None else np.concatenate([rows, accel[1] @ p[accel[0]]])
+
+    return p0, np.asarray(scale), prior_rows, np.asarray(free, dtype=bool)
 
 
 def _minimise(resid, p0: np.ndarray, scale: np.ndarray, max_nfev: int, free: np.ndarray):
@@ -423,11 +446,12 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
     ones' only."""
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
-    p0, scale, prior, free = _start(problem, effects, init, hold)
+    p0, scale, prior_rows, free = _start(problem, effects, init, hold)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
-        return np.concatenate([solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1], p * prior])
+        r = solve_linear(problem, nl, sample_matrices(problem, nl), layout)[1]
+        return np.concatenate([r, prior_rows(p)])
 
     p, nfev, jac = _minimise(resid, p0, scale, max_nfev, free)
     if not free.all():
@@ -460,7 +484,7 @@ def fit_model(problem: Problem, effects, init: dict | None = None, max_nfev: int
         std.update(split_nonlinear(effects, np.sqrt(np.clip(np.diag(cov_nl) * s2, 0, None))))
         std["_cov_nonlinear"] = cov_nl * s2
     return FitResult(effects=effects, nonlinear=nl, linear=linear, residual=res, rss=float(r @ r),
-                     k=k, nfev=nfev, std=std, penalty=float(np.sum((p * prior) ** 2)))
+                     k=k, nfev=nfev, std=std, penalty=float(np.sum(prior_rows(p) ** 2)))
 
 
 def fit_along(problem: Problem, effects, along: np.ndarray, init: dict | None = None,
@@ -474,12 +498,12 @@ def fit_along(problem: Problem, effects, along: np.ndarray, init: dict | None = 
     """
     effects = tuple(dict.fromkeys([*BASELINE, *effects]))
     layout = linear_layout(problem, effects)
-    p0, scale, prior, free = _start(problem, effects, init, hold)
+    p0, scale, prior_rows, free = _start(problem, effects, init, hold)
 
     def resid(p):
         nl = split_nonlinear(effects, p)
         r = solve_linear(problem, nl, sample_matrices(problem, nl), layout, along=along)[1]
-        return np.concatenate([r, p * prior])
+        return np.concatenate([r, prior_rows(p)])
 
     p, _, _ = _minimise(resid, p0, scale, max_nfev, free)
     r = resid(p)

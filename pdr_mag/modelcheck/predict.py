@@ -92,8 +92,8 @@ def to_sensor_model(problem: Problem, fit: FitResult) -> SensorModel:
         eff["mag_imu_misalignment"] = np.degrees(nl["mag_imu_misalignment"])
     if "bias_drift" in fit.linear:
         eff["bias_drift"] = fit.linear["bias_drift"]
-    if "gyro_bias" in nl:
-        eff["gyro_bias"] = problem.track.gyro_bias + nl["gyro_bias"]
+    if "gyro_bias" in nl or np.any(problem.track.gyro_bias):
+        eff["gyro_bias"] = problem.track.gyro_bias + nl.get("gyro_bias", np.zeros(3))
     anomaly = anomaly_field(problem, fit)
     if anomaly is not None:
         eff["local_anomaly"] = anomaly

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from pdr_mag.conventions import heading_deg_from_quat, quat_slerp
+from pdr_mag.modelcheck.identify import angular_rate
 from pdr_mag.modelcheck.predict import simulate_mag
 from pdr_mag.modelcheck.select import Diagnosis
 
@@ -25,8 +26,7 @@ def _series(summary):
     pred = simulate_mag(p, f)
     res = p.mag - pred
     q = quat_slerp(p.track.t, p.track.quat, p.t)
-    dq = np.diff(p.track.quat, axis=0)
-    rate_track = 2.0 * np.linalg.norm(dq, axis=1) / np.diff(p.track.t)
+    rate_track = angular_rate(p.track.t, p.track.quat)
     rate = np.interp(p.t, 0.5 * (p.track.t[1:] + p.track.t[:-1]), rate_track)
     return {
         "t": p.t,
@@ -36,6 +36,24 @@ def _series(summary):
         "strength_sim": np.linalg.norm(pred - np.asarray(f.linear["hard_iron"]), axis=1),
         "rate": rate,
     }
+
+
+def _accelerometer_lines(acc: dict) -> list[str]:
+    if not acc.get("named"):
+        return []
+    b = np.degrees(np.linalg.norm(acc["rad_per_s"]))
+    return [f"- gyro_bias named by the accelerometer (the drift of gravity in the gyro frame): {b:.2f} °/s, "
+            f"T² {acc['t2']} > {acc['threshold']}, in the orientation from the start; the final model's gap "
+            f"{acc['gap_with']:.3f} µT with it, {acc['gap_raw_gyro']:.3f} µT along the raw gyro"]
+
+
+def _motion_text(m: dict) -> str:
+    if not m:
+        return "—"
+    return (f"mean up axis {m['up_axis_d']} (device axes), tilted from it by {m['tilt_rms_deg']}° rms; "
+            f"the field swept device axis {m['least_swept_axis_d']} least ({m['least_swept_deg']}°); angular "
+            f"rate {m['rate_rms_rad_per_s']} rad/s rms; {m['duration_s']} s; gap {m['gap_uT']} µT over a "
+            f"white noise of {m['white_noise_uT']} µT.")
 
 
 def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Path:
@@ -99,6 +117,7 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
         f"- baseline ({', '.join(d['baseline']['effects'])}): gap **{d['baseline']['gap']:.3f} µT**",
         f"- missing effects, in the order added: **{', '.join(d['missing_effects']) or 'none'}**",
         f"- final ({', '.join(d['final']['effects'])}): gap **{d['final']['gap']:.3f} µT**",
+        *_accelerometer_lines(d.get("gyro_bias_from_accelerometer") or {}),
         "",
         "## Candidates by round",
         "",
@@ -111,6 +130,15 @@ def write_report(diagnosis: Diagnosis, out_dir, title: str = "recording") -> Pat
             null = "—" if c.get("null") is None else f"{c['null']['statistic']} / {c['null']['threshold']}"
             lines.append(f"| {c['round']} | {c['effect']} | {c['gap']} | {c['score']} | {null} | "
                          f"{'yes' if c['significant'] else 'no'} | {est} |")
+    lines += ["", "## What this motion can reveal", "",
+              f"Motion: {_motion_text(d.get('motion', {}))}", "",
+              "| effect | status | identified directions | why not (the rest) | would be revealed by |",
+              "| --- | --- | --- | --- | --- |"]
+    for e, v in d.get("identifiability", {}).items():
+        n = len(v["directions"])
+        dirs = f"{v['identifiable_directions']} of {n}" if n else "—"
+        lines.append(f"| {e} | {v['status'].replace('_', ' ')} | {dirs} | {v['reason'] or '—'} "
+                     f"| {v['reveal'] or '—'} |")
     lines += ["", "Null: the candidate's statistic (ln RSS ratio; along the field for effects that change "
               "its strength) on the recording, and the threshold it had to beat on surrogates of the "
               "recording with nothing missing (orientation error and noise only).", "",

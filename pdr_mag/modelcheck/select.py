@@ -14,7 +14,11 @@ candidate's own residual would instead punish every candidate for the effects st
 An effect is significant when three things hold:
 
 1. ``score > score_threshold`` (10: "very strong" evidence on the Kass–Raftery scale);
-2. it shrinks the gap by at least ``min_gap_reduction`` (10 %, relative) — an effect worth naming;
+2. it shrinks the gap's part above the white noise, ``√(gap² − σ_w²)``, by at least ``min_gap_reduction``
+   (10 %, relative) — an effect worth naming.  σ_w is the recording's white noise (the median absolute
+   first difference of the baseline residual, per axis: :func:`~pdr_mag.modelcheck.null.robust_sigma`),
+   which no effect explains: measured against the whole gap, the same effect would be worth naming on a
+   quiet magnetometer and not on a noisy one;
 3. it beats the recording's own null (:mod:`.null`): on surrogates of the recording that have the
    current model, the recording's orientation error and noise but nothing missing, the same candidate
    fitted the same way must explain less than on the recording, at a false-alarm level of
@@ -25,7 +29,8 @@ which leaves correlated residuals (tilt errors of 0.5–5° in turns, swings and
 0.4–4 µT of field) that any flexible effect partly fits — by an amount that depends on the recording's
 motion and length.  Rule 3 measures that amount on the recording itself; it is run only for candidates
 that pass rules 1 and 2, so a recording with nothing near significance costs nothing more.  The best
-significant effect (by score) is added and the search repeated until none is left.
+significant effect (by score) is added and the search repeated until none is left; then every candidate gets
+a verdict of what the motion can reveal of it (:mod:`.identify`).
 """
 
 from __future__ import annotations
@@ -34,13 +39,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pdr_mag.conventions import quat_slerp
 from pdr_mag.modelcheck.fit import (
     BASELINE,
     CANDIDATES,
     FitResult,
     Problem,
-    _quat_to_matrix,
     fit_along,
     fit_model,
     integrated_autocorr_time,
@@ -49,7 +52,16 @@ from pdr_mag.modelcheck.fit import (
     soft_iron_distortion,
     with_track,
 )
-from pdr_mag.modelcheck.null import NullSettings, null_threshold, stride_for, subsample, surrogate_residuals
+from pdr_mag.modelcheck.gyro import accelerometer_bias, heading_drift_start, replay
+from pdr_mag.modelcheck.identify import SMALLEST, identifiability
+from pdr_mag.modelcheck.null import (
+    NullSettings,
+    null_threshold,
+    robust_sigma,
+    stride_for,
+    subsample,
+    surrogate_residuals,
+)
 from pdr_mag.modelcheck.orientation import (
     OrientationSettings,
     OrientationTrack,
@@ -88,7 +100,7 @@ class DiagnoseSettings:
     score_threshold : float
         Least ΔBIC for an effect to count as missing.
     min_gap_reduction : float
-        Least relative shrink of the gap for an effect to count as missing.
+        Least relative shrink of the gap above the white noise for an effect to count as missing.
     anomaly_knot_s : float
         Knot spacing of the ``local_anomaly`` field, s.
     anomaly_min_uT : float
@@ -173,7 +185,11 @@ class ModelSummary:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """What :func:`diagnose` found (``to_dict()`` is the ``diagnose --json`` object of INTERFACE.md)."""
+    """What :func:`diagnose` found (``to_dict()`` is the ``diagnose --json`` object of INTERFACE.md).
+
+    ``identifiability``: every candidate's verdict (:class:`~pdr_mag.modelcheck.identify.Identifiability`),
+    ``motion`` the motion it was judged on; ``gyro_bias_from_accelerometer``: the accelerometer's part of
+    the gyro bias (:class:`~pdr_mag.modelcheck.gyro.AccelerometerBias`), empty along the truth."""
 
     baseline: ModelSummary
     candidates: tuple[Candidate, ...]
@@ -185,10 +201,17 @@ class Diagnosis:
     n_samples: int
     n_eff: float = float("nan")
     rules: dict = field(default_factory=dict)
+    identifiability: dict = field(default_factory=dict)
+    motion: dict = field(default_factory=dict)
+    gyro_bias_from_accelerometer: dict = field(default_factory=dict)
 
     @property
     def missing_effect(self) -> str | None:
         return self.missing_effects[0] if self.missing_effects else None
+
+    def with_status(self, *status: str) -> tuple[str, ...]:
+        """The candidate effects whose identifiability has one of these statuses."""
+        return tuple(e for e, v in self.identifiability.items() if v.status in status)
 
     def to_dict(self) -> dict:
         return {
@@ -204,6 +227,11 @@ class Diagnosis:
             "n_samples": self.n_samples,
             "n_eff": _r(self.n_eff, 1),
             "rules": self.rules,
+            "not_identifiable": list(self.with_status("not_identifiable")),
+            "partly_identifiable": list(self.with_status("partly_identifiable")),
+            "identifiability": {e: v.to_dict() for e, v in self.identifiability.items()},
+            "motion": self.motion,
+            "gyro_bias_from_accelerometer": self.gyro_bias_from_accelerometer,
         }
 
 
@@ -247,15 +275,18 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
         elif e == "temperature_offset":
             out[e] = {"uT_per_degC": _vec(lin[e], 4), "std": _vec(sd[e], 4),
                       "t_ref_degC": _r(problem.temp_ref, 2)}
-        elif e == "gyro_bias":
-            total = problem.track.gyro_bias + nl[e]
+        elif e == "gyro_bias":  # δ absent: named by the accelerometer alone (in the track's bias)
+            delta = nl.get(e, np.zeros(3))
+            total = problem.track.gyro_bias + delta
             up = np.mean(problem.r_dw0[:, :, 2], axis=0)  # mean up direction in device axes
             up /= np.linalg.norm(up)
             cov = fit.std.get("_cov_nonlinear")
             i0 = 1 if "time_offset" in nl else 0
-            up_std = float(np.sqrt(up @ cov[i0:i0 + 3, i0:i0 + 3] @ up)) if cov is not None else float("nan")
-            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(nl[e], 5),
-                      "std": _vec(sd[e], 5), "mean_up_d": _vec(up, 4),
+            up_std = (float(np.sqrt(up @ cov[i0:i0 + 3, i0:i0 + 3] @ up)) if cov is not None and e in nl
+                      else float("nan"))
+            out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(delta, 5),
+                      "from_accelerometer_rad_per_s": _vec(problem.track.tilt_bias.correction, 5),
+                      "std": _vec(sd.get(e, np.full(3, np.nan)), 5), "mean_up_d": _vec(up, 4),
                       "along_up_rad_per_s": _r(up @ total, 5),
                       "along_up_std": _r(up_std, 5)}
         elif e == "hard_iron_change":
@@ -288,46 +319,20 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
 # ---------------------------------------------------------------------------------------------- fitting
 
 
-def _heading_drift_init(problem: Problem, fit: FitResult) -> np.ndarray:
-    """Initial residual gyro bias from the drift of the measured field's horizontal direction.
-
-    In the track's world frame the measured field ``R_wd (m − b)`` turns by ``−ψ(t)``, ``ψ = δ·∫up_d dt``,
-    so δ is the least-squares solution of ``−unwrap(φ − φ_0) = ∫up_d dt · δ``.
-    """
-    q = quat_slerp(problem.track.t, problem.track.quat, problem.t)
-    h_w = np.einsum("nij,nj->ni", _quat_to_matrix(q), problem.mag - fit.linear["hard_iron"])
-    phi = np.unwrap(np.arctan2(h_w[:, 0], h_w[:, 1]))
-    a = np.column_stack([problem.track.up_integral(problem.t), np.ones(len(phi))])
-    sol = np.linalg.lstsq(a, -(phi - phi[0]), rcond=None)[0]
-    return np.clip(sol[:3], -0.4, 0.4)
-
-
 def _fit(problem: Problem, effects, current: FitResult, settings: DiagnoseSettings, hold=()) -> FitResult:
     init = dict(current.nonlinear)
     best = fit_model(problem, effects, init, settings.max_nfev, hold)
     if "gyro_bias" in effects and "gyro_bias" not in current.nonlinear:
-        init2 = dict(init, gyro_bias=_heading_drift_init(problem, current))
+        init2 = dict(init, gyro_bias=heading_drift_start(problem, current))
         alt = fit_model(problem, effects, init2, settings.max_nfev, hold)
         if alt.rss < best.rss:
             best = alt
     return best
 
 
-def _replay_gyro_bias(problem: Problem, fit: FitResult, gyro, accel, settings: DiagnoseSettings):
-    """Re-estimate the orientation with the fitted gyro bias and refit (the diagnosis replayed).
-
-    A gyro bias also tilts the estimate between the accelerometer's corrections, which the first-order
-    heading drift does not model; the replayed fit is kept when it fits better, the first-order one
-    otherwise (so the gyro_bias model nests the current one).
-    """
-    if gyro is None or "gyro_bias" not in fit.nonlinear:
-        return problem, fit
-    bias = problem.track.gyro_bias + fit.nonlinear["gyro_bias"]
-    track = estimate_orientation(gyro[0], gyro[1], accel[0], accel[1], bias, settings.orientation)
-    p2 = with_track(problem, track)
-    init = dict(fit.nonlinear, gyro_bias=np.zeros(3))
-    f2 = fit_model(p2, fit.effects, init, settings.max_nfev)
-    return (p2, f2) if f2.rss < fit.rss else (problem, fit)
+def _above_white(g: float, white: float) -> float:
+    """The part of a gap ``g`` above the white noise ``white`` (rms, µT): ``√(g² − σ_w²)``, ≥ 0."""
+    return float(np.sqrt(max(g * g - white * white, 0.0)))
 
 
 def _score(current: FitResult, cand: FitResult, n_eff: float) -> float:
@@ -348,7 +353,7 @@ def _candidate(eff: str, problem: Problem, current: FitResult, added, settings: 
             return None
     f = _fit(p, (*added, eff), current, settings)
     if eff == "gyro_bias" and gyro is not None:
-        p, f = _replay_gyro_bias(p, f, gyro, accel, settings)
+        p, f = replay(p, f, gyro, accel, settings.orientation, settings.max_nfev)
     return p, f
 
 
@@ -445,6 +450,22 @@ def _pick(ranked: dict[str, float], passes) -> str | None:
     return None
 
 
+def _why_not_tried(effect: str, in_last_round: bool, offered, has_temperature: bool, use_truth: bool,
+                   settings: DiagnoseSettings) -> str:
+    """Empty when the search tried ``effect`` in its last round, else why the recording could not."""
+    if in_last_round:
+        return ""
+    if effect == "temperature_offset" and not has_temperature:
+        return "the recording has no temperature channel"
+    if effect == "gyro_bias" and use_truth:
+        return "the orientation is the truth (use_truth): a gyro bias does not enter it"
+    if effect in _LOCAL:
+        frame = "world" if effect == "local_anomaly" else "device"
+        return (f"no stretch where the residual ({frame} frame, 1-s mean) stands out above "
+                f"{settings.anomaly_min_uT:g} µT and 4 σ")
+    return "" if effect in offered else "not among the candidates of the settings"
+
+
 def diagnose(
     t_mag,
     mag,
@@ -506,6 +527,7 @@ def diagnose(
     w = float(np.sqrt(np.mean(base.residual**2)) * np.sqrt(integrated_autocorr_time(base.residual)))
     problem = replace(problem, prior_weight=max(w, 1e-3))
     baseline = ModelSummary(BASELINE, gap(problem, base), estimates(problem, base, BASELINE), base, problem)
+    white = float(np.sqrt(np.mean([robust_sigma(base.residual[:, k]) ** 2 for k in range(3)])))
 
     candidates = [c for c in settings.candidates if c != "temperature_offset" or temp is not None]
     if use_truth:
@@ -525,6 +547,7 @@ def diagnose(
     for rnd in range(settings.max_rounds):
         tried = []
         cur_gap = gap(cur_problem, current)
+        cur_excess = _above_white(cur_gap, white)
         for eff in candidates:
             if eff in added or (eff in _LOCAL and any(a in _LOCAL for a in added)):
                 continue
@@ -534,7 +557,8 @@ def diagnose(
             p, f = fitted
             g = gap(p, f)
             s = _score(current, f, n_eff)
-            rules = bool(s > settings.score_threshold and g < (1.0 - settings.min_gap_reduction) * cur_gap)
+            shrinks = _above_white(g, white) < (1.0 - settings.min_gap_reduction) * cur_excess
+            rules = bool(s > settings.score_threshold and shrinks)
             tried.append((eff, g, s, estimates(p, f, [eff]).get(eff, {}), rules, f, p))
         winner: str | None = None
         tests: dict[str, NullTest] = {}
@@ -564,11 +588,32 @@ def diagnose(
                     "ambiguous": bool(abs(o.gap - best[0].gap) < best[0].gap * _LOCAL_MARGIN),
                 }
 
+    accel_bias = None
+    if not use_truth:  # the accelerometer's part of the gyro bias, judged by the final model's gap with it
+        def final_gap(tr: OrientationTrack) -> float:
+            p = with_track(cur_problem, tr)
+            others = tuple(e for e in added if e != "gyro_bias")
+            nl = {k: v for k, v in current.nonlinear.items() if k != "gyro_bias"}
+            return gap(p, fit_model(p, others, nl, 0))
+
+        def raw_gap() -> float:
+            return final_gap(estimate_orientation(*gyro_pair, *accel_pair, settings=replace(
+                settings.orientation, bias_from_tilt=False)))
+
+        accel_bias = accelerometer_bias(track.tilt_bias, final_gap(track), raw_gap, white,
+                                        settings.min_gap_reduction, SMALLEST["gyro_bias"])
+        if accel_bias.named and "gyro_bias" not in added:
+            added.insert(0, "gyro_bias")  # named by the accelerometer, in the orientation from the start
     final_effects = (*BASELINE, *added)
     final_est = estimates(cur_problem, current, final_effects)
     for eff, note in notes.items():
         final_est[eff].update(note)
     final = ModelSummary(final_effects, gap(cur_problem, current), final_est, current, cur_problem)
+    last = {c.effect for c in rounds[-1]} if rounds else set()
+    why_not = {e: _why_not_tried(e, e in last, candidates, temp is not None, use_truth, settings)
+               for e in settings.candidates}
+    ident, motion = identifiability(cur_problem, current, tuple(added), why_not, n_eff,
+                                    (settings.score_threshold, settings.min_gap_reduction), notes, white)
     return Diagnosis(
         baseline=baseline,
         candidates=rounds[0] if rounds else (),
@@ -579,6 +624,10 @@ def diagnose(
         duration_s=float(problem.t[-1] - problem.t[0]),
         n_samples=len(problem.t),
         n_eff=float(n_eff),
+        identifiability=ident,
+        motion=motion,
+        gyro_bias_from_accelerometer={} if accel_bias is None else accel_bias.to_dict(),
         rules={"score_threshold": settings.score_threshold, "min_gap_reduction": settings.min_gap_reduction,
+               "white_noise_uT": _r(white),
                "null_replicates": settings.null.replicates, "null_false_alarm": settings.null.false_alarm},
     )

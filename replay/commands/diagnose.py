@@ -152,6 +152,14 @@ def summary(d: dict, rec) -> str:
              f"from {d['orientation']}",
              f"  baseline {'+'.join(d['baseline']['effects'])}: gap {d['baseline']['gap']:.3f} µT"]
     added = d["missing_effects"]
+    acc = d.get("gyro_bias_from_accelerometer") or {}
+    if acc.get("named"):
+        b = np.degrees(np.linalg.norm(acc["rad_per_s"]))
+        lines.append(f"  accelerometer: gyro_bias (|b| {b:.2f} °/s where it sees it, T² {acc['t2']} > "
+                     f"{acc['threshold']}; in the orientation from the start: the final model's gap along "
+                     f"the raw gyro {acc['gap_raw_gyro']:.3f} µT, {acc['gap_with']:.3f} µT with it) — added")
+        added = [e for e in added if e != "gyro_bias" or any(
+            c["effect"] == "gyro_bias" and c["significant"] for r in d["rounds"] for c in r)]
     for i, rnd in enumerate(d["rounds"]):
         # the round's line names the effect added in it (chosen after the null test, not always the top
         # score); a round that added nothing names its best score
@@ -167,4 +175,29 @@ def summary(d: dict, rec) -> str:
                      f"{best['score']}, gap {best['gap']:.3f} µT) — {mark}")
     lines.append(f"  missing effects: {', '.join(d['missing_effects']) or 'none'}")
     lines.append(f"  final {'+'.join(d['final']['effects'])}: gap {d['final']['gap']:.3f} µT")
+    lines += identifiability_lines(d.get("identifiability", {}))
     return "\n".join(lines)
+
+
+def identifiability_lines(ident: dict) -> list[str]:
+    """What the motion could reveal, every candidate effect in one of the lines (none left out)."""
+    by: dict[str, list[str]] = {}
+    for e, v in ident.items():
+        by.setdefault(v["status"], []).append(e)
+    lines = []
+    if by.get("not_significant"):
+        lines.append(f"  identifiable, not significant: {', '.join(by['not_significant'])}")
+    for status, head in (("not_identifiable", "not identifiable from this motion"),
+                         ("partly_identifiable", "partly identifiable (not significant where identifiable)")):
+        for e in by.get(status, []):
+            v = ident[e]
+            reveal = f" — would be revealed by {v['reveal']}" if v["reveal"] else ""
+            lines.append(f"  {head}: {e}: {v['reason']}{reveal}")
+    for e in by.get("named", []):
+        v = ident[e]
+        if v["reason"]:
+            reveal = f" — would be revealed by {v['reveal']}" if v["reveal"] else ""
+            lines.append(f"  named, not identified in every direction: {e}: {v['reason']}{reveal}")
+    if by.get("not_tried"):
+        lines.append("  not tried: " + "; ".join(f"{e} ({ident[e]['reason']})" for e in by["not_tried"]))
+    return lines
