@@ -240,7 +240,7 @@ class OnlineCalibrator:
         # a prior is not yet the data's: every sample may enter the buffer, as before any calibration, so
         # that a wrong one is seen to be wrong (the refit's plausibility test) and a fit can replace it
         c["check"] = (cal is not None and f is not None and cal_state not in ("none", "recalibrating")
-                      and not is_prior(cal))  # fmt: skip
+                      and not is_prior(cal) and not refit.provisional(cal, s))  # fmt: skip
         if cal is not None:
             c["matrix"] = cal.matrix
             c["offset"] = cal.offset_array
@@ -285,7 +285,8 @@ class OnlineCalibrator:
                 events.append((t, "calibration_rejected", data))
             return
         recalibrating = self.cal_state == "recalibrating"
-        if not recalibrating and not refit.replaces(chosen, self.calibration, self.provided):
+        buf = self._buf["m"][:n]
+        if not recalibrating and not refit.replaces(chosen, self.calibration, self.provided, buf):
             return
         cal = refit.with_dip(chosen, self._buf["m"][:n], self._buf["u"][:n])
         if recalibrating:

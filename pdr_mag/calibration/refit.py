@@ -32,6 +32,7 @@ from pdr_mag.calibration.diversity import direction_coverage
 from pdr_mag.calibration.gravity import gravity_aided_offset
 from pdr_mag.calibration.model import _EYE, MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
+from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
@@ -84,9 +85,18 @@ def candidates(
             cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
-    first = current is None
+    first = current is None or (not is_prior(current) and provisional(current, s))
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+
+
+def provisional(cal: MagCalibration, s: OnlineSettings) -> bool:
+    """Whether ``cal`` holds only under the first calibration's looser bound: its offset σ above
+    ``max_offset_std_uT``, what a later refit must reach.  Its strength errors reach that σ and more, so
+    it cannot judge samples by the admission band; they enter as before any calibration, and the refit
+    that fits them replaces it."""
+    std = np.asarray(cal.offset_std_uT, dtype=float)
+    return not np.all(np.isfinite(std)) or float(np.max(std)) > s.max_offset_std_uT
 
 
 def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float) -> MagCalibration:
@@ -210,13 +220,18 @@ def judge(
     return cal.with_acceptance(not reasons, reasons)
 
 
-def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool) -> bool:
+def replaces(
+    new: MagCalibration, old: MagCalibration | None, provided: bool, m: np.ndarray | None = None
+) -> bool:
     """Whether an accepted refit replaces the calibration in force (outside a recalibration).
 
     Never a soft-iron shape by an offset-only fit, nor a calibration given by the user by a gravity or
     sphere fit; not when the residual got worse (``> 1.5 · old + 0.3`` µT: disturbed samples in the
     buffer); not on noise: the offset must move by 2 σ (σ at least 0.2 µT) or its σ shrink by 20 %.  An
-    upgrade to a soft-iron shape passes the last two rules.
+    upgrade to a soft-iron shape passes the last two rules.  ``m`` given (the buffer's raw samples the
+    refit fitted): the old calibration's residual is the larger of its own and the RMS spread of the
+    strength it gives those samples — a calibration fitted on a few samples and wrong by tens of µT
+    explains the buffer worse than the refit that replaces it, whatever its own small residual said.
     """
     if old is None:
         return True
@@ -229,6 +244,9 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool) ->
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
+    if m is not None and len(m) >= 2 and np.isfinite(rms_old):
+        f = np.linalg.norm(old.apply(m), axis=1)
+        rms_old = max(rms_old, float(np.sqrt(np.mean((f - np.median(f)) ** 2))))
     if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
         return False
     return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)

@@ -4,8 +4,9 @@ Start.  The first usable sample once the gyroscope streams gives the tilt (up = 
 coordinates; a tilt set before the first gyroscope sample could not be carried forward and would go stale
 as the phone turns — some phones start their gyroscope 0.3–0.7 s after the accelerometer); the heading is then
 arbitrary (device +y, or device −z for a phone held upright, projected on the horizontal plane points
-north) with variance π², the tilt variance ``tilt0_std² + (||a| − g| / g)²`` per axis (the sample's own
-acceleration turns it by at least that much), the bias ``bias0_std²`` per axis and ``c`` its stationary
+north) with variance π², the tilt variance ``tilt0_std² + (||a| − g| / g)² + (rate_k |ω|)²`` per axis (the
+sample's own acceleration turns it by at least that much; a rotating device's centripetal and tangential
+acceleration by about ``rate_k |ω|``), the bias ``bias0_std²`` per axis and ``c`` its stationary
 variance.
 
 Averaged update (default, ``accel.tau_s > 0``).  The specific force is averaged in the almost inertial world
@@ -124,9 +125,12 @@ def init_tilt(s, ax, ay, az, p):
     s.u_phi = 1.0
     s.u_pending = False
     # the sample's own acceleration turns its direction by up to ||a| − g| / g rad (a lower bound of the
-    # linear acceleration over g): a start in motion is that uncertain
+    # linear acceleration over g), and a rotating device's centripetal and tangential acceleration by about
+    # accel.rate_k |ω| (as in the per-sample update's noise; |ω| at this sample, bias included): a start in
+    # motion — mid-stride, in a swinging hand or a pocket — is that uncertain, even when |a| happens to be g
     da = abs(n - p.accel.gravity) / p.accel.gravity
-    t0 = min(p.accel.tilt0_std**2 + da * da, TILT0_VAR_MAX)
+    w2 = s.w_gyro[0] ** 2 + s.w_gyro[1] ** 2 + s.w_gyro[2] ** 2
+    t0 = min(p.accel.tilt0_std**2 + da * da + p.accel.rate_k**2 * w2, TILT0_VAR_MAX)
     P[TH_X, TH_X] = t0
     P[TH_Y, TH_Y] = t0
     P[TH_Z, TH_Z] = np.pi**2

@@ -211,9 +211,13 @@ class FusionCore:
         taken from the old fields, so it carries the heading error ``g · dm`` that the change removes
         (``g = ∂ψ/∂m_d``): at the next usable magnetometer sample that variance joins the heading's, and a
         field the new calibration turns by tens of degrees is then within the gate rather than rejected until
-        a re-acquisition.  Changes before that sample add up (to first order).  (The detectors' local
-        references, learnt from the old fields, follow the new ones at their own pace: relearning them at
-        every change cost the tyrex walks more than it gained.)"""
+        a re-acquisition.  Changes before that sample add up (to first order).  The detectors' local
+        references were learnt from the old fields: a change that moves the calibrated field by more than
+        the strength detector's tolerance (``|D|·F + |e|`` > ``interference.strength.tol_uT``, F the
+        reference strength or 50 µT) leaves them wrong by more than they tolerate — every field of the new
+        calibration would be flagged against them — so they are learnt anew; a smaller change (a refit's
+        refinement) leaves them to follow the new fields at their own pace (relearning them at every change
+        cost the tyrex walks more than it gained)."""
         arrays = []
         for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
                                ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
@@ -227,6 +231,10 @@ class FusionCore:
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
+        f = st["det"]["x"]["f_ref"]
+        moved = np.linalg.norm(d, 2) * (f if np.isfinite(f) else 50.0) + np.linalg.norm(e)
+        if moved > self.settings.interference.strength.tol_uT:
+            forget_learnt(st["det"])
 
     def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:
         """The magnetometer calibration in force is now ``cal`` (the samples the filter takes are calibrated

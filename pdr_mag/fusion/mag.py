@@ -36,7 +36,14 @@ it, within ``mag.interval_s`` of the last update (the errors are correlated in t
 or when ``r² > mag.gate² · S`` with ``S = h P hᵀ`` plus the *undisturbed* part of σ_ψ² (a suspect field gets
 less weight; it cannot widen the gate). While a clean-looking field keeps failing the gate, the heading may be
 what is wrong: ``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the
-bias is not dragged when the gate opens).
+bias is not dragged when the gate opens), and the update that ends such a run takes the bias as a consider
+state: a heading that was wrong from its start (a first fix through a tilt 40° off) and is corrected after
+seconds of rejections would otherwise teach the gyro bias ``Δψ / Δt`` — 15 °/s from a 90° correction after
+5 s, more than any phone's offset — where re-acquisition lets the bias variance grow by that rate at most.
+No heading update (the first fix aside, whose variance carries ``h_t P_tilt h_tᵀ``) while the tilt's
+variance exceeds ``2 · LINEAR_RAD²`` (:mod:`pdr_mag.fusion.accel`: a start in motion whose first sample's
+tilt is that uncertain): the heading row ``h_t`` is linearised about a tilt that may be tens of degrees
+off, and its updates would shrink the heading's variance around a heading off by ``tan I`` times that.
 
 Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
 field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
@@ -76,6 +83,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from pdr_mag.fusion.accel import LINEAR_RAD
 from pdr_mag.fusion.detectors import detect_step, disturbance2, reference_horizontal, restart, tolerance2
 from pdr_mag.fusion.detectors.dip import dip_of
 from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update_h
@@ -147,6 +155,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
             rv = np.pi**2  # a guess from a disturbed field (the module docstring)
         _first_fix(s, h, r, rv, t, p)
         return
+    if P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * LINEAR_RAD**2:
+        return  # a tilt this uncertain makes the linearised heading row meaningless (the module docstring)
     r = wrap(r - s.c)
     # χ² gate with the undisturbed noise
     S = rv_clean
@@ -159,12 +169,14 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
             P[TH_Z, TH_Z] += p.mag.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
         _rejected(s, R, h, r, rv, t, p)
         return
+    after_run = np.isfinite(s.t_reject_start)
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     dx = np.zeros(NX)
     # while the tilt is unsettled (a start in motion), the heading's changes say more about the tilt than
-    # about the gyroscope: the bias is a consider state
-    update_h(s, dx, h, r, rv, True, False, tilt_unsettled(P, p))
+    # about the gyroscope; the first update after a run of rejections corrects a heading found wrong (the
+    # module docstring): in either case the bias is a consider state
+    update_h(s, dx, h, r, rv, True, False, tilt_unsettled(P, p) or after_run)
     inject(s, dx)
     s.t_mag_update = t
     s.mag_used = True
