@@ -244,11 +244,12 @@ def replaces(
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
-    if m is not None and len(m) >= 2 and np.isfinite(rms_old):
-        f = np.linalg.norm(old.apply(m), axis=1)
-        rms_old = max(rms_old, float(np.sqrt(np.mean((f - np.median(f)) ** 2))))
     if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
-        return False
+        if m is None or len(m) < 2:
+            return False
+        f = np.linalg.norm(old.apply(m), axis=1)
+        if new.residual_rms_uT > 1.5 * float(np.sqrt(np.mean((f - np.median(f)) ** 2))) + 0.3:
+            return False
     return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
 
 

@@ -33,6 +33,21 @@ CARRY = np.dtype([("q", np.float64, (4,)), ("accel", np.float64, (3,)), ("gyro",
 
 
 @njit(cache=True, error_model="numpy")
+def repeated(xyz, last_xyz, repeats, out):
+    """``out[k]``: whether ``xyz[k]`` is the same value on all three axes as the sample before it (the
+    first's: ``last_xyz``) for the third time or more in a row, ``repeats`` being how many in a row repeated
+    ``last_xyz`` so far (:meth:`pdr_mag.pipeline.streams.PendingStream.stale`).  Returns the run at the
+    end."""
+    px, py, pz = last_xyz[0], last_xyz[1], last_xyz[2]
+    for k in range(len(xyz)):
+        x, y, z = xyz[k, 0], xyz[k, 1], xyz[k, 2]
+        repeats = repeats + 1 if (x == px and y == py and z == pz) else 0
+        out[k] = repeats >= 2
+        px, py, pz = x, y, z
+    return repeats
+
+
+@njit(cache=True, error_model="numpy")
 def in_order(t, xyz, after):
     """Whether the times are finite and strictly increasing from above ``after`` and every value is finite
     (a push's common case: nothing to drop)."""

@@ -65,14 +65,11 @@ class PendingStream:
         repeats a value now and then (the tyrex phones: single repeats, never two in a row); a logger that
         writes the latest value on its own clock repeats a stalled one many times (the mall traces' gyroscope
         and magnetometer: runs of up to 80 samples, 1.6 s, while the phone turns).  Updates the run."""
-        n = len(xyz)
-        rep = np.all(xyz == np.concatenate((self.last_xyz[None, :], xyz[:-1])), axis=1)
-        idx = np.arange(n)
-        last_new = np.maximum.accumulate(np.where(rep, -1, idx))  # the latest sample that was not a repeat
-        run = np.where(last_new < 0, idx + 1 + self.repeats, idx - last_new)  # repeats in a row up to each
-        self.repeats = int(run[-1])
-        self.last_xyz = xyz[-1].copy()
-        return run >= 2
+        out = np.empty(len(xyz), dtype=np.bool_)
+        xyz = np.ascontiguousarray(xyz, dtype=float)
+        self.repeats = int(PK.repeated(xyz, self.last_xyz, self.repeats, out))
+        self.last_xyz = xyz[-1].astype(float)
+        return out
 
     def pending(self) -> tuple[np.ndarray, np.ndarray]:
         """A copy of the pending samples ``(t, xyz)``."""
