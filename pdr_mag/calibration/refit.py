@@ -85,18 +85,23 @@ def candidates(
             cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
-    first = current is None or (not is_prior(current) and provisional(current, s))
+    first = current is None or provisional(current, s, vague_prior=True)
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
 
 
-def provisional(cal: MagCalibration, s: OnlineSettings) -> bool:
-    """Whether ``cal`` holds only under the first calibration's looser bound: its offset σ above
+def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = False) -> bool:
+    """Whether ``cal`` holds only under the first calibration's looser bound: a fit with its offset σ above
     ``max_offset_std_uT``, what a later refit must reach.  Its strength errors reach that σ and more, so
     it cannot judge samples by the admission band; they enter as before any calibration, and the refit
-    that fits them replaces it."""
+    that fits them replaces it.  A prior (the phone's, a store's) is provisional for the refits' judgement
+    (``vague_prior``) only when it knows less than a first fit would (σ above ``first_offset_std_uT``: a
+    store's entry aged by days), so that a first fit may replace it."""
     std = np.asarray(cal.offset_std_uT, dtype=float)
-    return not np.all(np.isfinite(std)) or float(np.max(std)) > s.max_offset_std_uT
+    sd = float(np.max(std)) if np.all(np.isfinite(std)) else np.inf
+    if is_prior(cal):
+        return vague_prior and sd > max(s.first_offset_std_uT, s.max_offset_std_uT)
+    return sd > s.max_offset_std_uT
 
 
 def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float) -> MagCalibration:
