@@ -14,7 +14,11 @@ that instant, and works with bounded memory:
   (:mod:`pdr_mag.calibration.diversity`) and keeps the schedule of refits and stale tests;
 * a **refit** fits the buffer (the gravity-aided fit of :mod:`pdr_mag.calibration.gravity`, which works from
   yaw turns alone; [Liu2018]'s sphere fit and the core's full fit once the coverage allows) and judges the
-  candidates (:mod:`pdr_mag.calibration.refit`);
+  candidates (:mod:`pdr_mag.calibration.refit`).  A first calibration may be accepted under a looser
+  offset σ than a later one; while it is that uncertain (:func:`pdr_mag.calibration.refit.provisional`) it
+  does not judge which samples enter the buffer, and refits are judged as first ones, so a wrong first fit
+  (a few samples, a start in motion) gives way to the next — as does a prior that knows less than a first
+  fit would;
 * the **stale-calibration test** (:mod:`pdr_mag.calibration.stale`) tells an offset that moved from a passing
   disturbance.  A shift found again ``stale_confirm_s`` later requests a recalibration: the provisional
   offset ``b + M⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
@@ -288,7 +292,7 @@ class OnlineCalibrator:
         buf = self._buf["m"][:n]
         if not recalibrating and not refit.replaces(chosen, self.calibration, self.provided, buf):
             return
-        cal = refit.with_dip(chosen, self._buf["m"][:n], self._buf["u"][:n])
+        cal = refit.with_dip(chosen, buf, self._buf["u"][:n])
         if recalibrating:
             rich = cal.method != "gravity" and bool(self._state[0]["episode_seen"])
             waited = np.isfinite(self._recal_t) and t - self._recal_t > self.settings.recal_fallback_s
