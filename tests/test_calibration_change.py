@@ -9,7 +9,7 @@ from conftest import dataset
 from test_attitude import merge, twist_error_deg
 
 from pdr_mag.estimates import EstimateBatch
-from pdr_mag.fusion import FusionCore
+from pdr_mag.fusion import FusionCore, FusionSettings
 from pdr_mag.sim import simulate
 
 EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}
@@ -92,3 +92,20 @@ def test_the_noted_change_is_the_fields_change_with_soft_iron_too():
     for raw in rng.normal(scale=50.0, size=(5, 3)):
         new, old = m_new @ (raw - b_new), m_old @ (raw - b_old)
         assert np.allclose(st["cal_jump_d"] @ new + st["cal_jump_e"], new - old, rtol=0.0, atol=1e-9)
+
+
+def test_a_change_beyond_the_strength_tolerance_makes_the_detectors_relearn():
+    """The detectors' local references (strength, dip) were learnt from fields of the old calibration: a
+    change that moves the calibrated field by more than the strength detector's tolerance (10 µT) makes
+    them learn anew, a refinement of a few µT leaves them."""
+    w = simulate("walk", seed=11, effects=EFFECTS)
+    kind, t, xyz = merge(w)
+    tol = FusionSettings().interference.strength.tol_uT
+    for shift, relearn in ((0.3 * tol, False), (2.0 * tol, True)):
+        core = FusionCore(field=w.field)
+        core.process(kind, t, xyz)
+        det = core._st[0]["det"]
+        assert np.isfinite(det["strength"]["loc"]) and np.isfinite(det["dip"]["loc"])
+        core.note_calibration_change(np.eye(3), np.zeros(3), np.eye(3), np.array([shift, 0.0, 0.0]))
+        for name in ("strength", "dip"):
+            assert np.isnan(det[name]["loc"]) == relearn
