@@ -33,7 +33,7 @@ from numba import njit
 from pdr_mag import _jit_cache
 from pdr_mag._records import settings_dtype
 from pdr_mag.calibration import diversity
-from pdr_mag.calibration.diversity import buffer_coverage, offer, put, redundant
+from pdr_mag.calibration.diversity import BlockStart, Near, buffer_coverage, offer, put, redundant
 from pdr_mag.calibration.online_settings import OnlineSettings
 
 STATE = np.dtype(
@@ -170,12 +170,13 @@ def scan(blocks, i, resumed, loop, found):
                 st.ring_next += 1
                 st.ring_last_t = ti
             if consistent(m, u, cal0[0]):
-                j = redundant(ti, m, u, buf0, st.n_buf0, old0, st.n_old0, st.hint, cal0[0].sep2, p.cos_up,
-                              p.refresh_s)  # fmt: skip
+                start = BlockStart(buf0, st.n_buf0, old0, st.n_old0)
+                j = redundant(ti, m, u, start, st.hint, Near(cal0[0].sep2, p.cos_up, p.refresh_s))
                 if j >= 0:
                     st.hint = j
                 else:
-                    n, changed = offer(ti, m, u, buf, st.n_buf, p.buffer_size, c.sep2, p.cos_up, p.refresh_s)
+                    near = Near(c.sep2, p.cos_up, p.refresh_s)
+                    n, changed = offer(ti, m, u, buf, st.n_buf, p.buffer_size, near)
                     if changed:
                         st.n_buf = n
                         st.fit_new += 1.0

@@ -27,12 +27,34 @@ refit triggers (``sphere_coverage``, ``ellipsoid_coverage``) are set on it; the 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
 #: A kept magnetometer sample: time, raw field (µT) and up vector, device frame.  Packed (56 bytes), so
 #: ``buf["m"]`` is an (n, 3) view with the row stride of seven floats.
 SAMPLE = np.dtype([("t", np.float64), ("m", np.float64, (3,)), ("u", np.float64, (3,))])
+
+
+class Near(NamedTuple):
+    """When two samples count as one: ``|m_a − m_b|² < sep2`` (raw µT²) and ``u_a · u_b > cos_up``; and the
+    age (s) beyond which a close kept sample may be refreshed."""
+
+    sep2: float
+    cos_up: float
+    refresh_s: float
+
+
+class BlockStart(NamedTuple):
+    """The buffer as it was at the start of the open block: its samples ``buf[:n]``, and the indices
+    ``old[:n_old]`` of those that can grow older than ``refresh_s`` within the block."""
+
+    buf: np.ndarray
+    n: int
+    old: np.ndarray
+    n_old: int
+
 
 #: The 64 directions of :func:`coverage` (golden-angle spiral) and the cosine of its 30° cap.
 N_DIRS = 64
@@ -107,37 +129,38 @@ def buffer_coverage(buf, n, has_centre, centre):
 
 
 @njit(cache=True, error_model="numpy")
-def _close(a, m, u, sep2, cos_up):
-    """Whether the kept sample ``a`` is close to ``(m, u)`` (see the module docstring)."""
+def _close(a, m, u, near):
+    """Whether the kept sample ``a`` is close to ``(m, u)`` (:class:`Near`, the module docstring)."""
     d0 = a.m[0] - m[0]
     d1 = a.m[1] - m[1]
     d2 = a.m[2] - m[2]
-    if not d0 * d0 + d1 * d1 + d2 * d2 < sep2:
+    if not d0 * d0 + d1 * d1 + d2 * d2 < near.sep2:
         return False
-    return a.u[0] * u[0] + a.u[1] * u[1] + a.u[2] * u[2] > cos_up
+    return a.u[0] * u[0] + a.u[1] * u[1] + a.u[2] * u[2] > near.cos_up
 
 
 @njit(cache=True, error_model="numpy")
-def redundant(t, m, u, buf0, n0, old0, n_old, hint, sep2, cos_up, refresh_s):
-    """The index of a block-start sample (``buf0[:n0]``) close to ``(t, m, u)`` when the sample is
-    redundant, else −1 (none close, or a close one older than ``refresh_s``).
+def redundant(t, m, u, start, hint, near):
+    """The index of a block-start sample (:class:`BlockStart` ``start``) close to ``(t, m, u)`` when the
+    sample is redundant, else −1 (none close, or a close one older than ``near.refresh_s``).
 
-    ``old0[:n_old]`` lists the block-start samples that can be that old within the block: they are checked
-    first; then any close sample will do, searched from ``hint`` (where the previous one was found:
-    consecutive samples are usually close to the same one).
+    ``start.old[:start.n_old]`` lists the block-start samples that can be that old within the block: they
+    are checked first; then any close sample will do, searched from ``hint`` (where the previous one was
+    found: consecutive samples are usually close to the same one).
     """
+    buf0, n0 = start.buf, start.n
     if n0 == 0:
         return -1
-    for k in range(n_old):
-        j = old0[k]
-        if not t - buf0[j].t <= refresh_s and _close(buf0[j], m, u, sep2, cos_up):
+    for k in range(start.n_old):
+        j = start.old[k]
+        if not t - buf0[j].t <= near.refresh_s and _close(buf0[j], m, u, near):
             return -1
-    start = hint if hint < n0 else 0
+    first = hint if hint < n0 else 0
     for k in range(n0):
-        j = start + k
+        j = first + k
         if j >= n0:
             j -= n0
-        if _close(buf0[j], m, u, sep2, cos_up):
+        if _close(buf0[j], m, u, near):
             return j
     return -1
 
@@ -156,17 +179,17 @@ def put(buf, j, t, m, u):
 
 
 @njit(cache=True, error_model="numpy")
-def offer(t, m, u, buf, n, size, sep2, cos_up, refresh_s):
+def offer(t, m, u, buf, n, size, near):
     """Offer ``(t, m, u)`` to the buffer of ``n`` samples (room for ``size``); returns ``(n, changed)``."""
     if n:
         j = -1
         tj = np.inf
         for k in range(n):
-            if _close(buf[k], m, u, sep2, cos_up) and buf[k].t < tj:
+            if _close(buf[k], m, u, near) and buf[k].t < tj:
                 tj = buf[k].t
                 j = k
         if j >= 0:
-            if t - tj > refresh_s:
+            if t - tj > near.refresh_s:
                 put(buf, j, t, m, u)
                 return n, True
             return n, False
