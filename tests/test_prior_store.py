@@ -99,6 +99,12 @@ def test_store_keeps_the_part_a_new_save_lacks(tmp_path):
     back = store.load(META, 60.0)
     assert back.calibration is not None and back.calibration.offset == (-57.0, -91.0, -302.0)
     assert back.gyro_bias == (0.02, 0.0, 0.0)
+    # saves that bring only a calibration keep the gyro part as it was stored: one power-up's σ at the load,
+    # not one more per save
+    for t in (120.0, 180.0, 240.0):
+        store.save(META, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), t)
+    again = store.load(META, 240.0)
+    assert again.gyro_bias_std == pytest.approx(math.hypot(1e-3, store.settings.gyro_turn_on_std), rel=1e-12)
 
 
 def test_a_broken_store_file_is_reported_by_name(tmp_path):

@@ -163,6 +163,7 @@ class Projection:
             f = q[0] + q[1] + q[2] - 1.0
             fp = -2.0 * (qd[0] + qd[1] + qd[2])  # < 0 wherever go (some q_k > 0)
             np.divide(f, fp, out=step, where=go)
+            step[~go] = 0.0  # a sample that met a pole stops (its last step would hold off the break)
             t = np.maximum(t - step, 0.5 * (t + lo))
             if np.max(np.abs(step)) < tol * (a2[0] + np.max(np.abs(t))):
                 break

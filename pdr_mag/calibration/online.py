@@ -39,7 +39,7 @@ from pdr_mag.calibration import diversity, refit, stale
 from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
-from pdr_mag.calibration.prior import is_prior
+from pdr_mag.calibration.prior import is_prior, prior_source
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
@@ -91,12 +91,11 @@ class OnlineCalibrator:
         calibration: MagCalibration | None = None,
         strength: float | None = None,
         sin_dip: float | None = None,
-        prior: bool = False,
     ):
         s = self.settings = settings or OnlineSettings()
         self.strength_wmm = None if strength is None else float(strength)
         self.sin_dip_wmm = None if sin_dip is None else float(sin_dip)
-        self.provided = calibration is not None and not prior
+        self.provided = calibration is not None and not is_prior(calibration)
         self._recal_t = np.nan  # when the recalibration was requested
         self._n_refits = 0
         self._last_reject_t = -np.inf  # last calibration_rejected event (at most one per 30 s)
@@ -223,11 +222,8 @@ class OnlineCalibrator:
         estimate mid-recording: ``cal.extra["prior"]`` names the source): it becomes the calibration in
         force when that is still the prior from the same source — not an online fit that replaced it, nor a
         recalibration under way.  Returns whether it did."""
-        cur = self.calibration
-        source = cal.extra.get("prior") if isinstance(cal.extra, dict) else None
-        if cur is None or source is None or self.cal_state == "recalibrating":
-            return False
-        if not isinstance(cur.extra, dict) or cur.extra.get("prior") != source:
+        source = prior_source(cal)
+        if source is None or self.cal_state == "recalibrating" or prior_source(self.calibration) != source:
             return False
         self._use(cal, refit.state_of(cal))
         return True
@@ -319,8 +315,7 @@ class OnlineCalibrator:
         strength = float(np.median(norm))
         margin = 3.0 * _prior_offset_sigma(cal)
         f = self.field_ref
-        dip = float(np.degrees(np.arcsin(np.clip(np.median(-np.einsum("ij,ij->i", mc, self._buf["u"][:n])
-                                                            / np.maximum(norm, 1e-9)), -1.0, 1.0))))
+        dip = float(np.degrees(np.arcsin(np.clip(refit.median_sin_dip(mc, self._buf["u"][:n]), -1.0, 1.0))))
         sd = self.sin_dip_ref
         dip_ok = sd is None or abs(dip - np.degrees(np.arcsin(sd))) <= s.prior_band_dip_deg + np.degrees(
             margin / max(strength, 1.0))
@@ -332,11 +327,10 @@ class OnlineCalibrator:
             plausible = dip_ok and lo * (1 - k) - margin <= strength <= hi * (1 + k) + margin
         if plausible:
             return
-        data = {"source": cal.extra.get("prior"), "offset_uT": [round(float(v), 3) for v in cal.offset],
+        data = {"source": prior_source(cal), "offset_uT": [round(float(v), 3) for v in cal.offset],
                 "median_strength_uT": round(strength, 3), "reference_uT": None if f is None else round(f, 3),
                 "median_dip_deg": round(dip, 2)}
         events.append((t, "prior_refused", data))
-        self.provided = False
         self._use(None, "none")
 
     def _stale_test(self, t: float, events: list) -> None:
@@ -464,12 +458,7 @@ def _to_json(v):
     return state_float(v)
 
 
-def _prior_offset_sigma(cal: MagCalibration | None) -> float:
-    """The largest offset σ of a prior calibration (``extra["prior"]`` set: the phone's, a store's), µT; 0
-    for any other (a fit, a file) or an unknown covariance."""
-    if not is_prior(cal):
-        return 0.0
+def _prior_offset_sigma(cal: MagCalibration) -> float:
+    """The largest offset σ of a prior calibration, µT (0 when its covariance is unknown)."""
     cov = cal.offset_covariance
-    if cov is None or not np.all(np.isfinite(cov)):
-        return 0.0
-    return float(np.sqrt(max(np.max(np.diag(cov)), 0.0)))
+    return 0.0 if cov is None else float(np.sqrt(max(np.max(np.diag(cov)), 0.0)))

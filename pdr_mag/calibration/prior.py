@@ -34,7 +34,7 @@ OS's coarse estimate, and a day-old one does not.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -103,7 +103,6 @@ class DevicePrior:
     gyro_bias_std: float = float("nan")
     source: str = "phone"
     age_s: float = 0.0
-    extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """The prior for a run's summary (JSON)."""
@@ -118,10 +117,18 @@ class DevicePrior:
         }
 
 
+def prior_source(cal: MagCalibration | None) -> str | None:
+    """The source a prior calibration came from (``extra["prior"]``: ``"phone"``, ``"store"``), or None
+    for a fit of this recording's data, a calibration the user gave, or none."""
+    if cal is None or not isinstance(cal.extra, dict):
+        return None
+    return cal.extra.get("prior") or None
+
+
 def is_prior(cal: MagCalibration | None) -> bool:
-    """Whether ``cal`` is a prior (the phone's estimate, a store's entry: ``extra["prior"]`` names its
-    source) rather than a fit of this recording's data or a calibration the user gave."""
-    return cal is not None and isinstance(cal.extra, dict) and bool(cal.extra.get("prior"))
+    """Whether ``cal`` is a prior (the phone's estimate, a store's entry) rather than a fit of this
+    recording's data or a calibration the user gave."""
+    return prior_source(cal) is not None
 
 
 def phone_prior(meta: dict, settings: PriorSettings | None = None) -> DevicePrior | None:

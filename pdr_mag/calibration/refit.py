@@ -98,7 +98,9 @@ def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = Fals
     (``vague_prior``) only when it knows less than a first fit would (σ above ``first_offset_std_uT``: a
     store's entry aged by days), so that a first fit may replace it."""
     std = np.asarray(cal.offset_std_uT, dtype=float)
-    sd = float(np.max(std)) if np.all(np.isfinite(std)) else np.inf
+    if not np.all(np.isfinite(std)):
+        return False  # a calibration given without its σ (a file): as sure as the user says
+    sd = float(np.max(std))
     if is_prior(cal):
         return vague_prior and sd > max(s.first_offset_std_uT, s.max_offset_std_uT)
     return sd > s.max_offset_std_uT
@@ -225,18 +227,17 @@ def judge(
     return cal.with_acceptance(not reasons, reasons)
 
 
-def replaces(
-    new: MagCalibration, old: MagCalibration | None, provided: bool, m: np.ndarray | None = None
-) -> bool:
+def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m: np.ndarray) -> bool:
     """Whether an accepted refit replaces the calibration in force (outside a recalibration).
 
     Never a soft-iron shape by an offset-only fit, nor a calibration given by the user by a gravity or
     sphere fit; not when the residual got worse (``> 1.5 · old + 0.3`` µT: disturbed samples in the
     buffer); not on noise: the offset must move by 2 σ (σ at least 0.2 µT) or its σ shrink by 20 %.  An
-    upgrade to a soft-iron shape passes the last two rules.  ``m`` given (the buffer's raw samples the
-    refit fitted): the old calibration's residual is the larger of its own and the RMS spread of the
-    strength it gives those samples — a calibration fitted on a few samples and wrong by tens of µT
-    explains the buffer worse than the refit that replaces it, whatever its own small residual said.
+    upgrade to a soft-iron shape passes the last two rules.  The old calibration's residual is the larger
+    of its own and the RMS spread of the strength it gives ``m``, the buffer's raw samples the refit
+    fitted — a calibration fitted on a few samples and wrong by tens of µT explains the buffer worse than
+    the refit that replaces it, whatever its own small residual said (the spread is computed only when
+    the old residual alone would refuse the refit).
     """
     if old is None:
         return True
@@ -250,8 +251,6 @@ def replaces(
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
     if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
-        if m is None or len(m) < 2:
-            return False
         f = np.linalg.norm(old.apply(m), axis=1)
         if new.residual_rms_uT > 1.5 * float(np.sqrt(np.mean((f - np.median(f)) ** 2))) + 0.3:
             return False
@@ -263,10 +262,14 @@ def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibratio
     samples it was fitted on (a gravity fit has its own)."""
     if cal.method == "gravity":
         return cal
-    mc = cal.apply(m)
-    nm = np.linalg.norm(mc, axis=1)
-    v = -np.einsum("ij,ij->i", mc, u) / np.maximum(nm, 1e-9)
-    return replace(cal, extra={**cal.extra, "sin_dip": float(np.median(v))})
+    return replace(cal, extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
+
+
+def median_sin_dip(m_cal: np.ndarray, u: np.ndarray) -> float:
+    """The median of ``−m̂_cal · u``: sin of the dip of calibrated fields ``m_cal`` (N, 3) against the up
+    vectors ``u`` (N, 3)."""
+    nm = np.linalg.norm(m_cal, axis=1)
+    return float(np.median(-np.einsum("ij,ij->i", m_cal, u) / np.maximum(nm, 1e-9)))
 
 
 def state_of(cal: MagCalibration) -> str:

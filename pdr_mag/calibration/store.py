@@ -83,6 +83,14 @@ class DeviceStore:
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
         """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
+        stored = self._read(meta)
+        if stored is None:
+            return None
+        prior, t_saved = stored
+        return aged(prior, t_unix - t_saved, self.settings)
+
+    def _read(self, meta: dict) -> tuple[DevicePrior, float] | None:
+        """The entry of this recording's device as saved, and when (None when there is none)."""
         p = self.path(meta)
         if p is None or not p.is_file():
             return None
@@ -106,19 +114,20 @@ class DeviceStore:
             raise ValueError(f"{p}: device store: gyro_bias_rad_s: expected 3 finite numbers and a σ")
         if cal is not None:
             cal = replace(cal, extra={**cal.extra, "prior": "store"})
-        prior = DevicePrior(calibration=cal, gyro_bias=gyro, gyro_bias_std=std, source="store")
-        return aged(prior, t_unix - t_saved, self.settings)
+        return DevicePrior(calibration=cal, gyro_bias=gyro, gyro_bias_std=std, source="store"), t_saved
 
     def save(self, meta: dict, prior: DevicePrior, t_unix: float) -> Path | None:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps
-        the stored one); returns the file, or None when the recording names no device."""
+        the stored one: a calibration aged to ``t_unix``, a gyro bias as it was stored — a power-up's σ is
+        added at each load, not at each save); returns the file, or None when the recording names no
+        device."""
         p = self.path(meta)
         if p is None:
             return None
-        old = self.load(meta, t_unix) if p.is_file() else None
+        stored = self._read(meta)
+        old = None if stored is None else aged(stored[0], t_unix - stored[1], self.settings)
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
-        keep_gyro = prior.gyro_bias is None and old is not None
-        src = old if keep_gyro else prior
+        src = stored[0] if prior.gyro_bias is None and stored is not None else prior
         gyro, std = src.gyro_bias, src.gyro_bias_std
         entry = {
             "format_version": FORMAT_VERSION,

@@ -50,7 +50,7 @@ import numpy as np
 from pdr_mag._json import state_float
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
-from pdr_mag.calibration.prior import DevicePrior, PriorSettings, choose, phone_prior
+from pdr_mag.calibration.prior import DevicePrior, PriorSettings, choose, phone_prior, prior_source
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
@@ -194,7 +194,6 @@ class HeadingPipeline:
             start,
             strength=None if f is None else f.strength,
             sin_dip=None if f is None else float(np.sin(np.radians(f.inclination_deg))),
-            prior=calibration is None and start is not None,
         )
         if p is not None and p.gyro_bias is not None:
             self.fusion.set_gyro_prior(p.gyro_bias, p.gyro_bias_std)
@@ -549,7 +548,7 @@ class HeadingPipeline:
         again next time), nor a provisional one during a recalibration; and the filter's gyro bias with its
         σ (the larger of the three axes').  A part not known is None."""
         cal = self.calibration
-        phone = cal is not None and isinstance(cal.extra, dict) and cal.extra.get("prior") == "phone"
+        phone = prior_source(cal) == "phone"
         if cal is None or phone or self.cal_state in ("none", "recalibrating") or not cal.accepted:
             cal = None
         b, var = self.fusion.gyro_bias()
