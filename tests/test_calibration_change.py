@@ -96,12 +96,13 @@ def test_the_noted_change_is_the_fields_change_with_soft_iron_too():
 
 def test_a_change_beyond_the_strength_tolerance_makes_the_detectors_relearn():
     """The detectors' local references (strength, dip) were learnt from fields of the old calibration: a
-    change that moves the calibrated field by more than the strength detector's tolerance (10 µT) makes
-    them learn anew, a refinement of a few µT leaves them."""
+    change that moves the calibrated field by more than the strength detector's tolerance
+    (``max(tol_uT, tol_rel·F)``) makes them learn anew, a refinement of a few µT leaves them."""
     w = simulate("walk", seed=11, effects=EFFECTS)
     kind, t, xyz = merge(w)
-    tol = FusionSettings().interference.strength.tol_uT
-    for shift, relearn in ((0.3 * tol, False), (2.0 * tol, True)):
+    s = FusionSettings().interference.strength
+    tol = max(s.tol_uT, s.tol_rel * w.field.strength)
+    for shift, relearn in ((0.3 * tol, False), (1.5 * tol, True)):
         core = FusionCore(field=w.field)
         core.process(kind, t, xyz)
         det = core._st[0]["det"]

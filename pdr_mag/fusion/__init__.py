@@ -58,9 +58,13 @@ Modules
 :mod:`~pdr_mag.fusion.detectors`
     the interference detectors (strength, variance, dip, gyro consistency) and their hold-off timer;
 :mod:`~pdr_mag.fusion.state`
-    the state, parameter and output layouts (numpy records with named fields) and their JSON form;
+    the state and parameter layouts (numpy records with named fields) and their JSON form;
+:mod:`~pdr_mag.fusion.rows`, :mod:`~pdr_mag.fusion.kinds`
+    the output rows' columns and the stream kinds, by name;
 :mod:`~pdr_mag.fusion.eskf`
-    quaternion helpers, the scalar Kalman updates and the injection of the error estimate;
+    the scalar Kalman updates and the injection of the error estimate;
+:mod:`~pdr_mag.fusion.quat`, :mod:`~pdr_mag.fusion.ew`
+    quaternion helpers and the exponential-weighting factor (leaf modules the detectors use too);
 :mod:`~pdr_mag.fusion.gyro`, :mod:`~pdr_mag.fusion.accel`, :mod:`~pdr_mag.fusion.mag`
     one sensor each, with its equations in the module docstring;
 :mod:`~pdr_mag.fusion.kernel`

@@ -88,7 +88,7 @@ import numpy as np
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.estimates import EstimateBatch, Event
-from pdr_mag.field import EarthField
+from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.detectors import forget_learnt
 from pdr_mag.fusion.kinds import GYRO, check_kinds
@@ -213,11 +213,11 @@ class FusionCore:
         field the new calibration turns by tens of degrees is then within the gate rather than rejected until
         a re-acquisition.  Changes before that sample add up (to first order).  The detectors' local
         references were learnt from the old fields: a change that moves the calibrated field by more than
-        the strength detector's tolerance (``|D|·F + |e|`` > ``interference.strength.tol_uT``, F the
-        reference strength or 50 µT) leaves them wrong by more than they tolerate — every field of the new
-        calibration would be flagged against them — so they are learnt anew; a smaller change (a refit's
-        refinement) leaves them to follow the new fields at their own pace (relearning them at every change
-        cost the tyrex walks more than it gained)."""
+        the strength detector's tolerance (``|D|·F + |e| > max(tol_uT, tol_rel·F)``, F the reference
+        strength, or the Earth's smallest, 22 µT, without one) leaves them wrong by more than they
+        tolerate — every field of the new calibration would be flagged against them — so they are learnt
+        anew; a smaller change (a refit's refinement) leaves them to follow the new fields at their own pace
+        (relearning them at every change cost the tyrex walks more than it gained)."""
         arrays = []
         for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
                                ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
@@ -231,9 +231,9 @@ class FusionCore:
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
-        f = st["det"]["x"]["f_ref"]
-        moved = np.linalg.norm(d, 2) * (f if np.isfinite(f) else 50.0) + np.linalg.norm(e)
-        if moved > self.settings.interference.strength.tol_uT:
+        f = float(st["f_ref"]) if np.isfinite(st["f_ref"]) else EARTH_STRENGTH_RANGE_UT[0]
+        tol = self.settings.interference.strength
+        if np.linalg.norm(d, 2) * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
             forget_learnt(st["det"])
 
     def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:

@@ -9,7 +9,7 @@ Output rows: one per gyroscope sample once the tilt is known, decimated to a gri
 at the first such sample (a row at the first gyroscope sample at or after each grid time; ``out_dt_s = 0``
 gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√(P + U)[δθ_z, δθ_z])``, whether
 the magnetometer corrected the heading and whether the interference flag was up since the previous row,
-and the diagnostics (:data:`~pdr_mag.fusion.state.DIAG_NAMES`).
+and the diagnostics (:data:`~pdr_mag.fusion.rows.DIAG_NAMES`).
 """
 
 from __future__ import annotations

@@ -37,9 +37,10 @@ or when ``r² > mag.gate² · S`` with ``S = h P hᵀ`` plus the *undisturbed* p
 less weight; it cannot widen the gate). While a clean-looking field keeps failing the gate, the heading may be
 what is wrong: ``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the
 bias is not dragged when the gate opens), and the update that ends such a run takes the bias as a consider
-state: a heading that was wrong from its start (a first fix through a tilt 40° off) and is corrected after
-seconds of rejections would otherwise teach the gyro bias ``Δψ / Δt`` — 15 °/s from a 90° correction after
-5 s, more than any phone's offset — where re-acquisition lets the bias variance grow by that rate at most.
+state, whatever the run's length: a heading that was wrong from its start (a first fix through a tilt 40°
+off) and is corrected after seconds of rejections would otherwise teach the gyro bias ``Δψ / Δt`` (15–18 °/s
+on two tyrex walks started 20 s in, more than any phone's offset), where re-acquisition lets the bias
+variance grow by that rate at most.
 No heading update (the first fix aside, whose variance carries ``h_t P_tilt h_tᵀ``) while the tilt's
 variance exceeds ``2 · LINEAR_RAD²`` (:mod:`pdr_mag.fusion.accel`: a start in motion whose first sample's
 tilt is that uncertain): the heading row ``h_t`` is linearised about a tilt that may be tens of degrees
@@ -118,7 +119,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     flag = detect_step(det, p.interference)
     if flag:
         s.interference_seen = True
-    _flag_share_step(s, flag, f, t, det, p)
+    _flag_share_step(s, flag, t, det, p)
     # --- gates
     if not allowed:
         return
@@ -208,13 +209,8 @@ def _reacquire(s, R, jump, h, rv, t, p):
     """Turn the attitude about up by ``jump`` onto the magnetometer's heading (the module docstring)."""
     dt_ref = t - s.t_mag_update if np.isfinite(s.t_mag_update) else 0.0
     _turn_world_frame(s, jump)
-    P = s.P
-    # the drift the jump implies, ``jump / Δt`` about up (Δt ≥ 10 s: short runs say little about a rate)
-    vb = min((jump / max(dt_ref, 10.0)) ** 2, bias_prior_var(s, p))
     rotation_matrix(s.q, R)
-    for i in range(3):
-        for m in range(3):
-            P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
+    _bias_drift_var(s, R, jump, dt_ref, p)
     _heading_from_field(s.P, h, rv)
     settle_u(s)
     _heading_from_field(s.U, h, 0.0)
@@ -223,6 +219,19 @@ def _reacquire(s, R, jump, h, rv, t, p):
     s.reset_jump += jump
     s.t_mag_update = t
     s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _bias_drift_var(s, R, angle, dt, p):
+    """A heading error ``angle`` (rad) found after ``dt`` (s) implies a gyro drift ``angle / dt`` about up:
+    the bias variance about up (``R`` the rotation matrix, its row 2 up in device coordinates) grows by
+    ``min((angle / max(dt, 10 s))², σ_b0²)`` — short runs say little about a rate, and no drift beyond
+    the bias prior's."""
+    vb = min((angle / max(dt, 10.0)) ** 2, bias_prior_var(s, p))
+    P = s.P
+    for i in range(3):
+        for m in range(3):
+            P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
 
 
 @njit(cache=True, error_model="numpy")
@@ -262,11 +271,7 @@ def _calibration_jump(s, g, mx, my, mz, R, t, p):
             v += g[i] * (D[i, 0] * mx + D[i, 1] * my + D[i, 2] * mz + e[i])
         P = s.P
         P[TH_Z, TH_Z] = min(P[TH_Z, TH_Z] + v * v, np.pi**2)
-        dt = t - s.t_cal_start if np.isfinite(s.t_cal_start) else 0.0
-        vb = min((v / max(dt, 10.0)) ** 2, bias_prior_var(s, p))
-        for i in range(3):
-            for m in range(3):
-                P[BIAS + i, BIAS + m] += vb * R[2, i] * R[2, m]
+        _bias_drift_var(s, R, v, t - s.t_cal_start if np.isfinite(s.t_cal_start) else 0.0, p)
         s.t_cal_start = t
     for i in range(3):
         e[i] = 0.0
@@ -306,7 +311,7 @@ def _ew_seen(mean, w, x, a):
 
 
 @njit(cache=True, error_model="numpy")
-def _flag_share_step(s, flag, f, t, det, p):
+def _flag_share_step(s, flag, t, det, p):
     """The share of flagged samples, EW over ``mag.env_tau_s`` and normalised by the weight of the samples
     seen (so the first seconds give the share of what was seen, not a mean pulled towards the first
     sample), and the disturbance the detectors' tolerance stands for, ``tol_F² + (F tol_I)²`` (they set

@@ -87,7 +87,8 @@ class AccelSettings:
     Attributes
     ----------
     tilt0_std : float
-        Initial tilt standard deviation, rad.
+        Floor of the initial tilt standard deviation, rad (a start at rest; the first sample's own
+        acceleration and rotation add to it, :func:`pdr_mag.fusion.accel.init_tilt`).
     tau_s : float
         Time constant of the average of the specific force in the (almost inertial) world frame, s.  The
         tilt is corrected from that average (the mean linear acceleration of a walking or swinging hand
@@ -149,8 +150,9 @@ class AccelSettings:
     turn_corr_s : float
         Correlation time of that acceleration (the length of a turn), s.
     rate_k : float
-        Per-sample noise added per rad/s of bias-corrected angular rate (centripetal / tangential
-        acceleration).
+        Tilt error per rad/s of angular rate from centripetal / tangential acceleration, rad·s: the
+        per-sample update's noise (``tau_s = 0``, bias-corrected rate) and, in every mode, part of the
+        initial tilt variance (the first sample's raw rate).
     gate : float
         Accelerometer samples (or averages) with ``||a| − g| > gate · g`` are not used.
     gravity : float

@@ -1,12 +1,14 @@
 """Compiled helpers of :class:`pdr_mag.pipeline.HeadingPipeline` (numba, ``cache=True``).
 
-* :func:`in_order` and :func:`take_merged`: a push's check, and the three input streams' pending samples
-  before a time taken and merged in time order;
+* :func:`in_order`, :func:`repeated` and :func:`take_merged`: a push's checks (time order, a stalled
+  sensor's repeated values), and the three input streams' pending samples before a time taken and merged
+  in time order;
 * :func:`filter_input`: the merged samples as the fusion core takes them; :func:`rows_coverage`;
 * :func:`mag_context`: what the online calibrator is given with each magnetometer sample of the merged
   stream — the up vector of the filter's latest output row at or before it (the third row of ``rot_wd``
   from the row's quaternion), or, where the filter has none yet, the direction of the latest accelerometer
-  sample; and the norm of the latest gyroscope sample.
+  sample; and the norm of the latest gyroscope sample; :func:`carry_over` keeps what the next chunk's
+  first samples need of this one.
 
 Loops, because a poll of a second or two is too short for a sequence of numpy calls to pay off.
 """

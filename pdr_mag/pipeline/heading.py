@@ -54,7 +54,7 @@ from pdr_mag.calibration.prior import DevicePrior, PriorSettings, choose, phone_
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
-from pdr_mag.fusion.kinds import KINDS, NAMES
+from pdr_mag.fusion.kinds import KINDS, MAG, NAMES
 from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
@@ -437,7 +437,7 @@ class HeadingPipeline:
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
         data, allowed, n_gyro = PK.filter_input(kind, xyz, self._mag_offset, cal is not None)
         if cal is not None and self._mag_matrix_t is not None:
-            is_mag = kind == 2
+            is_mag = kind == MAG
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
         # the filter over the span, keeping its state before each block
         starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
@@ -480,7 +480,7 @@ class HeadingPipeline:
                 self._t_first = float(t[0])
             self._t_last = float(t[end - 1])
             if self.settings.keep_mag_calibrated and cal is not None:
-                m = kind[:end] == 2
+                m = kind[:end] == MAG
                 self._magcal.append((t[:end][m], data[:end][m]))
         return end
 
