@@ -152,7 +152,7 @@ class SegmentScorer:
                 continue
             est = math.degrees(math.atan2(self.sum_sin[k], self.sum_cos[k]))
             sig = float(np.median(np.concatenate(self._std[k]))) if self._std[k] else math.nan
-            out.append(((est - beta + 180) % 360 - 180, sig))
+            out.append((float(wrap_deg(est - beta)), sig))
         return out
 
 
@@ -218,7 +218,8 @@ class Histogram:
 
 
 def heading_error_deg(q_est: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
-    """Signed heading error, deg: the twist about Up of ``e = q_est ⊗ q_ref⁻¹`` (w-first), in [-180, 180)."""
+    """Signed heading error, deg: the twist about Up of ``e = q_est ⊗ q_ref⁻¹`` (w-first), in [-180, 180);
+    the definition the compiled :func:`_score` computes in one pass (tested against each other)."""
     conj = np.asarray(q_ref, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])
     e = quat_multiply(q_est, conj)
     return wrap_deg(np.degrees(2.0 * np.arctan2(e[:, 3], e[:, 0])))

@@ -12,17 +12,20 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from pdr_mag.conventions import heading_deg_from_quat, quat_multiply, quat_to_rotation
+from pdr_mag.conventions import heading_deg_from_quat, quat_multiply, quat_slerp, quat_to_rotation
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import earth_field_from_meta
 from replay.cli import main
 from replay.formats import open_recording, read_recording
 from replay.heading_scores import (
     BIN_DEG,
+    MAX_REF_GAP_S,
     MISSED_DEG,
     HeadingScores,
     Histogram,
+    ReferenceErrors,
     heading_error_deg,
     pooled,
     score_segments,
@@ -245,6 +248,32 @@ def test_heading_error_is_the_twist_about_up():
     e = (quat_to_rotation(q_est) * quat_to_rotation(q_ref).inv()).as_quat()  # x, y, z, w
     ref = np.degrees(np.mod(2 * np.arctan2(e[:, 2], e[:, 3]) + np.pi, 2 * np.pi) - np.pi)
     np.testing.assert_allclose(heading_error_deg(q_est, q_ref), ref, atol=1e-9)
+
+
+def test_reference_errors_are_the_numpy_twist_of_the_slerped_reference():
+    """The compiled scorer against its definition: |heading_error_deg| of the estimate against the reference
+    slerped at its time (:func:`pdr_mag.conventions.quat_slerp`), over a turning reference whose samples
+    include sign flips (the shorter arc), a gap beyond ``MAX_REF_GAP_S`` (epochs in it not scored) and
+    estimates outside its span (not scored) — the same counts in every bin."""
+    rng = np.random.default_rng(11)
+    tr = np.concatenate([np.arange(0.0, 20.0, 0.02), np.arange(22.0, 40.0, 0.02)])  # a 2-s gap
+    rv = np.cumsum(rng.normal(scale=0.05, size=(len(tr), 3)), axis=0)
+    q_ref = Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]]
+    q_ref[::7] *= -1.0  # the same rotations, the other sign
+    t = np.sort(rng.uniform(-2.0, 42.0, 5000))
+    q_est = Rotation.from_rotvec(rng.normal(scale=1.0, size=(len(t), 3))).as_quat()[:, [3, 0, 1, 2]]
+    ref = ReferenceErrors(tr, q_ref)
+    for k in range(0, len(t), 700):  # slice by slice, as the sink feeds it
+        ref.add(t[k : k + 700], q_est[k : k + 700])
+    inside = (t >= tr[0]) & (t <= tr[-1])
+    i = np.clip(np.searchsorted(tr, t, side="right") - 1, 0, len(tr) - 2)
+    inside &= (tr[i + 1] - tr[i]) <= MAX_REF_GAP_S
+    err = np.abs(heading_error_deg(q_est[inside], quat_slerp(tr, q_ref, t[inside])))
+    want = Histogram()
+    want.add(err)
+    assert 0 < inside.sum() < len(t)
+    np.testing.assert_array_equal(ref.errors.counts, want.counts)
+    assert ref.n_over_45 == int(np.count_nonzero(err > 45.0))
 
 
 def test_the_sink_scores_references_and_the_walked_direction_slice_by_slice():

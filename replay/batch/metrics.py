@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from pdr_mag.sinks import QuietSink
-from replay.heading_scores import BIN_DEG, Histogram
+from replay.heading_scores import Histogram
 
-__all__ = ["BIN_DEG", "FleetMetrics", "Histogram"]
+__all__ = ["FleetMetrics"]
 
 
 class FleetMetrics(QuietSink):

@@ -11,9 +11,10 @@ Android's uncalibrated sensors deliver, with every sample, the offset the OS cur
 piecewise constant: the OS replaces it now and then (when its own calibration converges, or after a
 magnetic disturbance). :class:`OsEstimate` keeps the value in force at the stream's first sample and each
 later change ``[t, x, y, z]`` (``t`` the time of the first sample that carries the new value, on the
-recording's clock) — a few numbers however long the recording. A value that is not a number (text, NaN,
-a missing column) is an odd sample: counted in the recording's ``dropped`` as ``<key>:nan`` (``key`` =
-``mag_os_bias`` or ``gyro_os_bias``), and the estimate in force stays as it was.
+recording's clock) — a few numbers however long the recording. A value that is NaN, infinite or missing
+is an odd sample: counted in the recording's ``dropped`` as ``<key>:nan`` (``key`` = ``mag_os_bias`` or
+``gyro_os_bias``), and the estimate in force stays as it was (the readers drop a row with a cell of text
+before it gets here, as ``<stream>:non_numeric``).
 
 Dates
 -----
