@@ -82,7 +82,7 @@ def merged(res, mag_cal):
 
 def errors(t, q_est, truth):
     """(heading error, tilt error) in degrees at times t; heading error signed (twist about up)."""
-    from pdr_mag.sim.sensor_model import quat_slerp
+    from pdr_mag.conventions import quat_slerp
 
     tt, qt = truth
     q_true = quat_slerp(tt, qt, t)
@@ -142,7 +142,7 @@ def run_peer(name, res, cal, remove_bias):
 
 def run_compass(res, cal):
     """Heading of a perfect-tilt compass from each calibrated magnetometer sample (truth tilt)."""
-    from pdr_mag.sim.sensor_model import quat_slerp
+    from pdr_mag.conventions import quat_slerp
 
     tm, m = res.mag
     mc = cal.apply(m)

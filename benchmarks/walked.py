@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, SHARED, write_section  # noqa: E402
+from _common import SHARED, write_section  # noqa: E402
 
 from pdr_mag.calibration.prior import PriorSettings  # noqa: E402
 from pdr_mag.calibration.store import DeviceStore  # noqa: E402
@@ -133,6 +133,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    if str(ROOT) not in sys.path:
-        sys.path.insert(0, str(ROOT))
     main()

@@ -422,7 +422,7 @@ def test_unflagged_field_rotation_at_the_start_does_not_become_gyro_bias(walk):
     test_raw_gyro_offset_is_estimated).  Measured: |δb| 2.0 / 4.3 °/s for (A, T) = (20°, 4 s) / (30°, 6 s)."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sim.sensor_model import quat_slerp
+    from pdr_mag.conventions import quat_slerp
 
     tm, m = walk.mag
     tt, qt = walk.truth
@@ -453,7 +453,7 @@ def test_tilt_waits_for_the_gyroscope():
     first accelerometer sample it is 10–22° off on these seeds."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sim.sensor_model import quat_slerp
+    from pdr_mag.conventions import quat_slerp
 
     for seed in (1, 2, 3):
         res = simulate("figure8", seed=seed, effects={"hard_iron": None, "soft_iron": None}, duration_s=20)
@@ -479,7 +479,7 @@ def test_a_tilt_started_upside_down_is_reset_not_learnt_as_bias(scenario):
     linearised updates alone take much longer on a still phone and a running one (> 15° from 4 to 10 s)."""
     from scipy.spatial.transform import Rotation
 
-    from pdr_mag.sim.sensor_model import quat_slerp
+    from pdr_mag.conventions import quat_slerp
 
     bias = np.array([0.02, -0.03, 0.07])
     res = simulate(scenario, seed=3, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": tuple(bias)})
@@ -518,8 +518,8 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     re-acquisition it is still tens of degrees off at that time."""
     from scipy.spatial.transform import Rotation
 
+    from pdr_mag.conventions import quat_slerp
     from pdr_mag.fusion import heading_reset_events
-    from pdr_mag.sim.sensor_model import quat_slerp
 
     tm, m = walk.mag
     tt, qt = walk.truth

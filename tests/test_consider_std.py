@@ -9,10 +9,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_attitude import merge, twist_error_deg
 
+from pdr_mag.conventions import quat_slerp
 from pdr_mag.fusion import FusionCore
 from pdr_mag.fusion.settings import FusionSettings, UncertaintySettings
 from pdr_mag.sim import simulate
-from pdr_mag.sim.sensor_model import quat_slerp
 
 #: calibrated magnetometer, raw gyro offsets like a real phone
 EFFECTS = {"hard_iron": None, "soft_iron": None, "gyro_bias": (0.02, -0.03, 0.07)}

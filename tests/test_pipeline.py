@@ -283,8 +283,8 @@ def test_heading_reset_is_an_event_of_the_pipeline():
     one ``heading_reset`` with the jump."""
     from scipy.spatial.transform import Rotation
 
+    from pdr_mag.conventions import quat_slerp
     from pdr_mag.sim import simulate
-    from pdr_mag.sim.sensor_model import quat_slerp
 
     w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None})
     tm, m = w.mag

@@ -21,7 +21,7 @@ from pdr_mag.modelcheck.fit import (
     sample_matrices,
     with_track,
 )
-from pdr_mag.modelcheck.null import stride_for, subsample
+from pdr_mag.modelcheck.null import above_white, stride_for, subsample
 from pdr_mag.modelcheck.orientation import OrientationSettings, estimate_orientation
 
 
@@ -136,9 +136,6 @@ def accelerometer_bias(tilt, gap_now: float, raw_gap, white: float, min_gap_redu
     if not tilt.significant:
         return AccelerometerBias(b, tilt.t2, tilt.threshold)
     g_raw = float(raw_gap())
-
-    def excess(g: float) -> float:
-        return float(np.sqrt(max(g * g - white * white, 0.0)))
-
-    named = np.linalg.norm(b) >= smallest or excess(gap_now) <= (1.0 - min_gap_reduction) * excess(g_raw)
+    shrinks = above_white(gap_now, white) <= (1.0 - min_gap_reduction) * above_white(g_raw, white)
+    named = np.linalg.norm(b) >= smallest or shrinks
     return AccelerometerBias(b, tilt.t2, tilt.threshold, bool(named), g_raw, float(gap_now))

@@ -61,6 +61,7 @@ from pdr_mag.modelcheck.fit import (
     measurement_times,
     sample_matrices,
 )
+from pdr_mag.modelcheck.null import above_white
 
 #: The smallest size of each effect worth naming (the weak strengths of ``benchmarks/diagnose.py``'s
 #: suites, which the search names on a calibration + walk recording): time_offset 15 ms, a misalignment of
@@ -304,7 +305,7 @@ def _reveal(effect: str, motion: dict) -> str:
 def _why_text(d: Direction, effect: str, motion: dict) -> str:
     size = _SIZE_TEXT[effect]
     if d.why == "masked":
-        excess = np.sqrt(max(motion["gap_uT"] ** 2 - motion["white_noise_uT"] ** 2, 0.0))
+        excess = above_white(motion["gap_uT"], motion["white_noise_uT"])
         return (f"at {size} it leaves a trace of {d.trace_uT:.3f} µT rms beyond what the rest of the model "
                 f"takes, too little against the residual left unexplained ({excess:.3f} µT above a white "
                 f"noise of {motion['white_noise_uT']} µT)")

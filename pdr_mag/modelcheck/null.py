@@ -126,6 +126,11 @@ def _perpendicular_basis(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(u, e1)
 
 
+def above_white(g: float, white: float) -> float:
+    """The part of a gap ``g`` above the white noise ``white`` (rms, µT): ``√(g² − σ_w²)``, ≥ 0."""
+    return float(np.sqrt(max(g * g - white * white, 0.0)))
+
+
 def robust_sigma(x: np.ndarray) -> float:
     """White-noise σ of a series from its first differences (median absolute deviation), robust to any
     slow part."""

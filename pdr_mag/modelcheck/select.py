@@ -56,6 +56,7 @@ from pdr_mag.modelcheck.gyro import accelerometer_bias, heading_drift_start, rep
 from pdr_mag.modelcheck.identify import SMALLEST, identifiability
 from pdr_mag.modelcheck.null import (
     NullSettings,
+    above_white,
     null_threshold,
     robust_sigma,
     stride_for,
@@ -330,11 +331,6 @@ def _fit(problem: Problem, effects, current: FitResult, settings: DiagnoseSettin
     return best
 
 
-def _above_white(g: float, white: float) -> float:
-    """The part of a gap ``g`` above the white noise ``white`` (rms, µT): ``√(g² − σ_w²)``, ≥ 0."""
-    return float(np.sqrt(max(g * g - white * white, 0.0)))
-
-
 def _score(current: FitResult, cand: FitResult, n_eff: float) -> float:
     return float(n_eff * np.log(current.rss / max(cand.rss, 1e-300)) - (cand.k - current.k) * np.log(n_eff))
 
@@ -547,7 +543,7 @@ def diagnose(
     for rnd in range(settings.max_rounds):
         tried = []
         cur_gap = gap(cur_problem, current)
-        cur_excess = _above_white(cur_gap, white)
+        cur_excess = above_white(cur_gap, white)
         for eff in candidates:
             if eff in added or (eff in _LOCAL and any(a in _LOCAL for a in added)):
                 continue
@@ -557,7 +553,7 @@ def diagnose(
             p, f = fitted
             g = gap(p, f)
             s = _score(current, f, n_eff)
-            shrinks = _above_white(g, white) < (1.0 - settings.min_gap_reduction) * cur_excess
+            shrinks = above_white(g, white) < (1.0 - settings.min_gap_reduction) * cur_excess
             rules = bool(s > settings.score_threshold and shrinks)
             tried.append((eff, g, s, estimates(p, f, [eff]).get(eff, {}), rules, f, p))
         winner: str | None = None
