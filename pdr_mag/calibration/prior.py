@@ -131,6 +131,28 @@ def is_prior(cal: MagCalibration | None) -> bool:
     return prior_source(cal) is not None
 
 
+def phone_calibration(offset, offset_std_uT) -> MagCalibration:
+    """The phone's hard-iron estimate ``offset`` (µT) as a prior calibration with ``offset_std_uT``."""
+    return MagCalibration.from_arrays(offset, method="phone", offset_std_uT=offset_std_uT,
+                                      extra={"prior": "phone"})  # fmt: skip
+
+
+def phone_changes(meta: dict) -> list[tuple[float, tuple]]:
+    """The phone's later hard-iron estimates stated by the metadata (``mag_os_bias_changes``: ``[[t, x, y,
+    z], …]``), in time order; ``ValueError`` naming the key when malformed."""
+    rows = meta.get("mag_os_bias_changes") or []
+    out = []
+    try:
+        for r in rows:
+            t, x, y, z = (float(v) for v in r)
+            if not all(map(math.isfinite, (t, x, y, z))):
+                raise ValueError(r)
+            out.append((t, (x, y, z)))
+    except (TypeError, ValueError):
+        raise ValueError(f"meta: mag_os_bias_changes: expected [[t, x, y, z], …], got {rows!r}") from None
+    return sorted(out)
+
+
 def phone_prior(meta: dict, settings: PriorSettings | None = None) -> DevicePrior | None:
     """The phone's own calibration as the recording's ``meta`` states it (None when it states none).
 
@@ -146,8 +168,7 @@ def phone_prior(meta: dict, settings: PriorSettings | None = None) -> DevicePrio
         bias = np.zeros(3)
     if bias is not None:
         sd = s.phone_offset_std_uT
-        cal = MagCalibration.from_arrays(bias, method="phone", offset_std_uT=(sd, sd, sd),
-                                         extra={"prior": "phone"})  # fmt: skip
+        cal = phone_calibration(bias, (sd, sd, sd))
     gyro = _vector(meta, "gyro_os_bias_rad_s")
     if gyro is None and meta.get("gyro_os_calibrated") is True:
         gyro = np.zeros(3)

@@ -50,7 +50,15 @@ import numpy as np
 from pdr_mag._json import state_float
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
-from pdr_mag.calibration.prior import DevicePrior, PriorSettings, choose, phone_prior, prior_source
+from pdr_mag.calibration.prior import (
+    DevicePrior,
+    PriorSettings,
+    choose,
+    phone_calibration,
+    phone_changes,
+    phone_prior,
+    prior_source,
+)
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
@@ -200,7 +208,7 @@ class HeadingPipeline:
         # the phone's later hard-iron estimates, while its first is the calibration in force: (t, offset)
         self._phone_changes: list[tuple[float, tuple]] = []
         if start is not None and start is (phone.calibration if phone is not None else None):
-            self._phone_changes = _phone_changes(self.meta)
+            self._phone_changes = phone_changes(self.meta)
         self.dropped: Counter = Counter()
         self._streams = {k: PendingStream() for k in KINDS}
         self._done_t = -np.inf  # every sample before this time has been processed
@@ -380,7 +388,7 @@ class HeadingPipeline:
         ``phone_calibration_changed`` event says which."""
         old = self.online.calibration
         std = old.offset_std_uT if old is not None else None
-        cal = MagCalibration.from_arrays(offset, method="phone", offset_std_uT=std, extra={"prior": "phone"})
+        cal = phone_calibration(offset, std)
         used = self.online.renew_prior(cal)
         if used:
             self._calibrations.append((t_use, cal))
@@ -656,19 +664,3 @@ def _kind_name(kind) -> str:
         return NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
-
-
-def _phone_changes(meta: dict) -> list[tuple[float, tuple]]:
-    """The phone's later hard-iron estimates stated by the metadata (``mag_os_bias_changes``: ``[[t, x, y,
-    z], …]``), in time order; ``ValueError`` naming the key when malformed."""
-    rows = meta.get("mag_os_bias_changes") or []
-    out = []
-    try:
-        for r in rows:
-            t, x, y, z = (float(v) for v in r)
-            if not all(map(math.isfinite, (t, x, y, z))):
-                raise ValueError(r)
-            out.append((t, (x, y, z)))
-    except (TypeError, ValueError):
-        raise ValueError(f"meta: mag_os_bias_changes: expected [[t, x, y, z], …], got {rows!r}") from None
-    return sorted(out)

@@ -28,7 +28,7 @@ the whole file: a first pass finds them (and the fixes and the header), the seco
 first one also sets ``latitude_deg``/``longitude_deg``. The ``AHRS`` rotation vectors become
 ``references["os"]`` (:mod:`replay.formats._attitude`; the angles are not read: the app's versions differ in
 their yaw's sign), on the app clock by the streams' shift when their sensor clock is the same (within
-0.5 s), else by their own; odd rows are counted as ``os:<reason>``. The ``% Model:`` and
+0.5 s), else by their own; a row too short or not numeric is counted as ``os:nan``. The ``% Model:`` and
 ``% Manufacturer:`` header lines give ``meta["device"]``.
 
 What the phone states about itself (:mod:`replay.formats._phone`): ``MAGN`` and ``GYRO`` are Android's

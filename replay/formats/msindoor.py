@@ -32,8 +32,8 @@ header are counted as ``<stream>:saturated``. A line of a type read here with mo
 is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``waypoint:…``); one with
 fewer than the x, y, z (x, y) it needs is a truncated file. The phone's own fusion
 (``TYPE_ROTATION_VECTOR``) becomes ``references["os"]`` (:mod:`replay.formats._attitude`: in the pipeline's
-north, i.e. turned by the WMM declination when the map gives the position; odd rows counted as
-``os:<reason>``). Other line types (Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole
+north, i.e. turned by the WMM declination when the map gives the position; a row too short or not numeric
+counted as ``os:nan``). Other line types (Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole
 file (and the header's ``endTime``, the waypoints and the OS's estimates are spread over it): a first pass
 reads it without keeping samples (but the waypoints, the rotation vectors and the estimates' changes), the
 second streams the chosen types.
