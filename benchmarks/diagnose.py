@@ -29,7 +29,7 @@ reader does not expose it yet), which enables the ``temperature_offset`` candida
     python benchmarks/diagnose.py [--json OUT] [--only SUBSTRING] [--no-truth] [--all-tyrex]
     python benchmarks/diagnose.py --synthetic                                  # one recording per effect
 
-Prints Markdown tables (those in benchmarks/RESULTS.md, section "Diagnose (issue 6)").
+Prints Markdown tables (those in benchmarks/RESULTS.md, section "Diagnose (issues 6, 11, 21)").
 """
 
 from __future__ import annotations
