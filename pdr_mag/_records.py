@@ -101,13 +101,13 @@ def copy_record(rec: np.ndarray) -> np.ndarray:
     return out
 
 
-def check_numbers(settings, positive: tuple = (), skip: tuple = ()) -> None:
+def check_numbers(settings, positive: tuple = ()) -> None:
     """``ValueError`` naming the first number field of ``settings`` that is not finite and ≥ 0, or, for the
-    names in ``positive``, not > 0 (nested settings and the names in ``skip`` are not looked at)."""
+    names in ``positive``, not > 0 (nested settings are not looked at)."""
     where = type(settings).__name__
     for f in fields(settings):
         v = getattr(settings, f.name)
-        if f.name in skip or is_dataclass(v):
+        if is_dataclass(v):
             continue
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             raise ValueError(f"{where}.{f.name}: expected a non-negative finite number, got {v!r}")

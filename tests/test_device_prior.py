@@ -106,6 +106,22 @@ def test_a_phone_estimate_changed_mid_recording_replaces_the_first_while_it_is_i
     out.append(stream.flush())
     got = np.concatenate([b.heading_deg for b in out])
     np.testing.assert_array_equal(got, rows.heading_deg)
+    # and a live backend telling the pipeline of the change when it happens (push_phone_calibration)
+    live_meta = {k: v for k, v in meta.items() if k != "mag_os_bias_changes"}
+    live = HeadingPipeline(settings=settings, meta=live_meta)
+    out = []
+    for k in range(int(walk.duration_s) + 1):
+        if k == 20:  # before the samples it comes with
+            live.push_phone_calibration(20.2, HARD_IRON)
+        for name in ("accel", "gyro", "mag"):
+            t, x = getattr(walk, name)
+            m = (t >= k) & (t < k + 1)
+            live.push_arrays(name, t[m], x[m])
+        out.append(live.poll())
+    out.append(live.flush())
+    np.testing.assert_array_equal(np.concatenate([b.heading_deg for b in out]), rows.heading_deg)
+    with pytest.raises(ValueError, match="phone calibration"):
+        live.push_phone_calibration(30.0, [1.0, np.nan, 0.0])
 
 
 def test_a_stalled_sensors_repeated_samples_are_dropped_and_counted(walk):

@@ -41,11 +41,12 @@ before the flag rises shows as a positive latency with a large ``error_at_flag_d
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
 
+from pdr_mag._records import check_numbers
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.episodes import _kernel as K
 from pdr_mag.estimates import Event
@@ -96,9 +97,7 @@ class EpisodeSettings:
     max_truth_gap_s: float = 0.5
 
     def __post_init__(self):
-        for name, value in asdict(self).items():
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name}: expected a finite value ≥ 0, got {value!r}")
+        check_numbers(self)
         if self.error_onset_deg > self.error_deg:
             raise ValueError(
                 f"error_onset_deg: expected ≤ error_deg ({self.error_deg}), got {self.error_onset_deg}"
