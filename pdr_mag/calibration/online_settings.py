@@ -109,6 +109,15 @@ class OnlineSettings:
         samples: their median holds with four of them disturbed, and a store's entry of another phone
         (70–90 µT off) is refused one or two refits sooner than with twenty (the mall traces: up to 22 s
         of a wrong prior in force), while none of the phone's own estimates there is refused.
+    consensus_window, consensus_min_inliers : int
+        The consensus fit (:mod:`.consensus`), tried when no fit of the whole buffer is accepted: the
+        hypotheses come from windows of this many consecutive samples (ten: 2–5 s of a walk, enough yaw for
+        the gravity-aided fit, short enough to lie between two disturbances), and a result needs this many
+        inliers (a window and a half: one window's own samples do not make a consensus).
+    consensus_strength_frac, consensus_dip_deg : float
+        A sample agrees with a hypothesis when the field it gives is within this share of F (the largest
+        residual RMS a fit may have, ``max_rms_frac``) and this angle of the reference dip (twice the
+        admission band ``add_dip_tol_deg``: the tilt of a walking phone is known to a few degrees).
     """
 
     buffer_size: int = 400
@@ -146,3 +155,7 @@ class OnlineSettings:
     prior_band_frac: float = 0.4
     prior_band_dip_deg: float = 25.0
     prior_min_samples: int = 10
+    consensus_window: int = 10
+    consensus_min_inliers: int = 15
+    consensus_strength_frac: float = 0.08
+    consensus_dip_deg: float = 8.0

@@ -5,6 +5,9 @@ Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vect
 * the gravity-aided fit (:mod:`pdr_mag.calibration.gravity`), always: it needs yaw turns only.  It keeps the
   shape of the calibration in force (:func:`gravity_fit_keeping_shape`): a magnet or a case moves the hard
   iron, not the sensor's scale and axes;
+* when no fit of the whole buffer is accepted and the references F and I are known, the consensus fit of
+  :mod:`pdr_mag.calibration.consensus`: the gravity-aided fit of the samples that agree with the best
+  time window's offset (a start next to steel leaves a buffer mostly of disturbed samples);
 * [Liu2018]'s linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
   the buffer's direction coverage about the gravity fit's offset reaches ``sphere_coverage``;
 * the calibration core's full fit (:func:`pdr_mag.calibration.select.calibrate`: model by BIC, geometric
@@ -25,6 +28,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from pdr_mag.calibration.consensus import consensus_offset, with_consensus
 from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.coverage import coverage as core_coverage
@@ -87,7 +91,19 @@ def candidates(
             pass
     first = current is None or provisional(current, s, vague_prior=True)
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
-    return [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+    judged = [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+    if not any(c.accepted for c in judged) and times is not None and field_ref is not None \
+            and sin_dip_ref is not None:  # fmt: skip
+        found = consensus_offset(m, u, times, current, field_ref, sin_dip_ref, s)
+        if found is not None:
+            mask, best_n = found
+            try:
+                g = gravity_fit_keeping_shape(m[mask], u[mask], current, field_ref, sin_dip_ref, s)
+            except ValueError:
+                return judged
+            g = with_consensus(with_correlated_errors(g, times[mask], s.field_corr_s), mask, best_n)
+            judged.append(judge(g, s, field_ref, first, coverage=cov))
+    return judged
 
 
 def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = False) -> bool:
