@@ -5,7 +5,8 @@ Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vect
 * the gravity-aided fit (:mod:`pdr_mag.calibration.gravity`), always: it needs yaw turns only.  It keeps the
   shape of the calibration in force (:func:`gravity_fit_keeping_shape`): a magnet or a case moves the hard
   iron, not the sensor's scale and axes;
-* when no fit of the whole buffer is accepted and the references F and I are known, the consensus fit of
+* when no fit of the whole buffer is accepted, the references F and I are known and nothing better than a
+  first fit is in force (:func:`_consensus_wanted`), the consensus fit of
   :mod:`pdr_mag.calibration.consensus`: the gravity-aided fit of the samples that agree with the best
   time window's offset (a start next to steel leaves a buffer mostly of disturbed samples);
 * [Liu2018]'s linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
@@ -92,8 +93,7 @@ def candidates(
     first = current is None or provisional(current, s, vague_prior=True)
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     judged = [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
-    if not any(c.accepted for c in judged) and times is not None and field_ref is not None \
-            and sin_dip_ref is not None:  # fmt: skip
+    if _consensus_wanted(judged, current, field_ref, sin_dip_ref, times, s):
         found = consensus_offset(m, u, times, current, field_ref, sin_dip_ref, s)
         if found is not None:
             mask, best_n = found
@@ -104,6 +104,16 @@ def candidates(
             g = with_consensus(with_correlated_errors(g, times[mask], s.field_corr_s), mask, best_n)
             judged.append(judge(g, s, field_ref, first, coverage=cov))
     return judged
+
+
+def _consensus_wanted(judged, current, field_ref, sin_dip_ref, times, s: OnlineSettings) -> bool:
+    """Whether to try the consensus fit: the references are known, no fit of the whole buffer is accepted,
+    and nothing better than a first fit is in force — neither a calibration that judges the samples
+    entering the buffer (its buffer is clean) nor a prior (the phone's, a store's: a consensus of a few
+    seconds must not outvote it; the prior check refuses a wrong one)."""
+    if times is None or field_ref is None or sin_dip_ref is None or any(c.accepted for c in judged):
+        return False
+    return current is None or (not is_prior(current) and provisional(current, s))
 
 
 def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = False) -> bool:
