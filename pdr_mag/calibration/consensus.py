@@ -10,17 +10,21 @@ calibrated for the whole walk.
 The disturbance has structure the fit can use: it is spatial, so the samples it touches come in runs of
 consecutive times, and a run of clean samples obeys the gravity-aided model of
 :mod:`pdr_mag.calibration.gravity` with the reference strength ``F`` and dip ``I`` — the field model's, or
-the calibration's.  The search (random sample consensus over time windows instead of random samples):
+the calibration's.  The search (random sample consensus, Fischler & Bolles 1981, with hypotheses that use the
+runs):
 
-1. sort the buffer by time; every window of ``consensus_window`` consecutive samples (half-overlapping)
-   gives a hypothesis ``b_k`` by the gravity-aided fit (strength and dip equations, F and F sin I with
-   their priors) — a window that turns (yaw) fixes ``b`` alone;
+1. hypotheses ``b_k``: every window of ``consensus_window`` consecutive samples in time (half-overlapping)
+   fitted by the gravity-aided fit (strength and dip equations, F and F sin I with their priors) — a
+   window that turns (yaw) fixes ``b`` alone; and ``consensus_pairs`` pairs of samples solved exactly
+   (:func:`pair_hypotheses`), half of them neighbours in time — clean gaps between disturbances too short
+   to turn in still give pairs;
 2. a sample is an inlier of ``b`` when its calibrated field ``y_i = M(m_i − b)`` has the reference strength
    and dip: ``| |y_i| − F | ≤ consensus_strength_frac · F`` and ``|dip_i − I| ≤ consensus_dip_deg``
    (``dip_i = asin(−y_i·u_i / |y_i|)``) — two conditions a disturbed field meets by chance only, where
    the clean samples of every time meet both;
-3. the hypothesis with the most inliers is refitted on its inliers, the inliers found again about the
-   refit, and refitted once more; fewer than ``consensus_min_inliers`` inliers: no result.
+3. the hypothesis of the lowest truncated cost (:func:`score`: MSAC, Torr & Zisserman 2000) is refitted on its
+   inliers, the inliers found again about the refit, and refitted once more; fewer than
+   ``consensus_min_inliers`` inliers: no result.
 
 The result is an ordinary gravity-aided calibration (``method="gravity"``; its covariance from the inliers
 alone, scaled for their errors' correlation in time, :func:`pdr_mag.calibration.refit.with_correlated_errors`)
@@ -40,18 +44,80 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 
 
+def misfit(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
+           s: OnlineSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The strength and dip misfits of the field ``y − c`` (shaped samples ``y = M m``, centre ``c = M b``)
+    in units of the consensus tolerances: ``(|y − c| − F) / (consensus_strength_frac · F)`` and
+    ``(dip − I) / consensus_dip_deg``.  Broadcasts: ``y``, ``u`` (1, N, 3) and ``c`` (P, 1, 3) give
+    (P, N) arrays for P hypotheses."""
+    x = y - c
+    n = np.linalg.norm(x, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sin_dip = -np.sum(x * u, axis=-1) / n
+    dip = np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0)))
+    return (n - strength) / (s.consensus_strength_frac * strength), (dip - dip_deg) / s.consensus_dip_deg
+
+
 def inliers(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
             s: OnlineSettings) -> np.ndarray:
-    """Samples whose field ``y − c`` (shaped samples ``y = M m``, centre ``c = M b``) has the reference
-    strength and dip within the consensus tolerances (step 2 of the module docstring)."""
-    x = y - c
-    n = np.linalg.norm(x, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sin_dip = -np.einsum("ij,ij->i", x, u) / n
-    dip = np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0)))
-    return (np.abs(n - strength) <= s.consensus_strength_frac * strength) & (
-        np.abs(dip - dip_deg) <= s.consensus_dip_deg
-    )
+    """Samples whose field has the reference strength and dip within the consensus tolerances (step 2 of
+    the module docstring; shapes as :func:`misfit`)."""
+    ds, dd = misfit(y, u, c, strength, dip_deg, s)
+    return (np.abs(ds) <= 1.0) & (np.abs(dd) <= 1.0)
+
+
+def score(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
+          s: OnlineSettings) -> np.ndarray:
+    """The truncated cost of each hypothesis (lower is better): ``Σ min(e_i, 2)`` with
+    ``e_i = misfit_s² + misfit_d²`` — an outlier costs 2, an inlier less the better it fits, so of two
+    hypotheses with as many inliers the one that fits them better wins (MSAC rather than a count)."""
+    ds, dd = misfit(y, u, c, strength, dip_deg, s)
+    e = ds**2 + dd**2
+    out = (np.abs(ds) > 1.0) | (np.abs(dd) > 1.0) | ~np.isfinite(e)
+    return np.sum(np.where(out, 2.0, np.minimum(e, 2.0)), axis=-1)
+
+
+def pair_hypotheses(y: np.ndarray, u: np.ndarray, order: np.ndarray, strength: float, f_sin_dip: float,
+                    s: OnlineSettings) -> np.ndarray:
+    """Offsets ``c`` from random pairs of samples (``order``: the samples' indices in time order; a fixed
+    seed: the same buffer gives the same pairs).
+
+    With F and ``F sin I`` given, each sample gives two equations linear in ``(c, k = |c|²)`` ([Liu2018]
+    eq. 7's form and the dip equation of :mod:`pdr_mag.calibration.gravity`)::
+
+        2 y_i·c − k = |y_i|² − F²        u_i·c = y_i·u_i + F sin I
+
+    so two samples fix ``c`` (4 equations, 4 unknowns; ``k`` is not tied to ``c`` here, the refit on the
+    inliers ties it).  Pairs whose 4×4 system is near-singular (the same direction twice) are dropped.
+    Returns ``(P, 3)``.
+    """
+    n = len(y)
+    p = int(s.consensus_pairs)
+    if n < 2 or p <= 0:
+        return np.empty((0, 3))
+    rng = np.random.default_rng(n)
+    # half the pairs anywhere in the buffer, half a sample and one of the next eight in time (a disturbance
+    # comes in runs, so neighbours are clean together far more often than two samples drawn at random)
+    i = rng.integers(0, n, p)
+    j = (i + rng.integers(1, n, p)) % n  # j ≠ i
+    near = np.arange(p) % 2 == 1
+    pos = rng.integers(0, n - 1, int(near.sum()))
+    i[near] = order[pos]
+    j[near] = order[np.minimum(pos + rng.integers(1, 9, len(pos)), n - 1)]
+    rows = []
+    rhs = []
+    for a in (i, j):
+        norm = np.linalg.norm(2.0 * y[a], axis=1, keepdims=True)  # rows scaled to unit size
+        rows += [np.hstack([2.0 * y[a], -np.ones((p, 1))]) / norm, np.hstack([u[a], np.zeros((p, 1))])]
+        rhs += [(np.einsum("ij,ij->i", y[a], y[a]) - strength**2) / norm[:, 0],
+                np.einsum("ij,ij->i", y[a], u[a]) + f_sin_dip]  # fmt: skip
+    a_mat = np.stack(rows, axis=1)
+    b_vec = np.stack(rhs, axis=1)
+    ok = np.abs(np.linalg.det(a_mat)) > 1e-6
+    if not np.any(ok):
+        return np.empty((0, 3))
+    sol = np.linalg.solve(a_mat[ok], b_vec[ok][..., None])[..., 0]
+    return sol[np.all(np.isfinite(sol), axis=1), :3]
 
 
 def consensus_offset(
@@ -83,16 +149,20 @@ def consensus_offset(
                       s.prior_dip_std_deg)  # fmt: skip
     dip_deg = float(np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0))))
     order = np.argsort(times, kind="stable")
-    best_n, best_c = 0, None
+    hyp = []
     for a in range(0, len(m) - k + 1, max(k // 2, 1)):
         w = order[a : a + k]
         fit = fit_offset(y[w], uu[w], model)
-        if not fit.ok or not np.all(np.isfinite(fit.offset)):
-            continue
-        n_in = int(np.count_nonzero(inliers(y, uu, fit.offset, strength, dip_deg, s)))
-        if n_in > best_n:
-            best_n, best_c = n_in, fit.offset
-    if best_c is None or best_n < s.consensus_min_inliers:
+        if fit.ok and np.all(np.isfinite(fit.offset)):
+            hyp.append(fit.offset)
+    pairs = pair_hypotheses(y, uu, order, strength, strength * sin_dip, s)
+    hyp = np.vstack([np.reshape(hyp, (-1, 3)), pairs])
+    if not len(hyp):
+        return None
+    i_best = int(np.argmin(score(y[None], uu[None], hyp[:, None], strength, dip_deg, s)))
+    best_c = hyp[i_best]
+    best_n = int(np.count_nonzero(inliers(y, uu, best_c, strength, dip_deg, s)))
+    if best_n < s.consensus_min_inliers:
         return None
     mask = inliers(y, uu, best_c, strength, dip_deg, s)
     for _ in range(2):  # refit on the inliers, and find them again about the refit

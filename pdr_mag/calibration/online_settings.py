@@ -157,5 +157,6 @@ class OnlineSettings:
     prior_min_samples: int = 10
     consensus_window: int = 10
     consensus_min_inliers: int = 15
+    consensus_pairs: int = 300
     consensus_strength_frac: float = 0.08
     consensus_dip_deg: float = 8.0

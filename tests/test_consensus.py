@@ -1,0 +1,113 @@
+"""The consensus gravity-aided fit (:mod:`pdr_mag.calibration.consensus`): a start next to steel.
+
+A texting walk whose first half passes a run of disturbances (world-frame fields of 80–400 µT that change
+with every step, as steel does to a walker) fills the diversity buffer mostly with samples that are not the
+Earth's field.  The plain fit of the whole buffer is refused; the consensus fit finds the clean samples and
+calibrates the walk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from test_online import B_TRUE, INC, F, _feed, _rows, synth_walk
+
+from pdr_mag.calibration import refit
+from pdr_mag.calibration.consensus import consensus_offset
+from pdr_mag.calibration.gravity import gravity_aided_offset
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
+
+
+def _steel(d: dict, t_end: float, seed: int = 0) -> np.ndarray:
+    """Add to ``d``'s magnetometer, device frame, bursts of disturbance before ``t_end``: 3–6 s long, each a
+    smooth random field of 80–400 µT, with 2–5 s of the Earth's field between them.  Returns the disturbed
+    samples' mask."""
+    rng = np.random.default_rng(seed)
+    tm, mag = d["mag"]
+    hit = np.zeros(len(tm), dtype=bool)
+    a = 0.0
+    while a < t_end:
+        b = min(a + rng.uniform(3.0, 6.0), t_end)
+        w = (tm >= a) & (tm < b)
+        phase = rng.uniform(0, 2 * np.pi, 3)
+        amp = rng.uniform(80.0, 400.0)
+        x = (tm[w] - a)[:, None]
+        mag[w] += amp * np.sin(2 * np.pi * 0.7 * x / (b - a) + phase) * rng.normal(0, 1, 3) / np.sqrt(3)
+        hit |= w
+        a = b + rng.uniform(2.0, 5.0)
+    return hit
+
+
+def _buffer(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every fourth magnetometer row of a 40-s walk disturbed throughout (raw m, up, time, disturbed mask)."""
+    d = synth_walk(duration=40.0, seed=seed)
+    hit = _steel(d, 40.0, seed)
+    tm, mag, up, _ = _rows(d)
+    k = slice(None, None, 4)
+    return mag[k], up[k], tm[k], hit[k]
+
+
+def test_consensus_finds_the_clean_samples_where_the_plain_fit_is_dragged_off():
+    s = OnlineSettings()
+    for seed in range(4):
+        m, u, t, hit = _buffer(seed)
+        plain = gravity_aided_offset(m, u, F, np.sin(INC), prior_strength_std_uT=3.0, prior_dip_std_deg=3.0)
+        found = consensus_offset(m, u, t, None, F, np.sin(INC), s)
+        assert found is not None
+        mask, best = found
+        assert best >= s.consensus_min_inliers
+        # the inliers are the clean samples: at most 5 % of them disturbed, at least 80 % of the clean found
+        assert np.mean(hit[mask]) <= 0.05, (seed, np.mean(hit[mask]))
+        assert np.mean(mask[~hit]) >= 0.8, (seed, np.mean(mask[~hit]))
+        fit = gravity_aided_offset(m[mask], u[mask], F, np.sin(INC), prior_strength_std_uT=3.0,
+                                   prior_dip_std_deg=3.0)  # fmt: skip
+        err = np.linalg.norm(fit.offset_array - B_TRUE)
+        # noise 0.4 µT, tilt known: the inliers' fit within 3 µT (walking sway unmodelled); the plain fit off
+        # by more than ten times that (what makes the consensus needed)
+        assert err < 3.0, (seed, err)
+        assert np.linalg.norm(plain.offset_array - B_TRUE) > 30.0, seed
+
+
+def test_no_consensus_in_a_field_that_is_never_the_earths():
+    m, u, t, _ = _buffer(0)
+    rng = np.random.default_rng(9)
+    m = m + rng.uniform(-300, 300, m.shape)  # every sample disturbed, independently
+    assert consensus_offset(m, u, t, None, F, np.sin(INC), OnlineSettings()) is None
+
+
+def test_a_walk_started_next_to_steel_is_calibrated_online():
+    d = synth_walk(duration=60.0, seed=5)
+    _steel(d, 40.0, seed=5)
+    on = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    events = _feed(on, d)
+    accepted = [e for _, k, e in events if k == "calibration_accepted"]
+    assert accepted and on.calibration is not None
+    err = on.calibration.offset_array - B_TRUE
+    std = np.asarray(on.calibration.offset_std_uT)
+    assert np.all(np.abs(err) < np.maximum(4 * std, 1.0)), (err, std)
+    # the first calibration came from a consensus, before the disturbances ended
+    first = next(t for t, k, _ in events if k == "calibration_accepted")
+    assert first < 40.0
+    # the same walk without the consensus (it needs more inliers than the buffer holds): a first calibration
+    # only after the disturbances, if at all
+    off = OnlineCalibrator(OnlineSettings(consensus_min_inliers=10_000), strength=F, sin_dip=np.sin(INC))
+    later = [t for t, k, _ in _feed(off, d) if k == "calibration_accepted"]
+    assert not later or later[0] > first + 5.0, (first, later[:1])
+
+
+def test_a_prior_is_not_outvoted_by_a_consensus():
+    m, u, t, _ = _buffer(1)
+    prior = MagCalibration.from_arrays(B_TRUE + 20.0, None, field_uT=F, method="gravity",
+                                       offset_std_uT=(9.0, 9.0, 9.0), extra={"prior": "store"})  # fmt: skip
+    judged = refit.candidates(m, u, prior, True, F, np.sin(INC), OnlineSettings(), times=t)
+    assert not any("consensus" in c.extra for c in judged)
+    judged = refit.candidates(m, u, None, True, F, np.sin(INC), OnlineSettings(), times=t)
+    cons = [c for c in judged if "consensus" in c.extra]
+    assert cons and cons[0].accepted
+    assert np.linalg.norm(cons[0].offset_array - B_TRUE) < 3.0
+    # a calibration that judges the buffer's samples (σ within the later refits' bound): no consensus
+    sure = replace(prior, extra={}, offset_std_uT=(1.0, 1.0, 1.0))
+    judged = refit.candidates(m, u, sure, True, F, np.sin(INC), OnlineSettings(), times=t)
+    assert not any("consensus" in c.extra for c in judged)
