@@ -111,3 +111,13 @@ def test_a_prior_is_not_outvoted_by_a_consensus():
     sure = replace(prior, extra={}, offset_std_uT=(1.0, 1.0, 1.0))
     judged = refit.candidates(m, u, sure, True, F, np.sin(INC), OnlineSettings(), times=t)
     assert not any("consensus" in c.extra for c in judged)
+
+
+def test_the_accepted_event_says_it_was_a_consensus():
+    d = synth_walk(duration=60.0, seed=6)
+    _steel(d, 40.0, seed=6)
+    on = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    first = next(e for _, k, e in _feed(on, d) if k == "calibration_accepted")
+    c = first["consensus"]
+    assert set(c) == {"inliers", "share"}
+    assert c["inliers"] >= OnlineSettings().consensus_min_inliers and 0 < c["share"] < 0.5

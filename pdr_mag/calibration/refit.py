@@ -316,7 +316,8 @@ def is_identity(a, atol: float) -> bool:
 
 
 def summary(cal: MagCalibration) -> dict:
-    """The figures of a calibration for an event's data."""
+    """The figures of a calibration for an event's data (with the consensus fit's inlier count and share,
+    :mod:`pdr_mag.calibration.consensus`, when it is one)."""
     return {
         "method": cal.method,
         "offset_uT": [round(float(v), 3) for v in cal.offset],
@@ -325,4 +326,6 @@ def summary(cal: MagCalibration) -> dict:
         "residual_rms_uT": round(float(cal.residual_rms_uT), 3) if np.isfinite(cal.residual_rms_uT) else None,
         "coverage": round(float(cal.coverage), 3) if np.isfinite(cal.coverage) else None,
         "n_samples": int(cal.n_samples),
+        **({"consensus": {k: cal.extra["consensus"][k] for k in ("inliers", "share")}}
+           if "consensus" in cal.extra else {}),
     }
