@@ -115,3 +115,19 @@ def test_a_broken_store_file_is_reported_by_name(tmp_path):
     (tmp_path / "OPPO_PBCM10.json").write_text(json.dumps({"format_version": 7}))
     with pytest.raises(ValueError, match="format_version"):
         store.load(META, 0.0)
+
+
+def test_two_devices_whose_keys_read_the_same_as_file_names_keep_their_own_entries(tmp_path):
+    store = DeviceStore(tmp_path)
+    a, b = {"device": "Galaxy S9"}, {"device": "Galaxy/S9"}
+    pa = store.save(a, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), 0.0)
+    cal_b = MagCalibration.from_arrays([10.0, 20.0, 30.0], field_uT=43.0, method="gravity",
+                                       offset_std_uT=(0.5, 0.5, 0.5))  # fmt: skip
+    pb = store.save(b, DevicePrior(calibration=cal_b, gyro_bias=None), 0.0)
+    assert pa != pb and pa.name == "Galaxy_S9.json" and pb.name.startswith("Galaxy_S9-")
+    assert store.load(a, 0.0).calibration.offset == (-57.0, -91.0, -302.0)
+    assert store.load(b, 0.0).calibration.offset == (10.0, 20.0, 30.0)
+    # saving each again writes its own file
+    store.save(b, DevicePrior(calibration=cal_b, gyro_bias=None), 10.0)
+    assert store.path(a) == pa and store.path(b) == pb
+    assert store.load(a, 10.0).calibration.offset == (-57.0, -91.0, -302.0)

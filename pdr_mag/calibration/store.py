@@ -19,6 +19,7 @@ naming it), never silently replaced.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import math
 import os
@@ -31,6 +32,18 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.prior import DevicePrior, PriorSettings, aged
 
 FORMAT_VERSION = 1
+
+
+def _key_in(p: Path) -> str | None:
+    """The key a store file holds (None when there is no such file, or it cannot tell:
+    :meth:`DeviceStore.load` reports a broken file by name)."""
+    if not p.is_file():
+        return None
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return d.get("key") if isinstance(d, dict) else None
 
 
 class DeviceStore:
@@ -77,9 +90,17 @@ class DeviceStore:
         return None
 
     def path(self, meta: dict) -> Path | None:
-        """The file of this recording's device (None without a device)."""
+        """The file of this recording's device (None without a device): the key with every run of other
+        characters than letters, digits, ``.``, ``_``, ``-`` made one ``_`` — unless that file holds another
+        device whose key reads the same so (``"A B"`` and ``"A/B"``), then the same name with the key's
+        hash, so that neither overwrites the other."""
         k = self.key(meta)
-        return None if k is None else self.folder / (re.sub(r"[^A-Za-z0-9._-]+", "_", k) + ".json")
+        if k is None:
+            return None
+        plain = self.folder / (re.sub(r"[^A-Za-z0-9._-]+", "_", k) + ".json")
+        if _key_in(plain) in (None, k):
+            return plain
+        return plain.with_name(f"{plain.stem}-{hashlib.sha1(k.encode('utf-8')).hexdigest()[:10]}.json")
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
         """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
@@ -101,7 +122,7 @@ class DeviceStore:
         if not isinstance(d, dict) or d.get("format_version") != FORMAT_VERSION:
             raise ValueError(f"{p}: device store: expected format_version {FORMAT_VERSION}")
         if d.get("key") != self.key(meta):
-            return None  # two keys that map to one file name: not this device
+            return None  # an entry of a device whose key reads the same as a file name (:meth:`path`)
         try:
             cal = None if d.get("calibration") is None else MagCalibration.from_dict(d["calibration"])
             gyro = d.get("gyro_bias_rad_s")
