@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from numba import njit
 
 from pdr_mag.calibration.gravity import fit_model, fit_offset
 from pdr_mag.calibration.model import MagCalibration
@@ -66,15 +67,38 @@ def inliers(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_de
     return (np.abs(ds) <= 1.0) & (np.abs(dd) <= 1.0)
 
 
-def score(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
+def score(y: np.ndarray, u: np.ndarray, hyp: np.ndarray, strength: float, dip_deg: float,
           s: OnlineSettings) -> np.ndarray:
-    """The truncated cost of each hypothesis (lower is better): ``Σ min(e_i, 2)`` with
-    ``e_i = misfit_s² + misfit_d²`` — an outlier costs 2, an inlier less the better it fits, so of two
-    hypotheses with as many inliers the one that fits them better wins (MSAC rather than a count)."""
-    ds, dd = misfit(y, u, c, strength, dip_deg, s)
-    e = ds**2 + dd**2
-    out = (np.abs(ds) > 1.0) | (np.abs(dd) > 1.0) | ~np.isfinite(e)
-    return np.sum(np.where(out, 2.0, np.minimum(e, 2.0)), axis=-1)
+    """The truncated cost of each hypothesis ``hyp`` (P, 3) over the samples ``y``, ``u`` (N, 3), lower
+    is better: ``Σ min(e_i, 2)`` with ``e_i = misfit_s² + misfit_d²`` (:func:`misfit`), an outlier (either
+    misfit beyond 1) costing 2 — an inlier costs less the better it fits, so of two hypotheses with as many
+    inliers the one that fits them better wins (MSAC rather than a count).  Returns (P,)."""
+    return _costs(np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(u, dtype=float),
+                  np.ascontiguousarray(hyp, dtype=float), float(strength), np.radians(dip_deg),
+                  s.consensus_strength_frac * strength, np.radians(s.consensus_dip_deg))  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _costs(y, u, hyp, strength, dip, tol_s, tol_d):
+    """:func:`score`'s loop (P hypotheses × N samples; angles in rad, ``tol_s`` in µT)."""
+    out = np.empty(len(hyp))
+    for p in range(len(hyp)):
+        total = 0.0
+        for i in range(len(y)):
+            x0, x1, x2 = y[i, 0] - hyp[p, 0], y[i, 1] - hyp[p, 1], y[i, 2] - hyp[p, 2]
+            n = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+            if not n > 0.0:
+                total += 2.0
+                continue
+            sd = -(x0 * u[i, 0] + x1 * u[i, 1] + x2 * u[i, 2]) / n
+            ms = (n - strength) / tol_s
+            md = (np.arcsin(min(max(sd, -1.0), 1.0)) - dip) / tol_d
+            if abs(ms) > 1.0 or abs(md) > 1.0:
+                total += 2.0
+            else:
+                total += min(ms * ms + md * md, 2.0)
+        out[p] = total
+    return out
 
 
 def pair_hypotheses(y: np.ndarray, u: np.ndarray, order: np.ndarray, strength: float, f_sin_dip: float,
@@ -159,7 +183,7 @@ def consensus_offset(
     hyp = np.vstack([np.reshape(hyp, (-1, 3)), pairs])
     if not len(hyp):
         return None
-    i_best = int(np.argmin(score(y[None], uu[None], hyp[:, None], strength, dip_deg, s)))
+    i_best = int(np.argmin(score(y, uu, hyp, strength, dip_deg, s)))
     best_c = hyp[i_best]
     best_n = int(np.count_nonzero(inliers(y, uu, best_c, strength, dip_deg, s)))
     if best_n < s.consensus_min_inliers:
