@@ -121,3 +121,21 @@ def test_the_accepted_event_says_it_was_a_consensus():
     c = first["consensus"]
     assert set(c) == {"inliers", "share"}
     assert c["inliers"] >= OnlineSettings().consensus_min_inliers and 0 < c["share"] < 0.5
+
+
+def test_the_compiled_costs_are_the_misfits_truncated():
+    """:func:`score`'s loop against the same cost written with :func:`misfit`'s arrays (within 1e-9)."""
+    from pdr_mag.calibration.consensus import misfit, score
+
+    rng = np.random.default_rng(11)
+    s = OnlineSettings()
+    m, u, _, _ = _buffer(2)
+    u = u / np.linalg.norm(u, axis=1)[:, None]
+    hyp = B_TRUE + rng.normal(0, 8.0, (40, 3))
+    dip = np.degrees(INC)
+    ds, dd = misfit(m[None], u[None], hyp[:, None], F, dip, s)
+    e = ds**2 + dd**2
+    ref = np.sum(np.where((np.abs(ds) > 1) | (np.abs(dd) > 1), 2.0, np.minimum(e, 2.0)), axis=1)
+    got = score(m, u, hyp, F, dip, s)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    assert np.ptp(got) > 10.0  # the hypotheses differ: the comparison is not of constants
