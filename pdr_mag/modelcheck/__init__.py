@@ -8,6 +8,7 @@ is left.  Then it says, for every candidate, what the recording's motion can rev
 the Fisher information of its parameters against the final model — a texting walk turns about one axis and
 leaves directions that the hard iron or the heading reference take) — nothing is left out silently.
 :mod:`.gyro` finds the ``gyro_bias`` candidate's start value and replays the orientation with it;
+:mod:`.diagnosis` holds the settings, the records of a diagnosis and the estimates in the JSON's units;
 :mod:`.report` writes the human report.
 
 Heading reference: the gyro + accelerometer orientation fixes tilt but not heading, so its world frame has
@@ -16,10 +17,11 @@ that frame) together with ``b`` — the heading reference comes from the fit its
 only with ``use_truth=True`` (evaluation mode), and then the same ``B_w`` is still fitted.
 """
 
+from pdr_mag.modelcheck.diagnosis import GAP_METRIC, Candidate, DiagnoseSettings, Diagnosis
 from pdr_mag.modelcheck.fit import BASELINE, CANDIDATES
 from pdr_mag.modelcheck.null import NullSettings
 from pdr_mag.modelcheck.orientation import OrientationSettings, estimate_orientation
-from pdr_mag.modelcheck.select import GAP_METRIC, Candidate, DiagnoseSettings, Diagnosis, diagnose
+from pdr_mag.modelcheck.select import diagnose
 
 __all__ = [
     "BASELINE",

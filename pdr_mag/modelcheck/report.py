@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from pdr_mag.conventions import heading_deg_from_quat, quat_slerp
+from pdr_mag.modelcheck.diagnosis import Diagnosis
 from pdr_mag.modelcheck.identify import angular_rate
 from pdr_mag.modelcheck.predict import simulate_mag
-from pdr_mag.modelcheck.select import Diagnosis
 
 
 class ReportUnavailable(RuntimeError):
