@@ -139,3 +139,16 @@ def test_the_compiled_costs_are_the_misfits_truncated():
     got = score(m, u, hyp, F, dip, s)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
     assert np.ptp(got) > 10.0  # the hypotheses differ: the comparison is not of constants
+
+
+def test_a_zero_sample_in_the_buffer_is_no_warning_and_no_hypothesis():
+    """Pairs with a zero raw sample (a logger's placeholder row) give a non-finite system: dropped quietly
+    (warnings from the package fail the tests)."""
+    from pdr_mag.calibration.consensus import pair_hypotheses
+
+    m, u, t, _ = _buffer(0)
+    m = m.copy()
+    m[::7] = 0.0
+    u = u / np.linalg.norm(u, axis=1)[:, None]
+    hyp = pair_hypotheses(m, u, np.argsort(t), F, F * np.sin(INC), OnlineSettings())
+    assert len(hyp) > 0 and np.all(np.isfinite(hyp))

@@ -130,14 +130,17 @@ def pair_hypotheses(y: np.ndarray, u: np.ndarray, order: np.ndarray, strength: f
     j[near] = order[np.minimum(pos + rng.integers(1, 9, len(pos)), n - 1)]
     rows = []
     rhs = []
-    for a in (i, j):
-        norm = np.linalg.norm(2.0 * y[a], axis=1, keepdims=True)  # rows scaled to unit size
-        rows += [np.hstack([2.0 * y[a], -np.ones((p, 1))]) / norm, np.hstack([u[a], np.zeros((p, 1))])]
-        rhs += [(np.einsum("ij,ij->i", y[a], y[a]) - strength**2) / norm[:, 0],
-                np.einsum("ij,ij->i", y[a], u[a]) + f_sin_dip]  # fmt: skip
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero sample gives a non-finite row: dropped
+        for a in (i, j):
+            norm = np.linalg.norm(2.0 * y[a], axis=1, keepdims=True)  # rows scaled to unit size
+            rows += [np.hstack([2.0 * y[a], -np.ones((p, 1))]) / norm, np.hstack([u[a], np.zeros((p, 1))])]
+            rhs += [(np.einsum("ij,ij->i", y[a], y[a]) - strength**2) / norm[:, 0],
+                    np.einsum("ij,ij->i", y[a], u[a]) + f_sin_dip]  # fmt: skip
     a_mat = np.stack(rows, axis=1)
     b_vec = np.stack(rhs, axis=1)
-    ok = np.abs(np.linalg.det(a_mat)) > 1e-6
+    finite = np.all(np.isfinite(a_mat), axis=(1, 2)) & np.all(np.isfinite(b_vec), axis=1)
+    ok = np.zeros(p, dtype=bool)
+    ok[finite] = np.abs(np.linalg.det(a_mat[finite])) > 1e-6
     if not np.any(ok):
         return np.empty((0, 3))
     sol = np.linalg.solve(a_mat[ok], b_vec[ok][..., None])[..., 0]
@@ -157,8 +160,8 @@ def consensus_offset(
     ``times``, keeping the soft iron and axes of ``shape`` (None: identity).
 
     Returns ``(mask, best)``: the inliers of the final offset (a boolean mask over the samples) and the
-    number of inliers the best window's hypothesis had; None when no hypothesis reaches
-    ``consensus_min_inliers`` or the references are not finite.
+    number of inliers the best hypothesis had; None when it has fewer than ``consensus_min_inliers``, or
+    the references are not finite.
     """
     s = settings
     if not (np.isfinite(strength) and strength > 0 and np.isfinite(sin_dip)):
@@ -202,5 +205,6 @@ def consensus_offset(
 def with_consensus(cal: MagCalibration, mask: np.ndarray, best: int) -> MagCalibration:
     """``cal`` (the fit of the inliers) marked as a consensus fit: inlier count and share of the buffer."""
     n = int(np.count_nonzero(mask))
-    extra = {**cal.extra, "consensus": {"inliers": n, "share": round(n / len(mask), 4), "best_window": best}}
+    found = {"inliers": n, "share": round(n / len(mask), 4), "best_hypothesis": best}
+    extra = {**cal.extra, "consensus": found}
     return replace(cal, extra=extra)
