@@ -2,10 +2,10 @@
 
 A walk that starts next to steel (a backend restarted mid-walk, a recording begun in a car park) fills the
 diversity buffer with samples of a field that is not the Earth's: hundreds of µT that move with every step.
-They are never redundant with one another, so they outnumber the clean samples — on the tyrex walks started
-20 s in, 35–75 of 400 samples are the Earth's field.  A least-squares fit over the whole buffer (even with
-the Huber weights of :mod:`pdr_mag.calibration.gravity`) is dragged far off and refused, and nothing is
-calibrated for the whole walk.
+They are never redundant with one another, so they outnumber the clean samples — on a tyrex walk started
+20 s in (Nexus 5, phoning), 35–77 of 350–400 samples are the Earth's field.  A least-squares fit over the
+whole buffer (even with the Huber weights of :mod:`pdr_mag.calibration.gravity`) is dragged far off and
+refused, and nothing is calibrated for the whole walk.
 
 The disturbance has structure the fit can use: it is spatial, so the samples it touches come in runs of
 consecutive times, and a run of clean samples obeys the gravity-aided model of
