@@ -131,3 +131,30 @@ def test_two_devices_whose_keys_read_the_same_as_file_names_keep_their_own_entri
     store.save(b, DevicePrior(calibration=cal_b, gyro_bias=None), 10.0)
     assert store.path(a) == pa and store.path(b) == pb
     assert store.load(a, 10.0).calibration.offset == (-57.0, -91.0, -302.0)
+
+
+def test_a_store_file_without_its_key_is_reported_not_overwritten(tmp_path):
+    store = DeviceStore(tmp_path)
+    path = store.save(META, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), 0.0)
+    d = json.loads(path.read_text())
+    del d["key"]
+    path.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="OPPO_PBCM10.json: device store: no device key"):
+        store.load(META, 0.0)
+    with pytest.raises(ValueError, match="no device key"):
+        store.save(META, DevicePrior(calibration=None, gyro_bias=None), 1.0)
+    assert json.loads(path.read_text())["calibration"] is not None  # what was there is kept
+
+
+def test_a_save_and_a_load_read_the_file_once(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    store = DeviceStore(tmp_path)
+    store.save(META, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), 0.0)
+    reads = []
+    real = Path.read_text
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: reads.append(self) or real(self, *a, **k))
+    store.save(META, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), 1.0)
+    assert len(reads) == 1
+    store.load(META, 2.0)
+    assert len(reads) == 2

@@ -4,7 +4,8 @@ A folder with one JSON file per device (the key: the recording's ``device`` mode
 the recording has one).  Each file holds the last good magnetometer calibration of that device with its
 offset covariance, the gyroscope bias with its σ, and when they were known (Unix time)::
 
-    {"format_version": 1, "device": "OPPO PBCM10", "device_id": null, "t_unix": 1574572530.2,
+    {"format_version": 1, "key": "OPPO PBCM10", "device": "OPPO PBCM10", "device_id": null,
+     "t_unix": 1574572530.2,
      "calibration": {... the calibrate --json object ...},
      "gyro_bias_rad_s": [0.0018, 0.0021, 0.0009], "gyro_bias_std_rad_s": 0.0004}
 
@@ -34,16 +35,20 @@ from pdr_mag.calibration.prior import DevicePrior, PriorSettings, aged
 FORMAT_VERSION = 1
 
 
-def _key_in(p: Path) -> str | None:
-    """The key a store file holds (None when there is no such file, or it cannot tell:
-    :meth:`DeviceStore.load` reports a broken file by name)."""
+def _parse(p: Path) -> dict | None:
+    """A store file's entry as parsed (None when there is no such file); ``ValueError`` naming the file
+    when it cannot be read, is not of this format or names no device key."""
     if not p.is_file():
         return None
     try:
         d = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return d.get("key") if isinstance(d, dict) else None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: device store: cannot read ({exc})") from None
+    if not isinstance(d, dict) or d.get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"{p}: device store: expected format_version {FORMAT_VERSION}")
+    if not isinstance(d.get("key"), str):
+        raise ValueError(f"{p}: device store: no device key")
+    return d
 
 
 class DeviceStore:
@@ -94,58 +99,43 @@ class DeviceStore:
         characters than letters, digits, ``.``, ``_``, ``-`` made one ``_`` — unless that file holds another
         device whose key reads the same so (``"A B"`` and ``"A/B"``), then the same name with the key's
         hash, so that neither overwrites the other."""
+        found = self._locate(meta)
+        return None if found is None else found[0]
+
+    def _locate(self, meta: dict) -> tuple[Path, dict | None] | None:
+        """This device's file (:meth:`path`) and its entry as parsed (None: no entry yet), each file read
+        once; None without a device."""
         k = self.key(meta)
         if k is None:
             return None
         plain = self.folder / (re.sub(r"[^A-Za-z0-9._-]+", "_", k) + ".json")
-        if _key_in(plain) in (None, k):
-            return plain
-        return plain.with_name(f"{plain.stem}-{hashlib.sha1(k.encode('utf-8')).hexdigest()[:10]}.json")
+        d = _parse(plain)
+        if d is None or d["key"] == k:
+            return plain, d
+        hashed = plain.with_name(f"{plain.stem}-{hashlib.sha1(k.encode('utf-8')).hexdigest()[:10]}.json")
+        d = _parse(hashed)
+        if d is not None and d["key"] != k:
+            raise ValueError(f"{hashed}: device store: holds {d['key']!r}, not {k!r}")
+        return hashed, d
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
         """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
-        stored = self._read(meta)
-        if stored is None:
+        found = self._locate(meta)
+        if found is None or found[1] is None:
             return None
-        prior, t_saved = stored
+        prior, t_saved = _entry(*found)
         return aged(prior, t_unix - t_saved, self.settings)
-
-    def _read(self, meta: dict) -> tuple[DevicePrior, float] | None:
-        """The entry of this recording's device as saved, and when (None when there is none)."""
-        p = self.path(meta)
-        if p is None or not p.is_file():
-            return None
-        try:
-            d = json.loads(p.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{p}: device store: cannot read ({exc})") from None
-        if not isinstance(d, dict) or d.get("format_version") != FORMAT_VERSION:
-            raise ValueError(f"{p}: device store: expected format_version {FORMAT_VERSION}")
-        if d.get("key") != self.key(meta):
-            return None  # an entry of a device whose key reads the same as a file name (:meth:`path`)
-        try:
-            cal = None if d.get("calibration") is None else MagCalibration.from_dict(d["calibration"])
-            gyro = d.get("gyro_bias_rad_s")
-            gyro = None if gyro is None else tuple(float(v) for v in gyro)
-            std = float(d["gyro_bias_std_rad_s"]) if gyro is not None else math.nan
-            t_saved = float(d["t_unix"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{p}: device store: malformed entry ({exc})") from None
-        if gyro is not None and (len(gyro) != 3 or not all(map(math.isfinite, (*gyro, std)))):
-            raise ValueError(f"{p}: device store: gyro_bias_rad_s: expected 3 finite numbers and a σ")
-        if cal is not None:
-            cal = replace(cal, extra={**cal.extra, "prior": "store"})
-        return DevicePrior(calibration=cal, gyro_bias=gyro, gyro_bias_std=std, source="store"), t_saved
 
     def save(self, meta: dict, prior: DevicePrior, t_unix: float) -> Path | None:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps
         the stored one: a calibration aged to ``t_unix``, a gyro bias as it was stored — a power-up's σ is
         added at each load, not at each save); returns the file, or None when the recording names no
         device."""
-        p = self.path(meta)
-        if p is None:
+        found = self._locate(meta)
+        if found is None:
             return None
-        stored = self._read(meta)
+        p, d = found
+        stored = None if d is None else _entry(p, d)
         old = None if stored is None else aged(stored[0], t_unix - stored[1], self.settings)
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
         src = stored[0] if prior.gyro_bias is None and stored is not None else prior
@@ -171,3 +161,21 @@ class DeviceStore:
             Path(tmp).unlink(missing_ok=True)
             raise
         return p
+
+
+def _entry(p: Path, d: dict) -> tuple[DevicePrior, float]:
+    """A parsed entry (:func:`_parse`) as the device's prior as saved, and when; ``ValueError`` naming the
+    file when its parts are malformed."""
+    try:
+        cal = None if d.get("calibration") is None else MagCalibration.from_dict(d["calibration"])
+        gyro = d.get("gyro_bias_rad_s")
+        gyro = None if gyro is None else tuple(float(v) for v in gyro)
+        std = float(d["gyro_bias_std_rad_s"]) if gyro is not None else math.nan
+        t_saved = float(d["t_unix"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{p}: device store: malformed entry ({exc})") from None
+    if gyro is not None and (len(gyro) != 3 or not all(map(math.isfinite, (*gyro, std)))):
+        raise ValueError(f"{p}: device store: gyro_bias_rad_s: expected 3 finite numbers and a σ")
+    if cal is not None:
+        cal = replace(cal, extra={**cal.extra, "prior": "store"})
+    return DevicePrior(calibration=cal, gyro_bias=gyro, gyro_bias_std=std, source="store"), t_saved
