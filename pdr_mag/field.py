@@ -152,13 +152,15 @@ def earth_field_from_meta(meta: dict) -> EarthField | None:
     return earth_field(lat, lon, meta.get("altitude_m", 0.0) or 0.0, date)
 
 
-def plausible_strength(strength_uT: float, reference_uT: float | None, rel_tol: float) -> bool:
+def plausible_strength(strength_uT: float, reference_uT: float | None, rel_tol: float,
+                       margin_uT: float = 0.0) -> bool:
     """Whether a field strength can be the Earth's: within ``rel_tol`` (indoors the local field departs from
     the model by up to tens of per cent) of the reference strength when one is known (the WMM's for the
-    place and date), else within :data:`EARTH_STRENGTH_RANGE_UT` widened by the same share."""
+    place and date), else within :data:`EARTH_STRENGTH_RANGE_UT` widened by the same share; either band
+    widened by ``margin_uT`` more (what the uncertainty of the calibration that gave the strength can do)."""
     if not np.isfinite(strength_uT) or strength_uT <= 0:
         return False
     if reference_uT is not None and np.isfinite(reference_uT):
-        return abs(strength_uT / reference_uT - 1.0) <= rel_tol
+        return abs(strength_uT - reference_uT) <= rel_tol * reference_uT + margin_uT
     lo, hi = EARTH_STRENGTH_RANGE_UT
-    return lo * (1.0 - rel_tol) <= strength_uT <= hi * (1.0 + rel_tol)
+    return lo * (1.0 - rel_tol) - margin_uT <= strength_uT <= hi * (1.0 + rel_tol) + margin_uT

@@ -152,3 +152,14 @@ def test_a_zero_sample_in_the_buffer_is_no_warning_and_no_hypothesis():
     u = u / np.linalg.norm(u, axis=1)[:, None]
     hyp = pair_hypotheses(m, u, np.argsort(t), F, F * np.sin(INC), OnlineSettings())
     assert len(hyp) > 0 and np.all(np.isfinite(hyp))
+
+
+def test_a_zero_up_vector_in_the_buffer_is_no_crash():
+    """A zero up vector makes the gravity-aided fit raise: the refit of the whole buffer catches it, and the
+    consensus leaves the sample out."""
+    m, u, t, _ = _buffer(1)
+    u = u.copy()
+    u[5] = 0.0
+    judged = refit.candidates(m, u, None, True, F, np.sin(INC), OnlineSettings(), times=t)
+    cons = [c for c in judged if "consensus" in c.extra]
+    assert cons and np.linalg.norm(cons[0].offset_array - B_TRUE) < 3.0

@@ -84,6 +84,7 @@ CAL = np.dtype(
 #: the settings as the loop reads them (:class:`~pdr_mag.calibration.online_settings.OnlineSettings`)
 PARAMS = settings_dtype(OnlineSettings)
 
+
 class Blocks(NamedTuple):
     """Magnetometer samples as :func:`scan` takes them, block by block: times ``t`` (N,) s, raw field ``mag``
     (N, 3) µT, device-frame up ``up`` (N, 3), gyro ``rate`` (N,) rad/s, and ``block_end`` (N,) bool marking

@@ -23,8 +23,9 @@ runs):
    (``dip_i = asin(−y_i·u_i / |y_i|)``) — two conditions a disturbed field meets by chance only, where
    the clean samples of every time meet both;
 3. the hypothesis of the lowest truncated cost (:func:`score`: MSAC, Torr & Zisserman 2000) is refitted on its
-   inliers, the inliers found again about the refit, and refitted once more; fewer than
-   ``consensus_min_inliers`` inliers: no result.
+   inliers and the inliers found again about the refit, twice; the result is the fit of the last inliers
+   (:func:`pdr_mag.calibration.refit.candidates`); fewer than ``consensus_min_inliers`` inliers at any step:
+   no result.
 
 The result is an ordinary gravity-aided calibration (``method="gravity"``; its covariance from the inliers
 alone, scaled for their errors' correlation in time, :func:`pdr_mag.calibration.refit.with_correlated_errors`)
@@ -159,19 +160,30 @@ def consensus_offset(
     """The consensus search of the module docstring on raw samples ``m``, unit up vectors ``u`` and their
     ``times``, keeping the soft iron and axes of ``shape`` (None: identity).
 
-    Returns ``(mask, best)``: the inliers of the final offset (a boolean mask over the samples) and the
-    number of inliers the best hypothesis had; None when it has fewer than ``consensus_min_inliers``, or
-    the references are not finite.
+    Samples with a zero or non-finite vector take no part (and are no inliers).  Returns ``(mask, best)``:
+    the inliers of the final offset (a boolean mask over the samples) and the
+    number of inliers the best hypothesis had; None when the references are not finite, the buffer is
+    shorter than a window, no hypothesis can be formed, a refit fails or fewer than
+    ``consensus_min_inliers`` inliers are left.
     """
     s = settings
     if not (np.isfinite(strength) and strength > 0 and np.isfinite(sin_dip)):
         return None
+    norm_u = np.linalg.norm(u, axis=1)
+    usable = np.isfinite(norm_u) & (norm_u > 0) & np.all(np.isfinite(m), axis=1)  # no zero or NaN vectors
+    if not np.all(usable):
+        found = consensus_offset(m[usable], u[usable], times[usable], shape, strength, sin_dip, s)
+        if found is None:
+            return None
+        mask = np.zeros(len(m), dtype=bool)
+        mask[usable] = found[0]
+        return mask, found[1]
     k = int(s.consensus_window)
     if len(m) < max(k, s.consensus_min_inliers):
         return None
     mm = shape.matrix if shape is not None else np.eye(3)
     y = m @ mm.T
-    uu = u / np.linalg.norm(u, axis=1)[:, None]
+    uu = u / norm_u[:, None]
     model = fit_model(strength, sin_dip, s.sigma_strength_uT, s.sigma_tilt_deg, s.prior_strength_std_uT,
                       s.prior_dip_std_deg)  # fmt: skip
     dip_deg = float(np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0))))
@@ -186,12 +198,11 @@ def consensus_offset(
     hyp = np.vstack([np.reshape(hyp, (-1, 3)), pairs])
     if not len(hyp):
         return None
-    i_best = int(np.argmin(score(y, uu, hyp, strength, dip_deg, s)))
-    best_c = hyp[i_best]
-    best_n = int(np.count_nonzero(inliers(y, uu, best_c, strength, dip_deg, s)))
+    best_c = hyp[int(np.argmin(score(y, uu, hyp, strength, dip_deg, s)))]
+    mask = inliers(y, uu, best_c, strength, dip_deg, s)
+    best_n = int(np.count_nonzero(mask))
     if best_n < s.consensus_min_inliers:
         return None
-    mask = inliers(y, uu, best_c, strength, dip_deg, s)
     for _ in range(2):  # refit on the inliers, and find them again about the refit
         fit = fit_offset(y[mask], uu[mask], model)
         if not fit.ok:

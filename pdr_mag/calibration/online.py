@@ -39,13 +39,10 @@ from pdr_mag.calibration import diversity, refit, stale
 from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
-from pdr_mag.calibration.prior import is_prior, prior_source
-from pdr_mag.field import EARTH_STRENGTH_RANGE_UT
+from pdr_mag.calibration.prior import is_prior, offset_sigma, prior_source
+from pdr_mag.field import plausible_strength
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
-
-
-
 
 _EPISODE_EVENTS = {K.EPISODE_START: "rotation_episode_start", K.EPISODE_END: "rotation_episode_end"}
 
@@ -67,13 +64,12 @@ class OnlineCalibrator:
     ----------
     settings : OnlineSettings
     calibration : MagCalibration, optional
-        A device calibration to start from (``cal_state`` ``offset`` or ``ellipsoid``).
+        A device calibration to start from (``cal_state`` ``offset`` or ``ellipsoid``).  A prior (the phone's
+        own estimate, a device store's: ``extra["prior"]``, :mod:`.prior`) rather than a calibration the user
+        gave is replaced by an online fit that improves on its covariance
+        (:func:`pdr_mag.calibration.refit.replaces`), as an earlier fit is.
     strength, sin_dip : float, optional
         Earth field strength F (µT) and sin of the inclination from the WMM; None when unknown.
-    prior : bool
-        ``calibration`` is a prior (the phone's own estimate, a device store's: :mod:`.prior`), not a
-        calibration the user gave: an online fit that improves on its covariance replaces it
-        (:func:`pdr_mag.calibration.refit.replaces`), as it replaces an earlier fit.
 
     Attributes
     ----------
@@ -313,19 +309,13 @@ class OnlineCalibrator:
         mc = cal.apply(self._buf["m"][:n])
         norm = np.linalg.norm(mc, axis=1)
         strength = float(np.median(norm))
-        margin = 3.0 * _prior_offset_sigma(cal)
+        margin = 3.0 * offset_sigma(cal, unknown=0.0)
         f = self.field_ref
         dip = float(np.degrees(np.arcsin(np.clip(refit.median_sin_dip(mc, self._buf["u"][:n]), -1.0, 1.0))))
-        sd = self.sin_dip_ref
-        dip_ok = sd is None or abs(dip - np.degrees(np.arcsin(sd))) <= s.prior_band_dip_deg + np.degrees(
+        c = self._cal[0]
+        dip_ok = not c["dip_check"] or abs(dip - c["dip_deg"]) <= s.prior_band_dip_deg + np.degrees(
             margin / max(strength, 1.0))
-        if f is not None:
-            plausible = dip_ok and abs(strength - f) <= s.prior_band_frac * f + margin
-        else:
-            lo, hi = EARTH_STRENGTH_RANGE_UT
-            k = s.prior_band_frac
-            plausible = dip_ok and lo * (1 - k) - margin <= strength <= hi * (1 + k) + margin
-        if plausible:
+        if dip_ok and plausible_strength(strength, f, s.prior_band_frac, margin):
             return
         data = {"source": prior_source(cal), "offset_uT": [round(float(v), 3) for v in cal.offset],
                 "median_strength_uT": round(strength, 3), "reference_uT": None if f is None else round(f, 3),
@@ -456,9 +446,3 @@ def _to_json(v):
     if isinstance(v, int | np.integer):
         return int(v)
     return state_float(v)
-
-
-def _prior_offset_sigma(cal: MagCalibration) -> float:
-    """The largest offset σ of a prior calibration, µT (0 when its covariance is unknown)."""
-    cov = cal.offset_covariance
-    return 0.0 if cov is None else float(np.sqrt(max(np.max(np.diag(cov)), 0.0)))

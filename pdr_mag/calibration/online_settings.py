@@ -115,9 +115,10 @@ class OnlineSettings:
         the gravity-aided fit, short enough to lie between two disturbances), and a result needs this many
         inliers (a window and a half: one window's own samples do not make a consensus).
     consensus_strength_frac, consensus_dip_deg : float
-        A sample agrees with a hypothesis when the field it gives is within this share of F (the largest
-        residual RMS a fit may have, ``max_rms_frac``) and this angle of the reference dip (twice the
-        admission band ``add_dip_tol_deg``: the tilt of a walking phone is known to a few degrees).
+        A sample agrees with a hypothesis when the field it gives is within this share of F (as far as a
+        whole fit's residual RMS may reach, ``max_rms_frac``: a sample further off is not of that fit) and
+        this angle of the reference dip (twice the admission band ``add_dip_tol_deg``: the tilt of a walking
+        phone is known to a few degrees).
     """
 
     buffer_size: int = 400

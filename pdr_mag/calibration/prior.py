@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pdr_mag._records import check_numbers
 from pdr_mag.calibration.model import MagCalibration
 
 #: Seconds in a day (the store's random-walk rates are per √day).
@@ -54,8 +55,6 @@ class PriorSettings:
         1σ per axis of the OS's hard-iron estimate, µT.
     phone_gyro_bias_std : float
         1σ per axis of the OS's gyro drift estimate (or of the residual of an OS-calibrated gyro), rad/s.
-    raw_gyro_bias_std : float or None
-        The gyro bias prior when nothing is known (None: the fusion filter's own ``GyroSettings.bias0_std``).
     offset_drift_uT_per_sqrt_day : float
         Random walk of a stored hard-iron offset with its age, µT per √day per axis.
     gyro_turn_on_std : float
@@ -66,17 +65,14 @@ class PriorSettings:
 
     phone_offset_std_uT: float = 6.0
     phone_gyro_bias_std: float = math.radians(0.2)
-    raw_gyro_bias_std: float | None = None
     offset_drift_uT_per_sqrt_day: float = 13.0
     gyro_turn_on_std: float = math.radians(0.25)
     use_phone: bool = True
 
     def __post_init__(self):
-        for name in ("phone_offset_std_uT", "phone_gyro_bias_std", "offset_drift_uT_per_sqrt_day",
-                     "gyro_turn_on_std"):  # fmt: skip
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+        positive = ("phone_offset_std_uT", "phone_gyro_bias_std", "offset_drift_uT_per_sqrt_day",
+                    "gyro_turn_on_std")  # fmt: skip
+        check_numbers(self, positive=positive)
 
 
 @dataclass(frozen=True)
@@ -189,12 +185,10 @@ def aged(prior: DevicePrior, age_s: float, settings: PriorSettings | None = None
     s = settings or PriorSettings()
     age = max(float(age_s), 0.0)
     cal = prior.calibration
-    if cal is not None:
-        cov = cal.offset_covariance
-        if cov is None:
-            cov = np.full((3, 3), np.nan)
-        cov = cov + np.eye(3) * s.offset_drift_uT_per_sqrt_day**2 * age / DAY_S
-        cal = _with_offset_covariance(cal, cov)
+    if cal is not None and cal.offset_covariance is not None:  # an unknown covariance stays unknown
+        cal = _with_offset_covariance(
+            cal, cal.offset_covariance + np.eye(3) * s.offset_drift_uT_per_sqrt_day**2 * age / DAY_S
+        )
     std = prior.gyro_bias_std
     if prior.gyro_bias is not None:
         std = math.hypot(std, s.gyro_turn_on_std)
@@ -208,7 +202,8 @@ def choose(*priors: DevicePrior | None) -> DevicePrior | None:
     have = [p for p in priors if p is not None]
     if not have:
         return None
-    mag = min((p for p in have if p.calibration is not None), key=_offset_sigma, default=None)
+    mag = min((p for p in have if p.calibration is not None), key=lambda p: offset_sigma(p.calibration),
+              default=None)  # fmt: skip
     gyro = min((p for p in have if p.gyro_bias is not None), key=lambda p: _nan_inf(p.gyro_bias_std),
                default=None)  # fmt: skip
     sources = {p.source for p in (mag, gyro) if p is not None}
@@ -235,11 +230,10 @@ def _vector(meta: dict, key: str) -> np.ndarray | None:
     return a
 
 
-def _offset_sigma(p: DevicePrior) -> float:
-    cov = p.calibration.offset_covariance
-    if cov is None or not np.all(np.isfinite(cov)):
-        return math.inf
-    return float(np.sqrt(np.max(np.diag(cov))))
+def offset_sigma(cal: MagCalibration, unknown: float = math.inf) -> float:
+    """The largest offset σ of a calibration, µT; ``unknown`` when it carries no offset covariance."""
+    cov = cal.offset_covariance
+    return unknown if cov is None else float(np.sqrt(max(np.max(np.diag(cov)), 0.0)))
 
 
 def _nan_inf(v: float) -> float:
@@ -254,8 +248,8 @@ def _stds(cal: MagCalibration) -> list | None:
 
 
 def _with_offset_covariance(cal: MagCalibration, cov: np.ndarray) -> MagCalibration:
-    """``cal`` with its offset covariance replaced (a full-parameter covariance loses its other rows: the
-    aged offset is what a prior passes on)."""
+    """``cal`` with its offset covariance replaced (in a full-parameter covariance, its offset block; the
+    other rows are kept)."""
     std = tuple(float(np.sqrt(max(v, 0.0))) if np.isfinite(v) else float("nan") for v in np.diag(cov))
     if cal.covariance is not None:
         c = np.asarray(cal.covariance, dtype=float)

@@ -7,8 +7,9 @@ Candidates (:func:`candidates`), on the buffer's raw samples ``m_i`` and up vect
   iron, not the sensor's scale and axes;
 * when no fit of the whole buffer is accepted, the references F and I are known and nothing better than a
   first fit is in force (:func:`_consensus_wanted`), the consensus fit of
-  :mod:`pdr_mag.calibration.consensus`: the gravity-aided fit of the samples that agree with the best
-  time window's offset (a start next to steel leaves a buffer mostly of disturbed samples);
+  :mod:`pdr_mag.calibration.consensus`: the gravity-aided fit of the samples that agree with the best of the
+  offsets that time windows and pairs of samples give (a start next to steel leaves a buffer mostly of
+  disturbed samples);
 * [Liu2018]'s linear least-squares sphere fit (eqs. 7–16, :func:`pdr_mag.calibration.sphere.fit_sphere`) once
   the buffer's direction coverage about the gravity fit's offset reaches ``sphere_coverage``;
 * the calibration core's full fit (:func:`pdr_mag.calibration.select.calibrate`: model by BIC, geometric
@@ -244,7 +245,9 @@ def judge(
         reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
     if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > RADIUS_REL_TOL:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
-    elif field_ref is None and np.isfinite(f) and not plausible_strength(f, None, RADIUS_REL_TOL):
+    elif field_ref is None and cal.method == "gravity" and np.isfinite(f) \
+            and not plausible_strength(f, None, RADIUS_REL_TOL):  # fmt: skip
+        # (the core's rules, applied to every other refit above, hold its radius to the Earth's range)
         lo, hi = EARTH_STRENGTH_RANGE_UT
         reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere "
                        f"(± {RADIUS_REL_TOL:.0%} indoors)")
