@@ -102,12 +102,17 @@ def copy_record(rec: np.ndarray) -> np.ndarray:
 
 
 def check_numbers(settings, positive: tuple = ()) -> None:
-    """``ValueError`` naming the first number field of ``settings`` that is not finite and ≥ 0, or, for the
-    names in ``positive``, not > 0 (nested settings are not looked at)."""
+    """``ValueError`` naming the first field of ``settings`` that is wrong: a group of settings (a field
+    declared as a dataclass) that is not of its declared class, or a number that is not finite and ≥ 0 —
+    for the names in ``positive``, not > 0 (the numbers inside a group are its own class's to check)."""
     where = type(settings).__name__
+    hints = _hints(type(settings))
     for f in fields(settings):
         v = getattr(settings, f.name)
-        if is_dataclass(v):
+        kind = hints.get(f.name)
+        if isinstance(kind, type) and is_dataclass(kind):
+            if not isinstance(v, kind):
+                raise ValueError(f"{where}.{f.name}: expected a {kind.__name__}, got {type(v).__name__}")
             continue
         if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
             raise ValueError(f"{where}.{f.name}: expected a non-negative finite number, got {v!r}")

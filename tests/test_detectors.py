@@ -61,3 +61,15 @@ def test_each_detector_reaches_settings_state_and_outputs(unit):
     if unit.BAND is not None:
         assert set(unit.BAND[:3]) <= set(unit.COLUMNS)
     assert unit.PLOT.group not in {d.PLOT.group for d in DETECTORS if d is not unit}
+
+
+def test_a_number_where_a_group_of_settings_belongs_is_refused():
+    """A detector's settings group given as a number would be spread over every field of its record: it is
+    refused by name, as a wrong group of the filter's settings is."""
+    from pdr_mag.fusion.detectors import InterferenceSettings
+    from pdr_mag.fusion.settings import FusionSettings
+
+    with pytest.raises(ValueError, match="InterferenceSettings.strength: expected a StrengthSettings"):
+        InterferenceSettings(strength=5.0)
+    with pytest.raises(ValueError, match="FusionSettings.gyro: expected a GyroSettings"):
+        FusionSettings(gyro=3)

@@ -331,8 +331,3 @@ class FusionSettings:
 
     def __post_init__(self):
         check_numbers(self)
-        for name, kind in (("gyro", GyroSettings), ("accel", AccelSettings), ("mag", MagSettings),
-                           ("uncertainty", UncertaintySettings), ("interference", InterferenceSettings)):
-            v = getattr(self, name)
-            if not isinstance(v, kind):
-                raise ValueError(f"{name}: expected a {kind.__name__}, got {type(v).__name__}")
