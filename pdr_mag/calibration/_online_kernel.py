@@ -411,4 +411,4 @@ def coverage_now(loop):
 
 
 # numba's cache checks a kernel against its own file only: empty the caches when diversity.py changed too
-_jit_cache.refresh_if_changed((diversity, sys.modules[__name__]), "online")
+_jit_cache.refresh_if_changed((sys.modules[__name__], diversity), "online")

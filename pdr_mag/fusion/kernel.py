@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from pdr_mag import _jit_cache
-from pdr_mag.fusion import accel, detectors, eskf, ew, gyro, kinds, mag, quat, rows, state
+from pdr_mag.fusion import accel, detectors, eskf, gyro, kinds, mag, rows, state
 from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
@@ -128,5 +128,6 @@ def run_cut(span, state, params, cuts, snaps, out):
 
 
 # numba checks a cached function against its own file only: empty the caches when any of these changed
-_KERNEL_MODULES = (*detectors.DETECTORS, detectors, kinds, state, rows, quat, ew, eskf, gyro, accel, mag)
-_jit_cache.refresh_if_changed((*_KERNEL_MODULES, sys.modules[__name__]), "fusion")
+_jit_cache.refresh_if_changed(
+    (sys.modules[__name__], *detectors.SOURCES, kinds, state, rows, eskf, gyro, accel, mag), "fusion"
+)

@@ -234,4 +234,4 @@ def carry_over(kind, xyz, row_q, carry):
 
 
 # numba freezes the kind codes into the cached kernels: empty the caches when they change
-_jit_cache.refresh_if_changed((kinds, sys.modules[__name__]), "pipeline")
+_jit_cache.refresh_if_changed((sys.modules[__name__], kinds), "pipeline")

@@ -373,5 +373,8 @@ def _hold(t, score, ip):
     return out
 
 
+#: The modules the detectors' compiled code is built from, this one first (its ``__pycache__`` holds the
+#: digest): a kernel that calls the detectors lists these among its own.
+SOURCES = (sys.modules[__name__], *DETECTORS, _unit, ew, quat)
 # numba checks a cached function against its own file only: empty the caches when any part changed
-_jit_cache.refresh_if_changed((*DETECTORS, _unit, ew, quat, sys.modules[__name__]), "detectors")
+_jit_cache.refresh_if_changed(SOURCES, "detectors")
