@@ -57,7 +57,8 @@ first gyroscope sample after the tilt has been initialised (a row at the first g
 each grid time; ``output_rate_hz = 0`` gives every gyro sample).  No rows before the first accelerometer
 sample (the tilt is unknown).  Columns: ``t`` (gyro time), ``q_wd``, ``heading_deg``, ``heading_std_deg``,
 ``mag_used`` (the magnetometer corrected the heading since the previous row), ``interference`` (flag up
-at, or since, the previous row), ``cal_state`` (placeholder ``"none"``; the pipeline overwrites it), and
+at, or since, the previous row), ``cal_state`` (``"none"`` unless the caller of :meth:`FusionCore.advance`
+names it), and
 ``diag`` with the :data:`pdr_mag.estimates.DIAG_KEYS` the core knows (all but ``coverage``) plus
 ``consistency_deg`` and ``heading_reset_deg`` (the jump of a heading re-acquisition at that row, deg; NaN
 at the other rows).  Before the first usable magnetometer sample the heading is arbitrary (device +y to
@@ -319,11 +320,12 @@ class FusionCore:
                 raise ValueError(f"mag_allowed: expected shape ({n},), got {allowed.shape}")
         return self.advance(Span(kind, t, xyz, allowed, int(np.count_nonzero(kind == GYRO)))).rows
 
-    def advance(self, span: Span, snapshot_before=None) -> Advanced:
+    def advance(self, span: Span, snapshot_before=None, cal_state: str = "none") -> Advanced:
         """Run ``span`` through the filter; keep a :class:`Snapshot` before each sample index of
         ``snapshot_before`` (increasing, intp; the rows do not depend on where the input is cut).
 
-        The rows' ``cal_state`` is ``"none"`` (the caller who knows the calibration's state sets it)."""
+        The rows' ``cal_state`` is ``cal_state``: the state of the calibration the span's magnetometer
+        samples were calibrated with, which the caller knows (the pipeline: its online calibrator's)."""
         cuts = _NO_CUTS if snapshot_before is None else snapshot_before
         out = new_rows(span.n_gyro)
         snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
@@ -341,7 +343,7 @@ class FusionCore:
             heading_std_deg=col["heading_std_deg"],
             mag_used=col["mag_used"],
             interference=col["interference"],
-            cal_state=np.full(k, "none", dtype="<U13"),
+            cal_state=np.full(k, cal_state, dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
         return Advanced(rows, Snapshots(snaps, self._ref_strength))

@@ -35,7 +35,9 @@ processes on its own beyond ``max_pending`` samples), the online calibrator's bu
 estimates leave at every :meth:`HeadingPipeline.poll`.
 
 Errors at the boundary, flags in the loop: a wrong shape or unknown stream name raises ``ValueError``; a
-NaN row, a repeated or backward timestamp is dropped and counted in :attr:`HeadingPipeline.dropped`.
+NaN row, a repeated or backward timestamp, and a stalled sensor's value delivered a third time in a row
+(:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are dropped and counted in
+:attr:`HeadingPipeline.dropped`.
 """
 
 from __future__ import annotations
@@ -119,7 +121,7 @@ class PipelineSettings:
     max_pending: int = 20000
     online: bool = True
     online_settings: OnlineSettings = field(default_factory=OnlineSettings)
-    fusion: object | None = None
+    fusion: FusionSettings | None = None
     keep_mag_calibrated: bool = False
     prior: PriorSettings = field(default_factory=PriorSettings)
 
@@ -272,7 +274,9 @@ class HeadingPipeline:
     def push_arrays(self, kind, t, xyz) -> None:
         """Push a chunk of one stream: times (N,) s and values (N, 3) in the contract's units.
 
-        Rows with NaN, and times not after the stream's previous sample, are dropped and counted.
+        Rows with NaN, times not after the stream's previous sample or before what has been processed, and
+        a stalled sensor's repeated values (:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are
+        dropped and counted (``<stream>:nan``, ``:non_monotonic``, ``:late``, ``:repeated``).
         """
         name = kind if type(kind) is str and kind in KINDS else _kind_name(kind)
         t = np.asarray(t, dtype=float).reshape(-1)
@@ -449,8 +453,7 @@ class HeadingPipeline:
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
         # the filter over the span, keeping its state before each block
         starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
-        batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), snapshot_before=starts)
-        batch.cal_state = np.full(len(batch), cal_state, dtype="<U13")
+        batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each

@@ -34,9 +34,10 @@ compiled steps (numba), each given the detectors' state ``det`` (the sample in `
 ``example()``
     its known-answer case (:class:`Example`): a field it flags, run by ``tests/test_detectors.py``;
 an array form
-    the same numbers for arrays (its numpy twin, e.g. :func:`~pdr_mag.fusion.detectors.dip.dip_deg`).
+    its quantity for arrays, a numpy twin the tests compare with (e.g.
+    :func:`~pdr_mag.fusion.detectors.dip.dip_deg`; for variance and consistency the score itself).
 
-The parts a detector has no use for are these module's defaults (``from ._unit import no_learn as learn``).
+The parts a detector has no use for are these module's defaults (``learn = no_learn``).
 """
 
 from __future__ import annotations

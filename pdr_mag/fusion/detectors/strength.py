@@ -4,8 +4,9 @@
 strength, ``F_ref`` the reference strength (the calibration radius when the caller gives one, else the
 World Magnetic Model), ``F_loc`` the local strength learnt from clean samples (time constant
 ``InterferenceSettings.learn_ref_s``; indoor fields differ from the WMM by several µT) and
-``tol_F = max(tol_uT, tol_rel · F_ref)``.  [Liu2018] §4 takes "the modulus of the magnetometer and its
-variance as the criterion of magnetic interference"; this is the modulus.
+``tol_F = max(tol_uT, tol_rel · F_ref)`` (``F_loc`` in place of ``F_ref`` while there is no reference).
+[Liu2018] §4 takes "the modulus of the magnetometer and its variance as the criterion of magnetic
+interference"; this is the modulus.
 
 Its part in the filter's noise: a disturbance ``d`` changes the strength by at most ``|d|``, so
 ``d_min² ≥ (F − F_loc)²``; its tolerance stands for a disturbance of ``tol_F``.
