@@ -291,14 +291,13 @@ class ReplayRun:
             }
         for s in self.sinks:
             s.open(meta)
-        if self.sinks:
-            if src.truth is not None:
-                for s in self.sinks:
-                    s.reference("truth", src.truth[0], src.truth[1])
-            osref = os_reference(src)
-            if osref is not None:
-                for s in self.sinks:
-                    s.reference("os", osref[0], osref[1])
+        if src.truth is not None:
+            for s in self.sinks:
+                s.reference("truth", src.truth[0], src.truth[1])
+        osref = os_reference(src)
+        if osref is not None:
+            for s in self.sinks:
+                s.reference("os", osref[0], osref[1])
         if self.calibration is not None:
             for s in self.sinks:
                 s.calibration(self.merge.t0, self.calibration)

@@ -11,6 +11,7 @@ import pytest
 from pdr_mag.calibration.prior import DevicePrior, PriorSettings
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
+from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import earth_field
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from pdr_mag.sim import simulate
@@ -26,6 +27,22 @@ NO_PHONE = PipelineSettings(prior=PriorSettings(use_phone=False))
 def walk():
     effects = {"hard_iron": HARD_IRON, "gyro_bias": GYRO_BIAS}
     return simulate("walk", seed=3, duration_s=120.0, effects=effects)
+
+
+def _in_seconds(pipe, walk, before=None, streams=None):
+    """Push ``walk`` into ``pipe`` one second at a time (``streams`` in place of the walk's own, by name;
+    ``before[k]()`` called before second ``k``'s samples), polling after each; the rows, concatenated."""
+    out = []
+    for k in range(int(walk.duration_s) + 1):
+        if before and k in before:
+            before[k]()
+        for name in ("accel", "gyro", "mag"):
+            t, x = (streams or {}).get(name) or getattr(walk, name)
+            m = (t >= k) & (t < k + 1)
+            pipe.push_arrays(name, t[m], x[m])
+        out.append(pipe.poll())
+    out.append(pipe.flush())
+    return EstimateBatch.concat(out)
 
 
 def _run(rec, meta=None, settings=None, prior=None, calibration=None):
@@ -96,30 +113,12 @@ def test_a_phone_estimate_changed_mid_recording_replaces_the_first_while_it_is_i
     assert t_new == pytest.approx(20.5)  # the end of the block the change falls in
     # the same through the streaming interface, in 1-s pushes
     stream = HeadingPipeline(settings=settings, meta=meta)
-    out = []
-    for k in range(int(walk.duration_s) + 1):
-        for name in ("accel", "gyro", "mag"):
-            t, x = getattr(walk, name)
-            m = (t >= k) & (t < k + 1)
-            stream.push_arrays(name, t[m], x[m])
-        out.append(stream.poll())
-    out.append(stream.flush())
-    got = np.concatenate([b.heading_deg for b in out])
-    np.testing.assert_array_equal(got, rows.heading_deg)
+    np.testing.assert_array_equal(_in_seconds(stream, walk).heading_deg, rows.heading_deg)
     # and a live backend telling the pipeline of the change when it happens (push_phone_calibration)
     live_meta = {k: v for k, v in meta.items() if k != "mag_os_bias_changes"}
     live = HeadingPipeline(settings=settings, meta=live_meta)
-    out = []
-    for k in range(int(walk.duration_s) + 1):
-        if k == 20:  # before the samples it comes with
-            live.push_phone_calibration(20.2, HARD_IRON)
-        for name in ("accel", "gyro", "mag"):
-            t, x = getattr(walk, name)
-            m = (t >= k) & (t < k + 1)
-            live.push_arrays(name, t[m], x[m])
-        out.append(live.poll())
-    out.append(live.flush())
-    np.testing.assert_array_equal(np.concatenate([b.heading_deg for b in out]), rows.heading_deg)
+    before = {20: lambda: live.push_phone_calibration(20.2, HARD_IRON)}  # before the samples it comes with
+    np.testing.assert_array_equal(_in_seconds(live, walk, before).heading_deg, rows.heading_deg)
     with pytest.raises(ValueError, match="phone calibration"):
         live.push_phone_calibration(30.0, [1.0, np.nan, 0.0])
 
@@ -144,12 +143,7 @@ def test_a_stalled_sensors_repeated_samples_are_dropped_and_counted(walk):
     ref = HeadingPipeline(meta=walk.meta).run(clean)
     np.testing.assert_array_equal(rows.heading_deg, ref.heading_deg)
     stream = HeadingPipeline(meta=walk.meta)
-    for k in range(int(walk.duration_s) + 1):
-        for name, (tt, xx) in (("accel", walk.accel), ("gyro", (t, stuck)), ("mag", walk.mag)):
-            m = (tt >= k) & (tt < k + 1)
-            stream.push_arrays(name, tt[m], xx[m])
-        stream.poll()
-    stream.flush()
+    _in_seconds(stream, walk, streams={"gyro": (t, stuck)})
     assert stream.dropped == pipe.dropped
 
 

@@ -32,11 +32,10 @@ from replay.heading_scores import (
     walked_segments,
     waypoints_from_fixes,
 )
-from tests.conftest import DATASETS, ROOT, absent, dataset
+from tests.conftest import ROOT, absent, dataset
 
 TOOL = ROOT.parent / "shared" / "tools" / "walked-direction"
 PEERS = ROOT.parent / "shared" / "benchmarks" / "walked_peers.csv"
-MALL = DATASETS / "ms-indoor-location-2020"
 IPIN = ROOT / "tests" / "fixtures" / "ipin_small.txt"
 
 

@@ -160,7 +160,9 @@ def test_gyro_consistency_detector(walk):
     w = (tt >= T0) & (tt < T1 + 5.0)
     err = error_at_truth(b, tt[w], qt[w])
     clean = _run(walk, walk.mag[1])
-    assert np.max(np.abs(err - error_at_truth(clean, tt[w], qt[w]))) < 3.0
+    err_clean = error_at_truth(clean, tt[w], qt[w])
+    assert np.max(np.abs(err_clean)) < 3.0  # the clean walk itself: 1.13° at most, measured
+    assert np.max(np.abs(err - err_clean)) < 3.0
     assert not clean.interference[(clean.t >= T0) & (clean.t < T1)].any()
 
 
@@ -193,7 +195,9 @@ def test_heading_survives_a_strong_disturbance(walk):
     err = error_at_truth(b, tt[w], qt[w])
     # against the clean walk's own error: 10 s on the gyroscope, measured 1.5° at most
     clean = _run(walk, walk.mag[1])
-    assert np.max(np.abs(err - error_at_truth(clean, tt[w], qt[w]))) < 3.0
+    err_clean = error_at_truth(clean, tt[w], qt[w])
+    assert np.max(np.abs(err_clean)) < 3.0  # the clean walk itself: 1.13° at most, measured
+    assert np.max(np.abs(err - err_clean)) < 3.0
     inside = (b.t >= T0 + 0.2) & (b.t < T1)
     assert np.all(np.diff(b.heading_std_deg[inside]) >= -1e-9)  # std grows while rejected
 

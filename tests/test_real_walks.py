@@ -247,12 +247,12 @@ def test_the_groups_meet_issue_10s_targets(peers, run):
     mode b's mean and median per phone no higher than the phone's own fusion's (``os``).  No margin: the
     motion-capture misalignment costs every estimator the same on a walk.
 
-    Measured (42 walks, means over walks, deg): mode a all 4.33 vs vqf_cal_gcal 6.02, Dist 5.85 vs 9.05,
-    NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.  Mode b per phone, mean: Nexus5 6.26
-    vs os 12.35, iPhone4S 4.84 vs 27.66, iPhone5 6.76 vs 23.89 (only a gross regression fails these);
-    median: Nexus5 4.42 vs 4.57, iPhone4S 3.94 vs 20.36, iPhone5 4.79 vs 18.30 — 2° more on every walk fails
-    the Nexus5 median by 1.9°.  That median is the tightest figure (0.15° to spare): a few tenths of a degree
-    on the two middle Nexus5 walks carry it over."""
+    Measured (42 walks, means over walks, deg; benchmarks/heading.py at f99bf41): mode a all 4.37 vs
+    vqf_cal_gcal 6.02, Dist 5.93 vs 9.05, NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.
+    Mode b per phone, mean: Nexus5 6.24 vs os 12.35, iPhone4S 4.45 vs 27.66, iPhone5 5.18 vs 23.89 (only a
+    gross regression fails these); median: Nexus5 4.37 vs 4.57, iPhone4S 3.24 vs 20.36, iPhone5 4.30 vs
+    18.30 — 2° more on every walk fails the Nexus5 median by 1.8°.  That median is the tightest figure (0.20°
+    to spare): a few tenths of a degree on the two middle Nexus5 walks carry it over."""
     failed = []
     groups = {"all": WALKS, "Dist": [w for w in WALKS if "_Dist_" in w],
               "NoDist": [w for w in WALKS if "_NoDist_" in w]}

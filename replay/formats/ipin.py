@@ -49,8 +49,6 @@ from pathlib import Path
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import (
-    EXTRA_FIELDS,
-    NON_NUMERIC,
     StreamBuilder,
     StreamSpec,
     chunks_of,
@@ -127,8 +125,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 )
             vals = numbers(parts[1:5], 4)  # the floor and building may be text
             if vals is None or len(parts) > 1 + _FIELDS:
-                why = EXTRA_FIELDS if len(parts) > 1 + _FIELDS else NON_NUMERIC
-                found["dropped"][f"position:{why}"] += 1
+                found["dropped"][f"position:{garbled(parts[1:], _FIELDS)}"] += 1
                 continue
             t, _, lat, lon = vals
             rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
