@@ -123,9 +123,10 @@ def test_the_accepted_event_says_it_was_a_consensus():
     assert c["inliers"] >= OnlineSettings().consensus_min_inliers and 0 < c["share"] < 0.5
 
 
-def test_the_compiled_costs_are_the_misfits_truncated():
-    """:func:`score`'s loop against the same cost written with :func:`misfit`'s arrays (within 1e-9)."""
-    from pdr_mag.calibration.consensus import misfit, score
+def test_the_costs_and_inliers_are_the_misfits_written_with_numpy():
+    """:func:`score` and :func:`inliers` (compiled loops) against the misfits written here with numpy arrays:
+    ``(|y − c| − F) / (0.08 F)`` and ``(dip − I) / 8°`` (within 1e-9; the inlier masks equal)."""
+    from pdr_mag.calibration.consensus import inliers, score
 
     rng = np.random.default_rng(11)
     s = OnlineSettings()
@@ -133,12 +134,19 @@ def test_the_compiled_costs_are_the_misfits_truncated():
     u = u / np.linalg.norm(u, axis=1)[:, None]
     hyp = B_TRUE + rng.normal(0, 8.0, (40, 3))
     dip = np.degrees(INC)
-    ds, dd = misfit(m[None], u[None], hyp[:, None], F, dip, s)
-    e = ds**2 + dd**2
-    ref = np.sum(np.where((np.abs(ds) > 1) | (np.abs(dd) > 1), 2.0, np.minimum(e, 2.0)), axis=1)
+    x = m[None] - hyp[:, None]
+    n = np.linalg.norm(x, axis=-1)
+    ds = (n - F) / (s.consensus_strength_frac * F)
+    sin_dip = np.clip(-np.sum(x * u[None], axis=-1) / n, -1, 1)
+    dd = (np.degrees(np.arcsin(sin_dip)) - dip) / s.consensus_dip_deg
+    inside = (np.abs(ds) <= 1) & (np.abs(dd) <= 1)
+    ref = np.sum(np.where(inside, np.minimum(ds**2 + dd**2, 2.0), 2.0), axis=1)
     got = score(m, u, hyp, F, dip, s)
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
     assert np.ptp(got) > 10.0  # the hypotheses differ: the comparison is not of constants
+    for p in (0, 17, 39):
+        np.testing.assert_array_equal(inliers(m, u, hyp[p], F, dip, s), inside[p])
+    assert inside.sum(axis=1).max() > 5  # some hypotheses do have inliers
 
 
 def test_a_zero_sample_in_the_buffer_is_no_warning_and_no_hypothesis():

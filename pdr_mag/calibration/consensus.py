@@ -46,60 +46,64 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 
 
-def misfit(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
-           s: OnlineSettings) -> tuple[np.ndarray, np.ndarray]:
-    """The strength and dip misfits of the field ``y − c`` (shaped samples ``y = M m``, centre ``c = M b``)
-    in units of the consensus tolerances: ``(|y − c| − F) / (consensus_strength_frac · F)`` and
-    ``(dip − I) / consensus_dip_deg``.  Broadcasts: ``y``, ``u`` (1, N, 3) and ``c`` (P, 1, 3) give
-    (P, N) arrays for P hypotheses."""
-    x = y - c
-    n = np.linalg.norm(x, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sin_dip = -np.sum(x * u, axis=-1) / n
-    dip = np.degrees(np.arcsin(np.clip(sin_dip, -1.0, 1.0)))
-    return (n - strength) / (s.consensus_strength_frac * strength), (dip - dip_deg) / s.consensus_dip_deg
-
-
 def inliers(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_deg: float,
             s: OnlineSettings) -> np.ndarray:
-    """Samples whose field has the reference strength and dip within the consensus tolerances (step 2 of
-    the module docstring; shapes as :func:`misfit`)."""
-    ds, dd = misfit(y, u, c, strength, dip_deg, s)
-    return (np.abs(ds) <= 1.0) & (np.abs(dd) <= 1.0)
+    """Samples whose field ``y − c`` (shaped samples ``y = M m`` (N, 3), unit up vectors ``u``, centre
+    ``c = M b``) has the reference strength and dip within the consensus tolerances (step 2 of the module
+    docstring): both misfits (:func:`_misfit`) within 1.  Returns (N,) bool."""
+    out = np.empty(len(y), dtype=np.bool_)
+    _inliers(*_args(y, u, strength, dip_deg, s), np.asarray(c, dtype=float), out)
+    return out
 
 
 def score(y: np.ndarray, u: np.ndarray, hyp: np.ndarray, strength: float, dip_deg: float,
           s: OnlineSettings) -> np.ndarray:
     """The truncated cost of each hypothesis ``hyp`` (P, 3) over the samples ``y``, ``u`` (N, 3), lower
-    is better: ``Σ min(e_i, 2)`` with ``e_i = misfit_s² + misfit_d²`` (:func:`misfit`), an outlier (either
+    is better: ``Σ min(e_i, 2)`` with ``e_i = misfit_s² + misfit_d²`` (:func:`_misfit`), an outlier (either
     misfit beyond 1) costing 2 — an inlier costs less the better it fits, so of two hypotheses with as many
     inliers the one that fits them better wins (MSAC rather than a count).  Returns (P,)."""
-    return _costs(np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(u, dtype=float),
-                  np.ascontiguousarray(hyp, dtype=float), float(strength), np.radians(dip_deg),
-                  s.consensus_strength_frac * strength, np.radians(s.consensus_dip_deg))  # fmt: skip
+    out = np.empty(len(hyp))
+    _costs(*_args(y, u, strength, dip_deg, s), np.ascontiguousarray(hyp, dtype=float), out)
+    return out
+
+
+def _args(y, u, strength, dip_deg, s: OnlineSettings) -> tuple:
+    """The compiled loops' common arguments: samples, up vectors, F, I (rad) and the two tolerances."""
+    tol_s = s.consensus_strength_frac * strength
+    return (np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(u, dtype=float), float(strength),
+            np.radians(dip_deg), tol_s, np.radians(s.consensus_dip_deg))  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
-def _costs(y, u, hyp, strength, dip, tol_s, tol_d):
-    """:func:`score`'s loop (P hypotheses × N samples; angles in rad, ``tol_s`` in µT)."""
-    out = np.empty(len(hyp))
+def _misfit(y, u, i, c, strength, dip, tol_s, tol_d):
+    """Sample ``i``'s strength and dip misfits about centre ``c`` in units of the tolerances:
+    ``(|y_i − c| − F) / tol_s`` and ``(dip_i − I) / tol_d``, ``dip_i = asin(−(y_i − c)·u_i / |y_i − c|)``
+    (rad); ``(inf, inf)`` for a sample at the centre."""
+    x0, x1, x2 = y[i, 0] - c[0], y[i, 1] - c[1], y[i, 2] - c[2]
+    n = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    if not n > 0.0:
+        return np.inf, np.inf
+    sd = -(x0 * u[i, 0] + x1 * u[i, 1] + x2 * u[i, 2]) / n
+    return (n - strength) / tol_s, (np.arcsin(min(max(sd, -1.0), 1.0)) - dip) / tol_d
+
+
+@njit(cache=True, error_model="numpy")
+def _inliers(y, u, strength, dip, tol_s, tol_d, c, out):
+    """:func:`inliers`' loop."""
+    for i in range(len(y)):
+        ms, md = _misfit(y, u, i, c, strength, dip, tol_s, tol_d)
+        out[i] = abs(ms) <= 1.0 and abs(md) <= 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def _costs(y, u, strength, dip, tol_s, tol_d, hyp, out):
+    """:func:`score`'s loop (P hypotheses × N samples)."""
     for p in range(len(hyp)):
         total = 0.0
         for i in range(len(y)):
-            x0, x1, x2 = y[i, 0] - hyp[p, 0], y[i, 1] - hyp[p, 1], y[i, 2] - hyp[p, 2]
-            n = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-            if not n > 0.0:
-                total += 2.0
-                continue
-            sd = -(x0 * u[i, 0] + x1 * u[i, 1] + x2 * u[i, 2]) / n
-            ms = (n - strength) / tol_s
-            md = (np.arcsin(min(max(sd, -1.0), 1.0)) - dip) / tol_d
-            if abs(ms) > 1.0 or abs(md) > 1.0:
-                total += 2.0
-            else:
-                total += min(ms * ms + md * md, 2.0)
+            ms, md = _misfit(y, u, i, hyp[p], strength, dip, tol_s, tol_d)
+            total += min(ms * ms + md * md, 2.0) if abs(ms) <= 1.0 and abs(md) <= 1.0 else 2.0
         out[p] = total
-    return out
 
 
 def pair_hypotheses(y: np.ndarray, u: np.ndarray, order: np.ndarray, strength: float, f_sin_dip: float,
