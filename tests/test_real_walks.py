@@ -67,6 +67,13 @@ ISSUE = "issue 10 (a heading that never fails): "
 #: changed, and the entry must go.  A figure within 15 % of its bound is a non-strict xfail: floating point
 #: differs across CPUs and may carry it either side of the bound.
 XFAIL_A: dict[str, tuple[str, bool, float]] = {
+    "Thibaud_Nexus5_Dist_Phoning": (
+        "11.5° > 11.1° (madgwick_cal_gcal 9.1° + 2°): the phone moves at the start, its first fix is made"
+        " through an unsettled tilt and made anew 1.1 s later (a 30° turn); the heading then crosses the"
+        " flagged part on the gyroscope, 2–4° apart from the linearised correction's (10.7°) all the way",
+        False,
+        11.5,
+    ),
     "Thibaud_Nexus5_Dist_Texting": ("8.7° > 8.4° (madgwick_cal_gcal 6.4° + 2°)", False, 8.7),
     "Thibaud_iPhone5_Dist_BackPocket": (
         "8.5° > 6.1° (madgwick_cal_gcal 4.1° + 2°); the field left out for up to 20 s in the disturbed area,"

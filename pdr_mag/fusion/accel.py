@@ -31,9 +31,11 @@ dynamics: ``ā_w``'s direction is off by ≈ 0.19 s rad per axis, measured with 
 42 walks — texting 1–2°, running in the hand ~15°) and ``c`` the weight of clipped samples in the window
 (their missing excess of about a g; the range is ``accel.range`` or found in the data); both count once per
 independent window, the updates being ``accel.interval_s`` apart in a window of τ.  Skipped when
-``||ā| − g| > accel.gate · g``.  While the heading is unknown (no magnetometer yet) its errors are consider
-states of these updates: through the bias terms the linearised update would otherwise shrink its (capped,
-uniform) variance.
+``||ā| − g| > accel.gate · g``.  While the heading is unknown (no magnetometer yet), or known only through a
+tilt that was then beyond the linear range (:mod:`pdr_mag.fusion.mag`, a first fix through an unsettled tilt),
+its errors are consider states of these updates: through the bias terms the linearised update would
+otherwise shrink its (capped, uniform) variance, and through the tilt terms carry a tilt correction tens of
+degrees wide over to the heading by a first-order correlation that does not hold that far.
 
 No update is made from a part of a window (the first ``accel.tau_s`` after the average starts): it has not
 averaged out the dynamics, and a start during a run would teach the bias the arm's swing.
@@ -269,7 +271,7 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
             hx[BIAS + m] = -tau * Rb[1, m]
             hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
-    unknown = s.init < 2  # no heading yet: it stays unknown (consider states)
+    unknown = s.init < 2 or s.fix_through_tilt  # no heading yet, or one seen through an unsettled tilt
     update_h(s, dx, hx, aw[0] / na, rv, False, unknown, not linear)
     update_h(s, dx, hy, aw[1] / na, rv, False, unknown, not linear)
     inject(s, dx)

@@ -72,6 +72,18 @@ but the heading meanwhile is the field's rather than the device's +y, which a ba
 somewhere prefers. The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own
 c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
 
+A first fix through an unsettled tilt.  A first fix made while the tilt is beyond the linear range
+(``P_xx + P_yy > 2 · LINEAR_RAD²``: a start in motion, whose first accelerometer sample may point 40° from up)
+saw the field through that tilt, and its heading is off by up to ``tan I`` times as much.  No linearised
+update undoes that: the accelerometer's corrections of the tilt would carry over to the heading through
+``P``'s first-order correlation (a 40° tilt error turned a heading 18° off into 87° off on a tyrex walk
+started 20 s in), and the first heading updates after would teach the gyro bias the difference (8 °/s
+there).  So, until the first heading update once the tilt is in the linear range (``fix_through_tilt``), the
+heading is a consider state of the accelerometer's updates, as before any fix; and when that update's residual
+is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_refix`, exactly as at the first fix,
+its turn reported in ``heading_reset_deg`` as a re-acquisition's) rather than corrected; a smaller residual is
+an ordinary update.
+
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
 :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
 ``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next usable sample that
@@ -164,12 +176,16 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     for i in range(NX):
         for m in range(NX):
             S += h[i] * P[i, m] * h[m]
+    if s.fix_through_tilt and abs(r) > LINEAR_RAD:  # a first fix through a wrong tilt (the module docstring)
+        _refix(s, h, r, rv, t)
+        return
     if r * r > p.mag.gate**2 * S:
         # a clean-looking field that keeps disagreeing: let the heading's variance grow
         if np.isfinite(s.t_reject):
             P[TH_Z, TH_Z] += p.mag.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
         _rejected(s, R, h, r, rv, t, p)
         return
+    s.fix_through_tilt = False
     after_run = np.isfinite(s.t_reject_start)
     s.t_reject = np.nan
     s.t_reject_start = np.nan
@@ -338,8 +354,27 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(P, h, rv)
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
+    s.fix_through_tilt = P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * LINEAR_RAD**2
     s.t_mag_update = t
     s.t_cal_start = t
+    s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def _refix(s, h, r, rv, t):
+    """Set the heading from the field anew (residual r: the turn), as at the first fix, when the first heading
+    update once the tilt is settled finds the first fix, made through an unsettled tilt, more than
+    ``LINEAR_RAD`` off (the module docstring); the turn is reported as a re-acquisition's.  No bias
+    variance is added: no heading update has taught the bias since the first fix."""
+    _turn_world_frame(s, r)
+    _heading_from_field(s.P, h, rv)
+    settle_u(s)
+    _heading_from_field(s.U, h, 0.0)
+    s.fix_through_tilt = False
+    s.t_reject = np.nan
+    s.t_reject_start = np.nan
+    s.reset_jump += r
+    s.t_mag_update = t
     s.mag_used = True
 
 
