@@ -53,9 +53,8 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
-    garbled,
-    numbers,
     open_text,
+    row_values,
 )
 from replay.formats._common import is_float as _is_number
 from replay.formats._phone import put_date
@@ -111,9 +110,8 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
                 )
-            vals = numbers(parts[1:], _FIELDS)
+            vals = row_values(parts[1:], _FIELDS, found["dropped"], key)
             if vals is None:
-                builders[key].count(garbled(parts[1:], _FIELDS))
                 continue
             app, sensor, x, y, z = vals[:5]
             if builders[key].add(lineno, sensor, (x, y, z)):
@@ -123,9 +121,9 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
                 )
-            vals = numbers(parts[1:5], 4)  # the floor and building may be text
-            if vals is None or len(parts) > 1 + _FIELDS:
-                found["dropped"][f"position:{garbled(parts[1:], _FIELDS)}"] += 1
+            # only the first four fields must be numbers: the floor and the building may be text
+            vals = row_values(parts[1:], _FIELDS, found["dropped"], "position", numeric=4)
+            if vals is None:
                 continue
             t, _, lat, lon = vals
             rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]

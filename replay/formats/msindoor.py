@@ -56,9 +56,8 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
-    garbled,
-    numbers,
     open_text,
+    row_values,
 )
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
@@ -166,12 +165,11 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
-        fields = [parts[0], *parts[2:]]
-        vals = numbers(fields, 1 + _MOST[kind])
+        # a garbled line is counted in its stream when that is read (a type not chosen: not counted)
+        key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
+        counted = (key,) if kind in kinds or kind == "TYPE_WAYPOINT" else ()
+        vals = row_values([parts[0], *parts[2:]], 1 + _MOST[kind], found["dropped"], *counted)
         if vals is None:
-            key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
-            if kind in kinds or kind == "TYPE_WAYPOINT":
-                found["dropped"][f"{key}:{garbled(fields, 1 + _MOST[kind])}"] += 1
             continue
         if t0_ms is None:
             t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or vals[0]
