@@ -57,6 +57,10 @@ short when it ends (its message then names the odd samples dropped from it). Odd
   gravity sample at the same time), ``mag_os_bias:nan``/``gyro_os_bias:nan`` (an OS estimate's value
   NaN, infinite or missing; text in it makes the row garbled).
 
+The phone's own attitude (``references["os"]``) counts its odd rows by the same names, under ``os:``; where
+its records are read among the others' (``ms-indoor``, ``ipin``), one too short is counted as ``os:nan`` (a
+value missing) rather than ending the read, the series being for evaluation only.
+
 What the phone states about itself
 ----------------------------------
 Every reader puts into ``meta`` what its file states about the phone's own calibration — the OS's

@@ -41,7 +41,8 @@ The phone's own fusion, when logged, becomes ``references["os"]`` (device → EN
 Android's ``rotation-vector.txt`` (t, qx, qy, qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic
 north) and iOS's ``attitude.txt`` (t, qw, qx, qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to
 magnetic north, z up, so ``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north
-(:mod:`replay.formats._attitude`); odd rows are counted as ``os:<reason>``.
+(:mod:`replay.formats._attitude`); odd rows are counted as the streams' are, under ``os:`` (``os:nan``,
+``os:duplicate_t``, a garbled row ``os:extra_fields`` / ``os:non_numeric``).
 
 Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
 (Δ, with ``t_qualisys = t_phone + Δ``) are present, the Qualisys rigid-body rotation (device → ENU, true
