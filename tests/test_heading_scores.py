@@ -209,7 +209,7 @@ def test_ipin_ahrs_rows_are_the_phones_attitude_on_the_app_clock(tmp_path):
                 if ln.startswith(("ACCE;", "GYRO;", "MAGN;")))
     np.testing.assert_allclose(t, 5123.0 + 0.01 * np.arange(5) + shift, atol=1e-9)
     assert mag.t[0] == pytest.approx(5123.002 + shift, abs=1e-9)
-    assert src.dropped == {"os:nan": 1}
+    assert src.dropped == {"os:non_numeric": 1}
 
 
 # ------------------------------------------------------------------------------------------- the sink

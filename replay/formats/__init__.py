@@ -47,14 +47,19 @@ short when it ends (its message then names the odd samples dropped from it). Odd
 
 * ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
 * ``extra_fields`` (a text row with more fields than the header or the format defines) and ``non_numeric``
-  (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part;
+  (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part —
+  one rule and one count for every text reader, :func:`replay.formats._common.row_values`;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
   the format states, else from :func:`replay.formats._common.flag_saturation`'s heuristic, run as the
   stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);
 * format-specific: ``truth:nan``/``truth:glitch`` (mocap occlusions), ``mag:held_repeat`` (a
   sample-and-hold repeat), ``accel:no_gravity_sample`` (Sensor Logger's user acceleration without a
-  gravity sample at the same time), ``mag_os_bias:nan``/``gyro_os_bias:nan`` (an OS estimate's cell that
-  is not a number).
+  gravity sample at the same time), ``mag_os_bias:nan``/``gyro_os_bias:nan`` (an OS estimate's value
+  NaN, infinite or missing; text in it makes the row garbled).
+
+The phone's own attitude (``references["os"]``) counts its odd rows by the same names, under ``os:``; where
+its records are read among the others' (``ms-indoor``, ``ipin``), one too short is counted as ``os:nan`` (a
+value missing) rather than ending the read, the series being for evaluation only.
 
 What the phone states about itself
 ----------------------------------

@@ -11,9 +11,10 @@ Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilde
 
 A garbled text row never reaches a builder as a sample: a row with more fields than the header (or the
 format) defines, :data:`EXTRA_FIELDS`, or with a field anywhere in it that is not a number,
-:data:`NON_NUMERIC`, is dropped and counted (:meth:`StreamBuilder.count`) by the parsers
-(:func:`iter_table`, :func:`numbers`), never read in part. A row with fewer fields than the format needs is a
-truncated file: an :class:`~replay.errors.InputError`.
+:data:`NON_NUMERIC`, is dropped whole, never read in part, and counted in the recording's ``dropped``:
+every text parser (:func:`iter_table` here, the readers' own line parsers) decides and counts it with
+:func:`row_values`. A row with fewer fields than the format needs is a truncated file: an
+:class:`~replay.errors.InputError`.
 
 Readers stream: after every chunk (:data:`CHUNK` lines or messages) a parser hands the rows cleaned so far
 on (:meth:`StreamBuilder.take`), so a builder never holds more than one chunk. A :class:`StreamSpec` says
@@ -80,20 +81,29 @@ def is_float(v: str) -> bool:
         return False
 
 
-def numbers(parts, most: int) -> list[float] | None:
-    """Every field of a text row as a float, or None when the row is garbled — more than ``most`` fields, or
-    a field that is not a number (:func:`garbled` says which): an odd sample, never read in part."""
+def row_values(
+    parts, most: int, dropped: Counter | None = None, *keys: str, numeric: int | None = None
+) -> list[float] | None:
+    """The fields of a text row as floats, or None for a garbled row: the one rule of every text reader.
+
+    A row is garbled when it has more than ``most`` fields (:data:`EXTRA_FIELDS`, the reason given when it is
+    both) or a field that is not a number (:data:`NON_NUMERIC`) among its first ``numeric`` fields (default
+    all of them; the fields after those are the caller's, e.g. a name that may be text, and are not
+    returned). A garbled row is dropped whole, never read in part, and counted once in ``dropped`` under
+    ``"<key>:<reason>"`` for each of ``keys``, the streams it would have fed (no keys: not counted, for a
+    pass whose rows another pass counts). Fewer fields than the format needs are the caller's to judge (a
+    truncated file, or a value missing).
+    """
     if len(parts) > most:
-        return None
-    try:
-        return [float(p) for p in parts]
-    except ValueError:
-        return None
-
-
-def garbled(parts, most: int) -> str:
-    """Why :func:`numbers` refused a row: :data:`EXTRA_FIELDS` or :data:`NON_NUMERIC`."""
-    return EXTRA_FIELDS if len(parts) > most else NON_NUMERIC
+        why = EXTRA_FIELDS
+    else:
+        try:
+            return [float(p) for p in (parts if numeric is None else parts[:numeric])]
+        except ValueError:
+            why = NON_NUMERIC
+    for key in keys:
+        dropped[f"{key}:{why}"] += 1
+    return None
 
 
 def open_text(path: Path):
@@ -505,7 +515,8 @@ def iter_table(
     ----------
     fh : text stream, positioned after any header.
     path : file named in errors.
-    targets : list of (StreamBuilder, column indices of x, y, z).
+    targets : list of (StreamBuilder, column indices of x, y, z), builders of one recording (one
+        ``dropped`` counter).
     ncol : the number of leading columns every row must have (fewer: a truncated file, InputError).
     first_line : line number of the stream's next line.
     delimiter : None for whitespace, else e.g. ``","``.
@@ -513,7 +524,7 @@ def iter_table(
     chunk : lines a chunk, default :data:`CHUNK`.
     most : the most fields a row may have (the header's or the format's count), default ``ncol``; a row
         with more (:data:`EXTRA_FIELDS`) or with any field that is not a number (:data:`NON_NUMERIC`) is
-        dropped and counted in every target's stream.
+        dropped and counted in every target's stream (:func:`row_values`).
 
     Yields the number of lines read so far after each chunk (the builders then hold that chunk's rows).
     The fast path parses a chunk, every field of it, with :func:`numpy.loadtxt` and cleans it with
@@ -523,6 +534,8 @@ def iter_table(
     """
     chunk = chunk or CHUNK
     most = ncol if most is None else most
+    keys = [b.key for b, _ in targets]
+    dropped = targets[0][0].dropped  # the recording's counter, which every target counts into
     lineno = first_line
     while True:
         lines = list(itertools.islice(fh, chunk))
@@ -549,10 +562,8 @@ def iter_table(
                         f"expected at least {ncol} columns, got {len(parts)} (truncated file?)",
                         lineno + i,
                     )
-                vals = numbers(parts, most)
+                vals = row_values(parts, most, dropped, *keys)
                 if vals is None:
-                    for b, _ in targets:
-                        b.count(garbled(parts, most))
                     continue
                 for b, ix in targets:
                     b.add(lineno + i, vals[tcol] * t_scale, [vals[j] for j in ix])

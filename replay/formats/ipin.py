@@ -28,8 +28,10 @@ the whole file: a first pass finds them (and the fixes and the header), the seco
 first one also sets ``latitude_deg``/``longitude_deg``. The ``AHRS`` rotation vectors become
 ``references["os"]`` (:mod:`replay.formats._attitude`; the angles are not read: the app's versions differ in
 their yaw's sign), on the app clock by the streams' shift when their sensor clock is the same (within
-0.5 s), else by their own; a row too short or not numeric is counted as ``os:nan``. The ``% Model:`` and
-``% Manufacturer:`` header lines give ``meta["device"]``.
+0.5 s), else by their own; an ``AHRS`` record is garbled like the others (more than its nine fields:
+``os:extra_fields``; a field that is not a number: ``os:non_numeric``), and one with a value that is NaN or
+missing (too short) is counted as ``os:nan`` — the series is for evaluation only, never an error. The
+``% Model:`` and ``% Manufacturer:`` header lines give ``meta["device"]``.
 
 What the phone states about itself (:mod:`replay.formats._phone`): ``MAGN`` and ``GYRO`` are Android's
 ``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, the streams the OS has already calibrated
@@ -53,9 +55,8 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
-    garbled,
-    numbers,
     open_text,
+    row_values,
 )
 from replay.formats._common import is_float as _is_number
 from replay.formats._phone import put_date
@@ -66,7 +67,8 @@ NAME = "ipin"
 _TYPES = {"ACCE": "accel", "GYRO": "gyro", "MAGN": "mag"}
 _UNITS = {"accel": "m/s²", "gyro": "rad/s", "mag": "µT"}
 _SAME_CLOCK_S = 0.5  # per-stream shifts closer than this: the sensors share one clock
-_FIELDS = 6  # fields after the type of every record read here
+_FIELDS = 6  # fields after the type of every record read here but AHRS
+_AHRS_FIELDS = 9  # AppTimestamp, SensorTimestamp, the three angles, the rotation vector's x, y, z, Accuracy
 
 
 def detect(path: Path) -> bool:
@@ -111,9 +113,8 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
                 )
-            vals = numbers(parts[1:], _FIELDS)
+            vals = row_values(parts[1:], _FIELDS, found["dropped"], key)
             if vals is None:
-                builders[key].count(garbled(parts[1:], _FIELDS))
                 continue
             app, sensor, x, y, z = vals[:5]
             if builders[key].add(lineno, sensor, (x, y, z)):
@@ -123,21 +124,20 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
                 )
-            vals = numbers(parts[1:5], 4)  # the floor and building may be text
-            if vals is None or len(parts) > 1 + _FIELDS:
-                found["dropped"][f"position:{garbled(parts[1:], _FIELDS)}"] += 1
+            # only the first four fields must be numbers: the floor and the building may be text
+            vals = row_values(parts[1:], _FIELDS, found["dropped"], "position", numeric=4)
+            if vals is None:
                 continue
             t, _, lat, lon = vals
             rest = [float(v) if _is_number(v) else v.strip() for v in parts[5:7]]
             found["positions"].append([t, lat, lon, *rest])
         elif kind == "AHRS" and found.get("os") is not None:
-            vals = [math.nan] * 5
-            if len(parts) >= 9:
-                try:
-                    vals = [float(v) for v in (parts[1], parts[2], *parts[6:9])]
-                except ValueError:
-                    pass
-            if found["os"].add(lineno, vals[1], vals[2:]):
+            b = found["os"]
+            vals = row_values(parts[1:], _AHRS_FIELDS, b.dropped, b.key)
+            if vals is None:
+                continue
+            vals += [math.nan] * (_AHRS_FIELDS - len(vals))  # a value missing: counted as os:nan
+            if b.add(lineno, vals[1], vals[5:8]):
                 found["os_offset"] = min(found["os_offset"], vals[0] - vals[1])
 
 

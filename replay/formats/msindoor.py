@@ -32,11 +32,12 @@ header are counted as ``<stream>:saturated``. A line of a type read here with mo
 is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``waypoint:…``); one with
 fewer than the x, y, z (x, y) it needs is a truncated file. The phone's own fusion
 (``TYPE_ROTATION_VECTOR``) becomes ``references["os"]`` (:mod:`replay.formats._attitude`: in the pipeline's
-north, i.e. turned by the WMM declination when the map gives the position; a row too short or not numeric
-counted as ``os:nan``). Other line types (Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole
-file (and the header's ``endTime``, the waypoints and the OS's estimates are spread over it): a first pass
-reads it without keeping samples (but the waypoints, the rotation vectors and the estimates' changes), the
-second streams the chosen types.
+north, i.e. turned by the WMM declination when the map gives the position); its lines are garbled like the
+others (more than x, y, z and the accuracy: ``os:extra_fields``; a field not a number: ``os:non_numeric``),
+and one with a value NaN or missing is counted as ``os:nan``. Other line types (Wi-Fi, beacons, …) are
+skipped. Choosing the streams needs the whole file (and the header's ``endTime``, the waypoints and the OS's
+estimates are spread over it): a first pass reads it without keeping samples (but the waypoints, the
+rotation vectors and the estimates' changes), the second streams the chosen types.
 When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's layout), the centre of its
 WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known)
 and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
@@ -56,9 +57,8 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
-    garbled,
-    numbers,
     open_text,
+    row_values,
 )
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
@@ -75,7 +75,10 @@ _TYPES = {
     "TYPE_GYROSCOPE": ("gyro", 1, 4),
 }
 # values after the type a line may have: x, y, z, accuracy (+ the bias or drift x, y, z); x, y of a waypoint
-_MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | {"TYPE_WAYPOINT": 2}
+_MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | {
+    "TYPE_WAYPOINT": 2,
+    "TYPE_ROTATION_VECTOR": 4,
+}
 
 
 def detect(path: Path) -> bool:
@@ -166,12 +169,11 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
-        fields = [parts[0], *parts[2:]]
-        vals = numbers(fields, 1 + _MOST[kind])
+        # a garbled line is counted in its stream when that is read (a type not chosen: not counted)
+        key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
+        counted = (key,) if kind in kinds or kind == "TYPE_WAYPOINT" else ()
+        vals = row_values([parts[0], *parts[2:]], 1 + _MOST[kind], found["dropped"], *counted)
         if vals is None:
-            key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
-            if kind in kinds or kind == "TYPE_WAYPOINT":
-                found["dropped"][f"{key}:{garbled(fields, 1 + _MOST[kind])}"] += 1
             continue
         if t0_ms is None:
             t0_ms = meta.get("start_time_unix", 0.0) * 1000.0 or vals[0]
@@ -192,15 +194,14 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
 
 
 def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:
-    """One ``TYPE_ROTATION_VECTOR`` line into ``b`` (t in ms, x, y, z); a row too short or not numeric is
-    dropped as ``os:nan`` (the series is for evaluation only)."""
-    vals = [math.nan] * 4
-    if len(parts) >= 5:
-        try:
-            vals = [float(v) for v in (parts[0], *parts[2:5])]
-        except ValueError:
-            pass
-    b.add(lineno, vals[0], vals[1:])
+    """One ``TYPE_ROTATION_VECTOR`` line into ``b`` (t in ms, x, y, z): a garbled one is dropped as
+    ``os:extra_fields`` / ``os:non_numeric``, one with a value NaN or missing as ``os:nan`` (the series is
+    for evaluation only: never an error)."""
+    most = 1 + _MOST["TYPE_ROTATION_VECTOR"]
+    vals = row_values([parts[0], *parts[2:]], most, b.dropped, b.key)
+    if vals is not None:
+        vals += [math.nan] * (most - len(vals))  # a value missing: counted as os:nan
+        b.add(lineno, vals[0], vals[1:4])
 
 
 def _pass(p: Path, dropped: Counter, kinds, os_builder: StreamBuilder | None = None, estimates=None):

@@ -41,9 +41,8 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
-    garbled,
     iter_csv,
-    numbers,
+    row_values,
 )
 from replay.formats._phone import put_date, utc_date
 from replay.recording import Recording
@@ -143,9 +142,8 @@ def _member_chunks(p: Path, name: str, key: str, idx: list[int], n_header: int, 
                 raise InputError(where, f"expected {n_header} columns, got {len(cells)} (truncated?)", lineno)
             if decimal_comma:
                 cells = [c.replace(",", ".") for c in cells]
-            vals = numbers(cells, n_header)
+            vals = row_values(cells, n_header, dropped, key)
             if vals is None:
-                builder.count(garbled(cells, n_header))
                 continue
             yield builder.add(lineno, vals[idx[0]], [vals[i] for i in idx[1:]])
 

@@ -41,7 +41,8 @@ The phone's own fusion, when logged, becomes ``references["os"]`` (device → EN
 Android's ``rotation-vector.txt`` (t, qx, qy, qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic
 north) and iOS's ``attitude.txt`` (t, qw, qx, qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to
 magnetic north, z up, so ``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north
-(:mod:`replay.formats._attitude`); odd rows are counted as ``os:<reason>``.
+(:mod:`replay.formats._attitude`); odd rows are counted as the streams' are, under ``os:`` (``os:nan``,
+``os:duplicate_t``, a garbled row ``os:extra_fields`` / ``os:non_numeric``).
 
 Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
 (Δ, with ``t_qualisys = t_phone + Δ``) are present, the Qualisys rigid-body rotation (device → ENU, true
@@ -69,9 +70,9 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     iter_table,
-    numbers,
     open_text,
     require,
+    row_values,
 )
 from replay.formats._phone import OsEstimate, utc_date
 from replay.recording import Recording
@@ -165,11 +166,11 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
 
 def _row(line: str) -> tuple[list[float], bool] | None:
     """One Senslogs row as 7 numbers (NaN for a missing cell) and whether it states an estimate (more than
-    t, x, y, z); None for a blank row and for a garbled one (more than 7 fields, a field that is not a
-    number: the stream drops it whole)."""
+    t, x, y, z); None for a blank row and for a garbled one (the streams' rule, :func:`row_values`: the
+    stream's own pass drops and counts it)."""
     parts = line.split()
     most = FIELDS["android"]["mag"]
-    vals = numbers(parts, most)
+    vals = row_values(parts, most)
     if not parts or vals is None:
         return None
     return vals + [np.nan] * (most - len(vals)), len(parts) > 4

@@ -28,7 +28,7 @@ import numpy as np
 
 from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, garbled, numbers, open_text
+from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, open_text, row_values
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -82,10 +82,8 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
         parts = s.split(",")
         if len(parts) < ncol:
             raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-        vals = numbers(parts, ncol)
+        vals = row_values(parts, ncol, dropped, *builders)  # garbled: counted in every stream
         if vals is None:
-            for b in builders.values():
-                b.count(garbled(parts, ncol))
             continue
         t = vals[0]
         for key, ix in idx.items():
