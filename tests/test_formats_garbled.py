@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 from collections import Counter
 from pathlib import Path
 
@@ -221,3 +222,31 @@ def test_pdrmcap_json_layout(tmp_path):
     a = _raw_mcap(tmp_path / "a.mcap", "/mag/raw", [json.dumps(m).encode() for m in msgs])
     b = _raw_mcap(tmp_path / "b.mcap", "/mag/raw", [json.dumps(m).encode() for m in bad])
     _assert_only_the_garbled_rows_differ(read_recording(a), read_recording(b), {"mag:non_numeric": 2})
+
+
+@pytest.mark.parametrize(
+    "stream, row",
+    [("gyro.csv", "0.0231,1e308,0.0,0.0"), ("mag.csv", "0.0231,3.5e4,1,2"),
+     ("accel.csv", "0.0231,-2e4,0,9.8")],
+)
+def test_a_corrupt_number_is_an_odd_sample(tmp_path, capsys, stream, row):
+    """A finite number no sensor of the kind reports (|axis| beyond ``PHYSICAL_LIMITS``: 1e308 rad/s,
+    35 000 µT, 2 000 g) inserted between two rows of the embedded walk is dropped and counted as
+    ``<stream>:implausible``; the run is the clean run's, row for row, and no numerical warning reaches the
+    user (1e308 squared overflowed in the unit check's norm)."""
+    key = stream.removesuffix(".csv")
+    clean, bad = tmp_path / "clean", tmp_path / "bad"
+    shutil.copytree(ROOT / "recordings" / "walk", clean)
+    shutil.copytree(clean, bad)
+    lines = (bad / stream).read_text().splitlines()
+    i = next(i for i, ln in enumerate(lines[1:], start=1) if float(ln.split(",")[0]) > 0.0231)
+    lines.insert(i, row)
+    (bad / stream).write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for d in (clean, bad):
+            assert main(["replay", str(d), "--out-csv", str(d / "h.csv"), "--json", str(d / "s.json")]) == 0
+    capsys.readouterr()
+    assert (clean / "h.csv").read_bytes() == (bad / "h.csv").read_bytes()
+    dropped = {d: json.loads((d / "s.json").read_text())["dropped_samples"] for d in (clean, bad)}
+    assert dropped[bad] == {**dropped[clean], f"{key}:implausible": 1}

@@ -49,6 +49,8 @@ short when it ends (its message then names the odd samples dropped from it). Odd
 * ``extra_fields`` (a text row with more fields than the header or the format defines) and ``non_numeric``
   (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part —
   one rule and one count for every text reader, :func:`replay.formats._common.row_values`;
+* ``implausible`` (an axis beyond :data:`~replay.formats._common.PHYSICAL_LIMITS`, about twice the widest
+  range any sensor of the kind offers: a corrupt number, not a measurement): dropped;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range
   the format states, else from :func:`replay.formats._common.flag_saturation`'s heuristic, run as the
   stream goes (:class:`~replay.formats._common.Saturation`: the same count, known when the stream ends);

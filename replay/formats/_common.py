@@ -24,6 +24,8 @@ checks that used to look at the whole stream, in streaming form:
 * the unit plausibility check (median vector norm, µT / m/s² / rad/s — a file in the wrong unit) looks at
   the first :data:`UNIT_CHECK_SAMPLES` samples (or all, when the stream is shorter): blocks are held back
   until it has run;
+* a sample with an axis beyond :data:`PHYSICAL_LIMITS` (a corrupt number: no sensor of the kind reports it)
+  is dropped and counted (``"<key>:implausible"``);
 * the too-few-samples check runs when the stream ends;
 * where the reader does not know the sensor's range, :class:`Saturation` counts clipped samples with a
   running per-axis peak; the count is exactly :func:`flag_saturation`'s on the whole stream, and it enters
@@ -71,6 +73,12 @@ UNIT_RANGES = {
     "accel": (3.0, 30.0, "m/s²"),
     "gyro": (0.0, 20.0, "rad/s"),
 }
+
+
+#: Largest |axis| a sample of each stream may hold, in the contract's units: about twice the widest range any
+#: MEMS sensor of the kind offers (magnetometers ±4.9 mT, accelerometers ±400 g, gyroscopes ±4000 °/s).
+#: Beyond it a number is corrupt, not a measurement: the sample is dropped (``"<key>:implausible"``).
+PHYSICAL_LIMITS = {"mag": 1.0e4, "accel": 1.0e4, "gyro": 150.0}
 
 
 def is_float(v: str) -> bool:
@@ -345,6 +353,14 @@ class Converter:
             v *= sp.scale
         if sp.t_offset:
             t += sp.t_offset
+        limit = PHYSICAL_LIMITS.get(sp.key)
+        if limit is not None:
+            ok = np.all(np.abs(v) < limit, axis=1)
+            if not ok.all():
+                self.dropped[f"{sp.key}:implausible"] += int(np.count_nonzero(~ok))
+                t, v = t[ok], v[ok]
+                if len(t) == 0:
+                    return []
         self.n += len(t)
         if self.sat is not None:
             self.sat.update(v)
