@@ -174,3 +174,41 @@ def _bad_ros2(tmp_path):
 def test_cli_exit_2_other_readers(tmp_path, capsys, make):
     path, where = make(tmp_path)
     _one_line_exit_2(capsys, ["calibrate", str(path)], where)
+
+
+def _with_bom(src: Path, dst: Path) -> Path:
+    """A copy of ``src`` (a file, or a directory whose .csv/.txt files are all rewritten) whose text files
+    start with the UTF-8 byte-order mark a spreadsheet or a Windows tool writes."""
+    if src.is_dir():
+        shutil.copytree(src, dst)
+        files = [f for f in dst.iterdir() if f.suffix in (".csv", ".txt")]
+    else:
+        shutil.copy(src, dst)
+        files = [dst]
+    for f in files:
+        f.write_bytes(b"\xef\xbb\xbf" + f.read_bytes())
+    return dst
+
+
+@pytest.mark.parametrize("name", ["walk", "msindoor_small.txt", "ipin_small.txt", "phyphox", "xio"])
+def test_a_byte_order_mark_is_skipped(tmp_path, name):
+    """A recording whose text files start with a byte-order mark reads exactly as without it (pdr-csv,
+    ms-indoor, IPIN, phyphox, x-io): the same format, streams and odd-sample counts."""
+    if name == "walk":
+        src = Path(__file__).resolve().parents[1] / "recordings" / "walk"
+    elif name == "xio":
+        src = tmp_path / "sensor_data.csv"
+        from tests.test_formats_xio import HEADER
+
+        rows = [f"{0.01 * i:.2f},0,0,0.1,0,0,1,{20 + i % 7},5,-40" for i in range(50)]
+        src.write_text(HEADER + "\n" + "\n".join(rows) + "\n")
+    else:
+        src = FIX / name
+    bom = _with_bom(src, tmp_path / f"bom_{src.name}")
+    plain, marked = read_recording(src), read_recording(bom)
+    assert detect(bom) == detect(src)
+    for key in ("mag", "accel", "gyro"):
+        a, b = getattr(plain, key), getattr(marked, key)
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.xyz, b.xyz)
+    assert marked.dropped == plain.dropped

@@ -250,3 +250,27 @@ def test_a_corrupt_number_is_an_odd_sample(tmp_path, capsys, stream, row):
     assert (clean / "h.csv").read_bytes() == (bad / "h.csv").read_bytes()
     dropped = {d: json.loads((d / "s.json").read_text())["dropped_samples"] for d in (clean, bad)}
     assert dropped[bad] == {**dropped[clean], f"{key}:implausible": 1}
+
+
+@pytest.mark.parametrize("name", ["truth.csv", "os.csv"])
+def test_an_attitude_row_that_is_no_unit_quaternion_is_dropped(tmp_path, capsys, name):
+    """An all-zero quaternion row (a logger's placeholder) in the mocap truth or the phone's own attitude is
+    no attitude: dropped and counted (``truth:not_unit`` / ``os:not_unit``), the series otherwise the clean
+    one; the replay scores against what is left (an all-zero os.csv ended the run with a division by zero in
+    the scorer)."""
+    key = name.removesuffix(".csv")
+    clean, bad = tmp_path / "clean", tmp_path / "bad"
+    shutil.copytree(ROOT / "recordings" / "walk", clean)
+    if name == "os.csv":  # the truth as the phone's own estimate: a reference series like any other
+        shutil.copy(clean / "truth.csv", clean / "os.csv")
+    shutil.copytree(clean, bad)
+    lines = (bad / name).read_text().splitlines()
+    lines.insert(5, f"{(float(lines[4].split(',')[0]) + float(lines[5].split(',')[0])) / 2:.6f},0,0,0,0")
+    (bad / name).write_text("\n".join(lines) + "\n")
+    plain, odd = read_recording(clean), read_recording(bad)
+    series = (lambda r: r.truth) if key == "truth" else (lambda r: r.references["os"])
+    for a, b in zip(series(plain), series(odd), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert odd.dropped == {**plain.dropped, f"{key}:not_unit": 1}
+    assert main(["replay", str(bad), "--json", str(bad / "s.json")]) == 0
+    capsys.readouterr()

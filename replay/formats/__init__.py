@@ -46,6 +46,8 @@ short when it ends (its message then names the odd samples dropped from it). Odd
 ``Recording.dropped`` under ``"<stream>:<reason>"``:
 
 * ``nan`` (a NaN/inf/null value) and ``duplicate_t`` (the previous sample's time again): dropped;
+* ``not_unit`` (an attitude row — the truth, the phone's own — whose quaternion is far from norm 1, e.g. all
+  zero): dropped;
 * ``extra_fields`` (a text row with more fields than the header or the format defines) and ``non_numeric``
   (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part —
   one rule and one count for every text reader, :func:`replay.formats._common.row_values`;

@@ -2,8 +2,9 @@
 
 Every reader feeds rows one at a time (or in chunks) into a :class:`StreamBuilder`, which
 
-* drops a row with a NaN/inf value (``"<key>:nan"``) and a row whose time repeats the previous one
-  (``"<key>:duplicate_t"``), counting both in the recording's ``dropped`` counter;
+* drops a row with a NaN/inf value (``"<key>:nan"``), a row whose time repeats the previous one
+  (``"<key>:duplicate_t"``) and an attitude row that is no unit quaternion (``"<key>:not_unit"``,
+  :data:`QUAT_NORM`), counting them in the recording's ``dropped`` counter;
 * raises :class:`~replay.errors.InputError` naming the file and line when time goes backwards;
 * flags (keeps, but counts as ``"<key>:saturated"``) samples with an axis at the sensor's range limit,
   when the reader knows that limit;
@@ -75,6 +76,9 @@ UNIT_RANGES = {
 }
 
 
+#: An attitude row (``width=4``: truth, the phone's own) is a quaternion of norm 1 up to its rounding; one
+#: outside this band (an all-zero row, a logging glitch) is no attitude: dropped (``"<key>:not_unit"``).
+QUAT_NORM = (0.5, 1.5)
 #: Largest |axis| a sample of each stream may hold, in the contract's units: about twice the widest range any
 #: MEMS sensor of the kind offers (magnetometers ±4.9 mT, accelerometers ±400 g, gyroscopes ±4000 °/s).
 #: Beyond it a number is corrupt, not a measurement: the sample is dropped (``"<key>:implausible"``).
@@ -115,9 +119,10 @@ def row_values(
 
 
 def open_text(path: Path):
-    """Open a text file for line-by-line reading, InputError if it cannot be opened."""
+    """Open a text file for line-by-line reading (UTF-8, a byte-order mark that a spreadsheet or a Windows
+    tool wrote skipped), InputError if it cannot be opened."""
     try:
-        return Path(path).open("r", encoding="utf-8", errors="replace", newline="")
+        return Path(path).open("r", encoding="utf-8-sig", errors="replace", newline="")
     except OSError as exc:
         raise InputError(path, f"cannot open ({exc.strerror})") from exc
 
@@ -125,7 +130,8 @@ def open_text(path: Path):
 def check_units(path, key: str, xyz: np.ndarray, unit_hint: str = "") -> None:
     """InputError when the median vector norm is outside the plausible range of ``key``."""
     lo, hi, unit = UNIT_RANGES[key]
-    med = float(np.median(np.linalg.norm(xyz, axis=1)))
+    with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308 among them: its norm is inf
+        med = float(np.median(np.linalg.norm(xyz, axis=1)))
     if not (lo <= med <= hi):
         what = f" (read as {unit_hint})" if unit_hint else ""
         raise InputError(
@@ -178,6 +184,9 @@ class StreamBuilder:
             raise InputError(
                 self.path, f"{self.key}: time goes backwards ({t!r} after {self.last_t!r})", lineno
             )
+        if self.width == 4 and not QUAT_NORM[0] <= math.sqrt(sum(v * v for v in vals)) <= QUAT_NORM[1]:
+            self.dropped[f"{self.key}:not_unit"] += 1
+            return False
         if self.limit is not None and any(abs(v) >= self.limit for v in vals):
             self.dropped[f"{self.key}:saturated"] += 1
         self.last_t = t
@@ -206,6 +215,11 @@ class StreamBuilder:
         keep = t != prev
         self.count("duplicate_t", int((~keep).sum()))
         t, vals = t[keep], vals[keep]
+        if self.width == 4:
+            norm = np.linalg.norm(vals, axis=1)
+            unit = (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
+            self.count("not_unit", int((~unit).sum()))
+            t, vals = t[unit], vals[unit]
         if self.limit is not None:
             self.count("saturated", int(np.any(np.abs(vals) >= self.limit, axis=1).sum()))
         if len(t):
@@ -353,19 +367,9 @@ class Converter:
             v *= sp.scale
         if sp.t_offset:
             t += sp.t_offset
-        limit = PHYSICAL_LIMITS.get(sp.key)
-        if limit is not None:
-            ok = np.all(np.abs(v) < limit, axis=1)
-            if not ok.all():
-                self.dropped[f"{sp.key}:implausible"] += int(np.count_nonzero(~ok))
-                t, v = t[ok], v[ok]
-                if len(t) == 0:
-                    return []
         self.n += len(t)
-        if self.sat is not None:
-            self.sat.update(v)
         if self.held is None:
-            return [(t, v)]
+            return self._plausible([(t, v)])
         self.held.append((t, v))
         return self._release() if self.n >= UNIT_CHECK_SAMPLES else []
 
@@ -374,7 +378,25 @@ class Converter:
         if held:
             head = np.concatenate([v for _, v in held])[:UNIT_CHECK_SAMPLES]
             check_units(self.spec.path, self.spec.key, head, self.spec.unit_hint)
-        return held
+        return self._plausible(held)
+
+    def _plausible(self, blocks: list[Block]) -> list[Block]:
+        """The blocks without their samples beyond :data:`PHYSICAL_LIMITS` (counted; after the unit check,
+        so a file in the wrong unit is named as such, not emptied sample by sample), the saturation
+        heuristic fed with the rest."""
+        limit = PHYSICAL_LIMITS.get(self.spec.key)
+        out = []
+        for t, v in blocks:
+            if limit is not None:
+                ok = np.all(np.abs(v) < limit, axis=1)
+                if not ok.all():
+                    self.dropped[f"{self.spec.key}:implausible"] += int(np.count_nonzero(~ok))
+                    t, v = t[ok], v[ok]
+            if len(t):
+                if self.sat is not None:
+                    self.sat.update(v)
+                out.append((t, v))
+        return out
 
     def end(self) -> list[Block]:
         """The blocks still held; InputError for a stream too short (or an implausible unit)."""

@@ -85,7 +85,7 @@ def detect(path: Path) -> bool:
     if not path.is_file():
         return False
     with path.open("rb") as fh:
-        head = fh.read(4096)
+        head = fh.read(4096).removeprefix(b"\xef\xbb\xbf")  # a byte-order mark, if a tool wrote one
     return head.startswith(b"#\tstartTime:") or (
         b"\tTYPE_ACCELEROMETER\t" in head and not head.startswith(b"\x89")
     )

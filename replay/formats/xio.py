@@ -46,7 +46,7 @@ def detect(path: Path) -> bool:
     if not (path.is_file() and path.suffix.lower() == ".csv"):
         return False
     with path.open("rb") as fh:
-        first = fh.readline(4096).decode("utf-8", "replace").strip().lower()
+        first = fh.readline(4096).decode("utf-8-sig", "replace").strip().lower()
     return first.startswith("time (s),") and "magnetometer x (" in first
 
 
