@@ -160,6 +160,10 @@ def test_boundary_errors_and_odd_samples():
         pipe.push("baro", 0.0, [1, 2, 3])
     with pytest.raises(ValueError, match="xyz"):
         pipe.push_arrays("mag", [0.0, 1.0], np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=r"xyz: expected 3 values \(x, y, z\), got 2"):
+        pipe.push("mag", 0.0, [1.0, 2.0])
+    with pytest.raises(ValueError, match=r"streams\['mag'\]: expected a \(t, xyz\) pair"):
+        HeadingPipeline().run({"mag": "abc"})
     with pytest.raises(ValueError, match="calibration"):
         HeadingPipeline(calibration={"offset": 1})
     pipe.push_arrays("gyro", [0.0, 0.01, 0.01, 0.005], np.zeros((4, 3)))

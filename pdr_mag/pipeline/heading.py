@@ -269,7 +269,10 @@ class HeadingPipeline:
     # ------------------------------------------------------------------ input
     def push(self, kind, t: float, xyz) -> None:
         """Push one sample of stream ``kind`` (``"accel"``, ``"gyro"``, ``"mag"`` or 0/1/2)."""
-        self.push_arrays(kind, np.array([t], dtype=float), np.asarray(xyz, dtype=float).reshape(1, 3))
+        v = np.asarray(xyz, dtype=float).reshape(-1)
+        if v.shape != (3,):
+            raise ValueError(f"xyz: expected 3 values (x, y, z), got {v.size}")
+        self.push_arrays(kind, np.array([t], dtype=float), v.reshape(1, 3))
 
     def push_arrays(self, kind, t, xyz) -> None:
         """Push a chunk of one stream: times (N,) s and values (N, 3) in the contract's units.
@@ -361,8 +364,10 @@ class HeadingPipeline:
 
     def run(self, streams: dict) -> EstimateBatch:
         """Batch convenience: ``{"accel": (t, xyz), ...}`` all at once → every estimate (a loop over push)."""
-        for name, (t, xyz) in streams.items():
-            self.push_arrays(name, t, xyz)
+        for name, pair in streams.items():
+            if not (isinstance(pair, tuple | list) and len(pair) == 2):
+                raise ValueError(f"streams[{name!r}]: expected a (t, xyz) pair, got {type(pair).__name__}")
+            self.push_arrays(name, *pair)
         self._process(self._poll_horizon())
         return self.flush()
 
