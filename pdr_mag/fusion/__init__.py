@@ -23,7 +23,9 @@ nominal state
     device frame, rad/s; ``c`` the slowly varying error of the magnetometer heading, rad.
 error state ``δx = (δθ, δb, δc)``, 7 values
     ``R_true = Exp(δθ) R`` with ``δθ`` in the world frame (so ``δθ_z`` is the heading error and
-    ``heading_std = √(P + U)[δθ_z, δθ_z]``, ``U`` the consider covariance below), ``b_true = b + δb``,
+    ``heading_std = √max((P + U)[δθ_z, δθ_z], g Σ_b gᵀ)``, ``U`` the consider covariance below, the
+    floor the calibration's offset covariance ``Σ_b`` seen in the heading,
+    :func:`~pdr_mag.fusion.kernel.calibration_floor`), ``b_true = b + δb``,
     ``c_true = c + δc``.
 prediction (:mod:`~pdr_mag.fusion.gyro`)
     ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``;

@@ -27,7 +27,9 @@ equations in its module).  In short:
 * magnetometer heading error ``c``: the errors of a calibrated magnetometer indoors are correlated over
   seconds (residual calibration, the building's field); modelling them keeps the bias estimate from
   absorbing them;
-* reported uncertainty: ``heading_std_deg = degrees(sqrt(P[δθ_z, δθ_z] + U[δθ_z, δθ_z]))``.  ``U`` is a
+* reported uncertainty: ``heading_std_deg = degrees(sqrt(max(P[δθ_z, δθ_z] + U[δθ_z, δθ_z], g Σ_b gᵀ)))``,
+  the last the heading error the calibration's offset covariance causes at this orientation, which does not
+  average out while the orientation holds (:func:`pdr_mag.fusion.kernel.calibration_floor`).  ``U`` is a
   consider covariance propagated and updated with the filter's own gains: the place's disturbance that the
   weighting leaves out (``uncertainty.env_k``, ``uncertainty.flag_k``: the unseen, heading-turning component
   of the deviations the detectors measure, and of the disturbances that raise their flag) — a field that

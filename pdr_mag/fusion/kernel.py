@@ -69,6 +69,17 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
 
 
 @njit(cache=True, error_model="numpy")
+def calibration_floor(st):
+    """The least heading variance the calibration in force allows, rad²: ``cal_var = g Σ_b gᵀ`` at the
+    latest usable sample (0 before the first heading).  The calibration's offset error is one constant
+    vector in the device frame, so the heading error it causes stays while the device keeps its orientation;
+    the filter carries it in c, whose Gauss–Markov model lets it average out over a few ``mag.error_tau_s``,
+    and the reported variance ``max(P + U, cal_var)`` restores what does not (an uncertain prior's offset
+    — the phone's, a store's — and a first fit's)."""
+    return st.cal_var if st.init >= 2 else 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _write_row(st, ti, out, n):
     """Row ``n`` of ``out`` (:class:`~pdr_mag.fusion.rows.Rows`) from the state at gyroscope time ti; resets
     the since-last-row flags."""
@@ -76,7 +87,7 @@ def _write_row(st, ti, out, n):
     f[COL.t, n] = ti
     for c in range(4):
         out.q[n, c] = st.q[c]
-    var = min(st.P[TH_Z, TH_Z] + heading_var_u(st), np.pi**2)  # the filter's and the consider covariance's
+    var = min(max(st.P[TH_Z, TH_Z] + heading_var_u(st), calibration_floor(st)), np.pi**2)
     f[COL.heading_std_deg, n] = np.degrees(np.sqrt(max(var, 0.0)))
     out.flags[FLAG.mag_used, n] = st.mag_used
     out.flags[FLAG.interference, n] = st.det.flag or st.interference_seen

@@ -286,7 +286,8 @@ class UncertaintySettings:
         field with the smaller ``MagSettings.env_k`` (a field that passes the detectors in such a place is
         still informative); the difference is noise the weighting leaves out, carried through the same
         gains in a consider covariance ``U`` and added to the reported variance,
-        ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]``.  0 leaves this part out.
+        ``P[δθ_z, δθ_z] + U[δθ_z, δθ_z]`` (floored by the calibration's own,
+        :func:`pdr_mag.fusion.kernel.calibration_floor`).  0 leaves this part out.
     flag_k : float
         Weight of the flagged share in that consider part: where a share ``s_flag`` of the recent samples
         (exponentially weighted over ``MagSettings.env_tau_s``, normalised by the weight seen, so a start
