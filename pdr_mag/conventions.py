@@ -6,6 +6,8 @@ Quaternions are w-first ``(qw, qx, qy, qz)`` everywhere outside this module; sci
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -57,6 +59,13 @@ def heading_deg_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
     r01 = 2.0 * (x * y - w * z)
     r11 = 1.0 - 2.0 * (x * x + z * z)
     return np.mod(np.degrees(np.arctan2(r01, r11)), 360.0)
+
+
+def vector_norm(v) -> float:
+    """``np.linalg.norm`` of a 1-D vector, by its own arithmetic (``sqrt(v · v)`` of the raveled float
+    vector) without its argument handling: the online refits and stale tests take a few per call."""
+    x = np.asarray(v, dtype=float).ravel(order="K")
+    return math.sqrt(x.dot(x))
 
 
 def wrap_deg(angle_deg: np.ndarray | float) -> np.ndarray | float:

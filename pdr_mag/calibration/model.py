@@ -75,7 +75,7 @@ class MagCalibration:
     def from_arrays(cls, offset, soft_iron=None, **kwargs) -> MagCalibration:
         """Build from numpy arrays, validating shapes and symmetry."""
         b = np.asarray(offset, dtype=float)
-        if b.shape != (3,) or not np.all(np.isfinite(b)):
+        if b.shape != (3,) or not np.isfinite(b).all():
             raise ValueError(f"offset: expected 3 finite values in µT, got {offset!r}")
         if soft_iron is None:
             soft = _EYE  # 0.5 (I + Iᵀ) = I
