@@ -209,12 +209,15 @@ class Histogram:
     def quantile(self, q: float) -> float | None:
         """Nearest-rank ``q`` quantile (the ``⌈q·n⌉``-th smallest value) to within ``BIN_DEG / 2``, or None
         without values."""
-        n = self.n
+        return self.quantiles(q)[0]
+
+    def quantiles(self, *qs: float) -> list[float | None]:
+        """:meth:`quantile` of each of ``qs`` (the counts summed once)."""
+        cum = np.cumsum(self.counts)
+        n = int(cum[-1])
         if n == 0:
-            return None
-        rank = max(1, math.ceil(q * n))
-        k = int(np.searchsorted(np.cumsum(self.counts), rank))
-        return round(k * BIN_DEG, 2)
+            return [None] * len(qs)
+        return [round(int(np.searchsorted(cum, max(1, math.ceil(q * n)))) * BIN_DEG, 2) for q in qs]
 
 
 def heading_error_deg(q_est: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
@@ -317,8 +320,9 @@ class ReferenceErrors:
         """``n_epochs`` scored; ``median_deg``, ``p90_deg``, ``p95_deg`` of |ε| (±``BIN_DEG``/2) and
         ``share_over_45`` (None without scored epochs)."""
         n = self.errors.n
-        return {"n_epochs": n, "median_deg": self.errors.quantile(0.5), "p90_deg": self.errors.quantile(0.9),
-                "p95_deg": self.errors.quantile(0.95), "share_over_45": self.n_over_45 / n if n else None}
+        median, p90, p95 = self.errors.quantiles(0.5, 0.9, 0.95)
+        return {"n_epochs": n, "median_deg": median, "p90_deg": p90, "p95_deg": p95,
+                "share_over_45": self.n_over_45 / n if n else None}
 
 
 # ------------------------------------------------------------------------------------------ the sink
