@@ -234,7 +234,8 @@ class FusionCore:
         st["cal_jump_e"] += e
         f = float(st["f_ref"]) if np.isfinite(st["f_ref"]) else EARTH_STRENGTH_RANGE_UT[0]
         tol = self.settings.interference.strength
-        if np.linalg.norm(d, 2) * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
+        d_norm = np.linalg.norm(d, 2) if d.any() else 0.0  # (an offset-only change: d = 0, no SVD)
+        if d_norm * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
             forget_learnt(st["det"])
 
     def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:
