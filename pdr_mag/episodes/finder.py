@@ -305,17 +305,14 @@ class EpisodeFinder:
         if len(batch) == 0:
             return self._release()
         t = np.asarray(batch.t, dtype=float)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dev_f = _deviation(batch.diag, "field_strength_uT", "field_ref_uT", "strength_tol_uT", len(t))
-            dev_i = _deviation(batch.diag, "dip_deg", "dip_ref_deg", "dip_tol_deg", len(t))
         closed, changes = K.scan(
             t,
             self.error_deg(t, batch.heading_deg),
             np.asarray(batch.heading_std_deg, dtype=float),
             np.asarray(batch.mag_used, dtype=bool),
             np.asarray(batch.interference, dtype=bool),
-            dev_f,
-            dev_i,
+            _band(batch.diag, ("field_strength_uT", "field_ref_uT", "strength_tol_uT"), len(t)),
+            _band(batch.diag, ("dip_deg", "dip_ref_deg", "dip_tol_deg"), len(t)),
             self._scan,
             self._levels,
         )
@@ -412,14 +409,12 @@ def worst(episodes, n: int = 3) -> list[Episode]:
     return sorted(episodes, key=lambda e: -e.severity)[:n]
 
 
-def _deviation(d: dict, value: str, ref: str, tol: str, n: int) -> np.ndarray:
-    """``|value − ref| / tol`` from diag columns; 0 where any is missing."""
-    if value not in d or ref not in d or tol not in d:
-        return np.zeros(n)
-    dev = np.abs(np.asarray(d[value], dtype=float) - np.asarray(d[ref], dtype=float)) / np.asarray(
-        d[tol], dtype=float
-    )
-    return np.where(np.isfinite(dev), dev, 0.0)
+def _band(d: dict, keys: tuple[str, str, str], n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A detector's value, reference and tolerance columns from diag (the scan's deviation ``|value − ref| /
+    tol``, 0 where one is NaN); NaN columns when one is missing (a deviation of 0 throughout)."""
+    if not all(k in d for k in keys):
+        return (np.full(n, np.nan),) * 3
+    return tuple(np.ascontiguousarray(d[k], dtype=float) for k in keys)
 
 
 def _first_rise(trans: list, lo: float, hi: float) -> _Change | None:
