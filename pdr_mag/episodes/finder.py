@@ -46,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pdr_mag._records import check_numbers
+from pdr_mag._records import check_numbers, default_settings
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.episodes import _kernel as K
 from pdr_mag.estimates import Event
@@ -239,7 +239,7 @@ class EpisodeFinder:
     """
 
     def __init__(self, settings: EpisodeSettings | None = None, truth=None):
-        self.settings = settings or EpisodeSettings()
+        self.settings = settings or default_settings(EpisodeSettings)
         self._truth = None
         if truth is not None:
             t_tr = np.asarray(truth[0], dtype=float)

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pdr_mag._json import state_float
+from pdr_mag._records import default_settings
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.calibration.prior import (
@@ -81,7 +82,7 @@ _SPAN_MAX = 32
 def _fusion_settings(settings, meta: dict):
     """The fusion settings (defaults when None), with the accelerometer range the recording states
     (``meta["accel_range_m_s2"]``, per axis) unless the settings give one."""
-    settings = settings or FusionSettings()
+    settings = settings or default_settings(FusionSettings)
     rng = meta.get("accel_range_m_s2")
     if settings.accel.range == 0.0 and rng is not None:
         if not (isinstance(rng, int | float) and math.isfinite(rng) and rng > 0):
@@ -181,7 +182,7 @@ class HeadingPipeline:
             raise ValueError(f"meta: expected a dict or None, got {type(meta).__name__}")
         if prior is not None and not isinstance(prior, DevicePrior):
             raise ValueError(f"prior: expected a DevicePrior or None, got {type(prior).__name__}")
-        self.settings = settings or PipelineSettings()
+        self.settings = settings or default_settings(PipelineSettings)
         self.meta = dict(meta or {})
         try:
             self.field: EarthField | None = earth_field_from_meta(self.meta)
