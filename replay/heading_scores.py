@@ -237,11 +237,13 @@ def _score(tr, qr, ts, qs, max_gap, bin_deg, counts):
     ``bin_deg``, as :meth:`Histogram.add`).  Returns how many exceed 45°.  One pass in compiled code: the
     series is scored at every output epoch, 100–200 a second.  An epoch on a reference sample (``u = 0``:
     the phone's own attitude is often stamped with the gyroscope's times, as the rows are) takes the
-    formula's weights there, exactly 1 and 0, without the arc's trigonometry."""
+    formula's weights there, exactly 1 and 0, without the arc's trigonometry.  The reference sample at or
+    before each epoch is found by walking forward from the previous epoch's (rows come in time order; a row
+    earlier than the one before starts the walk over)."""
     m = len(tr)
     nb = len(counts)
-    idx = np.searchsorted(tr, ts, side="right") - 1
     n45 = 0
+    j = 0  # the last reference sample at or before the previous scored row
     for k in range(len(ts)):
         if not (ts[k] >= tr[0] and ts[k] <= tr[m - 1]):
             continue
@@ -249,7 +251,11 @@ def _score(tr, qr, ts, qs, max_gap, bin_deg, counts):
             continue
         if not (np.isfinite(qs[k, 2]) and np.isfinite(qs[k, 3])):
             continue
-        i = min(max(idx[k], 0), m - 2)
+        if tr[j] > ts[k]:
+            j = 0
+        while j + 1 < m and tr[j + 1] <= ts[k]:
+            j += 1
+        i = min(j, m - 2)
         if tr[i + 1] - tr[i] > max_gap:
             continue
         u = min(max((ts[k] - tr[i]) / (tr[i + 1] - tr[i]), 0.0), 1.0)
