@@ -26,7 +26,6 @@ Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravit
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -79,7 +78,7 @@ def candidates(
     cov = direction_coverage(centred)
     if cov >= s.sphere_coverage:
         try:
-            cands.append(replace(fit_sphere(m), coverage=cov))
+            cands.append(fit_sphere(m).with_fields(coverage=cov))
         except (ValueError, ArithmeticError):
             pass
     if (
@@ -89,7 +88,7 @@ def candidates(
     ):
         try:
             full = calibrate(m, method="auto", field=field_ref)
-            cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
+            cands.append(full.with_fields(coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
     first = current is None or provisional(current, s, vague_prior=True)
@@ -151,8 +150,7 @@ def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float
     if k <= 1.0:
         return cal
     cov = np.asarray(cal.covariance, dtype=float) * k
-    return replace(
-        cal,
+    return cal.with_fields(
         covariance=tuple(map(tuple, cov.tolist())),
         offset_std_uT=tuple(np.sqrt(np.maximum(cov.diagonal()[:3], 0.0)).tolist()),
         extra={**cal.extra, "correlation_inflation": k},
@@ -253,7 +251,7 @@ def judge(
         reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere "
                        f"(± {RADIUS_REL_TOL:.0%} indoors)")
     if coverage is not None:
-        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
+        return cal.with_fields(coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
 
 
@@ -292,7 +290,7 @@ def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibratio
     samples it was fitted on (a gravity fit has its own)."""
     if cal.method == "gravity":
         return cal
-    return replace(cal, extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
+    return cal.with_fields(extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
 
 
 def median_sin_dip(m_cal: np.ndarray, u: np.ndarray) -> float:
