@@ -100,6 +100,7 @@ from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 7
 _NO_CUTS = np.empty(0, dtype=np.intp)
+_EYE3 = np.eye(3)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
 
@@ -223,18 +224,21 @@ class FusionCore:
         for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
                                ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
             a = np.asarray(v, dtype=float)
-            if a.shape != shape or not np.all(np.isfinite(a)):
+            if a.shape != shape or not np.isfinite(a).all():
                 raise ValueError(f"{name}: expected finite values of shape {shape}, got {v!r}")
             arrays.append(a)
         m_old, b_old, m_new, b_new = arrays
         st = self._st[0]
-        d = np.eye(3) - m_old @ np.linalg.inv(m_new)
+        if (m_old == _EYE3).all() and (m_new == _EYE3).all():
+            d = np.zeros((3, 3))  # an offset-only change (every gravity refit): I − I·I⁻¹ = 0 exactly
+        else:
+            d = np.eye(3) - m_old @ np.linalg.inv(m_new)
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
         f = float(st["f_ref"]) if np.isfinite(st["f_ref"]) else EARTH_STRENGTH_RANGE_UT[0]
         tol = self.settings.interference.strength
-        d_norm = np.linalg.norm(d, 2) if d.any() else 0.0  # (an offset-only change: d = 0, no SVD)
+        d_norm = np.linalg.norm(d, 2) if d.any() else 0.0  # (d = 0: no SVD)
         if d_norm * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
             forget_learnt(st["det"])
 

@@ -72,6 +72,7 @@ from pdr_mag.pipeline.streams import PendingStream, take_merged
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
 STATE_VERSION = 4
 _NO_OFFSET = np.zeros(3)
+_EYE3 = np.eye(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
 #: (changes come in runs while the calibration converges), doubled after each span without one, up to the
 #: most.
@@ -526,7 +527,7 @@ class HeadingPipeline:
         self._mag_matrix_t = None
         if cal is not None:
             a = cal.matrix
-            self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
+            self._mag_matrix_t = None if (a == _EYE3).all() else a.T
         if restored:
             return
         if cal is not None and not self._calibrations:
