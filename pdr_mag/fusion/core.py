@@ -340,7 +340,9 @@ class FusionCore:
         col = columns(out, k)
         heading = np.arctan2(col["h_y"], col["h_x"])
         np.degrees(heading, out=heading)
-        np.mod(heading, 360.0, out=heading)
+        # np.mod(heading, 360) of these angles in [−180°, 180°], exactly: 360 added below zero, −0 made +0
+        np.add(heading, 360.0, out=heading, where=heading < 0.0)
+        heading += 0.0
         rows = EstimateBatch(
             t=col["t"],
             q_wd=col["q"],

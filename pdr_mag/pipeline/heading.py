@@ -449,20 +449,18 @@ class HeadingPipeline:
         cal = self.online.calibration
         cal_state = self.online.cal_state
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
-        data, allowed, n_gyro = PK.filter_input(kind, xyz, self._mag_offset, cal is not None)
+        data, allowed, n_gyro, starts = PK.filter_input(kind, xyz, blk, self._mag_offset, cal is not None)
         if cal is not None and self._mag_matrix_t is not None:
             is_mag = kind == MAG
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
-        # the filter over the span, keeping its state before each block
-        starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
+        # the filter over the span, keeping its state before each block (``starts``: each one's first sample)
         batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
         if self.settings.online:
             # the open block's magnetometer rows, then these samples'
-            rows = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend)
-            row_blk = np.floor(rows["t"] / b)
+            rows, row_blk = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend, b)
             n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
             self._pend = rows[n_ended:]
