@@ -88,6 +88,7 @@ import numpy as np
 
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import mod360
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
@@ -338,11 +339,7 @@ class FusionCore:
         # arguments in one compiled call
         k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
         col = columns(out, k)
-        heading = np.arctan2(col["h_y"], col["h_x"])
-        np.degrees(heading, out=heading)
-        # np.mod(heading, 360) of these angles in [−180°, 180°], exactly: 360 added below zero, −0 made +0
-        np.add(heading, 360.0, out=heading, where=heading < 0.0)
-        heading += 0.0
+        heading = mod360(np.degrees(np.arctan2(col["h_y"], col["h_x"])))
         rows = EstimateBatch(
             t=col["t"],
             q_wd=col["q"],
