@@ -283,8 +283,13 @@ def _score(tr, qr, ts, qs, max_gap, bin_deg, counts):
         rw, rx, ry, rz = q0 / nq, -q1 / nq, -q2 / nq, -q3 / nq
         ew = pw * rw - px * rx - py * ry - pz * rz
         ez = pw * rz + px * ry - py * rx + pz * rw
-        e = np.degrees(2.0 * np.arctan2(ez, ew))
-        e = abs(np.mod(e + 180.0, 360.0) - 180.0)
+        # |wrap(e)|, e in [−360°, 360°]: np.mod(e + 180, 360) by its exact arithmetic (a turn off at most)
+        x = np.degrees(2.0 * np.arctan2(ez, ew)) + 180.0
+        if x >= 360.0:
+            x -= 360.0
+        elif x < 0.0:
+            x += 360.0
+        e = abs(x - 180.0)
         if not np.isfinite(e):
             continue
         counts[min(max(int(np.rint(e / bin_deg)), 0), nb - 1)] += 1
