@@ -64,10 +64,8 @@ def heading_deg_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
 def mod360(angle_deg):
     """``np.mod(angle_deg, 360.0)`` of angles in [−360°, 360°) (an ``arctan2`` in degrees), by the same exact
     arithmetic without its per-element division: 360 added below zero, −0 made +0 (a new array)."""
-    a = np.array(angle_deg, dtype=float)
-    np.add(a, 360.0, out=a, where=a < 0.0)
-    a += 0.0
-    return a
+    a = np.asarray(angle_deg, dtype=float)
+    return np.where(a < 0.0, a + 360.0, a) + 0.0
 
 
 def vector_norm(v) -> float:
