@@ -39,7 +39,8 @@ Interface
 ---------
 ``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch`` (checked input),
 or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows and
-a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`; what the pipeline uses):
+a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`, until the next ``advance``;
+what the pipeline uses):
 
 ``kind`` int8 (N,)
     :data:`~pdr_mag.fusion.kinds.ACCEL` (m/s²), :data:`~pdr_mag.fusion.kinds.GYRO` (rad/s),
@@ -102,7 +103,6 @@ from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, 
 STATE_VERSION = 7
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _EYE3 = np.eye(3)
-_NO_SNAPS = np.empty(0, dtype=STATE)
 
 
 class Span(NamedTuple):
@@ -140,17 +140,19 @@ class Snapshot:
 
 
 class Snapshots(Sequence):
-    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order (made on access)."""
+    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order: the states' bytes (rows of
+    ``raw``), in the filter's snapshot buffer until its next ``advance`` writes there; a :class:`Snapshot`
+    taken (``snapshots[i]``) is a copy and stays."""
 
-    def __init__(self, states: np.ndarray, reference_strength: float | None):
-        self._raw = states.view(np.uint8).reshape(len(states), -1) if len(states) else states
+    def __init__(self, raw: np.ndarray, reference_strength: float | None):
+        self._raw = raw
         self._ref = reference_strength
 
     def __len__(self) -> int:
         return len(self._raw)
 
     def __getitem__(self, i: int) -> Snapshot:
-        return Snapshot(self._raw[i], self._ref)
+        return Snapshot(self._raw[i].copy(), self._ref)
 
 
 class Advanced(NamedTuple):
@@ -175,6 +177,8 @@ class FusionCore:
         self._p = settings_record(self.settings)
         self._st = new_state()
         self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
+        self._snap_buf = np.empty(0, dtype=STATE)  # advance's snapshots (reused: a new array costs ~4 µs)
+        self._snap_raw = self._snap_buf.view(np.uint8).reshape(0, STATE.itemsize)  # … their bytes
         self._ref_strength: float | None = None
         self.field: EarthField | None = None
         self.set_field(field)
@@ -334,7 +338,10 @@ class FusionCore:
         samples were calibrated with, which the caller knows (the pipeline: its online calibrator's)."""
         cuts = _NO_CUTS if snapshot_before is None else snapshot_before
         out = new_rows(span.n_gyro)
-        snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
+        if len(cuts) > len(self._snap_buf):
+            self._snap_buf = np.empty(max(len(cuts), 2 * len(self._snap_buf), 32), dtype=STATE)
+            self._snap_raw = self._snap_buf.view(np.uint8).reshape(len(self._snap_buf), STATE.itemsize)
+        snaps = self._snap_buf[: len(cuts)]
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
         k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
@@ -350,7 +357,7 @@ class FusionCore:
             cal_state=np.full(k, cal_state, dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
-        return Advanced(rows, Snapshots(snaps, self._ref_strength))
+        return Advanced(rows, Snapshots(self._snap_raw[: len(cuts)], self._ref_strength))
 
     # ------------------------------------------------------------------ state
     @property
