@@ -149,10 +149,10 @@ def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float
     k = n / min(n, 1.0 + span / corr_s)
     if k <= 1.0:
         return cal
-    cov = np.asarray(cal.covariance, dtype=float) * k
+    cov = tuple(tuple(v * k for v in row) for row in cal.covariance)  # (the product numpy's would give)
     return cal.with_fields(
-        covariance=tuple(map(tuple, cov.tolist())),
-        offset_std_uT=tuple(np.sqrt(np.maximum(cov.diagonal()[:3], 0.0)).tolist()),
+        covariance=cov,
+        offset_std_uT=tuple(np.sqrt(np.maximum([cov[0][0], cov[1][1], cov[2][2]], 0.0)).tolist()),
         extra={**cal.extra, "correlation_inflation": k},
     )
 
@@ -180,9 +180,10 @@ def gravity_fit_keeping_shape(
     ``M⁻¹ Σ_c M⁻ᵀ``.
     """
     s = settings
-    a = current.soft_iron_array if current is not None else np.eye(3)
-    mm = current.matrix if current is not None else a
-    shaped = not is_identity(mm.tolist(), 1e-12)
+    # an offset-only calibration (the identity soft iron of from_arrays, no mag_to_imu) has no shape to keep
+    plain = current is None or (current.soft_iron is _EYE and current.mag_to_imu is None)
+    mm = None if plain else current.matrix
+    shaped = not plain and not is_identity(mm.tolist(), 1e-12)
     g = gravity_aided_offset(
         m @ mm.T if shaped else m, u, field_ref, sin_dip_ref if field_ref is not None else None,
         s.sigma_strength_uT, s.sigma_tilt_deg, prior_strength_std_uT=s.prior_strength_std_uT,
@@ -190,6 +191,7 @@ def gravity_fit_keeping_shape(
     )  # fmt: skip
     if not shaped:
         return g
+    a = current.soft_iron_array
     mi = np.linalg.inv(mm)
     cov_b = mi @ np.asarray(g.covariance, dtype=float) @ mi.T
     return MagCalibration.from_arrays(
