@@ -27,8 +27,8 @@ before each block; then the span's ended blocks go to the calibrator in one call
 of the first block whose close changed the calibration.  Then the filter is put back to its state at that
 block's end and the rows after it are dropped, and the next span starts there with the new calibration.
 Changes are rare (a few per recording, most while the calibration converges), so a span is short after a
-change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks).  The rows are those
-of block-by-block processing whatever the span length (tested).
+change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks), once a calibration
+is in force.  The rows are those of block-by-block processing whatever the span length (tested).
 
 Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data between polls (``push``
 processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
@@ -439,7 +439,8 @@ class HeadingPipeline:
         # the span's last block has ended when a later sample is here or the horizon passed its end
         last_ended = e < len(t) or (blk[e - 1] + 1) * self.settings.block_s <= t_end
         n = self._fuse_and_close(kind[i:e], t[i:e], xyz[i:e], blk[i:e], last_ended)
-        if n == e - i and e < len(t):
+        if n == e - i and e < len(t) and self.online.calibration is not None:
+            # (while none is in force, the first calibration is near: refits come twice as often)
             self._span = min(2 * self._span, _SPAN_MAX)
         return i + n
 
