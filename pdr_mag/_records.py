@@ -14,7 +14,8 @@ definition, and a new setting is a new dataclass field and nothing else:
   there.
 
 :func:`settings_dtype` is the record's dtype, :func:`settings_record` the one-element array a kernel takes
-(``record[0]`` is the record).  :func:`check_numbers` is the settings' shared input check.
+(``record[0]`` is the record).  :func:`check_numbers` is the settings' shared input check;
+:func:`default_settings` a class's defaults, built and checked once.
 """
 
 from __future__ import annotations
@@ -99,6 +100,13 @@ def copy_record(rec: np.ndarray) -> np.ndarray:
     out = np.empty(rec.shape, dtype=rec.dtype)
     out.view(np.uint8)[:] = rec.view(np.uint8)
     return out
+
+
+@functools.cache
+def default_settings(cls):
+    """``cls()`` of a frozen settings dataclass, built (and its numbers checked) once: every run that is
+    given no settings takes the defaults, and the checks of a group of groups cost ~0.1 ms."""
+    return cls()
 
 
 def check_numbers(settings, positive: tuple = ()) -> None:

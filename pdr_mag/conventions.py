@@ -6,6 +6,8 @@ Quaternions are w-first ``(qw, qx, qy, qz)`` everywhere outside this module; sci
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -56,12 +58,28 @@ def heading_deg_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     r01 = 2.0 * (x * y - w * z)
     r11 = 1.0 - 2.0 * (x * x + z * z)
-    return np.mod(np.degrees(np.arctan2(r01, r11)), 360.0)
+    return mod360(np.degrees(np.arctan2(r01, r11)))
+
+
+def mod360(angle_deg):
+    """``np.mod(angle_deg, 360.0)`` of angles in [−360°, 360°) (an ``arctan2`` in degrees), by the same exact
+    arithmetic without its per-element division: 360 added below zero, −0 made +0 (a new array)."""
+    a = np.asarray(angle_deg, dtype=float)
+    return np.where(a < 0.0, a + 360.0, a) + 0.0
+
+
+def vector_norm(v) -> float:
+    """``np.linalg.norm`` of a 1-D vector, by its own arithmetic (``sqrt(v · v)`` of the raveled float
+    vector) without its argument handling: the online refits and stale tests take a few per call."""
+    x = np.asarray(v, dtype=float).ravel(order="K")
+    return math.sqrt(x.dot(x))
 
 
 def wrap_deg(angle_deg: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angle(s) to [-180, 180)."""
-    return np.mod(np.asarray(angle_deg) + 180.0, 360.0) - 180.0
+    """Wrap angle(s) to [-180, 180): ``np.mod(a + 180, 360) − 180``, its modulo by the same exact arithmetic
+    from ``np.fmod`` (360 added to a negative remainder, a zero one made +0), half the time of np.mod's."""
+    r = np.fmod(np.asarray(angle_deg) + 180.0, 360.0)
+    return np.where(r < 0.0, r + 360.0, r) + 0.0 - 180.0
 
 
 def rotation_about_up(angle_rad: float | np.ndarray) -> Rotation:

@@ -122,12 +122,16 @@ def earth_field(
         if year >= epoch[0]:
             chosen = epoch
     extrapolated = not (chosen[0] <= year < chosen[0] + 5.0)
-    res = _geomag(chosen[1]).calculate(
-        glat=float(latitude_deg),
-        glon=float(longitude_deg),
-        alt=float(altitude_m) / 1000.0,
-        time=year,
-        allow_date_outside_lifespan=True,
+    alt_km = float(altitude_m) / 1000.0
+    return _wmm(chosen, float(latitude_deg), float(longitude_deg), alt_km, year, extrapolated)
+
+
+@lru_cache(maxsize=64)
+def _wmm(epoch: tuple, glat: float, glon: float, alt_km: float, year: float, extrapolated: bool):
+    """The WMM field of :func:`earth_field` (cached: the recordings of a batch, or of a building, share their
+    place and day)."""
+    res = _geomag(epoch[1]).calculate(
+        glat=glat, glon=glon, alt=alt_km, time=year, allow_date_outside_lifespan=True
     )
     # pygeomag: x north, y east, z down, nT
     field_w = (res.y / NT_PER_UT, res.x / NT_PER_UT, -res.z / NT_PER_UT)
@@ -136,7 +140,7 @@ def earth_field(
         strength=float(res.f / NT_PER_UT),
         inclination_deg=float(res.i),
         declination_deg=float(res.d),
-        model=chosen[2],
+        model=epoch[2],
         extrapolated=extrapolated,
     )
 

@@ -59,3 +59,23 @@ def test_vectorised_quaternion_algebra_agrees_with_scipy():
     np.testing.assert_allclose(quat_to_rot(mid[[0, 2]]), [a[0].as_matrix(), b[0].as_matrix()], atol=1e-12)
     half = a[0] * Rotation.from_rotvec(0.5 * (a[0].inv() * b[0]).as_rotvec())
     np.testing.assert_allclose(quat_to_rot(mid[1]), half.as_matrix(), atol=1e-12)
+
+
+def test_mod360_is_np_mod_of_angles_in_a_turn():
+    """mod360 is np.mod(·, 360) bit for bit on [−360°, 360°): arctan2's angles, ±0, ±180°, NaN."""
+    from pdr_mag.conventions import mod360
+
+    rng = np.random.default_rng(3)
+    a = np.concatenate([np.degrees(np.arctan2(rng.normal(size=10000), rng.normal(size=10000))),
+                        [0.0, -0.0, 180.0, -180.0, -1e-300, 359.999, -359.999, np.nan]])
+    assert mod360(a).tobytes() == np.mod(a, 360.0).tobytes()
+
+
+def test_wrap_deg_is_the_np_mod_formula():
+    """wrap_deg is np.mod(a + 180, 360) − 180 bit for bit, arrays and scalars, any number of turns."""
+    rng = np.random.default_rng(6)
+    a = np.concatenate([rng.normal(scale=s, size=20000) for s in (1.0, 300.0, 1e5)]
+                       + [np.array([0.0, -0.0, 180.0, -180.0, 540.0, -540.0, -1e-300, np.nan])])
+    assert wrap_deg(a).tobytes() == (np.mod(a + 180.0, 360.0) - 180.0).tobytes()
+    for v in (-180.0, 725.5, -0.0):
+        assert np.asarray(wrap_deg(v)).tobytes() == np.asarray(np.mod(v + 180.0, 360.0) - 180.0).tobytes()

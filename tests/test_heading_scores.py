@@ -252,19 +252,22 @@ def test_heading_error_is_the_twist_about_up():
 def test_reference_errors_are_the_numpy_twist_of_the_slerped_reference():
     """The compiled scorer against its definition: |heading_error_deg| of the estimate against the reference
     slerped at its time (:func:`pdr_mag.conventions.quat_slerp`), over a turning reference whose samples
-    include sign flips (the shorter arc), a gap beyond ``MAX_REF_GAP_S`` (epochs in it not scored) and
-    estimates outside its span (not scored) — the same counts in every bin."""
+    include sign flips (the shorter arc), a gap beyond ``MAX_REF_GAP_S`` (epochs in it not scored),
+    estimates outside its span or with a non-finite attitude (not scored) and epochs on its samples (the
+    phone's own attitude on the gyroscope's clock) — the same counts in every bin."""
     rng = np.random.default_rng(11)
     tr = np.concatenate([np.arange(0.0, 20.0, 0.02), np.arange(22.0, 40.0, 0.02)])  # a 2-s gap
     rv = np.cumsum(rng.normal(scale=0.05, size=(len(tr), 3)), axis=0)
     q_ref = Rotation.from_rotvec(rv).as_quat()[:, [3, 0, 1, 2]]
     q_ref[::7] *= -1.0  # the same rotations, the other sign
-    t = np.sort(rng.uniform(-2.0, 42.0, 5000))
+    t = np.sort(np.concatenate([rng.uniform(-2.0, 42.0, 5000), tr[::3]]))
     q_est = Rotation.from_rotvec(rng.normal(scale=1.0, size=(len(t), 3))).as_quat()[:, [3, 0, 1, 2]]
+    q_est[::97, 2] = np.nan
+    q_est[::89, 0] = np.inf
     ref = ReferenceErrors(tr, q_ref)
     for k in range(0, len(t), 700):  # slice by slice, as the sink feeds it
         ref.add(t[k : k + 700], q_est[k : k + 700])
-    inside = (t >= tr[0]) & (t <= tr[-1])
+    inside = (t >= tr[0]) & (t <= tr[-1]) & np.all(np.isfinite(q_est), axis=1)
     i = np.clip(np.searchsorted(tr, t, side="right") - 1, 0, len(tr) - 2)
     inside &= (tr[i + 1] - tr[i]) <= MAX_REF_GAP_S
     err = np.abs(heading_error_deg(q_est[inside], quat_slerp(tr, q_ref, t[inside])))

@@ -346,6 +346,32 @@ def test_update_blocks_equals_update_per_block():
     assert cov[-1] == pytest.approx(a.coverage())
 
 
+def test_coverage_kept_per_direction_equals_the_coverage_counted_afresh():
+    """The buffer's coverage about the offset, kept as direction counts that follow the samples entering and
+    leaving the buffer, is at every block end the coverage counted from the buffer then (a small buffer that
+    fills, so that samples are replaced; a figure-8 that brings new directions; calibrations that move the
+    centre)."""
+    from pdr_mag.calibration.diversity import buffer_coverage
+
+    tm, mag, up, rate = _rows(synth_walk(duration=60.0, seed=4, figure8=(20.0, 35.0)))
+    blk = np.floor(tm / 0.5)
+    oc = OnlineCalibrator(OnlineSettings(buffer_size=30, refresh_s=5.0), strength=F, sin_dip=np.sin(INC))
+    n_calibrated = n_full = 0
+    for k in np.unique(blk):
+        w = blk == k
+        ends = np.zeros(int(w.sum()), dtype=bool)
+        ends[-1] = True
+        i = 0
+        while i < len(ends):
+            _, n, cov = oc.update_blocks(tm[w][i:], mag[w][i:], up[w][i:], rate[w][i:], ends[i:])
+            i += n
+        c = oc._cal[0]
+        assert cov[n - 1] == buffer_coverage(oc._buf, oc._n_buf, c["has_offset"], c["offset"])
+        n_calibrated += bool(c["has_offset"])
+        n_full += oc._n_buf == 30
+    assert n_calibrated > 50 and n_full > 50
+
+
 def test_online_refits_are_judged_by_the_calibration_core_rules():
     """An implausible soft iron (eigenvalue spread 3.2) is refused with the core's own reason, although
     the online rules (offset σ, residual, offset range, radius) would let it through."""

@@ -14,7 +14,10 @@ For every magnetometer sample, :func:`scan` runs, in this order:
    :func:`scan`; a due refit with too few new samples and a stale test whose cheap first part
    (:func:`stale_precheck`) settles it are taken here;
 6. at a block's last sample, the buffer's coverage (recomputed only when the buffer or its centre changed:
-   it is read at every block end, the buffer changes less often).
+   it is read at every block end, the buffer changes less often).  About a calibration's offset it is kept
+   as counts per direction (:func:`pdr_mag.calibration.diversity.count_directions`), updated by the samples
+   that enter and leave the buffer and counted afresh only when the offset or the whole buffer changed;
+   about the buffer's mean (no calibration yet), which moves with every sample, it is computed anew.
 
 The calibrator's state lives in records with named fields: :data:`STATE` (what the loop carries from sample
 to sample), :data:`CAL` (the calibration in force as the loop reads it, set by the Python side at every
@@ -33,7 +36,16 @@ from numba import njit
 from pdr_mag import _jit_cache
 from pdr_mag._records import settings_dtype
 from pdr_mag.calibration import diversity
-from pdr_mag.calibration.diversity import BlockStart, Near, buffer_coverage, offer, put, redundant
+from pdr_mag.calibration.diversity import (
+    N_DIRS,
+    BlockStart,
+    Near,
+    buffer_coverage,
+    count_directions,
+    offer,
+    put,
+    redundant,
+)
 from pdr_mag.calibration.online_settings import OnlineSettings
 
 STATE = np.dtype(
@@ -59,6 +71,8 @@ STATE = np.dtype(
         ("n_buf0", np.int64),  # samples in the block-start copy of the buffer
         ("n_old0", np.int64),  # block-start samples that may be older than refresh_s within the block
         ("hint", np.int64),  # block-start sample last found close (where the redundancy search starts)
+        ("cover_ok", np.bool_),  # cover holds the buffer's direction counts about the offset in force
+        ("cover", np.int64, (N_DIRS,)),  # … buffer samples within 30° of each direction (count_directions)
     ]
 )
 
@@ -177,9 +191,9 @@ def scan(blocks, i, resumed, loop, found):
                     st.hint = j
                 else:
                     near = Near(c.sep2, p.cos_up, p.refresh_s)
-                    n, changed = offer(ti, m, u, buf, st.n_buf, p.buffer_size, near)
-                    if changed:
-                        st.n_buf = n
+                    slot = offer(ti, m, u, buf, st.n_buf, p.buffer_size, near)
+                    if slot >= 0:
+                        _keep(st, c, buf, slot, ti, m, u)
                         st.fit_new += 1.0
                         st.coverage_stale = True
             if ti >= st.next_refit_t and refit_due(ti, st, c, p):
@@ -296,10 +310,34 @@ def consistent(m, u, c):
 
 
 @njit(cache=True, error_model="numpy")
+def _keep(st, c, buf, j, t, m, u):
+    """Put the sample in slot ``j`` of the buffer (``n_buf``: appended), the direction counts about the
+    offset following the sample that leaves and the one that enters while they are valid."""
+    if st.cover_ok and c.has_offset:
+        if j < st.n_buf:
+            count_directions(buf[j].m, c.offset, st.cover, -1)
+        count_directions(m, c.offset, st.cover, 1)
+    put(buf, j, t, m, u)
+    st.n_buf = max(st.n_buf, j + 1)
+
+
+@njit(cache=True, error_model="numpy")
 def current_coverage(st, c, buf):
     """The buffer's coverage about the calibration's offset (the buffer mean without one)."""
     if st.coverage_stale:
-        st.coverage = buffer_coverage(buf, st.n_buf, c.has_offset, c.offset)
+        if c.has_offset:
+            if not st.cover_ok:
+                st.cover[:] = 0
+                for k in range(st.n_buf):
+                    count_directions(buf[k].m, c.offset, st.cover, 1)
+                st.cover_ok = True
+            hit = 0
+            for d in range(N_DIRS):
+                if st.cover[d] > 0:
+                    hit += 1
+            st.coverage = hit / N_DIRS
+        else:
+            st.coverage = buffer_coverage(buf, st.n_buf, False, c.offset)
         st.coverage_stale = False
     return st.coverage
 

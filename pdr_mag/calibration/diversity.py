@@ -10,7 +10,7 @@ Admission of a new sample (:func:`redundant`, after the calibrator's consistency
 buffer as it was at the start of the sample's block, so that a block's samples are judged alike however
 the stream is cut: the sample is *redundant* when a block-start sample is close to it, unless every close
 one is older than ``refresh_s`` (then it may be refreshed).  An admitted sample is offered to the buffer as
-it is now (:func:`offer`):
+it is now (:func:`offer` says where it goes, the caller puts it there):
 
 * close to a kept sample: it replaces the oldest close one if that is older than ``refresh_s`` (so the
   buffer follows slow drift), else it is dropped;
@@ -18,11 +18,12 @@ it is now (:func:`offer`):
 * the buffer full: it replaces the kept sample nearest to another one (the most redundant).
 
 :func:`coverage` is the online measure of how much of the sphere the samples cover: the share of 64
-near-uniform directions (a golden-angle spiral) with a sample direction, about a centre, within 30°.  The
-refit triggers (``sphere_coverage``, ``ellipsoid_coverage``) are set on it; the full fit's further gate
-(``ellipsoid_precheck_frac``) uses the calibration core's equal-area
-:func:`pdr_mag.calibration.coverage.coverage`, and the fit is accepted by its heading bound
-(:func:`pdr_mag.calibration.coverage.accept`), not by a coverage.
+near-uniform directions (a golden-angle spiral) with a sample direction, about a centre, within 30°
+(:func:`count_directions` keeps it per direction as samples come and go, for a buffer that changes at
+almost every block while its centre stays).  The refit triggers (``sphere_coverage``,
+``ellipsoid_coverage``) are set on it; the full fit's further gate (``ellipsoid_precheck_frac``) uses the
+calibration core's equal-area :func:`pdr_mag.calibration.coverage.coverage`, and the fit is accepted by its
+heading bound (:func:`pdr_mag.calibration.coverage.accept`), not by a coverage.
 """
 
 from __future__ import annotations
@@ -90,13 +91,7 @@ def coverage(m, n, centre):
         return 0.0
     hit = np.zeros(N_DIRS, dtype=np.bool_)
     for k in range(n):
-        x0 = m[k, 0] - centre[0]
-        x1 = m[k, 1] - centre[1]
-        x2 = m[k, 2] - centre[2]
-        nn = max(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), 1e-12)
-        x0 /= nn
-        x1 /= nn
-        x2 /= nn
+        x0, x1, x2 = _direction(m[k], centre)
         for d in range(N_DIRS):
             if not hit[d] and x0 * DIRS[d, 0] + x1 * DIRS[d, 1] + x2 * DIRS[d, 2] > COS_CAP:
                 hit[d] = True
@@ -105,6 +100,27 @@ def coverage(m, n, centre):
         if hit[d]:
             c += 1
     return c / N_DIRS
+
+
+@njit(cache=True, error_model="numpy")
+def _direction(m, centre):
+    """The unit direction of ``m − centre`` (a zero vector stays zero)."""
+    x0 = m[0] - centre[0]
+    x1 = m[1] - centre[1]
+    x2 = m[2] - centre[2]
+    nn = max(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), 1e-12)
+    return x0 / nn, x1 / nn, x2 / nn
+
+
+@njit(cache=True, error_model="numpy")
+def count_directions(m, centre, counts, delta):
+    """Add ``delta`` to ``counts[d]`` for each of the :data:`DIRS` within 30° of the direction of ``m −
+    centre``: with ``delta`` ±1 as samples enter and leave, the directions with a positive count are those
+    :func:`coverage` finds hit, by the same test."""
+    x0, x1, x2 = _direction(m, centre)
+    for d in range(N_DIRS):
+        if x0 * DIRS[d, 0] + x1 * DIRS[d, 1] + x2 * DIRS[d, 2] > COS_CAP:
+            counts[d] += delta
 
 
 @njit(cache=True, error_model="numpy")
@@ -180,7 +196,8 @@ def put(buf, j, t, m, u):
 
 @njit(cache=True, error_model="numpy")
 def offer(t, m, u, buf, n, size, near):
-    """Offer ``(t, m, u)`` to the buffer of ``n`` samples (room for ``size``); returns ``(n, changed)``."""
+    """Where ``(t, m, u)`` offered to the buffer of ``n`` samples (room for ``size``) goes: the slot it is to
+    be put in (``n``: appended; below ``n``: it replaces the sample there), or −1 (dropped)."""
     if n:
         j = -1
         tj = np.inf
@@ -189,15 +206,10 @@ def offer(t, m, u, buf, n, size, near):
                 tj = buf[k].t
                 j = k
         if j >= 0:
-            if t - tj > near.refresh_s:
-                put(buf, j, t, m, u)
-                return n, True
-            return n, False
+            return j if t - tj > near.refresh_s else -1
     if n < size:
-        put(buf, n, t, m, u)
-        return n + 1, True
-    put(buf, _most_redundant(buf, n), t, m, u)
-    return n, True
+        return n
+    return _most_redundant(buf, n)
 
 
 @njit(cache=True, error_model="numpy")

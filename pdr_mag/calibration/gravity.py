@@ -34,6 +34,7 @@ Solution, on samples centred for conditioning (``x_i = m_i − m̄``, ``b`` of t
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -108,8 +109,10 @@ def gravity_aided_offset(
         raise ValueError(f"mag, up: expected two (N, 3) arrays, got {m.shape} and {u.shape}")
     if len(m) < 5:
         raise ValueError(f"mag: need at least 5 samples, got {len(m)}")
-    model = fit_model(
-        strength, sin_dip, sigma_strength_uT, sigma_tilt_deg, prior_strength_std_uT, prior_dip_std_deg
+    model = fit_model(  # (plain floats: the models are cached by their arguments)
+        None if strength is None else float(strength), None if sin_dip is None else float(sin_dip),
+        float(sigma_strength_uT), float(sigma_tilt_deg), float(prior_strength_std_uT),
+        float(prior_dip_std_deg),
     )
     fit = fit_offset(m, u, model, iterations)
     if not fit.ok:
@@ -121,7 +124,7 @@ def gravity_aided_offset(
         field_uT=f,
         method="gravity",
         residual_rms_uT=fit.rms,
-        offset_std_uT=np.sqrt(np.maximum(np.diag(fit.offset_cov), 0)),
+        offset_std_uT=np.sqrt(np.maximum(fit.offset_cov.diagonal(), 0)),
         n_samples=len(m),
         covariance=fit.offset_cov,
         extra={
@@ -145,6 +148,7 @@ class FitModel(NamedTuple):
     sig_s: float  # … and σ_s = F cos I σ_I
 
 
+@lru_cache(maxsize=64)
 def fit_model(
     strength: float | None,
     sin_dip: float | None,
@@ -153,7 +157,8 @@ def fit_model(
     prior_strength_std_uT: float = 0.0,
     prior_dip_std_deg: float = 0.0,
 ) -> FitModel:
-    """The :class:`FitModel` of these references and settings (as :func:`gravity_aided_offset` takes them)."""
+    """The :class:`FitModel` of these references and settings (as :func:`gravity_aided_offset` takes them);
+    cached, as every refit and stale test of a run asks for one of the same few."""
     free = strength is None or sin_dip is None
     f_guess = float(strength) if strength is not None else 50.0
     prior = not free and prior_strength_std_uT > 0 and prior_dip_std_deg > 0

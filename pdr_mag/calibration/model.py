@@ -7,7 +7,7 @@ calibration file that ``replay --calibration`` reads.  Keys beyond the contract 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +75,7 @@ class MagCalibration:
     def from_arrays(cls, offset, soft_iron=None, **kwargs) -> MagCalibration:
         """Build from numpy arrays, validating shapes and symmetry."""
         b = np.asarray(offset, dtype=float)
-        if b.shape != (3,) or not np.all(np.isfinite(b)):
+        if b.shape != (3,) or not np.isfinite(b).all():
             raise ValueError(f"offset: expected 3 finite values in µT, got {offset!r}")
         if soft_iron is None:
             soft = _EYE  # 0.5 (I + Iᵀ) = I
@@ -97,7 +97,19 @@ class MagCalibration:
 
     def with_acceptance(self, accepted: bool, reasons) -> MagCalibration:
         """A copy with the acceptance verdict replaced."""
-        return replace(self, accepted=bool(accepted), reasons=tuple(reasons))
+        return self.with_fields(accepted=bool(accepted), reasons=tuple(reasons))
+
+    def with_fields(self, **changes) -> MagCalibration:
+        """A copy with these fields changed: ``dataclasses.replace(self, **changes)`` (the class has no
+        ``__post_init__``, so its fields are the whole object) without replace's walk over the fields, as
+        the online refits copy a few calibrations each."""
+        unknown = changes.keys() - _FIELDS
+        if unknown:
+            raise TypeError(f"MagCalibration has no field {sorted(unknown)[0]!r}")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     # ------------------------------------------------------------------ use
     @property
@@ -205,6 +217,9 @@ class MagCalibration:
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from exc
         return cls.from_dict(d)
+
+
+_FIELDS = frozenset(f.name for f in fields(MagCalibration))
 
 
 def _tuplify(a: np.ndarray) -> tuple:

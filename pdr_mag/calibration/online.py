@@ -47,9 +47,10 @@ __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
 _EPISODE_EVENTS = {K.EPISODE_START: "rotation_episode_start", K.EPISODE_END: "rotation_episode_end"}
 
 #: Fields of the compiled loop's state that belong to the open block, with the block-start copies of the
-#: calibration and the buffer (``hint`` only speeds up the redundancy search): they are not saved, and
-#: a restored calibrator starts a new block at its next sample.
-_BLOCK_FIELDS = ("in_block", "cal_changed", "n_buf0", "n_old0", "hint")
+#: calibration and the buffer (``hint`` only speeds up the redundancy search), and the buffer's direction
+#: counts (counted afresh from the buffer when not ``cover_ok``): they are not saved, and a restored
+#: calibrator starts a new block at its next sample.
+_BLOCK_FIELDS = ("in_block", "cal_changed", "n_buf0", "n_old0", "hint", "cover_ok", "cover")
 _SAVED_FIELDS = tuple(name for name in K.STATE.names if name not in _BLOCK_FIELDS)
 
 
@@ -256,6 +257,7 @@ class OnlineCalibrator:
         )
         st = self._state[0]
         st["coverage_stale"] = True  # the coverage is taken about the offset
+        st["cover_ok"] = False
         st["fit_new"] = np.inf
         st["cal_changed"] = True
 
@@ -392,6 +394,7 @@ class OnlineCalibrator:
         st = self._state[0]
         st["n_buf"] = 0
         st["coverage_stale"] = True
+        st["cover_ok"] = False
         st["fit_new"] = np.inf
 
     def _recent(self, t: float) -> np.ndarray:

@@ -26,7 +26,6 @@ Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravit
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -41,6 +40,7 @@ from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
+from pdr_mag.conventions import vector_norm
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
 
 #: An online fit's radius may differ from the reference strength (or, without one, from the Earth's range)
@@ -78,7 +78,7 @@ def candidates(
     cov = direction_coverage(centred)
     if cov >= s.sphere_coverage:
         try:
-            cands.append(replace(fit_sphere(m), coverage=cov))
+            cands.append(fit_sphere(m).with_fields(coverage=cov))
         except (ValueError, ArithmeticError):
             pass
     if (
@@ -88,7 +88,7 @@ def candidates(
     ):
         try:
             full = calibrate(m, method="auto", field=field_ref)
-            cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
+            cands.append(full.with_fields(coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
     first = current is None or provisional(current, s, vague_prior=True)
@@ -124,10 +124,10 @@ def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = Fals
     that fits them replaces it.  A prior (the phone's, a store's) is provisional for the refits' judgement
     (``vague_prior``) only when it knows less than a first fit would (σ above ``first_offset_std_uT``: a
     store's entry aged by days), so that a first fit may replace it."""
-    std = np.asarray(cal.offset_std_uT, dtype=float)
-    if not np.all(np.isfinite(std)):
+    std = cal.offset_std_uT
+    if not all(map(math.isfinite, std)):
         return False  # a calibration given without its σ (a file): as sure as the user says
-    sd = float(np.max(std))
+    sd = float(max(std))
     if is_prior(cal):
         return vague_prior and sd > max(s.first_offset_std_uT, s.max_offset_std_uT)
     return sd > s.max_offset_std_uT
@@ -145,15 +145,14 @@ def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float
     n = len(times)
     if n < 2 or corr_s <= 0 or cal.covariance is None:
         return cal
-    span = float(np.max(times) - np.min(times))
+    span = float(times.max() - times.min())
     k = n / min(n, 1.0 + span / corr_s)
     if k <= 1.0:
         return cal
-    cov = np.asarray(cal.covariance, dtype=float) * k
-    return replace(
-        cal,
-        covariance=tuple(map(tuple, cov.tolist())),
-        offset_std_uT=tuple(np.sqrt(np.maximum(np.diag(cov)[:3], 0.0)).tolist()),
+    cov = tuple(tuple(v * k for v in row) for row in cal.covariance)  # (the product numpy's would give)
+    return cal.with_fields(
+        covariance=cov,
+        offset_std_uT=tuple(np.sqrt(np.maximum([cov[0][0], cov[1][1], cov[2][2]], 0.0)).tolist()),
         extra={**cal.extra, "correlation_inflation": k},
     )
 
@@ -181,9 +180,10 @@ def gravity_fit_keeping_shape(
     ``M⁻¹ Σ_c M⁻ᵀ``.
     """
     s = settings
-    a = current.soft_iron_array if current is not None else np.eye(3)
-    mm = current.matrix if current is not None else a
-    shaped = not is_identity(mm, 1e-12)
+    # an offset-only calibration (the identity soft iron of from_arrays, no mag_to_imu) has no shape to keep
+    plain = current is None or (current.soft_iron is _EYE and current.mag_to_imu is None)
+    mm = None if plain else current.matrix
+    shaped = not plain and not is_identity(mm.tolist(), 1e-12)
     g = gravity_aided_offset(
         m @ mm.T if shaped else m, u, field_ref, sin_dip_ref if field_ref is not None else None,
         s.sigma_strength_uT, s.sigma_tilt_deg, prior_strength_std_uT=s.prior_strength_std_uT,
@@ -191,6 +191,7 @@ def gravity_fit_keeping_shape(
     )  # fmt: skip
     if not shaped:
         return g
+    a = current.soft_iron_array
     mi = np.linalg.inv(mm)
     cov_b = mi @ np.asarray(g.covariance, dtype=float) @ mi.T
     return MagCalibration.from_arrays(
@@ -241,8 +242,8 @@ def judge(
         reasons.append("no finite field radius")
     elif cal.residual_rms_uT > s.max_rms_frac * f:
         reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {s.max_rms_frac:.0%} of F")
-    if np.linalg.norm(cal.offset_array) > s.max_offset_uT:
-        reasons.append(f"offset {np.linalg.norm(cal.offset_array):.0f} µT implausible")
+    if vector_norm(cal.offset) > s.max_offset_uT:
+        reasons.append(f"offset {vector_norm(cal.offset):.0f} µT implausible")
     if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > RADIUS_REL_TOL:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
     elif field_ref is None and cal.method == "gravity" and np.isfinite(f) \
@@ -252,7 +253,7 @@ def judge(
         reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere "
                        f"(± {RADIUS_REL_TOL:.0%} indoors)")
     if coverage is not None:
-        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
+        return cal.with_fields(coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
 
 
@@ -274,7 +275,7 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
         return False
     if provided and new.method in ("gravity", "sphere"):
         return False
-    shift = np.linalg.norm(new.offset_array - old.offset_array)
+    shift = vector_norm(new.offset_array - old.offset_array)
     std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
@@ -291,7 +292,7 @@ def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibratio
     samples it was fitted on (a gravity fit has its own)."""
     if cal.method == "gravity":
         return cal
-    return replace(cal, extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
+    return cal.with_fields(extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
 
 
 def median_sin_dip(m_cal: np.ndarray, u: np.ndarray) -> float:

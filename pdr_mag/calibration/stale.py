@@ -24,6 +24,7 @@ import numpy as np
 
 from pdr_mag.calibration.gravity import FitModel, fit_offset
 from pdr_mag.calibration.online_settings import OnlineSettings
+from pdr_mag.conventions import vector_norm
 
 
 class Shift(NamedTuple):
@@ -71,7 +72,7 @@ def window_shift(
             return INCONCLUSIVE
         if not fit.ok:
             return INCONCLUSIVE
-        fits.append(Shift(fit.offset, np.sqrt(np.maximum(np.diag(fit.offset_cov), 0)), fit.rms))
+        fits.append(Shift(fit.offset, np.sqrt(np.maximum(fit.offset_cov.diagonal(), 0)), fit.rms))
         if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], model.strength, s):
             return None
     whole, a, b = fits
@@ -84,12 +85,12 @@ def window_shift(
 
 def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
     """The whole-window tests: explained, significant and well posed."""
-    shift = float(np.linalg.norm(fit.delta))
+    shift = vector_norm(fit.delta)
     return bool(
         fit.rms < 0.5 * s.strength_tol_frac * strength
         and shift > s.stale_min_shift_uT
-        and shift > 4 * float(np.linalg.norm(fit.sigma))
-        and float(np.max(fit.sigma)) < 2 * s.max_offset_std_uT
+        and shift > 4 * vector_norm(fit.sigma)
+        and float(fit.sigma.max()) < 2 * s.max_offset_std_uT
     )
 
 

@@ -103,11 +103,11 @@ def new_scan() -> np.ndarray:
 
 
 @njit(cache=True, error_model="numpy")
-def scan(t, err, std, used, interference, dev_f, dev_i, state, levels):
-    """Scan the rows (times t, error and σ in deg, magnetometer used, interference flag, strength and dip
-    deviations in units of the detector's tolerance) with the one-element arrays ``state`` (:data:`SCAN`)
-    and ``levels`` (:data:`LEVELS`); returns the stretches closed (:data:`CLOSED`) and the signal changes
-    (:data:`CHANGE`), each in time order."""
+def scan(t, err, std, used, interference, strength, dip, state, levels):
+    """Scan the rows (times t, error and σ in deg, magnetometer used, interference flag, the strength and
+    dip detectors' value, reference and tolerance columns: :func:`_deviation`) with the one-element arrays
+    ``state`` (:data:`SCAN`) and ``levels`` (:data:`LEVELS`); returns the stretches closed (:data:`CLOSED`)
+    and the signal changes (:data:`CHANGE`), each in time order."""
     s = state[0]
     lv = levels[0]
     n = len(t)
@@ -117,6 +117,8 @@ def scan(t, err, std, used, interference, dev_f, dev_i, state, levels):
     n_changes = 0
     for i in range(n):
         ti, e, sd = t[i], err[i], std[i]
+        dev_f = _deviation(strength, i)
+        dev_i = _deviation(dip, i)
         if not np.isfinite(s.t_first):
             s.t_first = ti
         if used[i]:
@@ -138,13 +140,13 @@ def scan(t, err, std, used, interference, dev_f, dev_i, state, levels):
         if interference[i] != s.interference:
             s.interference = interference[i]
             n_changes = _put_change(changes, n_changes, INTERFERENCE, ti, s.interference, e)
-        if (dev_f[i] >= 1.0) != s.strength:
+        if (dev_f >= 1.0) != s.strength:
             s.strength = not s.strength
             n_changes = _put_change(changes, n_changes, STRENGTH, ti, s.strength, e)
-        if (dev_i[i] >= 1.0) != s.dip:
+        if (dev_i >= 1.0) != s.dip:
             s.dip = not s.dip
             n_changes = _put_change(changes, n_changes, DIP, ti, s.dip, e)
-        if (max(dev_f[i], dev_i[i]) >= lv.field_band_frac) != s.field_out:
+        if (max(dev_f, dev_i) >= lv.field_band_frac) != s.field_out:
             s.field_out = not s.field_out
             n_changes = _put_change(changes, n_changes, FIELD_OUT, ti, s.field_out, e)
     if n:  # stretches whose last row above is more than merge_s before the batch's last row are over
@@ -153,6 +155,15 @@ def scan(t, err, std, used, interference, dev_f, dev_i, state, levels):
         if s.sigma.open and t[n - 1] - s.sigma.t_last > lv.merge_s:
             n_closed = _close(s.sigma, SIGMA, lv, closed, n_closed)
     return closed[:n_closed], changes[:n_changes]
+
+
+@njit(cache=True, error_model="numpy")
+def _deviation(band, i):
+    """Row ``i``'s deviation ``|value − reference| / tolerance`` of a detector's ``(value, reference,
+    tolerance)`` columns, in units of the tolerance; 0 where it is not finite (a column NaN there)."""
+    value, ref, tol = band
+    dev = abs(value[i] - ref[i]) / tol[i]
+    return dev if np.isfinite(dev) else 0.0
 
 
 @njit(cache=True, error_model="numpy")

@@ -46,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pdr_mag._records import check_numbers
+from pdr_mag._records import check_numbers, default_settings
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.episodes import _kernel as K
 from pdr_mag.estimates import Event
@@ -239,7 +239,7 @@ class EpisodeFinder:
     """
 
     def __init__(self, settings: EpisodeSettings | None = None, truth=None):
-        self.settings = settings or EpisodeSettings()
+        self.settings = settings or default_settings(EpisodeSettings)
         self._truth = None
         if truth is not None:
             t_tr = np.asarray(truth[0], dtype=float)
@@ -253,7 +253,7 @@ class EpisodeFinder:
                 if np.any(t_tr[1:] < t_tr[:-1]):
                     order = np.argsort(t_tr, kind="stable")
                     t_tr, q = t_tr[order], q[order]
-                self._truth = (t_tr, np.unwrap(heading_deg_from_quat(q), period=360.0))
+                self._truth = (t_tr, _unwrap_deg(heading_deg_from_quat(q)))
                 wide = t_tr[1:] - t_tr[:-1] > self.settings.max_truth_gap_s
                 self._truth_holes = (t_tr[:-1][wide], t_tr[1:][wide])
         self._scan = K.new_scan()
@@ -305,17 +305,14 @@ class EpisodeFinder:
         if len(batch) == 0:
             return self._release()
         t = np.asarray(batch.t, dtype=float)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dev_f = _deviation(batch.diag, "field_strength_uT", "field_ref_uT", "strength_tol_uT", len(t))
-            dev_i = _deviation(batch.diag, "dip_deg", "dip_ref_deg", "dip_tol_deg", len(t))
         closed, changes = K.scan(
             t,
             self.error_deg(t, batch.heading_deg),
             np.asarray(batch.heading_std_deg, dtype=float),
             np.asarray(batch.mag_used, dtype=bool),
             np.asarray(batch.interference, dtype=bool),
-            dev_f,
-            dev_i,
+            _band(batch.diag, ("field_strength_uT", "field_ref_uT", "strength_tol_uT"), len(t)),
+            _band(batch.diag, ("dip_deg", "dip_ref_deg", "dip_tol_deg"), len(t)),
             self._scan,
             self._levels,
         )
@@ -412,14 +409,28 @@ def worst(episodes, n: int = 3) -> list[Episode]:
     return sorted(episodes, key=lambda e: -e.severity)[:n]
 
 
-def _deviation(d: dict, value: str, ref: str, tol: str, n: int) -> np.ndarray:
-    """``|value − ref| / tol`` from diag columns; 0 where any is missing."""
-    if value not in d or ref not in d or tol not in d:
-        return np.zeros(n)
-    dev = np.abs(np.asarray(d[value], dtype=float) - np.asarray(d[ref], dtype=float)) / np.asarray(
-        d[tol], dtype=float
-    )
-    return np.where(np.isfinite(dev), dev, 0.0)
+def _band(d: dict, keys: tuple[str, str, str], n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A detector's value, reference and tolerance columns from diag (the scan's deviation ``|value − ref| /
+    tol``, 0 where one is NaN); NaN columns when one is missing (a deviation of 0 throughout)."""
+    if not all(k in d for k in keys):
+        return (np.full(n, np.nan),) * 3
+    return tuple(np.ascontiguousarray(d[k], dtype=float) for k in keys)
+
+
+def _unwrap_deg(h: np.ndarray) -> np.ndarray:
+    """``np.unwrap(h, period=360.0)``, its arithmetic step for step, but the modulo taken only for the steps
+    it corrects (``|Δh| ≥ 180°`` or NaN; the others' correction is 0): a heading in [0°, 360°) at 60 Hz
+    wraps a few times a minute."""
+    dd = np.diff(h)
+    ph_correct = np.zeros_like(dd)
+    big = ~(np.abs(dd) < 180.0)
+    d = dd[big]
+    ddmod = np.mod(d - -180.0, 360.0) + -180.0
+    np.copyto(ddmod, 180.0, where=(ddmod == -180.0) & (d > 0))
+    ph_correct[big] = ddmod - d
+    up = np.array(h, dtype=float)
+    up[1:] = h[1:] + ph_correct.cumsum()
+    return up
 
 
 def _first_rise(trans: list, lo: float, hi: float) -> _Change | None:

@@ -41,7 +41,8 @@ Interface
 ---------
 ``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch`` (checked input),
 or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows and
-a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`; what the pipeline uses):
+a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`, until the next ``advance``;
+what the pipeline uses):
 
 ``kind`` int8 (N,)
     :data:`~pdr_mag.fusion.kinds.ACCEL` (m/s²), :data:`~pdr_mag.fusion.kinds.GYRO` (rad/s),
@@ -90,6 +91,7 @@ import numpy as np
 
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import mod360
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
@@ -102,7 +104,7 @@ from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 8
 _NO_CUTS = np.empty(0, dtype=np.intp)
-_NO_SNAPS = np.empty(0, dtype=STATE)
+_EYE3 = np.eye(3)
 
 
 class Span(NamedTuple):
@@ -140,17 +142,19 @@ class Snapshot:
 
 
 class Snapshots(Sequence):
-    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order (made on access)."""
+    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order: the states' bytes (rows of
+    ``raw``), in the filter's snapshot buffer until its next ``advance`` writes there; a :class:`Snapshot`
+    taken (``snapshots[i]``) is a copy and stays."""
 
-    def __init__(self, states: np.ndarray, reference_strength: float | None):
-        self._raw = states.view(np.uint8).reshape(len(states), -1) if len(states) else states
+    def __init__(self, raw: np.ndarray, reference_strength: float | None):
+        self._raw = raw
         self._ref = reference_strength
 
     def __len__(self) -> int:
         return len(self._raw)
 
     def __getitem__(self, i: int) -> Snapshot:
-        return Snapshot(self._raw[i], self._ref)
+        return Snapshot(self._raw[i].copy(), self._ref)
 
 
 class Advanced(NamedTuple):
@@ -175,6 +179,8 @@ class FusionCore:
         self._p = settings_record(self.settings)
         self._st = new_state()
         self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
+        self._snap_buf = np.empty(0, dtype=STATE)  # advance's snapshots (reused: a new array costs ~4 µs)
+        self._snap_raw = self._snap_buf.view(np.uint8).reshape(0, STATE.itemsize)  # … their bytes
         self._ref_strength: float | None = None
         self.field: EarthField | None = None
         self.set_field(field)
@@ -225,18 +231,22 @@ class FusionCore:
         for name, v, shape in (("matrix_old", matrix_old, (3, 3)), ("offset_old", offset_old, (3,)),
                                ("matrix_new", matrix_new, (3, 3)), ("offset_new", offset_new, (3,))):
             a = np.asarray(v, dtype=float)
-            if a.shape != shape or not np.all(np.isfinite(a)):
+            if a.shape != shape or not np.isfinite(a).all():
                 raise ValueError(f"{name}: expected finite values of shape {shape}, got {v!r}")
             arrays.append(a)
         m_old, b_old, m_new, b_new = arrays
         st = self._st[0]
-        d = np.eye(3) - m_old @ np.linalg.inv(m_new)
+        if (m_old == _EYE3).all() and (m_new == _EYE3).all():
+            d = np.zeros((3, 3))  # an offset-only change (every gravity refit): I − I·I⁻¹ = 0 exactly
+        else:
+            d = np.eye(3) - m_old @ np.linalg.inv(m_new)
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
         f = float(st["f_ref"]) if np.isfinite(st["f_ref"]) else EARTH_STRENGTH_RANGE_UT[0]
         tol = self.settings.interference.strength
-        if np.linalg.norm(d, 2) * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
+        d_norm = np.linalg.norm(d, 2) if d.any() else 0.0  # (d = 0: no SVD)
+        if d_norm * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
             forget_learnt(st["det"])
 
     def use_calibration(self, cal: MagCalibration | None, previous: MagCalibration | None = None) -> None:
@@ -330,14 +340,15 @@ class FusionCore:
         samples were calibrated with, which the caller knows (the pipeline: its online calibrator's)."""
         cuts = _NO_CUTS if snapshot_before is None else snapshot_before
         out = new_rows(span.n_gyro)
-        snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
+        if len(cuts) > len(self._snap_buf):
+            self._snap_buf = np.empty(max(len(cuts), 2 * len(self._snap_buf), 32), dtype=STATE)
+            self._snap_raw = self._snap_buf.view(np.uint8).reshape(len(self._snap_buf), STATE.itemsize)
+        snaps = self._snap_buf[: len(cuts)]
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
         k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
         col = columns(out, k)
-        heading = np.arctan2(col["h_y"], col["h_x"])
-        np.degrees(heading, out=heading)
-        np.mod(heading, 360.0, out=heading)
+        heading = mod360(np.degrees(np.arctan2(col["h_y"], col["h_x"])))
         rows = EstimateBatch(
             t=col["t"],
             q_wd=col["q"],
@@ -348,7 +359,7 @@ class FusionCore:
             cal_state=np.full(k, cal_state, dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
-        return Advanced(rows, Snapshots(snaps, self._ref_strength))
+        return Advanced(rows, Snapshots(self._snap_raw[: len(cuts)], self._ref_strength))
 
     # ------------------------------------------------------------------ state
     @property

@@ -3,7 +3,8 @@
 * :func:`in_order`, :func:`repeated` and :func:`take_merged`: a push's checks (time order, a stalled
   sensor's repeated values), and the three input streams' pending samples before a time taken and merged
   in time order;
-* :func:`filter_input`: the merged samples as the fusion core takes them; :func:`rows_coverage`;
+* :func:`filter_input`: the merged samples as the fusion core takes them, and where each block starts;
+  :func:`rows_coverage`;
 * :func:`mag_context`: what the online calibrator is given with each magnetometer sample of the merged
   stream — the up vector of the filter's latest output row at or before it (the third row of ``rot_wd``
   from the row's quaternion), or, where the filter has none yet, the direction of the latest accelerometer
@@ -108,14 +109,20 @@ def _merge(t0, x0, t1, x1, t2, x2):
 
 
 @njit(cache=True, error_model="numpy")
-def filter_input(kind, xyz, offset, calibrated):
-    """``(data, allowed, n_gyro)``: the merged samples with the offset ``b`` taken off the magnetometer's
-    (NaN without a calibration), the flags allowing its use, and the number of gyroscope samples."""
+def filter_input(kind, xyz, blk, offset, calibrated):
+    """``(data, allowed, n_gyro, starts)``: the merged samples with the offset ``b`` taken off the
+    magnetometer's (NaN without a calibration), the flags allowing its use, the number of gyroscope
+    samples, and the index of each block's first sample (``blk``: each sample's block)."""
     n = len(kind)
     data = np.empty((n, 3))
     allowed = np.empty(n, dtype=np.bool_)
+    starts = np.empty(n, dtype=np.intp)
     n_gyro = 0
+    n_blocks = 0
     for i in range(n):
+        if i == 0 or blk[i] != blk[i - 1]:
+            starts[n_blocks] = i
+            n_blocks += 1
         allowed[i] = calibrated
         n_gyro += kind[i] == GYRO
         for c in range(3):
@@ -125,7 +132,7 @@ def filter_input(kind, xyz, offset, calibrated):
                 data[i, c] = xyz[i, c] - offset[c]
             else:
                 data[i, c] = np.nan
-    return data, allowed, n_gyro
+    return data, allowed, n_gyro, starts[:n_blocks]
 
 
 @njit(cache=True, error_model="numpy")
@@ -170,10 +177,10 @@ def _up(q, out):
 
 
 @njit(cache=True, error_model="numpy")
-def mag_context(kind, t, xyz, row_t, row_q, carry, before):
+def mag_context(kind, t, xyz, row_t, row_q, carry, before, block_s):
     """:data:`MAG_ROW` records: ``before``'s, then those of the magnetometer samples (``kind == MAG``) of a
     merged chunk, given its filter output rows (``row_t``, ``row_q``) and the :data:`CARRY` record from
-    before the chunk."""
+    before the chunk; and each record's block, ``floor(t / block_s)``."""
     n_mag = 0
     for i in range(len(t)):
         if kind[i] == MAG:
@@ -208,7 +215,10 @@ def mag_context(kind, t, xyz, row_t, row_q, carry, before):
                     _direction(c.accel, row.up)
             row.rate = _norm(xyz[g]) if g >= 0 else _norm(c.gyro)
             k += 1
-    return out
+    blk = np.empty(len(out))
+    for k in range(len(out)):
+        blk[k] = np.floor(out[k].t / block_s)
+    return out, blk
 
 
 @njit(cache=True, error_model="numpy")

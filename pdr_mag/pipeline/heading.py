@@ -27,8 +27,8 @@ before each block; then the span's ended blocks go to the calibrator in one call
 of the first block whose close changed the calibration.  Then the filter is put back to its state at that
 block's end and the rows after it are dropped, and the next span starts there with the new calibration.
 Changes are rare (a few per recording, most while the calibration converges), so a span is short after a
-change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks).  The rows are those
-of block-by-block processing whatever the span length (tested).
+change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks), once a calibration
+is in force.  The rows are those of block-by-block processing whatever the span length (tested).
 
 Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data between polls (``push``
 processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
@@ -50,6 +50,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pdr_mag._json import state_float
+from pdr_mag._records import default_settings
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.calibration.prior import (
@@ -71,17 +72,19 @@ from pdr_mag.pipeline.streams import PendingStream, take_merged
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
 STATE_VERSION = 4
 _NO_OFFSET = np.zeros(3)
-#: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration
-#: (changes come in runs while the calibration converges), doubled after each span without one, up to the
-#: most.
-_SPAN_MIN = 4
+_EYE3 = np.eye(3)
+#: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration,
+#: doubled after each span without one, up to the most.  A span costs ~0.1 ms of calls beside its fusion,
+#: and a change wastes the fusion of the span's blocks after it: on the tyrex walks a first span of 12
+#: blocks (6 s) makes fewer spans than 4 for about the same waste (1 ms less on a swinging walk).
+_SPAN_MIN = 12
 _SPAN_MAX = 32
 
 
 def _fusion_settings(settings, meta: dict):
     """The fusion settings (defaults when None), with the accelerometer range the recording states
     (``meta["accel_range_m_s2"]``, per axis) unless the settings give one."""
-    settings = settings or FusionSettings()
+    settings = settings or default_settings(FusionSettings)
     rng = meta.get("accel_range_m_s2")
     if settings.accel.range == 0.0 and rng is not None:
         if not (isinstance(rng, int | float) and math.isfinite(rng) and rng > 0):
@@ -181,7 +184,7 @@ class HeadingPipeline:
             raise ValueError(f"meta: expected a dict or None, got {type(meta).__name__}")
         if prior is not None and not isinstance(prior, DevicePrior):
             raise ValueError(f"prior: expected a DevicePrior or None, got {type(prior).__name__}")
-        self.settings = settings or PipelineSettings()
+        self.settings = settings or default_settings(PipelineSettings)
         self.meta = dict(meta or {})
         try:
             self.field: EarthField | None = earth_field_from_meta(self.meta)
@@ -441,7 +444,8 @@ class HeadingPipeline:
         # the span's last block has ended when a later sample is here or the horizon passed its end
         last_ended = e < len(t) or (blk[e - 1] + 1) * self.settings.block_s <= t_end
         n = self._fuse_and_close(kind[i:e], t[i:e], xyz[i:e], blk[i:e], last_ended)
-        if n == e - i and e < len(t):
+        if n == e - i and e < len(t) and self.online.calibration is not None:
+            # (while none is in force, the first calibration is near: refits come twice as often)
             self._span = min(2 * self._span, _SPAN_MAX)
         return i + n
 
@@ -452,20 +456,18 @@ class HeadingPipeline:
         cal = self.online.calibration
         cal_state = self.online.cal_state
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
-        data, allowed, n_gyro = PK.filter_input(kind, xyz, self._mag_offset, cal is not None)
+        data, allowed, n_gyro, starts = PK.filter_input(kind, xyz, blk, self._mag_offset, cal is not None)
         if cal is not None and self._mag_matrix_t is not None:
             is_mag = kind == MAG
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
-        # the filter over the span, keeping its state before each block
-        starts = np.flatnonzero(np.concatenate(([True], blk[1:] != blk[:-1])))  # each block's first sample
+        # the filter over the span, keeping its state before each block (``starts``: each one's first sample)
         batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
         if self.settings.online:
             # the open block's magnetometer rows, then these samples'
-            rows = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend)
-            row_blk = np.floor(rows["t"] / b)
+            rows, row_blk = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend, b)
             n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
             self._pend = rows[n_ended:]
@@ -530,7 +532,7 @@ class HeadingPipeline:
         self._mag_matrix_t = None
         if cal is not None:
             a = cal.matrix
-            self._mag_matrix_t = None if np.all(a == np.eye(3)) else a.T
+            self._mag_matrix_t = None if (a == _EYE3).all() else a.T
         if restored:
             return
         if cal is not None and not self._calibrations:
