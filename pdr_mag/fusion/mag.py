@@ -80,9 +80,9 @@ update undoes that: the accelerometer's corrections of the tilt would carry over
 started 20 s in), and the first heading updates after would teach the gyro bias the difference (8 °/s
 there).  So, until the first heading update once the tilt is in the linear range (``fix_through_tilt``), the
 heading is a consider state of the accelerometer's updates, as before any fix; and when that update's residual
-is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_refix`, exactly as at the first fix,
-its turn reported in ``heading_reset_deg`` as a re-acquisition's) rather than corrected; a smaller residual is
-an ordinary update.
+is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_set_heading`, exactly as at the first
+fix, its turn reported in ``heading_reset_deg`` as a re-acquisition's) rather than corrected; a smaller
+residual is an ordinary update.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
 :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
@@ -177,7 +177,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
         for m in range(NX):
             S += h[i] * P[i, m] * h[m]
     if s.fix_through_tilt and abs(r) > LINEAR_RAD:  # a first fix through a wrong tilt (the module docstring)
-        _refix(s, h, r, rv, t)
+        _set_heading(s, h, r, rv, t)
         return
     if r * r > p.mag.gate**2 * S:
         # a clean-looking field that keeps disagreeing: let the heading's variance grow
@@ -222,19 +222,12 @@ def _rejected(s, R, h, r, rv, t, p):
 
 @njit(cache=True, error_model="numpy")
 def _reacquire(s, R, jump, h, rv, t, p):
-    """Turn the attitude about up by ``jump`` onto the magnetometer's heading (the module docstring)."""
+    """Turn the attitude about up by ``jump`` onto the magnetometer's heading, the bias variance about up
+    grown by the drift the jump implies (the module docstring)."""
     dt_ref = t - s.t_mag_update if np.isfinite(s.t_mag_update) else 0.0
-    _turn_world_frame(s, jump)
+    _set_heading(s, h, jump, rv, t)
     rotation_matrix(s.q, R)
     _bias_drift_var(s, R, jump, dt_ref, p)
-    _heading_from_field(s.P, h, rv)
-    settle_u(s)
-    _heading_from_field(s.U, h, 0.0)
-    s.t_reject = np.nan
-    s.t_reject_start = np.nan
-    s.reset_jump += jump
-    s.t_mag_update = t
-    s.mag_used = True
 
 
 @njit(cache=True, error_model="numpy")
@@ -361,11 +354,11 @@ def _first_fix(s, h, r, rv, t, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _refix(s, h, r, rv, t):
-    """Set the heading from the field anew (residual r: the turn), as at the first fix, when the first heading
-    update once the tilt is settled finds the first fix, made through an unsettled tilt, more than
-    ``LINEAR_RAD`` off (the module docstring); the turn is reported as a re-acquisition's.  No bias
-    variance is added: no heading update has taught the bias since the first fix."""
+def _set_heading(s, h, r, rv, t):
+    """Set the heading from the field anew (residual r: the turn, reported in ``heading_reset_deg``), as at
+    the first fix: a re-acquisition (:func:`_reacquire`), and the first heading update once the tilt is
+    settled that finds a first fix made through an unsettled tilt more than ``LINEAR_RAD`` off (the module
+    docstring; no bias variance is added then: no heading update has taught the bias since the first fix)."""
     _turn_world_frame(s, r)
     _heading_from_field(s.P, h, rv)
     settle_u(s)
