@@ -17,12 +17,17 @@ from pdr_mag.fusion.detectors import BANDS as DETECTOR_BANDS
 _SEP = "=" * 80
 
 #: Extra columns of ``/pdr/diag``: the bands of the detectors that have one
-#: (:data:`pdr_mag.fusion.detectors.BANDS`): ``<detector>_lower_<unit>`` / ``_upper_`` = reference ∓
-#: tolerance.
-BANDS = {
-    f"{name}_{side}_{band.unit}": f"{band.reference} {sign} {band.tolerance}"
+#: (:data:`pdr_mag.fusion.detectors.BANDS`), column → (its band, −1 / +1): ``<detector>_lower_<unit>`` /
+#: ``_upper_`` = reference ∓ tolerance.
+BAND_COLUMNS = {
+    f"{name}_{side}_{band.unit}": (band, sign)
     for name, band in DETECTOR_BANDS.items()
-    for side, sign in (("lower", "-"), ("upper", "+"))
+    for side, sign in (("lower", -1.0), ("upper", 1.0))
+}
+#: The same columns → their meaning, for the schema's comments.
+BANDS = {
+    col: f"{band.reference} {'-' if sign < 0 else '+'} {band.tolerance}"
+    for col, (band, sign) in BAND_COLUMNS.items()
 }
 #: Diagnostic column (``DIAG_KEYS`` and :data:`BANDS`) → its ROS 2 field name in ``pdr_mag/msg/Diagnostics``.
 DIAG_FIELDS = {k: k.lower() for k in (*DIAG_KEYS, *BANDS)}

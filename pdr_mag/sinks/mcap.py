@@ -93,9 +93,8 @@ from mcap_ros2._dynamic import serialize_dynamic  # the encoder behind mcap_ros2
 from pdr_mag._json import jsonable
 from pdr_mag.conventions import heading_deg_from_quat
 from pdr_mag.estimates import DIAG_KEYS
-from pdr_mag.fusion.detectors import BANDS as DETECTOR_BANDS
 from pdr_mag.sinks import WARNING_EVENTS
-from pdr_mag.sinks._mcap_schemas import DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
+from pdr_mag.sinks._mcap_schemas import BAND_COLUMNS, DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
 
 FORMAT_VERSION = 2
 
@@ -392,10 +391,9 @@ def _encoder(spec: Schema) -> Callable[[dict], bytes]:
 
 def _diag_messages(t: np.ndarray, cols: dict[str, np.ndarray]) -> Iterator[dict]:
     """``pdr_mag/msg/Diagnostics`` dicts: ``t``, the diagnostic columns and the detector bands."""
-    for name, band in DETECTOR_BANDS.items():
+    for col, (band, sign) in BAND_COLUMNS.items():
         if band.reference in cols and band.tolerance in cols:
-            cols[f"{name}_lower_{band.unit}"] = cols[band.reference] - cols[band.tolerance]
-            cols[f"{name}_upper_{band.unit}"] = cols[band.reference] + cols[band.tolerance]
+            cols[col] = cols[band.reference] + sign * cols[band.tolerance]
     names = ["t", *DIAG_FIELDS.values()]
     table = np.column_stack([t, *(cols.get(key, np.full(len(t), np.nan)) for key in DIAG_FIELDS)])
     return (dict(zip(names, row, strict=True)) for row in table.tolist())
