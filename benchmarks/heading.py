@@ -173,13 +173,14 @@ KEEP_STD, WRONG = 20.0, 45.0
 
 def honesty(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
     """Counts of scored frames with |error| ≤ 1σ, ≤ 2σ and > 3σ of the reported std; frames a user keeping
-    σ ≤ 20° keeps (and of those, the ones more than 45° off)."""
+    σ ≤ 20° keeps (and of those, the ones more than 45° off); the sum of (error/σ)²."""
     a = np.abs(err_deg)
     kept = std_deg <= KEEP_STD
     return {"n": int(len(a)), "within_1sigma": int(np.sum(a <= std_deg)),
             "within_2sigma": int(np.sum(a <= 2.0 * std_deg)),
             "beyond_3sigma": int(np.sum(a > 3.0 * std_deg)),
             "kept": int(np.sum(kept)), "kept_wrong": int(np.sum(kept & (a > WRONG))),
+            "sum_z2": float(np.sum((a / std_deg) ** 2)),
             "std_median_deg": float(np.median(std_deg)) if len(a) else float("nan")}
 
 
@@ -430,8 +431,11 @@ def walk_table(results) -> list[str]:
 def markdown(results, elapsed_s: float, cpu_s: float, jobs: int, peer_line: str, commit: str = "") -> str:
     a_sps = np.median([r["a"]["samples_per_s"] for r in results if r["a"].get("samples_per_s")])
     imu = [r["imufusion_samples_per_s"] for r in results if r.get("imufusion_samples_per_s")]
-    speed = (f" Throughput (median over walks, same run): replay mode a {a_sps / 1e6:.2f} M samples/s,"
-             f" imufusion {np.median(imu) / 1e6:.2f} M samples/s." if imu else "")
+    speed = (f" Throughput (median over walks, this run, the peers in the same processes: the speed benchmark"
+             f" is `pipeline_speed.py`): replay mode a {a_sps / 1e6:.2f} M samples/s, imufusion"
+             f" {np.median(imu) / 1e6:.2f} M samples/s." if imu else "")
+    rms = [np.sqrt(sum(r[m]["sum_z2"] for r in results) / max(sum(r[m]["n"] for r in results), 1))
+           for m in ("a", "b")]
     lines = [
         SECTION,
         "",
@@ -447,6 +451,8 @@ def markdown(results, elapsed_s: float, cpu_s: float, jobs: int, peer_line: str,
         f" calibration (best column in this run shown). {peer_line}.{speed}",
         "",
         *summary_table(results),
+        "",
+        f"RMS of error/σ over every scored frame (a Gaussian: 1): mode a {rms[0]:.2f}, mode b {rms[1]:.2f}.",
         "",
         "Per walk (mean |error|, bold: a > 20°, b > 45°; peer: the best `_cal_gcal` column; †: more than 10 %"
         " of the frames beyond 3σ):",

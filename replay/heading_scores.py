@@ -283,15 +283,7 @@ def _score(tr, qr, ts, qs, max_gap, bin_deg, counts):
         rw, rx, ry, rz = q0 / nq, -q1 / nq, -q2 / nq, -q3 / nq
         ew = pw * rw - px * rx - py * ry - pz * rz
         ez = pw * rz + px * ry - py * rx + pz * rw
-        # |wrap(e)|, e in [−360°, 360°]: np.mod(e + 180, 360) by its exact arithmetic (a turn off at most)
-        x = np.degrees(2.0 * np.arctan2(ez, ew)) + 180.0
-        if x >= 360.0:
-            x -= 360.0
-        elif x < 0.0:
-            x += 360.0
-        e = abs(x - 180.0)
-        if not np.isfinite(e):
-            continue
+        e = abs((np.degrees(2.0 * np.arctan2(ez, ew)) + 180.0) % 360.0 - 180.0)  # |wrap_deg(…)|
         counts[min(max(int(np.rint(e / bin_deg)), 0), nb - 1)] += 1
         if e > 45.0:
             n45 += 1
@@ -305,9 +297,10 @@ class ReferenceErrors:
     def __init__(self, t: np.ndarray, q_wd: np.ndarray):
         t = np.asarray(t, dtype=float)
         q = np.asarray(q_wd, dtype=float)
-        ok = np.isfinite(t)
-        for component in q.T:  # (np.all(…, axis=1) over 4 columns is much slower)
-            ok &= np.isfinite(component)
+        # a sample that is no attitude (non-finite, or a quaternion far from norm 1: an all-zero row) is left
+        # out, as the readers drop it: the slerp between two unit quaternions is never zero
+        norm = np.linalg.norm(q, axis=1)
+        ok = np.isfinite(t) & (np.abs(norm - 1.0) < 0.5)
         if not ok.all():
             t, q = t[ok], q[ok]
         if np.any(np.diff(t) <= 0):  # (a series in time order, as recorded, needs neither)

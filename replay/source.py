@@ -98,7 +98,8 @@ class RecordingSource:
 
     @classmethod
     def from_recording(cls, rec: Recording) -> RecordingSource:
-        """A recording already in memory, as a source (its streams pass through unchanged, one block each)."""
+        """A recording already in memory, as a source (its streams pass through, one block each; a sample
+        beyond :data:`~replay.formats._common.PHYSICAL_LIMITS` is dropped, as any reader drops it)."""
         specs, feeds = {}, []
         for key in KEYS:
             s = getattr(rec, key)

@@ -71,3 +71,20 @@ def test_saturation_limit_in_both_paths():
         b = StreamBuilder("f", "gyro", dropped, limit=250.0)
         read_table(io.StringIO("\n".join(rows)), "f", [(b, [1, 2, 3])], 4)
         assert dropped == {"gyro:saturated": 1} and len(b) == 2
+
+
+def test_an_implausible_sample_is_dropped_not_saturated_and_a_stream_of_them_is_empty():
+    """A sample beyond :data:`PHYSICAL_LIMITS` on a stream whose range the reader knows (its builder counted
+    it ``saturated``, a kept sample) is counted once, as ``implausible``; a stream left with none is
+    empty, named as such."""
+    from replay.formats._common import StreamSpec
+
+    dropped = Counter({"gyro:saturated": 2})
+    conv = StreamSpec("f.txt", "gyro", check=False, limit_known=True).converter(dropped)
+    out = conv.push(np.arange(3.0), np.array([[0.0, 0.0, 0.1], [1e308, 0.0, 0.0], [0.0, 0.0, 0.2]]))
+    assert dropped == {"gyro:saturated": 1, "gyro:implausible": 1}
+    assert sum(len(t) for t, _ in out) == 2
+    conv = StreamSpec("f.txt", "gyro", check=False).converter(Counter())
+    conv.push(np.arange(3.0), np.full((3, 3), 1e308))
+    with pytest.raises(InputError, match="gyro: empty stream .no valid samples; dropped: implausible 3"):
+        conv.end()

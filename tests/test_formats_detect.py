@@ -181,7 +181,7 @@ def _with_bom(src: Path, dst: Path) -> Path:
     start with the UTF-8 byte-order mark a spreadsheet or a Windows tool writes."""
     if src.is_dir():
         shutil.copytree(src, dst)
-        files = [f for f in dst.iterdir() if f.suffix in (".csv", ".txt")]
+        files = [f for f in dst.iterdir() if f.suffix in (".csv", ".txt", ".json", ".properties")]
     else:
         shutil.copy(src, dst)
         files = [dst]
@@ -190,12 +190,17 @@ def _with_bom(src: Path, dst: Path) -> Path:
     return dst
 
 
-@pytest.mark.parametrize("name", ["walk", "msindoor_small.txt", "ipin_small.txt", "phyphox", "xio"])
+@pytest.mark.parametrize("name", ["walk", "msindoor_small.txt", "ipin_small.txt", "phyphox", "xio", "tyrex"])
 def test_a_byte_order_mark_is_skipped(tmp_path, name):
-    """A recording whose text files start with a byte-order mark reads exactly as without it (pdr-csv,
-    ms-indoor, IPIN, phyphox, x-io): the same format, streams and odd-sample counts."""
+    """A recording whose text files (the metadata too: meta.json, record.properties) start with a byte-order
+    mark reads exactly as without it (pdr-csv, ms-indoor, IPIN, phyphox, x-io, tyrex): the same format,
+    streams, metadata and odd-sample counts."""
     if name == "walk":
         src = Path(__file__).resolve().parents[1] / "recordings" / "walk"
+    elif name == "tyrex":
+        from tests.test_formats_garbled import _tyrex
+
+        src = _tyrex(tmp_path / "tyrex_android", "android")
     elif name == "xio":
         src = tmp_path / "sensor_data.csv"
         from tests.test_formats_xio import HEADER
@@ -212,3 +217,4 @@ def test_a_byte_order_mark_is_skipped(tmp_path, name):
         np.testing.assert_array_equal(a.t, b.t)
         np.testing.assert_array_equal(a.xyz, b.xyz)
     assert marked.dropped == plain.dropped
+    assert marked.meta == plain.meta

@@ -276,6 +276,29 @@ def test_reference_errors_are_the_numpy_twist_of_the_slerped_reference():
     assert 0 < inside.sum() < len(t)
     np.testing.assert_array_equal(ref.errors.counts, want.counts)
     assert ref.n_over_45 == int(np.count_nonzero(err > 45.0))
+    # slices fed latest first (each slice's first row earlier than the one before): the same counts
+    back = ReferenceErrors(tr, q_ref)
+    for k in reversed(range(0, len(t), 700)):
+        back.add(t[k : k + 700], q_est[k : k + 700])
+    np.testing.assert_array_equal(back.errors.counts, want.counts)
+
+
+def test_a_reference_row_that_is_no_attitude_is_left_out():
+    """All-zero reference rows (a logger's placeholder) are not scored against: the scorer counts what the
+    series without them gives, where their zero norm divided by zero before."""
+    tr = np.arange(0.0, 10.0, 0.02)
+    q_ref = Rotation.from_rotvec(np.column_stack([0 * tr, 0 * tr, 0.1 * tr])).as_quat()[:, [3, 0, 1, 2]]
+    bad = np.zeros(len(tr), dtype=bool)
+    bad[[5, 6, 200, 401]] = True
+    zeroed = q_ref.copy()
+    zeroed[bad] = 0.0
+    t = np.arange(0.01, 10.0, 0.05)
+    q_est = Rotation.from_rotvec(np.column_stack([0 * t, 0 * t, 0.1 * t + 0.3])).as_quat()[:, [3, 0, 1, 2]]
+    got, want = ReferenceErrors(tr, zeroed), ReferenceErrors(tr[~bad], q_ref[~bad])
+    got.add(t, q_est)
+    want.add(t, q_est)
+    assert got.errors.counts.sum() > 0
+    np.testing.assert_array_equal(got.errors.counts, want.errors.counts)
 
 
 def test_the_sink_scores_references_and_the_walked_direction_slice_by_slice():

@@ -232,8 +232,7 @@ def _run_replay(task: Task, stage: Path) -> dict:
     row["n_outputs"] = summary["n_outputs"]
     row["interference_share"] = metrics.share(metrics.n_interference)
     row["mag_used_share"] = metrics.share(metrics.n_mag_used)
-    row["heading_std_median_deg"] = metrics.heading_std.quantile(0.5)
-    row["heading_std_p95_deg"] = metrics.heading_std.quantile(0.95)
+    row["heading_std_median_deg"], row["heading_std_p95_deg"] = metrics.heading_std.quantiles(0.5, 0.95)
     row["n_events"] = len(summary["events"])
     kinds = Counter(e["kind"] for e in summary["events"])
     for kind, col in EVENT_COLUMNS.items():

@@ -94,7 +94,7 @@ def is_float(v: str) -> bool:
 
 
 def row_values(
-    parts, most: int, dropped: Counter | None = None, *keys: str, numeric: int | None = None
+    parts, most: int, *, dropped: Counter | None = None, keys=(), numeric: int | None = None
 ) -> list[float] | None:
     """The fields of a text row as floats, or None for a garbled row: the one rule of every text reader.
 
@@ -116,6 +116,21 @@ def row_values(
     for key in keys:
         dropped[f"{key}:{why}"] += 1
     return None
+
+
+#: The UTF-8 byte-order mark a spreadsheet or a Windows tool may write at a text file's start: skipped.
+BOM = b"\xef\xbb\xbf"
+
+
+def read_text(path: Path) -> str:
+    """A whole small text file (metadata, a header file), UTF-8, a byte-order mark skipped."""
+    return Path(path).read_text(encoding="utf-8-sig", errors="replace")
+
+
+def head_bytes(path: Path, n: int) -> bytes:
+    """A file's first ``n`` bytes, a byte-order mark skipped (a format's sniffer reads them)."""
+    with Path(path).open("rb") as fh:
+        return fh.read(n).removeprefix(BOM)
 
 
 def open_text(path: Path):
@@ -177,6 +192,9 @@ class StreamBuilder:
         if not math.isfinite(t) or not all(math.isfinite(v) for v in vals):
             self.dropped[f"{self.key}:nan"] += 1
             return False
+        if self.width == 4 and not QUAT_NORM[0] <= math.sqrt(sum(v * v for v in vals)) <= QUAT_NORM[1]:
+            self.dropped[f"{self.key}:not_unit"] += 1
+            return False
         if t == self.last_t:
             self.dropped[f"{self.key}:duplicate_t"] += 1
             return False
@@ -184,9 +202,6 @@ class StreamBuilder:
             raise InputError(
                 self.path, f"{self.key}: time goes backwards ({t!r} after {self.last_t!r})", lineno
             )
-        if self.width == 4 and not QUAT_NORM[0] <= math.sqrt(sum(v * v for v in vals)) <= QUAT_NORM[1]:
-            self.dropped[f"{self.key}:not_unit"] += 1
-            return False
         if self.limit is not None and any(abs(v) >= self.limit for v in vals):
             self.dropped[f"{self.key}:saturated"] += 1
         self.last_t = t
@@ -201,6 +216,11 @@ class StreamBuilder:
         vals = np.asarray(vals, dtype=float).reshape(len(t), self.width)
         good = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
         self.count("nan", int((~good).sum()))
+        if self.width == 4:
+            norm = np.linalg.norm(vals, axis=1)
+            unit = good & (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
+            self.count("not_unit", int((good & ~unit).sum()))
+            good = unit
         t, vals = t[good], vals[good]
         rows = np.flatnonzero(good)
         if len(t) == 0:
@@ -215,11 +235,6 @@ class StreamBuilder:
         keep = t != prev
         self.count("duplicate_t", int((~keep).sum()))
         t, vals = t[keep], vals[keep]
-        if self.width == 4:
-            norm = np.linalg.norm(vals, axis=1)
-            unit = (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
-            self.count("not_unit", int((~unit).sum()))
-            t, vals = t[unit], vals[unit]
         if self.limit is not None:
             self.count("saturated", int(np.any(np.abs(vals) >= self.limit, axis=1).sum()))
         if len(t):
@@ -354,6 +369,7 @@ class Converter:
         self.spec = spec
         self.dropped = dropped
         self.n = 0
+        self.n_kept = 0  # … of them, the ones that went on (not implausible)
         self.held: list[Block] | None = [] if spec.check else None
         self.sat = None if spec.limit_known else Saturation(spec.key)
 
@@ -390,29 +406,41 @@ class Converter:
             if limit is not None:
                 ok = np.all(np.abs(v) < limit, axis=1)
                 if not ok.all():
-                    self.dropped[f"{self.spec.key}:implausible"] += int(np.count_nonzero(~ok))
+                    n_bad = int(np.count_nonzero(~ok))
+                    self.dropped[f"{self.spec.key}:implausible"] += n_bad
+                    sat = f"{self.spec.key}:saturated"
+                    if self.spec.limit_known and self.dropped.get(sat):  # beyond any sensor's range is beyond
+                        self.dropped[sat] -= min(n_bad, self.dropped[sat])  # this one's: the builder counted
+                        if not self.dropped[sat]:  # it saturated (a kept sample); it is dropped instead
+                            del self.dropped[sat]
                     t, v = t[ok], v[ok]
+            self.n_kept += len(t)
             if len(t):
                 if self.sat is not None:
                     self.sat.update(v)
                 out.append((t, v))
         return out
 
-    def end(self) -> list[Block]:
-        """The blocks still held; InputError for a stream too short (or an implausible unit)."""
+    def _enough(self, n: int) -> None:
+        """InputError when ``n`` samples are too few for the stream (none at all: fine if it is optional)."""
         sp = self.spec
-        if self.n < sp.min_samples and not (sp.optional and self.n == 0):
-            what = "no valid samples" if self.n == 0 else f"only {self.n} valid sample(s)"
+        if n < sp.min_samples and not (sp.optional and n == 0):
+            what = "no valid samples" if n == 0 else f"only {n} valid sample(s)"
             prefix = f"{sp.key}:"
-            odd = [f"{k[len(prefix):]} {n}" for k, n in sorted(self.dropped.items()) if k.startswith(prefix)]
+            odd = [f"{k[len(prefix):]} {c}" for k, c in sorted(self.dropped.items()) if k.startswith(prefix)]
             if odd:
                 what += f"; dropped: {', '.join(odd)}"
             raise InputError(sp.path, f"{sp.key}: empty stream ({what})")
+
+    def end(self) -> list[Block]:
+        """The blocks still held; InputError for a stream too short (or an implausible unit)."""
+        self._enough(self.n)
         out = self._release() if self.held is not None else []
+        self._enough(self.n_kept)  # the implausible ones left out
         if self.sat is not None:
             n = self.sat.count()
             if n:
-                self.dropped[f"{sp.key}:saturated"] += n
+                self.dropped[f"{self.spec.key}:saturated"] += n
         return out
 
 
@@ -600,7 +628,7 @@ def iter_table(
                         f"expected at least {ncol} columns, got {len(parts)} (truncated file?)",
                         lineno + i,
                     )
-                vals = row_values(parts, most, dropped, *keys)
+                vals = row_values(parts, most, dropped=dropped, keys=keys)
                 if vals is None:
                     continue
                 for b, ix in targets:

@@ -55,6 +55,7 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
+    head_bytes,
     open_text,
     row_values,
 )
@@ -74,8 +75,7 @@ _AHRS_FIELDS = 9  # AppTimestamp, SensorTimestamp, the three angles, the rotatio
 def detect(path: Path) -> bool:
     if not path.is_file():
         return False
-    with path.open("rb") as fh:
-        head = fh.read(16384)
+    head = head_bytes(path, 16384)
     if b"\x00" in head:
         return False
     lines = head.splitlines()
@@ -113,7 +113,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 raise InputError(
                     p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
                 )
-            vals = row_values(parts[1:], _FIELDS, found["dropped"], key)
+            vals = row_values(parts[1:], _FIELDS, dropped=found["dropped"], keys=(key,))
             if vals is None:
                 continue
             app, sensor, x, y, z = vals[:5]
@@ -125,7 +125,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                     p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
                 )
             # only the first four fields must be numbers: the floor and the building may be text
-            vals = row_values(parts[1:], _FIELDS, found["dropped"], "position", numeric=4)
+            vals = row_values(parts[1:], _FIELDS, dropped=found["dropped"], keys=("position",), numeric=4)
             if vals is None:
                 continue
             t, _, lat, lon = vals
@@ -133,7 +133,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
             found["positions"].append([t, lat, lon, *rest])
         elif kind == "AHRS" and found.get("os") is not None:
             b = found["os"]
-            vals = row_values(parts[1:], _AHRS_FIELDS, b.dropped, b.key)
+            vals = row_values(parts[1:], _AHRS_FIELDS, dropped=b.dropped, keys=(b.key,))
             if vals is None:
                 continue
             vals += [math.nan] * (_AHRS_FIELDS - len(vals))  # a value missing: counted as os:nan

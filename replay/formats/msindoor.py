@@ -57,7 +57,9 @@ from replay.formats._common import (
     StreamSpec,
     chunks_of,
     every,
+    head_bytes,
     open_text,
+    read_text,
     row_values,
 )
 from replay.formats._phone import OsEstimate, utc_date
@@ -84,8 +86,7 @@ _MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | 
 def detect(path: Path) -> bool:
     if not path.is_file():
         return False
-    with path.open("rb") as fh:
-        head = fh.read(4096).removeprefix(b"\xef\xbb\xbf")  # a byte-order mark, if a tool wrote one
+    head = head_bytes(path, 4096)
     return head.startswith(b"#\tstartTime:") or (
         b"\tTYPE_ACCELEROMETER\t" in head and not head.startswith(b"\x89")
     )
@@ -117,7 +118,7 @@ def _site_location(path: Path, meta: dict) -> None:
     if not geo.is_file():
         return
     try:
-        features = json.loads(geo.read_text(encoding="utf-8"))["features"]
+        features = json.loads(read_text(geo))["features"]
     except (ValueError, KeyError, TypeError, OSError):
         return  # the map is optional context, not part of the recording
     lons: list[float] = []
@@ -147,6 +148,9 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
     :class:`OsEstimate` in ``found["estimates"]``, if any."""
     meta, ranges = found["meta"], found["ranges"]
     t0_ms: float | None = None
+    # a garbled line is counted in its stream when that is read (a type not chosen: not counted)
+    counted = {kind: (_TYPES[kind][0],) if kind in kinds else () for kind in _TYPES}
+    counted["TYPE_WAYPOINT"] = ("waypoint",)
     for lineno, line in enumerate(fh, start=1):
         yield
         if line.startswith("#"):
@@ -169,10 +173,8 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
             raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
-        # a garbled line is counted in its stream when that is read (a type not chosen: not counted)
-        key = "waypoint" if kind == "TYPE_WAYPOINT" else _TYPES[kind][0]
-        counted = (key,) if kind in kinds or kind == "TYPE_WAYPOINT" else ()
-        vals = row_values([parts[0], *parts[2:]], 1 + _MOST[kind], found["dropped"], *counted)
+        cells = [parts[0], *parts[2:]]
+        vals = row_values(cells, 1 + _MOST[kind], dropped=found["dropped"], keys=counted[kind])
         if vals is None:
             continue
         if t0_ms is None:
@@ -198,7 +200,7 @@ def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:
     ``os:extra_fields`` / ``os:non_numeric``, one with a value NaN or missing as ``os:nan`` (the series is
     for evaluation only: never an error)."""
     most = 1 + _MOST["TYPE_ROTATION_VECTOR"]
-    vals = row_values([parts[0], *parts[2:]], most, b.dropped, b.key)
+    vals = row_values([parts[0], *parts[2:]], most, dropped=b.dropped, keys=(b.key,))
     if vals is not None:
         vals += [math.nan] * (most - len(vals))  # a value missing: counted as os:nan
         b.add(lineno, vals[0], vals[1:4])

@@ -24,7 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, iter_table, open_text, read_table
+from replay.formats._common import (
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    iter_table,
+    open_text,
+    read_table,
+    read_text,
+)
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -85,7 +93,7 @@ def open_source(path) -> RecordingSource:
     meta: dict = {}
     if (p / "meta.json").is_file():
         try:
-            meta = json.loads((p / "meta.json").read_text())
+            meta = json.loads(read_text(p / "meta.json"))
         except json.JSONDecodeError as exc:
             raise InputError(p / "meta.json", f"not valid JSON ({exc.msg})", exc.lineno) from None
         if not isinstance(meta, dict):

@@ -142,7 +142,7 @@ def _member_chunks(p: Path, name: str, key: str, idx: list[int], n_header: int, 
                 raise InputError(where, f"expected {n_header} columns, got {len(cells)} (truncated?)", lineno)
             if decimal_comma:
                 cells = [c.replace(",", ".") for c in cells]
-            vals = row_values(cells, n_header, dropped, key)
+            vals = row_values(cells, n_header, dropped=dropped, keys=(key,))
             if vals is None:
                 continue
             yield builder.add(lineno, vals[idx[0]], [vals[i] for i in idx[1:]])

@@ -71,6 +71,7 @@ from replay.formats._common import (
     chunks_of,
     iter_table,
     open_text,
+    read_text,
     require,
     row_values,
 )
@@ -117,7 +118,7 @@ def detect(path: Path) -> bool:
 def _properties(path: Path) -> configparser.ConfigParser:
     cp = configparser.ConfigParser(strict=False)
     try:
-        cp.read_string(path.read_text(encoding="utf-8", errors="replace"), source=str(path))
+        cp.read_string(read_text(path), source=str(path))
     except configparser.Error as exc:
         raise InputError(path, f"not a properties file ({exc.message.splitlines()[0]})") from None
     return cp
@@ -183,7 +184,7 @@ def _truth(path: Path, dropped: Counter):
     if not (mat.is_file() and align.is_file()):
         return None
     try:
-        delta = float(align.read_text().split()[0])
+        delta = float(read_text(align).split()[0])
     except (ValueError, IndexError):
         raise InputError(align, "expected one number (seconds)", 1) from None
     from scipy.io import loadmat

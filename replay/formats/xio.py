@@ -28,7 +28,15 @@ import numpy as np
 
 from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
-from replay.formats._common import StreamBuilder, StreamSpec, chunks_of, every, open_text, row_values
+from replay.formats._common import (
+    StreamBuilder,
+    StreamSpec,
+    chunks_of,
+    every,
+    head_bytes,
+    open_text,
+    row_values,
+)
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -45,8 +53,7 @@ _SCALE = {
 def detect(path: Path) -> bool:
     if not (path.is_file() and path.suffix.lower() == ".csv"):
         return False
-    with path.open("rb") as fh:
-        first = fh.readline(4096).decode("utf-8-sig", "replace").strip().lower()
+    first = head_bytes(path, 4096).split(b"\n", 1)[0].decode("utf-8", "replace").strip().lower()
     return first.startswith("time (s),") and "magnetometer x (" in first
 
 
@@ -82,7 +89,7 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
         parts = s.split(",")
         if len(parts) < ncol:
             raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
-        vals = row_values(parts, ncol, dropped, *builders)  # garbled: counted in every stream
+        vals = row_values(parts, ncol, dropped=dropped, keys=tuple(builders))  # garbled: in every stream
         if vals is None:
             continue
         t = vals[0]
