@@ -6,8 +6,6 @@ Quaternions are w-first ``(qw, qx, qy, qz)`` everywhere outside this module; sci
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -66,13 +64,6 @@ def mod360(angle_deg):
     arithmetic without its per-element division: 360 added below zero, −0 made +0 (a new array)."""
     a = np.asarray(angle_deg, dtype=float)
     return np.where(a < 0.0, a + 360.0, a) + 0.0
-
-
-def vector_norm(v) -> float:
-    """``np.linalg.norm`` of a 1-D vector, by its own arithmetic (``sqrt(v · v)`` of the raveled float
-    vector) without its argument handling: the online refits and stale tests take a few per call."""
-    x = np.asarray(v, dtype=float).ravel(order="K")
-    return math.sqrt(x.dot(x))
 
 
 def wrap_deg(angle_deg: np.ndarray | float) -> np.ndarray | float:

@@ -53,17 +53,3 @@ def test_bad_calibration_objects_raise_naming_the_key():
     with pytest.raises(ValueError, match="3-D"):
         fit_sphere(np.ones((10, 3)))
 
-
-def test_with_fields_is_dataclasses_replace():
-    """The copy the refits make is ``dataclasses.replace``: the same fields, in the same order, equal; an
-    unknown field is a TypeError."""
-    from dataclasses import replace
-
-    cal = MagCalibration.from_arrays([1.0, 2.0, 3.0], np.diag([1.1, 0.9, 1.0]), field_uT=48.0, method="ml",
-                                     offset_std_uT=[0.1, 0.2, 0.3], covariance=np.eye(3), extra={"k": 1})
-    changes = {"coverage": 0.4, "accepted": False, "reasons": ("why",), "extra": {"k": 2}}
-    new, want = cal.with_fields(**changes), replace(cal, **changes)
-    assert new == want and list(vars(new).items()) == list(vars(want).items())
-    assert cal.coverage != 0.4 and type(new) is MagCalibration
-    with pytest.raises(TypeError, match="no_such"):
-        cal.with_fields(no_such=1)

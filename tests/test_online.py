@@ -351,12 +351,12 @@ def test_coverage_kept_per_direction_equals_the_coverage_counted_afresh():
     leaving the buffer, is at every block end the coverage counted from the buffer then (a small buffer that
     fills, so that samples are replaced; a figure-8 that brings new directions; calibrations that move the
     centre)."""
-    from pdr_mag.calibration.diversity import buffer_coverage
+    from pdr_mag.calibration.diversity import buffer_coverage, count_directions
 
     tm, mag, up, rate = _rows(synth_walk(duration=60.0, seed=4, figure8=(20.0, 35.0)))
     blk = np.floor(tm / 0.5)
     oc = OnlineCalibrator(OnlineSettings(buffer_size=30, refresh_s=5.0), strength=F, sin_dip=np.sin(INC))
-    n_calibrated = n_full = 0
+    n_calibrated = n_full = n_counted = 0
     for k in np.unique(blk):
         w = blk == k
         ends = np.zeros(int(w.sum()), dtype=bool)
@@ -367,9 +367,16 @@ def test_coverage_kept_per_direction_equals_the_coverage_counted_afresh():
             i += n
         c = oc._cal[0]
         assert cov[n - 1] == buffer_coverage(oc._buf, oc._n_buf, c["has_offset"], c["offset"])
+        st = oc._state[0]
+        if st["cover_ok"]:  # the counts themselves, not only the share of directions they hit
+            counts = np.zeros_like(st["cover"])
+            for j in range(oc._n_buf):
+                count_directions(oc._buf["m"][j], c["offset"], counts, 1)
+            np.testing.assert_array_equal(st["cover"], counts)
+            n_counted += 1
         n_calibrated += bool(c["has_offset"])
         n_full += oc._n_buf == 30
-    assert n_calibrated > 50 and n_full > 50
+    assert n_calibrated > 50 and n_full > 50 and n_counted > 50
 
 
 def test_online_refits_are_judged_by_the_calibration_core_rules():

@@ -131,6 +131,23 @@ def test_two_devices_whose_keys_read_the_same_as_file_names_keep_their_own_entri
     store.save(b, DevicePrior(calibration=cal_b, gyro_bias=None), 10.0)
     assert store.path(a) == pa and store.path(b) == pb
     assert store.load(a, 10.0).calibration.offset == (-57.0, -91.0, -302.0)
+    # the plain file gone (removed by hand): the second device still finds its own, and saves there
+    pa.unlink()
+    assert store.load(b, 10.0).calibration.offset == (10.0, 20.0, 30.0)
+    assert store.save(b, DevicePrior(calibration=cal_b, gyro_bias=None), 20.0) == pb and not pa.exists()
+
+
+def test_a_prior_without_its_sigma_gives_way_to_a_first_fit():
+    """A store's or the phone's estimate saved without its σ knows nothing sure: provisional for the
+    refits (a first fit may replace it), where a calibration the user gave without σ is as sure as given."""
+    from pdr_mag.calibration.online_settings import OnlineSettings
+    from pdr_mag.calibration.refit import provisional
+
+    nan = (float("nan"),) * 3
+    prior = MagCalibration.from_arrays([1.0, 2.0, 3.0], offset_std_uT=nan, extra={"prior": "store"})
+    given = MagCalibration.from_arrays([1.0, 2.0, 3.0], offset_std_uT=nan)
+    assert provisional(prior, OnlineSettings(), vague_prior=True)
+    assert not provisional(given, OnlineSettings(), vague_prior=True)
 
 
 def test_a_store_file_without_its_key_is_reported_not_overwritten(tmp_path):

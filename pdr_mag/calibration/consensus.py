@@ -59,9 +59,10 @@ def inliers(y: np.ndarray, u: np.ndarray, c: np.ndarray, strength: float, dip_de
 def score(y: np.ndarray, u: np.ndarray, hyp: np.ndarray, strength: float, dip_deg: float,
           s: OnlineSettings) -> np.ndarray:
     """The truncated cost of each hypothesis ``hyp`` (P, 3) over the samples ``y``, ``u`` (N, 3), lower
-    is better: ``Σ min(e_i, 2)`` with ``e_i = misfit_s² + misfit_d²`` (:func:`_misfit`), an outlier (either
-    misfit beyond 1) costing 2 — an inlier costs less the better it fits, so of two hypotheses with as many
-    inliers the one that fits them better wins (MSAC rather than a count).  Returns (P,)."""
+    is better: ``Σ c_i`` with ``c_i = misfit_s² + misfit_d²`` (:func:`_misfit`; at most 2) for an inlier
+    (both misfits within 1) and 2 for an outlier — an inlier costs less the better it fits, so of two
+    hypotheses with as many inliers the one that fits them better wins (MSAC rather than a count).
+    Returns (P,)."""
     out = np.empty(len(hyp))
     _costs(*_args(y, u, strength, dip_deg, s), np.ascontiguousarray(hyp, dtype=float), out)
     return out
@@ -102,7 +103,7 @@ def _costs(y, u, strength, dip, tol_s, tol_d, hyp, out):
         total = 0.0
         for i in range(len(y)):
             ms, md = _misfit(y, u, i, hyp[p], strength, dip, tol_s, tol_d)
-            total += min(ms * ms + md * md, 2.0) if abs(ms) <= 1.0 and abs(md) <= 1.0 else 2.0
+            total += ms * ms + md * md if abs(ms) <= 1.0 and abs(md) <= 1.0 else 2.0
         out[p] = total
 
 
@@ -195,7 +196,10 @@ def consensus_offset(
     hyp = []
     for a in range(0, len(m) - k + 1, max(k // 2, 1)):
         w = order[a : a + k]
-        fit = fit_offset(y[w], uu[w], model)
+        try:
+            fit = fit_offset(y[w], uu[w], model)
+        except ValueError:  # a window whose normal equations are singular: no hypothesis
+            continue
         if fit.ok and np.all(np.isfinite(fit.offset)):
             hyp.append(fit.offset)
     pairs = pair_hypotheses(y, uu, order, strength, strength * sin_dip, s)
@@ -208,7 +212,10 @@ def consensus_offset(
     if best_n < s.consensus_min_inliers:
         return None
     for _ in range(2):  # refit on the inliers, and find them again about the refit
-        fit = fit_offset(y[mask], uu[mask], model)
+        try:
+            fit = fit_offset(y[mask], uu[mask], model)
+        except ValueError:
+            return None
         if not fit.ok:
             return None
         mask = inliers(y, uu, fit.offset, strength, dip_deg, s)

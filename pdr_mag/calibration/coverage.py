@@ -21,7 +21,7 @@ the figures from the samples.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -177,7 +177,7 @@ def _heading_figures(cal: MagCalibration, field, s: AcceptanceSettings) -> dict:
         return fig
     if cal.covariance is None:  # only the offset's 1-σ known (e.g. a calibration file)
         std = np.asarray(cal.offset_std_uT, dtype=float)
-        cal = cal.with_fields(covariance=tuple(map(tuple, np.diag(std**2).tolist())),
+        cal = replace(cal, covariance=tuple(map(tuple, np.diag(std**2).tolist())),
                       extra={"covariance_params": ["offset_x", "offset_y", "offset_z"]})
     hb = heading_bound(cal, inclination_of(field, s.default_inclination_deg))
     return {**hb.to_dict(), "white_std_deg": hb.std_deg}
@@ -328,4 +328,4 @@ def assess(mag: np.ndarray, cal: MagCalibration, field=None,
                                        s.residual_lag, s.noise_lag)
     except (ValueError, np.linalg.LinAlgError):
         extra.pop("heading", None)  # no ellipsoid to evaluate at: accept() falls back to the covariance
-    return accept(cal.with_fields(coverage=stats["coverage"], extra=extra), field, s)
+    return accept(replace(cal, coverage=stats["coverage"], extra=extra), field, s)

@@ -34,7 +34,7 @@ axis perpendicular to ``a`` sweeps ``a`` through the field, which is the motion 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -299,8 +299,8 @@ def fit_figures(mag: np.ndarray, cal: MagCalibration, inclination_deg: float = D
         meat += (1.0 - j / (lag + 1.0)) * (c + c.T)
     cov_h = h_inv @ meat @ h_inv * n / dof
     names = {"covariance_params": param_names("full")}
-    b_w = heading_bound(cal.with_fields(covariance=_tup(cov_w), extra=names), inclination_deg)
-    b_h = heading_bound(cal.with_fields(covariance=_tup(cov_h), extra=names), inclination_deg)
+    b_w = heading_bound(replace(cal, covariance=_tup(cov_w), extra=names), inclination_deg)
+    b_h = heading_bound(replace(cal, covariance=_tup(cov_h), extra=names), inclination_deg)
     worst, cov = (b_h, cov_h) if b_h.std_deg > b_w.std_deg else (b_w, cov_w)
     field_err = float(np.degrees(slow / (cal.field_uT * np.cos(np.radians(inclination_deg)))))
     shift = heading_shift(cal, delta, inclination_deg)

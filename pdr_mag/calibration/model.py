@@ -7,7 +7,7 @@ calibration file that ``replay --calibration`` reads.  Keys beyond the contract 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -97,19 +97,7 @@ class MagCalibration:
 
     def with_acceptance(self, accepted: bool, reasons) -> MagCalibration:
         """A copy with the acceptance verdict replaced."""
-        return self.with_fields(accepted=bool(accepted), reasons=tuple(reasons))
-
-    def with_fields(self, **changes) -> MagCalibration:
-        """A copy with these fields changed: ``dataclasses.replace(self, **changes)`` (the class has no
-        ``__post_init__``, so its fields are the whole object) without replace's walk over the fields, as
-        the online refits copy a few calibrations each."""
-        unknown = changes.keys() - _FIELDS
-        if unknown:
-            raise TypeError(f"MagCalibration has no field {sorted(unknown)[0]!r}")
-        new = object.__new__(type(self))
-        new.__dict__.update(self.__dict__)
-        new.__dict__.update(changes)
-        return new
+        return replace(self, accepted=bool(accepted), reasons=tuple(reasons))
 
     # ------------------------------------------------------------------ use
     @property
@@ -218,8 +206,6 @@ class MagCalibration:
             raise ValueError(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from exc
         return cls.from_dict(d)
 
-
-_FIELDS = frozenset(f.name for f in fields(MagCalibration))
 
 
 def _tuplify(a: np.ndarray) -> tuple:

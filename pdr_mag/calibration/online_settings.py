@@ -114,6 +114,10 @@ class OnlineSettings:
         hypotheses come from windows of this many consecutive samples (ten: 2–5 s of a walk, enough yaw for
         the gravity-aided fit, short enough to lie between two disturbances), and a result needs this many
         inliers (a window and a half: one window's own samples do not make a consensus).
+    consensus_pairs : int
+        Hypotheses from pairs of samples solved exactly (strength and dip are linear in ``(b, |b|²)``), half
+        of them neighbours in time (a disturbance comes in runs, so do the clean samples between), beside the
+        windows'; drawn with a generator seeded by the buffer's size (a run repeats itself).
     consensus_strength_frac, consensus_dip_deg : float
         A sample agrees with a hypothesis when the field it gives is within this share of F (as far as a
         whole fit's residual RMS may reach, ``max_rms_frac``: a sample further off is not of that fit) and

@@ -26,6 +26,7 @@ Each is judged (:func:`judge`); the richest accepted one (full > sphere > gravit
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -40,7 +41,6 @@ from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
 from pdr_mag.calibration.sphere import fit_sphere
-from pdr_mag.conventions import vector_norm
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, plausible_strength
 
 #: An online fit's radius may differ from the reference strength (or, without one, from the Earth's range)
@@ -78,7 +78,7 @@ def candidates(
     cov = direction_coverage(centred)
     if cov >= s.sphere_coverage:
         try:
-            cands.append(fit_sphere(m).with_fields(coverage=cov))
+            cands.append(replace(fit_sphere(m), coverage=cov))
         except (ValueError, ArithmeticError):
             pass
     if (
@@ -88,7 +88,7 @@ def candidates(
     ):
         try:
             full = calibrate(m, method="auto", field=field_ref)
-            cands.append(full.with_fields(coverage=cov if not np.isfinite(full.coverage) else full.coverage))
+            cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
         except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
             pass
     first = current is None or provisional(current, s, vague_prior=True)
@@ -103,7 +103,8 @@ def candidates(
             except ValueError:
                 return judged
             g = with_consensus(with_correlated_errors(g, times[mask], s.field_corr_s), mask, best_n)
-            judged.append(judge(g, s, field_ref, first, coverage=cov))
+            # its coverage: the inliers' directions about its own offset, not the polluted buffer's
+            judged.append(judge(g, s, field_ref, first, coverage=direction_coverage(g.apply(m[mask]))))
     return judged
 
 
@@ -125,12 +126,13 @@ def provisional(cal: MagCalibration, s: OnlineSettings, vague_prior: bool = Fals
     (``vague_prior``) only when it knows less than a first fit would (σ above ``first_offset_std_uT``: a
     store's entry aged by days), so that a first fit may replace it."""
     std = cal.offset_std_uT
-    if not all(map(math.isfinite, std)):
-        return False  # a calibration given without its σ (a file): as sure as the user says
-    sd = float(max(std))
-    if is_prior(cal):
+    finite = all(map(math.isfinite, std))
+    if is_prior(cal):  # a prior without its σ knows nothing sure (prior.offset_sigma: unknown is infinite)
+        sd = float(max(std)) if finite else math.inf
         return vague_prior and sd > max(s.first_offset_std_uT, s.max_offset_std_uT)
-    return sd > s.max_offset_std_uT
+    if not finite:
+        return False  # a calibration given without its σ (a file): as sure as the user says
+    return float(max(std)) > s.max_offset_std_uT
 
 
 def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float) -> MagCalibration:
@@ -150,7 +152,7 @@ def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float
     if k <= 1.0:
         return cal
     cov = tuple(tuple(v * k for v in row) for row in cal.covariance)  # (the product numpy's would give)
-    return cal.with_fields(
+    return replace(cal,
         covariance=cov,
         offset_std_uT=tuple(np.sqrt(np.maximum([cov[0][0], cov[1][1], cov[2][2]], 0.0)).tolist()),
         extra={**cal.extra, "correlation_inflation": k},
@@ -242,8 +244,8 @@ def judge(
         reasons.append("no finite field radius")
     elif cal.residual_rms_uT > s.max_rms_frac * f:
         reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {s.max_rms_frac:.0%} of F")
-    if vector_norm(cal.offset) > s.max_offset_uT:
-        reasons.append(f"offset {vector_norm(cal.offset):.0f} µT implausible")
+    if np.linalg.norm(cal.offset) > s.max_offset_uT:
+        reasons.append(f"offset {np.linalg.norm(cal.offset):.0f} µT implausible")
     if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > RADIUS_REL_TOL:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
     elif field_ref is None and cal.method == "gravity" and np.isfinite(f) \
@@ -253,7 +255,7 @@ def judge(
         reasons.append(f"radius {f:.1f} µT: the Earth's field is {lo:g}–{hi:g} µT everywhere "
                        f"(± {RADIUS_REL_TOL:.0%} indoors)")
     if coverage is not None:
-        return cal.with_fields(coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
+        return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
 
 
@@ -275,7 +277,7 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
         return False
     if provided and new.method in ("gravity", "sphere"):
         return False
-    shift = vector_norm(new.offset_array - old.offset_array)
+    shift = np.linalg.norm(new.offset_array - old.offset_array)
     std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
@@ -292,7 +294,7 @@ def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibratio
     samples it was fitted on (a gravity fit has its own)."""
     if cal.method == "gravity":
         return cal
-    return cal.with_fields(extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
+    return replace(cal, extra={**cal.extra, "sin_dip": median_sin_dip(cal.apply(m), u)})
 
 
 def median_sin_dip(m_cal: np.ndarray, u: np.ndarray) -> float:

@@ -24,7 +24,6 @@ import numpy as np
 
 from pdr_mag.calibration.gravity import FitModel, fit_offset
 from pdr_mag.calibration.online_settings import OnlineSettings
-from pdr_mag.conventions import vector_norm
 
 
 class Shift(NamedTuple):
@@ -85,11 +84,11 @@ def window_shift(
 
 def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
     """The whole-window tests: explained, significant and well posed."""
-    shift = vector_norm(fit.delta)
+    shift = np.linalg.norm(fit.delta)
     return bool(
         fit.rms < 0.5 * s.strength_tol_frac * strength
         and shift > s.stale_min_shift_uT
-        and shift > 4 * vector_norm(fit.sigma)
+        and shift > 4 * np.linalg.norm(fit.sigma)
         and float(fit.sigma.max()) < 2 * s.max_offset_std_uT
     )
 

@@ -98,7 +98,8 @@ class DeviceStore:
         """The file of this recording's device (None without a device): the key with every run of other
         characters than letters, digits, ``.``, ``_``, ``-`` made one ``_`` — unless that file holds another
         device whose key reads the same so (``"A B"`` and ``"A/B"``), then the same name with the key's
-        hash, so that neither overwrites the other."""
+        hash, so that neither overwrites the other.  ``ValueError`` for a file that is not a store entry
+        (:meth:`load` names it)."""
         found = self._locate(meta)
         return None if found is None else found[0]
 
@@ -109,14 +110,14 @@ class DeviceStore:
         if k is None:
             return None
         plain = self.folder / (re.sub(r"[^A-Za-z0-9._-]+", "_", k) + ".json")
-        d = _parse(plain)
-        if d is None or d["key"] == k:
-            return plain, d
         hashed = plain.with_name(f"{plain.stem}-{hashlib.sha1(k.encode('utf-8')).hexdigest()[:10]}.json")
-        d = _parse(hashed)
-        if d is not None and d["key"] != k:
-            raise ValueError(f"{hashed}: device store: holds {d['key']!r}, not {k!r}")
-        return hashed, d
+        d = _parse(hashed)  # the hashed name first: it is this key's alone (the plain one may be gone since)
+        if d is not None:
+            if d["key"] != k:
+                raise ValueError(f"{hashed}: device store: holds {d['key']!r}, not {k!r}")
+            return hashed, d
+        d = _parse(plain)
+        return (plain, d) if d is None or d["key"] == k else (hashed, None)
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
         """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
