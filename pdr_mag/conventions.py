@@ -67,10 +67,8 @@ def mod360(angle_deg):
 
 
 def wrap_deg(angle_deg: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angle(s) to [-180, 180): ``np.mod(a + 180, 360) − 180``, its modulo by the same exact arithmetic
-    from ``np.fmod`` (360 added to a negative remainder, a zero one made +0), half the time of np.mod's."""
-    r = np.fmod(np.asarray(angle_deg) + 180.0, 360.0)
-    return np.where(r < 0.0, r + 360.0, r) + 0.0 - 180.0
+    """Wrap angle(s) to [-180, 180)."""
+    return np.mod(np.asarray(angle_deg) + 180.0, 360.0) - 180.0
 
 
 def rotation_about_up(angle_rad: float | np.ndarray) -> Rotation:

@@ -121,13 +121,12 @@ def earth_field(
     for epoch in _EPOCHS:
         if year >= epoch[0]:
             chosen = epoch
-    extrapolated = not (chosen[0] <= year < chosen[0] + 5.0)
     alt_km = float(altitude_m) / 1000.0
-    return _wmm(chosen, float(latitude_deg), float(longitude_deg), alt_km, year, extrapolated)
+    return _wmm(chosen, float(latitude_deg), float(longitude_deg), alt_km, year)
 
 
 @lru_cache(maxsize=64)
-def _wmm(epoch: tuple, glat: float, glon: float, alt_km: float, year: float, extrapolated: bool):
+def _wmm(epoch: tuple, glat: float, glon: float, alt_km: float, year: float):
     """The WMM field of :func:`earth_field` (cached: the recordings of a batch, or of a building, share their
     place and day)."""
     res = _geomag(epoch[1]).calculate(
@@ -141,7 +140,7 @@ def _wmm(epoch: tuple, glat: float, glon: float, alt_km: float, year: float, ext
         inclination_deg=float(res.i),
         declination_deg=float(res.d),
         model=epoch[2],
-        extrapolated=extrapolated,
+        extrapolated=not (epoch[0] <= year < epoch[0] + 5.0),
     )
 
 

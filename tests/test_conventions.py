@@ -69,13 +69,3 @@ def test_mod360_is_np_mod_of_angles_in_a_turn():
     a = np.concatenate([np.degrees(np.arctan2(rng.normal(size=10000), rng.normal(size=10000))),
                         [0.0, -0.0, 180.0, -180.0, -1e-300, 359.999, -359.999, np.nan]])
     assert mod360(a).tobytes() == np.mod(a, 360.0).tobytes()
-
-
-def test_wrap_deg_is_the_np_mod_formula():
-    """wrap_deg is np.mod(a + 180, 360) − 180 bit for bit, arrays and scalars, any number of turns."""
-    rng = np.random.default_rng(6)
-    a = np.concatenate([rng.normal(scale=s, size=20000) for s in (1.0, 300.0, 1e5)]
-                       + [np.array([0.0, -0.0, 180.0, -180.0, 540.0, -540.0, -1e-300, np.nan])])
-    assert wrap_deg(a).tobytes() == (np.mod(a + 180.0, 360.0) - 180.0).tobytes()
-    for v in (-180.0, 725.5, -0.0):
-        assert np.asarray(wrap_deg(v)).tobytes() == np.asarray(np.mod(v + 180.0, 360.0) - 180.0).tobytes()

@@ -254,8 +254,8 @@ def test_the_groups_meet_issue_10s_targets(peers, run):
     mode b's mean and median per phone no higher than the phone's own fusion's (``os``).  No margin: the
     motion-capture misalignment costs every estimator the same on a walk.
 
-    Measured (42 walks, means over walks, deg; benchmarks/heading.py at f99bf41): mode a all 4.37 vs
-    vqf_cal_gcal 6.02, Dist 5.93 vs 9.05, NoDist 3.19 vs 3.75 — 2° more on every walk fails all and NoDist.
+    Measured (42 walks, means over walks, deg; benchmarks/heading.py at 3f4a68b): mode a all 4.38 vs
+    vqf_cal_gcal 6.02, Dist 6.01 vs 9.05, NoDist 3.17 vs 3.75 — 2° more on every walk fails all and NoDist.
     Mode b per phone, mean: Nexus5 6.24 vs os 12.35, iPhone4S 4.45 vs 27.66, iPhone5 5.18 vs 23.89 (only a
     gross regression fails these); median: Nexus5 4.37 vs 4.57, iPhone4S 3.24 vs 20.36, iPhone5 4.30 vs
     18.30 — 2° more on every walk fails the Nexus5 median by 1.8°.  That median is the tightest figure (0.20°

@@ -50,6 +50,7 @@ from pdr_mag._records import check_numbers, default_settings
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.episodes import _kernel as K
 from pdr_mag.estimates import Event
+from pdr_mag.fusion.detectors import BANDS
 
 #: Episode kinds, with the unit of their threshold and peak.
 KINDS = {"error": "deg", "sigma": "deg", "no_reference": "s"}
@@ -311,8 +312,8 @@ class EpisodeFinder:
             np.asarray(batch.heading_std_deg, dtype=float),
             np.asarray(batch.mag_used, dtype=bool),
             np.asarray(batch.interference, dtype=bool),
-            _band(batch.diag, ("field_strength_uT", "field_ref_uT", "strength_tol_uT"), len(t)),
-            _band(batch.diag, ("dip_deg", "dip_ref_deg", "dip_tol_deg"), len(t)),
+            _band(batch.diag, BANDS["strength"][:3], len(t)),  # (value, reference, tolerance) columns
+            _band(batch.diag, BANDS["dip"][:3], len(t)),
             self._scan,
             self._levels,
         )

@@ -67,14 +67,12 @@ import numpy as np
 from numba import njit
 
 from pdr_mag.fusion.detectors import restart
-from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update, update_h
+from pdr_mag.fusion.eskf import LINEAR_RAD, inject, settle_u, tilt_unsettled, update, update_h
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import bias_prior_var, ew_stats_step
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
-#: the largest tilt error the averaged update treats as linear (its bias terms), rad
-LINEAR_RAD = 0.35
 #: largest starting tilt variance per axis, rad² (a quarter turn: the linearised updates say nothing beyond)
 TILT0_VAR_MAX = (np.pi / 2) ** 2
 

@@ -104,7 +104,6 @@ from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 8
 _NO_CUTS = np.empty(0, dtype=np.intp)
-_EYE3 = np.eye(3)
 
 
 class Span(NamedTuple):
@@ -236,16 +235,16 @@ class FusionCore:
             arrays.append(a)
         m_old, b_old, m_new, b_new = arrays
         st = self._st[0]
-        if (m_old == _EYE3).all() and (m_new == _EYE3).all():
-            d = np.zeros((3, 3))  # an offset-only change (every gravity refit): I − I·I⁻¹ = 0 exactly
+        if (m_old == m_new).all():  # the shape kept (every gravity refit): D = I − M·M⁻¹ = 0 exactly
+            d, d_norm = np.zeros((3, 3)), 0.0
         else:
             d = np.eye(3) - m_old @ np.linalg.inv(m_new)
+            d_norm = np.linalg.norm(d, 2)
         e = m_old @ (b_old - b_new)
         st["cal_jump_d"] += d
         st["cal_jump_e"] += e
         f = float(st["f_ref"]) if np.isfinite(st["f_ref"]) else EARTH_STRENGTH_RANGE_UT[0]
         tol = self.settings.interference.strength
-        d_norm = np.linalg.norm(d, 2) if d.any() else 0.0  # (d = 0: no SVD)
         if d_norm * f + np.linalg.norm(e) > max(tol.tol_uT, tol.tol_rel * f):
             forget_learnt(st["det"])
 

@@ -24,6 +24,10 @@ from pdr_mag.fusion.detectors import turn
 from pdr_mag.fusion.quat import rotate_vector, rotate_world
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
+#: the largest tilt error the linearised updates treat as small (the accelerometer's bias terms, the
+#: magnetometer's heading row), rad
+LINEAR_RAD = 0.35
+
 
 # ------------------------------------------------------------------------------------------ scalar updates
 @njit(cache=True, error_model="numpy")
@@ -157,6 +161,13 @@ def heading_var_u(s):
     v += g1 * (g0 * U[4, 3] + g1 * U[4, 4] + g2 * U[4, 5])
     v += g2 * (g0 * U[5, 3] + g1 * U[5, 4] + g2 * U[5, 5])
     return v
+
+
+@njit(cache=True, error_model="numpy")
+def tilt_beyond_linear(P):
+    """Whether the tilt's variance ``P_xx + P_yy`` exceeds ``2 · LINEAR_RAD²``: a tilt this uncertain may be
+    tens of degrees off, beyond what a linearised heading row describes."""
+    return P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * LINEAR_RAD**2
 
 
 @njit(cache=True, error_model="numpy")

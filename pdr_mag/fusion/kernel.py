@@ -7,7 +7,8 @@ next is in that record, so a chunked run equals a single run.
 
 Output rows: one per gyroscope sample once the tilt is known, decimated to a grid of ``out_dt_s`` anchored
 at the first such sample (a row at the first gyroscope sample at or after each grid time; ``out_dt_s = 0``
-gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√(P + U)[δθ_z, δθ_z])``, whether
+gives every sample).  A row holds the attitude, ``heading_std_deg = degrees(√max((P + U)[δθ_z, δθ_z],
+g Σ_b gᵀ))`` (:func:`calibration_floor`), whether
 the magnetometer corrected the heading and whether the interference flag was up since the previous row,
 and the diagnostics (:data:`~pdr_mag.fusion.rows.DIAG_NAMES`).
 """

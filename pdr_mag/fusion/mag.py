@@ -80,8 +80,9 @@ update undoes that: the accelerometer's corrections of the tilt would carry over
 started 20 s in), and the first heading updates after would teach the gyro bias the difference (8 °/s
 there).  So, until the first heading update once the tilt is in the linear range (``fix_through_tilt``), the
 heading is a consider state of the accelerometer's updates, as before any fix; and when that update's residual
-is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_set_heading`, exactly as at the first
-fix, its turn reported in ``heading_reset_deg`` as a re-acquisition's) rather than corrected; a smaller
+is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_set_heading`: the attitude turned
+onto the field's heading and its covariance rows as at the first fix, the gyroscope-only attitude turned with
+it; the turn reported in ``heading_reset_deg`` as a re-acquisition's) rather than corrected; a smaller
 residual is an ordinary update.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
@@ -96,10 +97,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pdr_mag.fusion.accel import LINEAR_RAD
 from pdr_mag.fusion.detectors import detect_step, disturbance2, reference_horizontal, restart, tolerance2
 from pdr_mag.fusion.detectors.dip import dip_of
-from pdr_mag.fusion.eskf import inject, settle_u, tilt_unsettled, update_h
+from pdr_mag.fusion.eskf import LINEAR_RAD, inject, settle_u, tilt_beyond_linear, tilt_unsettled, update_h
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import bias_prior_var, magerr_var, unmodelled_var
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
@@ -168,17 +168,18 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
             rv = np.pi**2  # a guess from a disturbed field (the module docstring)
         _first_fix(s, h, r, rv, t, p)
         return
-    if P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * LINEAR_RAD**2:
+    if tilt_beyond_linear(P):
         return  # a tilt this uncertain makes the linearised heading row meaningless (the module docstring)
     r = wrap(r - s.c)
+    if s.fix_through_tilt and abs(r) > LINEAR_RAD:  # a first fix through a wrong tilt (the module docstring)
+        rotate_world(s.q_gyro, 0.0, 0.0, r)  # the gyroscope-only attitude started from that first fix too
+        _set_heading(s, h, r, rv, t)
+        return
     # χ² gate with the undisturbed noise
     S = rv_clean
     for i in range(NX):
         for m in range(NX):
             S += h[i] * P[i, m] * h[m]
-    if s.fix_through_tilt and abs(r) > LINEAR_RAD:  # a first fix through a wrong tilt (the module docstring)
-        _set_heading(s, h, r, rv, t)
-        return
     if r * r > p.mag.gate**2 * S:
         # a clean-looking field that keeps disagreeing: let the heading's variance grow
         if np.isfinite(s.t_reject):
@@ -347,7 +348,7 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(P, h, rv)
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
-    s.fix_through_tilt = P[TH_X, TH_X] + P[TH_Y, TH_Y] > 2.0 * LINEAR_RAD**2
+    s.fix_through_tilt = tilt_beyond_linear(P)
     s.t_mag_update = t
     s.t_cal_start = t
     s.mag_used = True
