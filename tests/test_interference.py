@@ -226,3 +226,34 @@ def test_kernel_step_matches_the_vectorised_functions():
     np.testing.assert_allclose(out[:, 2], windowed_variance(t, f, S.variance.window_s), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out[:, 3], consistency_angle_deg(t, m_w, S.consistency.window_s), atol=1e-6)
     np.testing.assert_array_equal(out[:, 0].astype(bool), hold_off(t, out[:, 1]))
+
+
+def test_a_start_next_to_steel_guesses_from_the_flagged_fields():
+    """A start inside a disturbed area (a site where the field is shallow, I ≈ 36°: B_h ≈ 36 µT): the first
+    sample's field is turned 60° by 60 µT across it, then for 20 s the walker passes steel that adds 22 µT
+    along the field (flagged against the reference's band) and ±10 µT across it (turning it ±11°,
+    alternating every 1.5 s).  The heading is a guess (std 180°) until the field is clean; meanwhile it is
+    the weighted mean of the flagged fields' headings, not the first sample's."""
+    site = {"latitude_deg": 25.0, "longitude_deg": 121.5, "date": "2026-06-01"}
+    w = simulate("walk", seed=7, site=site, effects={"hard_iron": None, "soft_iron": None, "gyro_bias": None})
+    tm, m = w.mag
+    f_w = np.asarray(w.field.field_w)
+    along = f_w / np.linalg.norm(f_w)
+    across = np.array([-f_w[1], f_w[0], 0.0]) / np.hypot(f_w[0], f_w[1])
+    d_w = np.zeros((len(tm), 3))
+    walk_in = tm < 20.0
+    d_w[walk_in] = 22.0 * along + 10.0 * np.sign(np.sin(2 * np.pi * tm[walk_in] / 3.0))[:, None] * across
+    d_w[tm < tm[0] + 0.3] = 60.0 * across
+    rot = Rotation.from_quat(w.trajectory.orientation(tm)[:, [1, 2, 3, 0]])
+    b = _run(w, m + rot.inv().apply(d_w))
+    tt, qt = w.truth
+    err = error_at_truth(b, tt, qt)
+    tt = tt[(tt >= b.t[0]) & (tt <= b.t[-1])]
+    assert abs(err[0]) > 45.0  # the first field alone
+    flagged = (b.t > 1.0) & (b.t < 19.0)
+    assert np.all(b.heading_std_deg[flagged] > 179.0)  # still a guess
+    assert not b.mag_used[flagged].any()
+    guess = (tt > 10.0) & (tt < 19.0)
+    assert np.median(np.abs(err[guess])) < 10.0  # measured 3.6° (the first sample's guess held: 60°)
+    late = tt > 30.0
+    assert np.max(np.abs(err[late])) < 3.0  # measured 0.7°: the clean field takes over, the bias untaught

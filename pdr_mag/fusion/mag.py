@@ -69,8 +69,15 @@ as gyro bias about up). A first sample that the detectors flag against an absolu
 a start next to steel) is still taken, as a guess with ``σ_ψ² = π²``: a disturbance may turn the field by
 anything, so the std says 180° until a clean field comes, which the gate then lets in whatever its innovation,
 but the heading meanwhile is the field's rather than the device's +y, which a backend that must start
-somewhere prefers. The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own
-c and no white noise, ``U_cc`` starting at the place's unmodelled variance.
+somewhere prefers.  Until that clean field, each flagged field that can still carry a heading — its smallest
+disturbance below the expected horizontal strength B (``d_min < B``: a disturbance as strong as the
+horizontal field may turn it by anything) — refines the guess (:func:`_refine_guess`): the heading is the
+weighted mean of those fields' headings, weights ``1 / (σ_h² + d_min² / B²)``, one a ``mag.interval_s`` at
+most.  A walker passing steel sees its disturbances change while the Earth's field stays, so the mean is
+nearer north than any one of them; the variance stays π² and no covariance changes (a guess teaches the
+bias nothing), only the attitude turns (and with it the world-frame quantities, as at every heading jump).
+The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own c and no white
+noise, ``U_cc`` starting at the place's unmodelled variance.
 
 A first fix through an unsettled tilt.  A first fix made while the tilt is beyond the linear range
 (``P_xx + P_yy > 2 · LINEAR_RAD²``: a start in motion, whose first accelerometer sample may point 40° from up)
@@ -135,12 +142,15 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     # --- gates
     if not allowed:
         return
-    if flag and s.init >= 2:
+    if flag and s.init >= 2 and s.guess_w == 0.0:
         return
     if np.isfinite(s.t_mag_update) and t - s.t_mag_update < p.mag.interval_s:
         return
     bh = np.sqrt(mwx * mwx + mwy * mwy) * f
     if bh < 1e-3:
+        return
+    if flag and s.init >= 2:
+        _refine_guess(s, wrap(np.arctan2(mwx, mwy) - s.declination), _guess_weight(s, det, bh, p), t)
         return
     g = np.empty(3)
     _heading_gradient(R, mwx * f, mwy * f, g)
@@ -164,9 +174,11 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     h[TH_Z] = 1.0
     h[C_ERR] = 1.0
     if s.init < 2:
-        if flag and not det.score_absolute < 1.0:
+        guess = flag and not det.score_absolute < 1.0
+        if guess:
             rv = np.pi**2  # a guess from a disturbed field (the module docstring)
         _first_fix(s, h, r, rv, t, p)
+        s.guess_w = max(_guess_weight(s, det, bh, p), 1e-9) if guess else 0.0
         return
     if tilt_beyond_linear(P):
         return  # a tilt this uncertain makes the linearised heading row meaningless (the module docstring)
@@ -187,6 +199,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
         _rejected(s, R, h, r, rv, t, p)
         return
     s.fix_through_tilt = False
+    s.guess_w = 0.0
     after_run = np.isfinite(s.t_reject_start)
     s.t_reject = np.nan
     s.t_reject_start = np.nan
@@ -355,6 +368,34 @@ def _first_fix(s, h, r, rv, t, p):
 
 
 @njit(cache=True, error_model="numpy")
+def _refine_guess(s, r, w, t):
+    """A flagged field of weight w (:func:`_guess_weight`) while the heading is a guess (residual r): the
+    guess becomes the weighted mean of the flagged fields' headings so far, ``W ← W + w``,
+    ``ψ ← ψ + w r / W``; its variance in P stays π² (the module docstring)."""
+    if w <= 0.0:
+        return
+    s.guess_w += w
+    _turn_world_frame(s, w * r / s.guess_w)
+    s.t_mag_update = t
+
+
+@njit(cache=True, error_model="numpy")
+def _guess_weight(s, det, bh, p):
+    """Weight of a flagged field's heading in the guess (the module docstring): ``1 / (σ_h² + d_min² / B²)``,
+    0 when ``d_min ≥ B``; B the expected horizontal strength — the local reference's once learnt, else the
+    reference field's ``F cos I`` (F alone while its dip is to be learnt, the measured ``bh`` without any)."""
+    b = s.bh_ref
+    if not b > 0.0:
+        b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
+    if not b > 0.0:
+        b = bh
+    d2 = disturbance2(det, p)
+    if d2 >= b * b:
+        return 0.0
+    return 1.0 / (p.mag.noise_rad**2 + d2 / (b * b))
+
+
+@njit(cache=True, error_model="numpy")
 def _set_heading(s, h, r, rv, t):
     """Set the heading from the field anew (residual r: the turn, reported in ``heading_reset_deg``), as at
     the first fix: a re-acquisition (:func:`_reacquire`), and the first heading update once the tilt is
@@ -364,6 +405,7 @@ def _set_heading(s, h, r, rv, t):
     _heading_from_field(s.P, h, rv)
     settle_u(s)
     _heading_from_field(s.U, h, 0.0)
+    s.guess_w = 0.0
     s.fix_through_tilt = False
     s.t_reject = np.nan
     s.t_reject_start = np.nan
