@@ -70,12 +70,13 @@ a start next to steel) is still taken, as a guess with ``σ_ψ² = π²``: a dis
 anything, so the std says 180° until a clean field comes, which the gate then lets in whatever its innovation,
 but the heading meanwhile is the field's rather than the device's +y, which a backend that must start
 somewhere prefers.  Until that clean field, each flagged field that can still carry a heading — its smallest
-disturbance below the expected horizontal strength B (``d_min < B``: a disturbance as strong as the
+disturbance below the expected horizontal strength B (``d < B``: a disturbance as strong as the
 horizontal field may turn it by anything) — refines the guess (:func:`_refine_guess`): the heading is the
-weighted mean of those fields' headings, weights ``1 / (σ_h² + d_min² / B²)``, one a ``mag.interval_s`` at
-most.  A walker passing steel sees its disturbances change while the Earth's field stays, so the mean is
-nearer north than any one of them; the variance stays π² and no covariance changes (a guess teaches the
-bias nothing), only the attitude turns (and with it the world-frame quantities, as at every heading jump).
+weighted mean of those fields' headings, weights ``1 / (σ_h² + d² / B²)``, one a ``mag.interval_s`` at
+most (d the larger of ``d_min`` and the field's deviation from the reference: a flagged start has learnt no
+local reference).  A walker passing steel sees its disturbances change while the Earth's field stays, so
+the mean is nearer north than any one of them; the variance stays π² and no covariance changes (a guess
+teaches the bias nothing), only the attitude is corrected.
 The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own c and no white
 noise, ``U_cc`` starting at the place's unmodelled variance.
 
@@ -370,26 +371,38 @@ def _first_fix(s, h, r, rv, t, p):
 @njit(cache=True, error_model="numpy")
 def _refine_guess(s, r, w, t):
     """A flagged field of weight w (:func:`_guess_weight`) while the heading is a guess (residual r): the
-    guess becomes the weighted mean of the flagged fields' headings so far, ``W ← W + w``,
-    ``ψ ← ψ + w r / W``; its variance in P stays π² (the module docstring)."""
+    guess becomes the weighted mean of the flagged fields' headings so far, ``W ← W + w``, applied as the
+    attitude correction ``δθ_z = w r / W`` (:func:`pdr_mag.fusion.eskf.inject`: the world-frame quantities
+    turn with it); P is left as it is, the heading's variance π² (the module docstring)."""
     if w <= 0.0:
         return
     s.guess_w += w
-    _turn_world_frame(s, w * r / s.guess_w)
+    dx = np.zeros(NX)
+    dx[TH_Z] = w * r / s.guess_w
+    inject(s, dx)
     s.t_mag_update = t
 
 
 @njit(cache=True, error_model="numpy")
 def _guess_weight(s, det, bh, p):
-    """Weight of a flagged field's heading in the guess (the module docstring): ``1 / (σ_h² + d_min² / B²)``,
-    0 when ``d_min ≥ B``; B the expected horizontal strength — the local reference's once learnt, else the
-    reference field's ``F cos I`` (F alone while its dip is to be learnt, the measured ``bh`` without any)."""
+    """Weight of a flagged field's heading in the guess (the module docstring): ``1 / (σ_h² + d² / B²)``, 0
+    when ``d ≥ B``.  ``d`` is the larger of the detectors' ``d_min`` (against the local references, if
+    learnt) and the deviation from the reference field, ``√((F − F_ref)² + (F (I − I_ref))²)`` (the parts
+    known: a flagged start has learnt no local reference); B the expected horizontal strength — the local
+    reference's once learnt, else the reference field's ``F_ref cos I_ref`` (``F_ref`` while its dip is to be
+    learnt, the measured ``bh`` without either)."""
+    x = det.x
+    d2_abs = 0.0
+    if np.isfinite(s.f_ref):
+        d2_abs += (x.f - s.f_ref) ** 2
+    if np.isfinite(s.dip_ref):
+        d2_abs += (x.f * np.radians(x.dip - s.dip_ref)) ** 2
+    d2 = max(disturbance2(det, p), d2_abs)
     b = s.bh_ref
     if not b > 0.0:
         b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
     if not b > 0.0:
         b = bh
-    d2 = disturbance2(det, p)
     if d2 >= b * b:
         return 0.0
     return 1.0 / (p.mag.noise_rad**2 + d2 / (b * b))
