@@ -3,7 +3,8 @@
 Two conventions, for two purposes:
 
 * :func:`jsonable` — for *outputs* (``calibrate --json``, MCAP metadata and events): numpy scalars and arrays
-  become plain numbers and lists, a non-finite float becomes ``null``;
+  become plain numbers and lists, a non-finite float becomes ``null`` (:func:`rounded`: one float so,
+  rounded);
 * :func:`state_float` — for the pipeline's *state* (``get_state``/``set_state``), which must round-trip
   exactly: a non-finite float is kept as the string ``"nan"``, ``"inf"`` or ``"-inf"`` (``float()`` reads
   them back).
@@ -33,6 +34,12 @@ def jsonable(obj):
     if obj is None or isinstance(obj, (int, str)):
         return obj
     return str(obj)
+
+
+def rounded(v: float, nd: int = 4):
+    """A float for an output JSON, rounded to ``nd`` decimals; a non-finite one as None (``null``)."""
+    v = float(v)
+    return round(v, nd) if math.isfinite(v) else None
 
 
 def state_float(v: float):

@@ -15,7 +15,9 @@ import numpy as np
 from pdr_mag._json import jsonable
 
 FORMAT_VERSION = 1
-_EYE = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+#: the soft iron of an offset-only calibration (:meth:`MagCalibration.from_arrays` without one): code that
+#: asks whether a calibration has a shape may test for this object first, then for an identity by value
+IDENTITY_SOFT_IRON = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ class MagCalibration:
     """
 
     offset: tuple[float, float, float]
-    soft_iron: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    soft_iron: tuple[tuple[float, float, float], ...] = IDENTITY_SOFT_IRON
     field_uT: float = float("nan")
     method: str = "sphere"
     residual_rms_uT: float = float("nan")
@@ -78,7 +80,7 @@ class MagCalibration:
         if b.shape != (3,) or not np.isfinite(b).all():
             raise ValueError(f"offset: expected 3 finite values in µT, got {offset!r}")
         if soft_iron is None:
-            soft = _EYE  # 0.5 (I + Iᵀ) = I
+            soft = IDENTITY_SOFT_IRON  # 0.5 (I + Iᵀ) = I
         else:
             a = np.asarray(soft_iron, dtype=float)
             if a.shape != (3, 3) or not np.all(np.isfinite(a)):

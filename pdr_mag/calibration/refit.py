@@ -36,7 +36,7 @@ from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.coverage import coverage as core_coverage
 from pdr_mag.calibration.diversity import direction_coverage
 from pdr_mag.calibration.gravity import gravity_aided_offset
-from pdr_mag.calibration.model import _EYE, MagCalibration
+from pdr_mag.calibration.model import IDENTITY_SOFT_IRON, MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
@@ -183,7 +183,7 @@ def gravity_fit_keeping_shape(
     """
     s = settings
     # an offset-only calibration (the identity soft iron of from_arrays, no mag_to_imu) has no shape to keep
-    plain = current is None or (current.soft_iron is _EYE and current.mag_to_imu is None)
+    plain = current is None or (current.soft_iron is IDENTITY_SOFT_IRON and current.mag_to_imu is None)
     mm = None if plain else current.matrix
     shaped = not plain and not is_identity(mm.tolist(), 1e-12)
     g = gravity_aided_offset(
@@ -306,7 +306,7 @@ def median_sin_dip(m_cal: np.ndarray, u: np.ndarray) -> float:
 
 def state_of(cal: MagCalibration) -> str:
     """``"offset"`` for an identity soft iron, else ``"ellipsoid"``."""
-    if cal.soft_iron is _EYE:
+    if cal.soft_iron is IDENTITY_SOFT_IRON:
         return "offset"  # the identity of from_arrays(soft_iron=None)
     return "offset" if is_identity(cal.soft_iron, 1e-9) else "ellipsoid"
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pdr_mag._json import rounded
 from pdr_mag.modelcheck.fit import CANDIDATES, FitResult, Problem, soft_iron_distortion
 from pdr_mag.modelcheck.null import NullSettings
 from pdr_mag.modelcheck.orientation import OrientationSettings
@@ -73,9 +74,9 @@ class NullTest:
 
     def to_dict(self) -> dict:
         v = np.asarray(self.replicates, dtype=float)
-        return {"statistic": _r(self.statistic, 5), "threshold": _r(self.threshold, 5),
-                "null_mean": _r(float(np.mean(v)), 5) if v.size else None,
-                "null_max": _r(float(np.max(v)), 5) if v.size else None,
+        return {"statistic": rounded(self.statistic, 5), "threshold": rounded(self.threshold, 5),
+                "null_mean": rounded(float(np.mean(v)), 5) if v.size else None,
+                "null_max": rounded(float(np.max(v)), 5) if v.size else None,
                 "replicates": int(v.size), "stride": self.stride, "passed": self.passed}
 
 
@@ -93,7 +94,7 @@ class Candidate:
     null: NullTest | None = None
 
     def to_dict(self) -> dict:
-        return {"effect": self.effect, "gap": _r(self.gap), "score": _r(self.score, 2),
+        return {"effect": self.effect, "gap": rounded(self.gap), "score": rounded(self.score, 2),
                 "estimate": self.estimate, "round": self.round, "significant": self.significant,
                 "null": None if self.null is None else self.null.to_dict()}
 
@@ -107,7 +108,7 @@ class ModelSummary:
     problem: Problem
 
     def to_dict(self) -> dict:
-        return {"effects": list(self.effects), "gap": _r(self.gap), "estimate": self.estimate}
+        return {"effects": list(self.effects), "gap": rounded(self.gap), "estimate": self.estimate}
 
 
 @dataclass(frozen=True)
@@ -151,9 +152,9 @@ class Diagnosis:
             "final": self.final.to_dict(),
             "rounds": [[c.to_dict() for c in r] for r in self.rounds],
             "orientation": self.orientation_source,
-            "duration_s": _r(self.duration_s, 3),
+            "duration_s": rounded(self.duration_s, 3),
             "n_samples": self.n_samples,
-            "n_eff": _r(self.n_eff, 1),
+            "n_eff": rounded(self.n_eff, 1),
             "rules": self.rules,
             "not_identifiable": list(self.with_status("not_identifiable")),
             "partly_identifiable": list(self.with_status("partly_identifiable")),
@@ -161,11 +162,6 @@ class Diagnosis:
             "motion": self.motion,
             "gyro_bias_from_accelerometer": self.gyro_bias_from_accelerometer,
         }
-
-
-def _r(v: float, nd: int = 4):
-    v = float(v)
-    return round(v, nd) if np.isfinite(v) else None
 
 
 def _vec(v, nd: int = 4) -> list:
@@ -182,27 +178,27 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
     for e in effects:
         if e == "hard_iron":
             out[e] = {"uT": _vec(lin["hard_iron"], 3), "std": _vec(sd["hard_iron"], 3),
-                      "t_ref": _r(problem.t_origin + problem.t_ref, 3)}
+                      "t_ref": rounded(problem.t_origin + problem.t_ref, 3)}
         elif e == "noise":
             out[e] = {"uT": _vec(np.sqrt(np.mean(fit.residual**2, axis=0)), 4)}
         elif e == "time_offset":
-            out[e] = {"seconds": _r(nl[e][0], 5), "std": _r(sd[e][0], 5)}
+            out[e] = {"seconds": rounded(nl[e][0], 5), "std": rounded(sd[e][0], 5)}
         elif e == "mag_imu_misalignment":
             deg = np.degrees(nl[e])
-            out[e] = {"degrees": _r(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3),
+            out[e] = {"degrees": rounded(np.linalg.norm(deg), 3), "rotvec_deg": _vec(deg, 3),
                       "std_deg": _vec(np.degrees(sd[e]), 3)}
         elif e == "soft_iron":
             s = np.linalg.inv(soft_iron_distortion(nl[e]))
             s = 0.5 * (s + s.T)
             s = s / np.cbrt(np.linalg.det(s))
             ev = np.linalg.eigvalsh(s)
-            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": _r(ev[-1] / ev[0], 5),
-                      "std": _r(float(np.max(sd[e])), 5)}
+            out[e] = {"matrix": [_vec(row, 5) for row in s], "axis_ratio": rounded(ev[-1] / ev[0], 5),
+                      "std": rounded(float(np.max(sd[e])), 5)}
         elif e == "bias_drift":
             out[e] = {"uT_per_min": _vec(lin[e], 4), "std": _vec(sd[e], 4)}
         elif e == "temperature_offset":
             out[e] = {"uT_per_degC": _vec(lin[e], 4), "std": _vec(sd[e], 4),
-                      "t_ref_degC": _r(problem.temp_ref, 2)}
+                      "t_ref_degC": rounded(problem.temp_ref, 2)}
         elif e == "gyro_bias":  # δ absent: named by the accelerometer alone (in the track's bias)
             delta = nl.get(e, np.zeros(3))
             total = problem.track.gyro_bias + delta
@@ -215,8 +211,8 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             out[e] = {"rad_per_s": _vec(total, 5), "residual_rad_per_s": _vec(delta, 5),
                       "from_accelerometer_rad_per_s": _vec(problem.track.tilt_bias.correction, 5),
                       "std": _vec(sd.get(e, np.full(3, np.nan)), 5), "mean_up_d": _vec(up, 4),
-                      "along_up_rad_per_s": _r(up @ total, 5),
-                      "along_up_std": _r(up_std, 5)}
+                      "along_up_rad_per_s": rounded(up @ total, 5),
+                      "along_up_std": rounded(up_std, 5)}
         elif e == "hard_iron_change":
             db = offset_change(problem, fit)
             mags = np.linalg.norm(db, axis=1)
@@ -224,11 +220,11 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             kn, free = problem.offset_knots, problem.offset_knot_free
             edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
             t0 = problem.t_origin
-            win = [[_r(t0 + kn[a], 2), _r(t0 + kn[b - 1], 2)]
+            win = [[rounded(t0 + kn[a], 2), rounded(t0 + kn[b - 1], 2)]
                    for a, b in zip(edges[::2], edges[1::2], strict=True)]
             share = float(np.mean(np.interp(problem.t, kn, free.astype(float)) > 0))
-            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(t0 + problem.t[i], 2), "windows_s": win,
-                      "share": _r(share, 3)}
+            out[e] = {"uT": rounded(mags[i], 3), "t_peak": rounded(t0 + problem.t[i], 2), "windows_s": win,
+                      "share": rounded(share, 3)}
         elif e == "local_anomaly":
             fld = anomaly_field(problem, fit)
             mags = np.linalg.norm(fld.values_w, axis=1)
@@ -236,9 +232,9 @@ def estimates(problem: Problem, fit: FitResult, effects) -> dict:
             free = problem.knot_free
             edges = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
             t0 = problem.t_origin
-            win = [[_r(t0 + problem.knots[a], 2), _r(t0 + problem.knots[b - 1], 2)] for a, b in
+            win = [[rounded(t0 + problem.knots[a], 2), rounded(t0 + problem.knots[b - 1], 2)] for a, b in
                    zip(edges[::2], edges[1::2], strict=True)]
             share = float(np.mean(np.interp(problem.t, problem.knots, free.astype(float)) > 0))
-            out[e] = {"uT": _r(mags[i], 3), "t_peak": _r(t0 + problem.knots[i], 2), "windows_s": win,
-                      "share": _r(share, 3)}
+            out[e] = {"uT": rounded(mags[i], 3), "t_peak": rounded(t0 + problem.knots[i], 2),
+                      "windows_s": win, "share": rounded(share, 3)}
     return out

@@ -39,13 +39,13 @@ from dataclasses import replace
 
 import numpy as np
 
+from pdr_mag._json import rounded
 from pdr_mag.modelcheck.diagnosis import (
     Candidate,
     DiagnoseSettings,
     Diagnosis,
     ModelSummary,
     NullTest,
-    _r,
     estimates,
 )
 from pdr_mag.modelcheck.fit import (
@@ -357,7 +357,7 @@ def diagnose(
             if other:
                 o = other[0]
                 notes[best[0].effect] = {
-                    "alternative": {"effect": o.effect, "gap": _r(o.gap), "score": _r(o.score, 2)},
+                    "alternative": {"effect": o.effect, "gap": rounded(o.gap), "score": rounded(o.score, 2)},
                     "ambiguous": bool(abs(o.gap - best[0].gap) < best[0].gap * _LOCAL_MARGIN),
                 }
 
@@ -401,6 +401,6 @@ def diagnose(
         motion=motion,
         gyro_bias_from_accelerometer={} if accel_bias is None else accel_bias.to_dict(),
         rules={"score_threshold": settings.score_threshold, "min_gap_reduction": settings.min_gap_reduction,
-               "white_noise_uT": _r(white),
+               "white_noise_uT": rounded(white),
                "null_replicates": settings.null.replicates, "null_false_alarm": settings.null.false_alarm},
     )
