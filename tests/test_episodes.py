@@ -299,13 +299,3 @@ def test_real_walk_episodes_agree_with_the_truth():
             assert not np.any(b.mag_used[inner]) and e["peak"] > s.no_reference_s
 
 
-def test_the_truth_heading_unwraps_as_np_unwrap():
-    """The finder's unwrap is np.unwrap(·, period=360) bit for bit (steps of exactly ±180°, NaN)."""
-    from pdr_mag.episodes.finder import _unwrap_deg
-
-    rng = np.random.default_rng(8)
-    for scale in (1.0, 40.0, 170.0, 250.0):
-        h = np.mod(np.cumsum(rng.normal(scale=scale, size=3000)), 360.0)
-        h[[5, 6, 7]] = [10.0, 190.0, 10.0]
-        h[100] = np.nan
-        assert _unwrap_deg(h).tobytes() == np.unwrap(h, period=360.0).tobytes()

@@ -254,7 +254,7 @@ class EpisodeFinder:
                 if np.any(t_tr[1:] < t_tr[:-1]):
                     order = np.argsort(t_tr, kind="stable")
                     t_tr, q = t_tr[order], q[order]
-                self._truth = (t_tr, _unwrap_deg(heading_deg_from_quat(q)))
+                self._truth = (t_tr, np.unwrap(heading_deg_from_quat(q), period=360.0))
                 wide = t_tr[1:] - t_tr[:-1] > self.settings.max_truth_gap_s
                 self._truth_holes = (t_tr[:-1][wide], t_tr[1:][wide])
         self._scan = K.new_scan()
@@ -416,22 +416,6 @@ def _band(d: dict, keys: tuple[str, str, str], n: int) -> tuple[np.ndarray, np.n
     if not all(k in d for k in keys):
         return (np.full(n, np.nan),) * 3
     return tuple(np.ascontiguousarray(d[k], dtype=float) for k in keys)
-
-
-def _unwrap_deg(h: np.ndarray) -> np.ndarray:
-    """``np.unwrap(h, period=360.0)``, its arithmetic step for step, but the modulo taken only for the steps
-    it corrects (``|Δh| ≥ 180°`` or NaN; the others' correction is 0): a heading in [0°, 360°) at 60 Hz
-    wraps a few times a minute."""
-    dd = np.diff(h)
-    ph_correct = np.zeros_like(dd)
-    big = ~(np.abs(dd) < 180.0)
-    d = dd[big]
-    ddmod = np.mod(d - -180.0, 360.0) + -180.0
-    np.copyto(ddmod, 180.0, where=(ddmod == -180.0) & (d > 0))
-    ph_correct[big] = ddmod - d
-    up = np.array(h, dtype=float)
-    up[1:] = h[1:] + ph_correct.cumsum()
-    return up
 
 
 def _first_rise(trans: list, lo: float, hi: float) -> _Change | None:
