@@ -3,11 +3,14 @@ same checks inside the fusion kernel on a simulated walk with injected world-fra
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from pdr_mag._records import settings_record
+from pdr_mag.estimates import EstimateBatch
 from pdr_mag.fusion import FusionCore
 from pdr_mag.fusion.detectors import DipSettings, InterferenceSettings, hold_off
 from pdr_mag.fusion.detectors.consistency import consistency_angle_deg
@@ -257,3 +260,22 @@ def test_a_start_next_to_steel_guesses_from_the_flagged_fields():
     assert np.median(np.abs(err[guess])) < 10.0  # measured 3.6° (the first sample's guess held: 60°)
     late = tt > 30.0
     assert np.max(np.abs(err[late])) < 3.0  # measured 0.7°: the clean field takes over, the bias untaught
+
+    # the guess is state like any other: cut anywhere, resumed from JSON inside the guess, the same rows
+    kind, t, xyz = merge(w, m + rot.inv().apply(d_w))
+    cuts = np.sort(np.random.default_rng(3).choice(np.arange(1, len(t)), size=20, replace=False))
+    mid = int(np.searchsorted(t, 10.0))
+    core = FusionCore(field=w.field)
+    parts = []
+    for a, z in zip(np.r_[0, cuts], np.r_[cuts, len(t)], strict=True):
+        if a <= mid < z:
+            parts.append(core.process(kind[a:mid], t[a:mid], xyz[a:mid]))
+            saved = json.loads(json.dumps(core.get_state()))
+            assert saved["state"]["guess_w"] > 0.0
+            core = FusionCore(field=w.field)
+            core.set_state(saved)
+            a = mid
+        parts.append(core.process(kind[a:z], t[a:z], xyz[a:z]))
+    chunked = EstimateBatch.concat(parts)
+    for name in ("t", "q_wd", "heading_std_deg", "mag_used", "interference"):
+        assert np.array_equal(getattr(b, name), getattr(chunked, name)), name
