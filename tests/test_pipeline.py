@@ -166,6 +166,10 @@ def test_boundary_errors_and_odd_samples():
         HeadingPipeline().run({"mag": "abc"})
     with pytest.raises(ValueError, match="calibration"):
         HeadingPipeline(calibration={"offset": 1})
+    with pytest.raises(ValueError, match=r"PipelineSettings\.fusion: expected a FusionSettings, got dict"):
+        PipelineSettings(fusion={"mag": {"gate": 3.0}})
+    with pytest.raises(ValueError, match=r"PipelineSettings\.prior: expected a PriorSettings, got NoneType"):
+        PipelineSettings(prior=None)
     pipe.push_arrays("gyro", [0.0, 0.01, 0.01, 0.005], np.zeros((4, 3)))
     pipe.push_arrays("gyro", [0.02], [[np.nan, 0, 0]])
     assert pipe.dropped["gyro:non_monotonic"] == 2

@@ -135,6 +135,12 @@ class PipelineSettings:
             raise ValueError(f"max_lag_s: expected a positive number of seconds, got {self.max_lag_s!r}")
         if int(self.max_pending) < 1:
             raise ValueError(f"max_pending: expected a positive count, got {self.max_pending!r}")
+        groups = (("online_settings", OnlineSettings), ("fusion", FusionSettings), ("prior", PriorSettings))
+        for name, kind in groups:  # a group of another class (a dict, say) would fail deep inside a run
+            v = getattr(self, name)
+            if not (isinstance(v, kind) or (name == "fusion" and v is None)):
+                got = type(v).__name__
+                raise ValueError(f"PipelineSettings.{name}: expected a {kind.__name__}, got {got}")
 
 
 class HeadingPipeline:
