@@ -374,7 +374,7 @@ def _refine_guess(s, r, w, t):
     guess becomes the weighted mean of the flagged fields' headings so far, ``W ← W + w``, applied as the
     attitude correction ``δθ_z = w r / W`` (:func:`pdr_mag.fusion.eskf.inject`: the world-frame quantities
     turn with it); P is left as it is, the heading's variance π² (the module docstring)."""
-    if w <= 0.0:
+    if not w > 0.0:
         return
     s.guess_w += w
     dx = np.zeros(NX)
@@ -403,7 +403,7 @@ def _guess_weight(s, det, bh, p):
         b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
     if not b > 0.0:
         b = bh
-    if d2 >= b * b:
+    if not d2 < b * b:  # NaN (a dip not yet known at this sample) weighs nothing either
         return 0.0
     return 1.0 / (p.mag.noise_rad**2 + d2 / (b * b))
 
