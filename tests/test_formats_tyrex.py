@@ -146,10 +146,55 @@ def test_os_bias_changes_of_a_real_nexus5_walk():
     assert rec.meta["mag_os_bias_uT"] == [58.569336, -74.22638, 412.05902]
 
 
-def test_ios_states_no_estimate():
-    rec = tyrex.read(dataset("tyrex-attitude", "ios", "Thibaud_iPhone5_NoDist_Texting"))
+def test_ios_estimate_from_the_calibrated_field():
+    """iOS: the hard-iron estimate is raw − Core Motion's calibrated field over the first two seconds — within
+    3 µT of the same over the whole walk (the OS's bias holds), and the raw field minus it is the Earth's."""
+    d = dataset("tyrex-attitude", "ios", "Thibaud_iPhone5_NoDist_Texting")
+    rec = tyrex.read(d)
     assert rec.meta["mag_os_calibrated"] is False and rec.meta["gyro_os_calibrated"] is False
-    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias", "device_id")) for k in rec.meta)
+    assert rec.meta["mag_os_bias_changes"] == []
+    assert not any(k.startswith(("gyro_os_bias", "device_id")) for k in rec.meta)
+    raw, cal = np.loadtxt(d / "magnetometer.txt"), np.loadtxt(d / "magnetometer-calibrated.txt")
+    inside = (cal[:, 0] > raw[0, 0]) & (cal[:, 0] < raw[-1, 0])
+    raw_at_cal = np.column_stack([np.interp(cal[inside, 0], raw[:, 0], raw[:, k]) for k in (1, 2, 3)])
+    whole = np.median(raw_at_cal - cal[inside, 1:4], axis=0)
+    np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], whole, atol=3.0)
+    f = np.linalg.norm(rec.mag.xyz - rec.meta["mag_os_bias_uT"], axis=1)
+    assert 35 < np.percentile(f, 10) < np.median(f) < 55
+
+
+def _ios(tmp_path, calibrated: str | None):
+    d = tmp_path / "ios"
+    d.mkdir()
+    (d / "description.txt").write_text("[Time]\nBootTime = 100.0\n")
+    t = 100.0 + np.arange(0.0, 4.0, 0.04)  # raw at 25 Hz: the Earth's field (20, 0, −40) plus (100, 200, 50)
+    (d / "magnetometer.txt").write_text("".join(f"{x:.3f} 120 200 10\n" for x in t))
+    (d / "accelerometer.txt").write_text("".join(f"{x:.3f} 0 0 -1\n" for x in t))
+    (d / "gyroscope.txt").write_text("".join(f"{x:.3f} 0 0 0\n" for x in t))
+    if calibrated is not None:
+        (d / "magnetometer-calibrated.txt").write_text(calibrated)
+    return d
+
+
+def test_fixture_ios_estimate(tmp_path):
+    """Calibrated rows of accuracy −1 state no calibration; a garbled row is counted; the first two seconds
+    only; a trial without the calibrated file states no estimate."""
+    rows = ["100.010 5 5 5 -1\n"]  # uncalibrated: ignored
+    rows += [f"{100.02 + 0.01 * i:.3f} 20 0 -40 2\n" for i in range(150)]  # b = (100, 200, 50) for 1.5 s
+    rows += ["101.600 20 zero -40 2\n"]  # garbled
+    rows += [f"{101.7 + 0.01 * i:.3f} 20 0 -40 1\n" for i in range(50)]  # still within the first two seconds
+    rows += [f"{103.0 + 0.01 * i:.3f} 50 50 50 2\n" for i in range(100)]  # after the window: not used
+    rec = tyrex.read(_ios(tmp_path, "".join(rows)))
+    np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [100.0, 200.0, 50.0], atol=1e-9)
+    assert rec.dropped["mag_os_bias:nan"] == 1
+    other = tmp_path / "other"
+    other.mkdir()
+    rec = tyrex.read(_ios(other, None))
+    assert "mag_os_bias_uT" not in rec.meta
+    only_uncalibrated = tmp_path / "unc"
+    only_uncalibrated.mkdir()
+    rec = tyrex.read(_ios(only_uncalibrated, "100.5 1 2 3 -1\n100.6 1 2 3 -1\n"))
+    assert "mag_os_bias_uT" not in rec.meta
 
 
 def test_fixture_android_estimates(tmp_path):

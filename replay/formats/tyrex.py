@@ -32,8 +32,11 @@ iOS, recognised by ``description.txt`` with ``BootTime``: the same three files, 
   ``accel = -9.80665 * a`` (iOS's device axes are Android's: x right, y top, z out of the screen);
 * ``gyroscope.txt`` rad/s and ``magnetometer.txt`` µT (raw ``CMMagnetometerData``), unchanged.
 
-Both are raw (``mag_os_calibrated``, ``gyro_os_calibrated`` False) and carry no estimate of the OS: the
-magnetometer is ``CMMagnetometerData`` (offsets of 100–280 µT), and the gyroscope, though stamped at Core
+Both are raw (``mag_os_calibrated``, ``gyro_os_calibrated`` False): the magnetometer is ``CMMagnetometerData``
+(offsets of 100–290 µT). Its OS estimate comes from the calibrated field beside it,
+``magnetometer-calibrated.txt`` (Core Motion's, device bias removed): ``mag_os_bias_uT`` is raw − calibrated
+over the first two seconds (:func:`_ios_mag_bias`; (103.7, 289.6, 63.2) µT on the iPhone 5 Dist_Texting walk,
+the day's calibration recording (105.8, 292.7, 62.9) µT). The gyroscope, though stamped at Core
 Motion's device-motion epochs, keeps its bias — it differs from the rate of the logged attitude by a constant
 (0.111, −0.023, 0.012) rad/s (median over each of the three iPhone 5 trials, within 0.005 rad/s).
 
@@ -165,6 +168,64 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     return est
 
 
+#: iOS: the OS's hard-iron estimate is taken over the calibrated field's first this many seconds (s)
+IOS_BIAS_WINDOW_S = 2.0
+
+
+def _ios_mag_bias(raw_path: Path, cal_path: Path, dropped: Counter) -> list[float] | None:
+    """iOS's hard-iron estimate at the start of the trial, µT, from the two fields Core Motion logs: the raw
+    ``CMMagnetometerData`` (``magnetometer.txt``) and the calibrated field with the device bias removed
+    (``magnetometer-calibrated.txt``: t, x, y, z, calibration accuracy, −1 uncalibrated).
+
+    ``b = raw − calibrated``, the raw field interpolated to each calibrated row's time, over the calibrated
+    rows of the first :data:`IOS_BIAS_WINDOW_S` seconds that fall inside the raw stream and state a
+    calibration; the component-wise median (the fields are sampled at different rates — 25 and 95 Hz on the
+    iPhone 5 — and the interpolation errs by tens of µT in a quick turn; the median of two seconds' rows does
+    not see it). Both files are on the same (boot) clock. Only the value in force at the start: Core Motion
+    refines it without saying when, and a refinement is found in the data like any other change (the stale
+    test). A calibrated row that is not five finite numbers counts as ``mag_os_bias:nan``. None when no row
+    qualifies."""
+    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", span_s=IOS_BIAS_WINDOW_S)
+    cal = cal[cal[:, 4] >= 0] if len(cal) else cal
+    if not len(cal):
+        return None
+    raw = _leading_rows(raw_path, 4, Counter(), "", until=float(cal[-1, 0]) + 1.0)
+    if len(raw) < 2:
+        return None
+    inside = (cal[:, 0] >= raw[0, 0]) & (cal[:, 0] <= raw[-1, 0])
+    cal = cal[inside]
+    if not len(cal):
+        return None
+    b = np.column_stack([np.interp(cal[:, 0], raw[:, 0], raw[:, k]) for k in (1, 2, 3)]) - cal[:, 1:4]
+    return [round(float(v), 4) for v in np.median(b, axis=0)]
+
+
+def _leading_rows(path: Path, width: int, dropped: Counter, key: str, span_s: float | None = None,
+                  until: float | None = None) -> np.ndarray:
+    """The first rows of a header-less whitespace-separated file of ``width`` numbers a row, in time order,
+    up to ``span_s`` seconds after the first or up to time ``until`` (n, width); a row that is not ``width``
+    finite numbers, or goes back in time, is skipped (counted under ``key`` in ``dropped``)."""
+    rows: list[list[float]] = []
+    with open_text(path) as fh:
+        for line in fh:
+            parts = line.split()
+            if not parts:
+                continue
+            try:
+                v = [float(x) for x in parts]
+            except ValueError:
+                v = []
+            if len(v) != width or not all(np.isfinite(v)) or (rows and v[0] <= rows[-1][0]):
+                if key:
+                    dropped[key] += 1
+                continue
+            past_span = span_s is not None and rows and v[0] > rows[0][0] + span_s
+            if past_span or (until is not None and v[0] > until):
+                break
+            rows.append(v)
+    return np.array(rows, dtype=float).reshape(-1, width)
+
+
 def _row(line: str) -> tuple[list[float], bool] | None:
     """One Senslogs row as 7 numbers (NaN for a missing cell) and whether it states an estimate (more than
     t, x, y, z); None for a blank row and for a garbled one (the streams' rule, :func:`row_values`: the
@@ -278,6 +339,11 @@ def open_source(path) -> RecordingSource:
     if platform == "android":
         for key, f in (("mag_os_bias", files["mag"]), ("gyro_os_bias", files["gyro"])):
             _os_estimate(f, key, dropped).to_meta(meta)
+    elif (p / "magnetometer-calibrated.txt").is_file():
+        bias = _ios_mag_bias(files["mag"], p / "magnetometer-calibrated.txt", dropped)
+        if bias is not None:
+            meta["mag_os_bias_uT"] = bias
+            meta["mag_os_bias_changes"] = []
     truth = _truth(p, dropped)
     if truth is not None:
         meta.update({k: v for k, v in _BENCH_META.items() if k != "date" or "date" not in meta})
