@@ -187,7 +187,11 @@ def test_sensorlogger_flags_device_id_and_date(tmp_path):
     rec = read_recording(FIX / "sensorlogger_android")
     assert rec.meta["device_id"] == "abc"
     assert rec.meta["mag_os_calibrated"] is False and rec.meta["gyro_os_calibrated"] is True  # Gyroscope.csv
-    assert not any(k.startswith(("mag_os_bias", "gyro_os_bias")) for k in rec.meta)  # not in the export
+    assert not any(k.startswith("gyro_os_bias") for k in rec.meta)  # not in the export
+    # both magnetometer files: the OS's estimate is raw − calibrated (the fixture: a field of (0, 20, −40) µT
+    # read raw with an offset of (30, −70, 300) µT)
+    np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [30.0, -70.0, 300.0], atol=1.0)
+    assert rec.meta["mag_os_bias_changes"] == []
     d = _copy(tmp_path, "sensorlogger_android")
     (d / "MagnetometerUncalibrated.csv").unlink()
     gyro = (d / "Gyroscope.csv").read_text()
@@ -196,6 +200,7 @@ def test_sensorlogger_flags_device_id_and_date(tmp_path):
     (d / "Metadata.csv").write_text(md)
     rec = read_recording(d)
     assert rec.meta["mag_os_calibrated"] is True and rec.meta["gyro_os_calibrated"] is False
+    assert "mag_os_bias_uT" not in rec.meta  # the calibrated field alone states no offset
     assert "date" not in rec.meta and rec.meta["date_unreadable"] == "29 May 2024"
 
 

@@ -5,7 +5,9 @@ phone knows about itself"); nothing here is a measurement of ours, only what the
 
 OS offset estimates
 -------------------
-Android's uncalibrated sensors deliver, with every sample, the offset the OS currently estimates:
+A logger that records the raw field and the OS-calibrated one side by side states the OS's hard-iron estimate
+as their difference (:func:`bias_from_pair`). Android's uncalibrated sensors deliver, with every sample, the
+offset the OS currently estimates:
 ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` the hard-iron bias ``b`` (µT; raw = OS-calibrated + ``b``),
 ``TYPE_GYROSCOPE_UNCALIBRATED`` the drift ``d`` (rad/s; raw = OS-calibrated + ``d``). The estimate is
 piecewise constant: the OS replaces it now and then (when its own calibration converges, or after a
@@ -110,6 +112,35 @@ class OsEstimate:
         first_key, changes_key = META_KEYS[self.key]
         meta[first_key] = list(self.first)
         meta[changes_key] = [list(c) for c in self.changes]
+
+
+#: the OS's hard-iron estimate from a raw and an OS-calibrated field logged side by side is taken over the
+#: calibrated field's first this many seconds, s
+PAIR_WINDOW_S = 2.0
+
+
+def bias_from_pair(t_raw, raw, t_cal, cal) -> list[float] | None:
+    """The OS's hard-iron estimate at the start of a recording that logs the raw field and the OS-calibrated
+    one side by side (iOS Core Motion, Sensor Logger's two magnetometer files): ``b = raw − calibrated``, the
+    raw field interpolated to each calibrated sample's time, over the calibrated samples of the first
+    :data:`PAIR_WINDOW_S` seconds inside the raw stream; the component-wise median (the two are often sampled
+    at different rates — 25 and 95 Hz on the iPhone 5 — and the interpolation errs by tens of µT in a quick
+    turn; the median of two seconds' samples does not see it). Only the value in force at the start: the OS
+    refines it without saying when, and a refinement is found in the data like any other change (the stale
+    test). None with fewer than two raw samples or no calibrated one inside them.  Times in seconds, fields
+    (n, 3) in µT, both on one clock."""
+    t_raw, raw = np.asarray(t_raw, dtype=float), np.asarray(raw, dtype=float).reshape(-1, 3)
+    t_cal, cal = np.asarray(t_cal, dtype=float), np.asarray(cal, dtype=float).reshape(-1, 3)
+    if len(t_raw) < 2 or not len(t_cal):
+        return None
+    inside = (t_cal >= t_raw[0]) & (t_cal <= t_raw[-1])
+    t_cal, cal = t_cal[inside], cal[inside]
+    if not len(t_cal):
+        return None
+    first = t_cal <= t_cal[0] + PAIR_WINDOW_S
+    t_cal, cal = t_cal[first], cal[first]
+    raw_at = np.column_stack([np.interp(t_cal, t_raw, raw[:, k]) for k in range(3)])
+    return [round(float(v), 4) for v in np.median(raw_at - cal, axis=0)]
 
 
 _MONTHS = {m: i for i, m in enumerate(

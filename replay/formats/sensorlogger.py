@@ -25,9 +25,11 @@ Without ``Metadata.csv`` Android conventions are assumed (the unit check still c
 What the phone states about itself (:mod:`replay.formats._phone`): ``mag_os_calibrated`` is False when the
 magnetometer read is ``MagnetometerUncalibrated`` (raw), True when it is ``Magnetometer`` (calibrated by
 the OS); ``gyro_os_calibrated`` likewise for ``GyroscopeUncalibrated`` / ``Gyroscope``. The app's
-uncalibrated files have only ``x, y, z`` (no bias or drift columns: the OS's estimates are not in the
-export). ``Metadata.csv``'s ``recording time`` (UTC, ``2024-05-29_16-26-40``) gives ``date`` (a value in
-another form: ``date_unreadable``) and its ``device id`` gives ``device_id``.
+uncalibrated files have only ``x, y, z`` (no bias or drift columns); with both magnetometer files the OS's
+hard-iron estimate is their difference over the first two seconds, ``mag_os_bias_uT``
+(:func:`replay.formats._phone.bias_from_pair`). ``Metadata.csv``'s ``recording time`` (UTC,
+``2024-05-29_16-26-40``) gives ``date`` (a value in another form: ``date_unreadable``) and its ``device id``
+gives ``device_id``.
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ import numpy as np
 
 from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
-from replay.formats._common import Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
-from replay.formats._phone import put_date
+from replay.formats._common import Block, Bundle, StreamBuilder, StreamSpec, chunks_of, iter_csv, iter_table
+from replay.formats._phone import PAIR_WINDOW_S, bias_from_pair, put_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -116,6 +118,25 @@ def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
         raise InputError(where, f"truncated or damaged archive member ({exc})") from None
     finally:
         b.close()
+
+
+def _head(p: Path, name: str, seconds: float) -> Block:
+    """The first ``seconds`` of a vector file (times, (n, 3)); its odd rows are left to the stream's own pass,
+    which counts them."""
+    ts, xs = [], []
+    for _, blocks in _vector_chunks(p, name, "mag", Counter()):
+        t, x = blocks.get("mag", (np.empty(0), np.empty((0, 3))))
+        if not len(t):
+            continue
+        ts.append(t)
+        xs.append(x)
+        if t[-1] > ts[0][0] + seconds:
+            break
+    if not ts:
+        return np.empty(0), np.empty((0, 3))
+    t, x = np.concatenate(ts), np.concatenate(xs)
+    keep = t <= t[0] + seconds
+    return t[keep], x[keep]
 
 
 def _vector_feed(p: Path, b: Bundle, name: str, key: str, dropped: Counter) -> Feed:
@@ -215,6 +236,13 @@ def _open(b: Bundle, p: Path) -> RecordingSource:
     if mag_name is None:
         raise InputError(p, "no Magnetometer.csv or MagnetometerUncalibrated.csv (a stream missing)")
     meta["mag_os_calibrated"] = not mag_name.endswith("MagnetometerUncalibrated.csv")
+    cal_name = b.find("Magnetometer.csv")
+    if not meta["mag_os_calibrated"] and cal_name is not None:
+        cal_t, cal = _head(p, cal_name, PAIR_WINDOW_S)
+        raw_t, raw = _head(p, mag_name, PAIR_WINDOW_S + 1.0)
+        bias = bias_from_pair(raw_t, raw, cal_t, cal)
+        if bias is not None:
+            meta["mag_os_bias_uT"], meta["mag_os_bias_changes"] = bias, []
     specs["mag"] = StreamSpec(b.where(mag_name), "mag", unit_hint="µT")
     feeds.append(_vector_feed(p, b, mag_name, "mag", dropped))
     if md.get("recording time"):

@@ -78,7 +78,7 @@ from replay.formats._common import (
     require,
     row_values,
 )
-from replay.formats._phone import OsEstimate, utc_date
+from replay.formats._phone import PAIR_WINDOW_S, OsEstimate, bias_from_pair, utc_date
 from replay.recording import Recording
 from replay.source import Feed, RecordingSource
 
@@ -168,36 +168,18 @@ def _os_estimate(path: Path, key: str, dropped: Counter) -> OsEstimate:
     return est
 
 
-#: iOS: the OS's hard-iron estimate is taken over the calibrated field's first this many seconds (s)
-IOS_BIAS_WINDOW_S = 2.0
-
-
 def _ios_mag_bias(raw_path: Path, cal_path: Path, dropped: Counter) -> list[float] | None:
-    """iOS's hard-iron estimate at the start of the trial, µT, from the two fields Core Motion logs: the raw
-    ``CMMagnetometerData`` (``magnetometer.txt``) and the calibrated field with the device bias removed
-    (``magnetometer-calibrated.txt``: t, x, y, z, calibration accuracy, −1 uncalibrated).
-
-    ``b = raw − calibrated``, the raw field interpolated to each calibrated row's time, over the calibrated
-    rows of the first :data:`IOS_BIAS_WINDOW_S` seconds that fall inside the raw stream and state a
-    calibration; the component-wise median (the fields are sampled at different rates — 25 and 95 Hz on the
-    iPhone 5 — and the interpolation errs by tens of µT in a quick turn; the median of two seconds' rows does
-    not see it). Both files are on the same (boot) clock. Only the value in force at the start: Core Motion
-    refines it without saying when, and a refinement is found in the data like any other change (the stale
-    test). A calibrated row that is not five finite numbers counts as ``mag_os_bias:nan``. None when no row
-    qualifies."""
-    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", span_s=IOS_BIAS_WINDOW_S)
-    cal = cal[cal[:, 4] >= 0] if len(cal) else cal
+    """iOS's hard-iron estimate at the start of the trial (:func:`replay.formats._phone.bias_from_pair`) from
+    the two fields Core Motion logs: the raw ``CMMagnetometerData`` (``magnetometer.txt``) and the calibrated
+    field with the device bias removed (``magnetometer-calibrated.txt``: t, x, y, z, calibration accuracy;
+    rows of accuracy −1, uncalibrated, state none). Both files are on the same (boot) clock. A calibrated row
+    that is not five finite numbers counts as ``mag_os_bias:nan``."""
+    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", span_s=PAIR_WINDOW_S)
+    cal = cal[cal[:, 4] >= 0]
     if not len(cal):
         return None
     raw = _leading_rows(raw_path, 4, Counter(), "", until=float(cal[-1, 0]) + 1.0)
-    if len(raw) < 2:
-        return None
-    inside = (cal[:, 0] >= raw[0, 0]) & (cal[:, 0] <= raw[-1, 0])
-    cal = cal[inside]
-    if not len(cal):
-        return None
-    b = np.column_stack([np.interp(cal[:, 0], raw[:, 0], raw[:, k]) for k in (1, 2, 3)]) - cal[:, 1:4]
-    return [round(float(v), 4) for v in np.median(b, axis=0)]
+    return bias_from_pair(raw[:, 0], raw[:, 1:4], cal[:, 0], cal[:, 1:4])
 
 
 def _leading_rows(path: Path, width: int, dropped: Counter, key: str, span_s: float | None = None,
