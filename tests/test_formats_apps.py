@@ -192,6 +192,12 @@ def test_sensorlogger_flags_device_id_and_date(tmp_path):
     # read raw with an offset of (30, −70, 300) µT)
     np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [30.0, -70.0, 300.0], atol=1.0)
     assert rec.meta["mag_os_bias_changes"] == []
+    early = _copy(tmp_path / "early", "sensorlogger_android")  # the calibrated file starts 3 s sooner
+    lines = (early / "Magnetometer.csv").read_text().splitlines()
+    before = [f"{1716999997000000000 + 20000000 * i},{-3.0 + 0.02 * i:.9f},0,0,0" for i in range(100)]
+    (early / "Magnetometer.csv").write_text("\n".join([lines[0], *before, *lines[1:]]) + "\n")
+    rec = read_recording(early)
+    np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [30.0, -70.0, 300.0], atol=1.0)
     d = _copy(tmp_path, "sensorlogger_android")
     (d / "MagnetometerUncalibrated.csv").unlink()
     gyro = (d / "Gyroscope.csv").read_text()

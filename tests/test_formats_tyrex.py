@@ -191,6 +191,14 @@ def test_fixture_ios_estimate(tmp_path):
     other.mkdir()
     rec = tyrex.read(_ios(other, None))
     assert "mag_os_bias_uT" not in rec.meta
+    # a calibrated field that starts before the raw one, and uncalibrated for its first second after
+    early = tmp_path / "early"
+    early.mkdir()
+    rows = [f"{98.0 + 0.01 * i:.3f} 0 0 0 2\n" for i in range(190)]  # before the raw field: nothing to pair
+    rows += [f"{100.0 + 0.01 * i:.3f} 0 0 0 -1\n" for i in range(100)]
+    rows += [f"{101.0 + 0.01 * i:.3f} 20 0 -40 2\n" for i in range(250)]
+    rec = tyrex.read(_ios(early, "".join(rows)))
+    np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [100.0, 200.0, 50.0], atol=1e-9)
     only_uncalibrated = tmp_path / "unc"
     only_uncalibrated.mkdir()
     rec = tyrex.read(_ios(only_uncalibrated, "100.5 1 2 3 -1\n100.6 1 2 3 -1\n"))

@@ -120,17 +120,18 @@ def _vector_chunks(p: Path, name: str, key: str, dropped: Counter):
         b.close()
 
 
-def _head(p: Path, name: str, seconds: float) -> Block:
-    """The first ``seconds`` of a vector file (times, (n, 3)); its odd rows are left to the stream's own pass,
-    which counts them."""
+def _head(p: Path, name: str, seconds: float, start: float = -np.inf) -> Block:
+    """A vector file's first ``seconds`` from time ``start`` on (times, (n, 3)); its odd rows are left to the
+    stream's own pass, which counts them."""
     ts, xs = [], []
     for _, blocks in _vector_chunks(p, name, "mag", Counter()):
         t, x = blocks.get("mag", (np.empty(0), np.empty((0, 3))))
-        if not len(t):
+        on = t >= start
+        if not on.any():
             continue
-        ts.append(t)
-        xs.append(x)
-        if t[-1] > ts[0][0] + seconds:
+        ts.append(t[on])
+        xs.append(x[on])
+        if ts[-1][-1] > ts[0][0] + seconds:
             break
     if not ts:
         return np.empty(0), np.empty((0, 3))
@@ -238,11 +239,12 @@ def _open(b: Bundle, p: Path) -> RecordingSource:
     meta["mag_os_calibrated"] = not mag_name.endswith("MagnetometerUncalibrated.csv")
     cal_name = b.find("Magnetometer.csv")
     if not meta["mag_os_calibrated"] and cal_name is not None:
-        cal_t, cal = _head(p, cal_name, PAIR_WINDOW_S)
         raw_t, raw = _head(p, mag_name, PAIR_WINDOW_S + 1.0)
-        bias = bias_from_pair(raw_t, raw, cal_t, cal)
-        if bias is not None:
-            meta["mag_os_bias_uT"], meta["mag_os_bias_changes"] = bias, []
+        if len(raw_t):
+            cal_t, cal = _head(p, cal_name, PAIR_WINDOW_S, start=float(raw_t[0]))
+            bias = bias_from_pair(raw_t, raw, cal_t, cal)
+            if bias is not None:
+                meta["mag_os_bias_uT"], meta["mag_os_bias_changes"] = bias, []
     specs["mag"] = StreamSpec(b.where(mag_name), "mag", unit_hint="µT")
     feeds.append(_vector_feed(p, b, mag_name, "mag", dropped))
     if md.get("recording time"):

@@ -172,22 +172,29 @@ def _ios_mag_bias(raw_path: Path, cal_path: Path, dropped: Counter) -> list[floa
     """iOS's hard-iron estimate at the start of the trial (:func:`replay.formats._phone.bias_from_pair`) from
     the two fields Core Motion logs: the raw ``CMMagnetometerData`` (``magnetometer.txt``) and the calibrated
     field with the device bias removed (``magnetometer-calibrated.txt``: t, x, y, z, calibration accuracy;
-    rows of accuracy −1, uncalibrated, state none). Both files are on the same (boot) clock. A calibrated row
-    that is not five finite numbers counts as ``mag_os_bias:nan``."""
-    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", span_s=PAIR_WINDOW_S)
-    cal = cal[cal[:, 4] >= 0]
+    rows of accuracy −1, uncalibrated, state none). Both files are on the same (boot) clock; the calibrated
+    rows are taken from the raw field's first sample on. A calibrated row that is not five finite numbers
+    counts as ``mag_os_bias:nan``."""
+    first_raw = _leading_rows(raw_path, 4, Counter(), "", most=1)
+    if not len(first_raw):
+        return None
+    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", start=float(first_raw[0, 0]),
+                        span_s=PAIR_WINDOW_S, use=lambda v: v[4] >= 0)  # fmt: skip
     if not len(cal):
         return None
     raw = _leading_rows(raw_path, 4, Counter(), "", until=float(cal[-1, 0]) + 1.0)
     return bias_from_pair(raw[:, 0], raw[:, 1:4], cal[:, 0], cal[:, 1:4])
 
 
-def _leading_rows(path: Path, width: int, dropped: Counter, key: str, span_s: float | None = None,
-                  until: float | None = None) -> np.ndarray:
-    """The first rows of a header-less whitespace-separated file of ``width`` numbers a row, in time order,
-    up to ``span_s`` seconds after the first or up to time ``until`` (n, width); a row that is not ``width``
-    finite numbers, or goes back in time, is skipped (counted under ``key`` in ``dropped``)."""
+def _leading_rows(path: Path, width: int, dropped: Counter, key: str, *, start: float = -np.inf,
+                  span_s: float | None = None, until: float | None = None, most: int | None = None,
+                  use=None) -> np.ndarray:  # fmt: skip
+    """The leading rows of a header-less whitespace-separated file of ``width`` numbers a row, in time
+    order (n, width): from time ``start`` on, the rows ``use(row)`` accepts (all without it), up to
+    ``span_s`` seconds after the first of them, up to time ``until``, at most ``most`` of them. A row that is
+    not ``width`` finite numbers, or goes back in time, is skipped (counted under ``key`` in ``dropped``)."""
     rows: list[list[float]] = []
+    last_t = -np.inf
     with open_text(path) as fh:
         for line in fh:
             parts = line.split()
@@ -197,14 +204,19 @@ def _leading_rows(path: Path, width: int, dropped: Counter, key: str, span_s: fl
                 v = [float(x) for x in parts]
             except ValueError:
                 v = []
-            if len(v) != width or not all(np.isfinite(v)) or (rows and v[0] <= rows[-1][0]):
+            if len(v) != width or not all(np.isfinite(v)) or v[0] <= last_t:
                 if key:
                     dropped[key] += 1
+                continue
+            last_t = v[0]
+            if v[0] < start or (use is not None and not use(v)):
                 continue
             past_span = span_s is not None and rows and v[0] > rows[0][0] + span_s
             if past_span or (until is not None and v[0] > until):
                 break
             rows.append(v)
+            if most is not None and len(rows) >= most:
+                break
     return np.array(rows, dtype=float).reshape(-1, width)
 
 
