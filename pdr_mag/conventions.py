@@ -56,14 +56,7 @@ def heading_deg_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     r01 = 2.0 * (x * y - w * z)
     r11 = 1.0 - 2.0 * (x * x + z * z)
-    return mod360(np.degrees(np.arctan2(r01, r11)))
-
-
-def mod360(angle_deg):
-    """``np.mod(angle_deg, 360.0)`` of angles in [−360°, 360°) (an ``arctan2`` in degrees), by the same exact
-    arithmetic without its per-element division: 360 added below zero, −0 made +0 (a new array)."""
-    a = np.asarray(angle_deg, dtype=float)
-    return np.where(a < 0.0, a + 360.0, a) + 0.0
+    return np.mod(np.degrees(np.arctan2(r01, r11)), 360.0)
 
 
 def wrap_deg(angle_deg: np.ndarray | float) -> np.ndarray | float:

@@ -48,6 +48,7 @@ from numba import njit
 
 from pdr_mag.conventions import quat_multiply, wrap_deg
 from pdr_mag.sinks import QuietSink
+from replay.formats._common import QUAT_NORM
 
 #: Segment rules of the walked direction (``../shared/tools/walked-direction``).
 MIN_DISTANCE_M = 4.0
@@ -298,9 +299,9 @@ class ReferenceErrors:
         t = np.asarray(t, dtype=float)
         q = np.asarray(q_wd, dtype=float)
         # a sample that is no attitude (non-finite, or a quaternion far from norm 1: an all-zero row) is left
-        # out, as the readers drop it: the slerp between two unit quaternions is never zero
+        # out, by the readers' rule: the slerp between two unit quaternions is never zero
         norm = np.linalg.norm(q, axis=1)
-        ok = np.isfinite(t) & (np.abs(norm - 1.0) < 0.5)
+        ok = np.isfinite(t) & (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
         if not ok.all():
             t, q = t[ok], q[ok]
         if np.any(np.diff(t) <= 0):  # (a series in time order, as recorded, needs neither)

@@ -52,4 +52,3 @@ def test_bad_calibration_objects_raise_naming_the_key():
         fit_sphere(np.ones((3, 3)))
     with pytest.raises(ValueError, match="3-D"):
         fit_sphere(np.ones((10, 3)))
-

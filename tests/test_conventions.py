@@ -60,12 +60,3 @@ def test_vectorised_quaternion_algebra_agrees_with_scipy():
     half = a[0] * Rotation.from_rotvec(0.5 * (a[0].inv() * b[0]).as_rotvec())
     np.testing.assert_allclose(quat_to_rot(mid[1]), half.as_matrix(), atol=1e-12)
 
-
-def test_mod360_is_np_mod_of_angles_in_a_turn():
-    """mod360 is np.mod(·, 360) bit for bit on [−360°, 360°): arctan2's angles, ±0, ±180°, NaN."""
-    from pdr_mag.conventions import mod360
-
-    rng = np.random.default_rng(3)
-    a = np.concatenate([np.degrees(np.arctan2(rng.normal(size=10000), rng.normal(size=10000))),
-                        [0.0, -0.0, 180.0, -180.0, -1e-300, 359.999, -359.999, np.nan]])
-    assert mod360(a).tobytes() == np.mod(a, 360.0).tobytes()

@@ -297,5 +297,3 @@ def test_real_walk_episodes_agree_with_the_truth():
         if e["kind"] == "no_reference":
             inner = (b.t > e["t_start"]) & (b.t < e["t_end"])
             assert not np.any(b.mag_used[inner]) and e["peak"] > s.no_reference_s
-
-

@@ -177,16 +177,18 @@ def _ios(tmp_path, calibrated: str | None):
 
 
 def test_fixture_ios_estimate(tmp_path):
-    """Calibrated rows of accuracy −1 state no calibration; a garbled row is counted; the first two seconds
-    only; a trial without the calibrated file states no estimate."""
+    """Calibrated rows of accuracy −1 state no calibration; odd rows are skipped and counted by the readers'
+    rules (garbled, a value missing, time going back); the first two seconds only; a trial without the
+    calibrated file states no estimate."""
     rows = ["100.010 5 5 5 -1\n"]  # uncalibrated: ignored
     rows += [f"{100.02 + 0.01 * i:.3f} 20 0 -40 2\n" for i in range(150)]  # b = (100, 200, 50) for 1.5 s
-    rows += ["101.600 20 zero -40 2\n"]  # garbled
+    rows += ["101.600 20 zero -40 2\n", "101.610 20 0 -40\n", "101.400 0 0 0 2\n"]  # odd
     rows += [f"{101.7 + 0.01 * i:.3f} 20 0 -40 1\n" for i in range(50)]  # still within the first two seconds
     rows += [f"{103.0 + 0.01 * i:.3f} 50 50 50 2\n" for i in range(100)]  # after the window: not used
     rec = tyrex.read(_ios(tmp_path, "".join(rows)))
     np.testing.assert_allclose(rec.meta["mag_os_bias_uT"], [100.0, 200.0, 50.0], atol=1e-9)
-    assert rec.dropped["mag_os_bias:nan"] == 1
+    odd = {k: n for k, n in rec.dropped.items() if k.startswith("mag_os_bias:")}
+    assert odd == {"mag_os_bias:non_numeric": 1, "mag_os_bias:nan": 1, "mag_os_bias:non_monotonic": 1}
     other = tmp_path / "other"
     other.mkdir()
     rec = tyrex.read(_ios(other, None))

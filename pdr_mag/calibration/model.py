@@ -209,7 +209,6 @@ class MagCalibration:
         return cls.from_dict(d)
 
 
-
 def _tuplify(a: np.ndarray) -> tuple:
     return tuple(map(tuple, np.asarray(a, dtype=float).tolist()))
 

@@ -151,10 +151,11 @@ def with_correlated_errors(cal: MagCalibration, times: np.ndarray, corr_s: float
     k = n / min(n, 1.0 + span / corr_s)
     if k <= 1.0:
         return cal
-    cov = tuple(tuple(v * k for v in row) for row in cal.covariance)  # (the product numpy's would give)
-    return replace(cal,
-        covariance=cov,
-        offset_std_uT=tuple(np.sqrt(np.maximum([cov[0][0], cov[1][1], cov[2][2]], 0.0)).tolist()),
+    cov = np.asarray(cal.covariance, dtype=float) * k
+    return replace(
+        cal,
+        covariance=tuple(map(tuple, cov.tolist())),
+        offset_std_uT=tuple(np.sqrt(np.maximum(np.diag(cov)[:3], 0.0)).tolist()),
         extra={**cal.extra, "correlation_inflation": k},
     )
 

@@ -41,8 +41,7 @@ Interface
 ---------
 ``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch`` (checked input),
 or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows and
-a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`, until the next ``advance``;
-what the pipeline uses):
+a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`; what the pipeline uses):
 
 ``kind`` int8 (N,)
     :data:`~pdr_mag.fusion.kinds.ACCEL` (m/s²), :data:`~pdr_mag.fusion.kinds.GYRO` (rad/s),
@@ -91,7 +90,6 @@ import numpy as np
 
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
-from pdr_mag.conventions import mod360
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
@@ -104,6 +102,7 @@ from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, 
 #: format of :meth:`FusionCore.get_state`
 STATE_VERSION = 9
 _NO_CUTS = np.empty(0, dtype=np.intp)
+_NO_SNAPS = np.empty(0, dtype=STATE)
 
 
 class Span(NamedTuple):
@@ -141,19 +140,17 @@ class Snapshot:
 
 
 class Snapshots(Sequence):
-    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order: the states' bytes (rows of
-    ``raw``), in the filter's snapshot buffer until its next ``advance`` writes there; a :class:`Snapshot`
-    taken (``snapshots[i]``) is a copy and stays."""
+    """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order (made on access)."""
 
-    def __init__(self, raw: np.ndarray, reference_strength: float | None):
-        self._raw = raw
+    def __init__(self, states: np.ndarray, reference_strength: float | None):
+        self._raw = states.view(np.uint8).reshape(len(states), -1) if len(states) else states
         self._ref = reference_strength
 
     def __len__(self) -> int:
         return len(self._raw)
 
     def __getitem__(self, i: int) -> Snapshot:
-        return Snapshot(self._raw[i].copy(), self._ref)
+        return Snapshot(self._raw[i], self._ref)
 
 
 class Advanced(NamedTuple):
@@ -178,8 +175,6 @@ class FusionCore:
         self._p = settings_record(self.settings)
         self._st = new_state()
         self._raw = self._st.view(np.uint8)  # its bytes: snapshots are plain copies of them
-        self._snap_buf = np.empty(0, dtype=STATE)  # advance's snapshots (reused: a new array costs ~4 µs)
-        self._snap_raw = self._snap_buf.view(np.uint8).reshape(0, STATE.itemsize)  # … their bytes
         self._ref_strength: float | None = None
         self.field: EarthField | None = None
         self.set_field(field)
@@ -339,15 +334,12 @@ class FusionCore:
         samples were calibrated with, which the caller knows (the pipeline: its online calibrator's)."""
         cuts = _NO_CUTS if snapshot_before is None else snapshot_before
         out = new_rows(span.n_gyro)
-        if len(cuts) > len(self._snap_buf):
-            self._snap_buf = np.empty(max(len(cuts), 2 * len(self._snap_buf), 32), dtype=STATE)
-            self._snap_raw = self._snap_buf.view(np.uint8).reshape(len(self._snap_buf), STATE.itemsize)
-        snaps = self._snap_buf[: len(cuts)]
+        snaps = np.empty(len(cuts), dtype=STATE) if len(cuts) else _NO_SNAPS
         # the filter, a copy of its state before each cut, the quaternion sign and the heading's arctan2
         # arguments in one compiled call
         k = kernel.run_cut(span, self._st, self._p, cuts, snaps, out)
         col = columns(out, k)
-        heading = mod360(np.degrees(np.arctan2(col["h_y"], col["h_x"])))
+        heading = np.mod(np.degrees(np.arctan2(col["h_y"], col["h_x"])), 360.0)
         rows = EstimateBatch(
             t=col["t"],
             q_wd=col["q"],
@@ -358,7 +350,7 @@ class FusionCore:
             cal_state=np.full(k, cal_state, dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
-        return Advanced(rows, Snapshots(self._snap_raw[: len(cuts)], self._ref_strength))
+        return Advanced(rows, Snapshots(snaps, self._ref_strength))
 
     # ------------------------------------------------------------------ state
     @property

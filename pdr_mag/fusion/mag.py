@@ -113,6 +113,10 @@ from pdr_mag.fusion.gyro import bias_prior_var, magerr_var, unmodelled_var
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 
+#: the weight of a first field's guess that says nothing of north (its disturbance at least the horizontal
+#: field): the next flagged field that can carry a heading replaces it
+GUESS_W_NONE = 1e-9
+
 
 @njit(cache=True, error_model="numpy")
 def mag_step(s, R, mx, my, mz, t, allowed, p):
@@ -151,7 +155,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     if bh < 1e-3:
         return
     if flag and s.init >= 2:
-        _refine_guess(s, wrap(np.arctan2(mwx, mwy) - s.declination), _guess_weight(s, det, bh, p), t)
+        w = _guess_weight(s, det, bh, disturbance2(det, p), p)
+        _refine_guess(s, wrap(np.arctan2(mwx, mwy) - s.declination), w, t)
         return
     g = np.empty(3)
     _heading_gradient(R, mwx * f, mwy * f, g)
@@ -179,7 +184,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
         if guess:
             rv = np.pi**2  # a guess from a disturbed field (the module docstring)
         _first_fix(s, h, r, rv, t, p)
-        s.guess_w = max(_guess_weight(s, det, bh, p), 1e-9) if guess else 0.0
+        s.guess_w = max(_guess_weight(s, det, bh, dmin2, p), GUESS_W_NONE) if guess else 0.0
         return
     if tilt_beyond_linear(P):
         return  # a tilt this uncertain makes the linearised heading row meaningless (the module docstring)
@@ -384,20 +389,20 @@ def _refine_guess(s, r, w, t):
 
 
 @njit(cache=True, error_model="numpy")
-def _guess_weight(s, det, bh, p):
+def _guess_weight(s, det, bh, dmin2, p):
     """Weight of a flagged field's heading in the guess (the module docstring): ``1 / (σ_h² + d² / B²)``, 0
-    when ``d ≥ B``.  ``d`` is the larger of the detectors' ``d_min`` (against the local references, if
-    learnt) and the deviation from the reference field, ``√((F − F_ref)² + (F (I − I_ref))²)`` (the parts
-    known: a flagged start has learnt no local reference); B the expected horizontal strength — the local
-    reference's once learnt, else the reference field's ``F_ref cos I_ref`` (``F_ref`` while its dip is to be
-    learnt, the measured ``bh`` without either)."""
+    when ``d ≥ B``.  ``d`` is the larger of the detectors' ``d_min`` (``dmin2`` its square at this sample,
+    against the local references, if learnt) and the deviation from the reference field,
+    ``√((F − F_ref)² + (F (I − I_ref))²)`` (the parts known: a flagged start has learnt no local reference);
+    B the expected horizontal strength — the local reference's once learnt, else the reference field's
+    ``F_ref cos I_ref`` (``F_ref`` while its dip is to be learnt, the measured ``bh`` without either)."""
     x = det.x
     d2_abs = 0.0
     if np.isfinite(s.f_ref):
         d2_abs += (x.f - s.f_ref) ** 2
     if np.isfinite(s.dip_ref):
         d2_abs += (x.f * np.radians(x.dip - s.dip_ref)) ** 2
-    d2 = max(disturbance2(det, p), d2_abs)
+    d2 = max(dmin2, d2_abs)
     b = s.bh_ref
     if not b > 0.0:
         b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref

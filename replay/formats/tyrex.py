@@ -173,26 +173,28 @@ def _ios_mag_bias(raw_path: Path, cal_path: Path, dropped: Counter) -> list[floa
     the two fields Core Motion logs: the raw ``CMMagnetometerData`` (``magnetometer.txt``) and the calibrated
     field with the device bias removed (``magnetometer-calibrated.txt``: t, x, y, z, calibration accuracy;
     rows of accuracy −1, uncalibrated, state none). Both files are on the same (boot) clock; the calibrated
-    rows are taken from the raw field's first sample on. A calibrated row that is not five finite numbers
-    counts as ``mag_os_bias:nan``."""
-    first_raw = _leading_rows(raw_path, 4, Counter(), "", most=1)
+    rows are taken from the raw field's first sample on. The calibrated file's odd rows are counted under
+    ``mag_os_bias`` (the raw file's by its stream)."""
+    first_raw = _leading_rows(raw_path, 4, Counter(), None, most=1)
     if not len(first_raw):
         return None
-    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias:nan", start=float(first_raw[0, 0]),
+    cal = _leading_rows(cal_path, 5, dropped, "mag_os_bias", start=float(first_raw[0, 0]),
                         span_s=PAIR_WINDOW_S, use=lambda v: v[4] >= 0)  # fmt: skip
     if not len(cal):
         return None
-    raw = _leading_rows(raw_path, 4, Counter(), "", until=float(cal[-1, 0]) + 1.0)
+    raw = _leading_rows(raw_path, 4, Counter(), None, until=float(cal[-1, 0]) + 1.0)
     return bias_from_pair(raw[:, 0], raw[:, 1:4], cal[:, 0], cal[:, 1:4])
 
 
-def _leading_rows(path: Path, width: int, dropped: Counter, key: str, *, start: float = -np.inf,
+def _leading_rows(path: Path, width: int, dropped: Counter, key: str | None, *, start: float = -np.inf,
                   span_s: float | None = None, until: float | None = None, most: int | None = None,
                   use=None) -> np.ndarray:  # fmt: skip
     """The leading rows of a header-less whitespace-separated file of ``width`` numbers a row, in time
     order (n, width): from time ``start`` on, the rows ``use(row)`` accepts (all without it), up to
-    ``span_s`` seconds after the first of them, up to time ``until``, at most ``most`` of them. A row that is
-    not ``width`` finite numbers, or goes back in time, is skipped (counted under ``key`` in ``dropped``)."""
+    ``span_s`` seconds after the first of them, up to time ``until``, at most ``most`` of them. A garbled
+    row (:func:`~replay.formats._common.row_values`), one with a value missing or not finite (``nan``) and
+    one not later than the row before (``non_monotonic``) are skipped and counted under ``key`` (None: not
+    counted, for a file another pass counts)."""
     rows: list[list[float]] = []
     last_t = -np.inf
     with open_text(path) as fh:
@@ -200,13 +202,14 @@ def _leading_rows(path: Path, width: int, dropped: Counter, key: str, *, start: 
             parts = line.split()
             if not parts:
                 continue
-            try:
-                v = [float(x) for x in parts]
-            except ValueError:
-                v = []
-            if len(v) != width or not all(np.isfinite(v)) or v[0] <= last_t:
-                if key:
-                    dropped[key] += 1
+            v = row_values(parts, width, dropped=dropped, keys=() if key is None else (key,))
+            if v is None:
+                continue
+            odd = "nan" if len(v) != width or not all(np.isfinite(v)) else ""
+            odd = odd or ("non_monotonic" if v[0] <= last_t else "")
+            if odd:
+                if key is not None:
+                    dropped[f"{key}:{odd}"] += 1
                 continue
             last_t = v[0]
             if v[0] < start or (use is not None and not use(v)):
