@@ -578,3 +578,25 @@ def test_calibration_covariance_makes_the_std_honest():
         assert np.mean(np.abs(err) <= 2.0 * sd) >= 0.95
     with pytest.raises(ValueError, match="cov_uT2"):
         FusionCore().set_calibration_covariance(np.eye(2))
+
+
+def test_a_new_calibration_covariance_counts_before_the_next_field():
+    """A calibration known to 0.1 µT, then an uncertain one (σ 10 µT per axis: a recalibration's provisional
+    offset) while no field comes (a flagged stretch): the std's floor takes the new covariance at once — 10 µT
+    against the horizontal field turns the heading by up to ``10 / B_h`` rad — where it used to wait for the
+    next usable field; and an exact calibration (None) takes the floor away again."""
+    w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None})
+    kind, t, xyz = merge(w)
+    core = FusionCore(field=w.field)
+    core.set_calibration_covariance(np.eye(3) * 0.01)
+    first = t < t[0] + 30.0
+    before = core.process(kind[first], t[first], xyz[first]).heading_std_deg[-1]
+    core.set_calibration_covariance(np.eye(3) * 100.0)
+    no_field = ~first & (kind != 2) & (t < t[0] + 31.0)
+    after = core.process(kind[no_field], t[no_field], xyz[no_field]).heading_std_deg
+    b_h = w.field.strength * np.cos(np.radians(w.field.inclination_deg))
+    assert before < 10.0
+    # |g| = 1 / B_h, so g Σ gᵀ = 100 / B_h² at any orientation (the measured B_h within 20 % of the model's)
+    assert np.all(after >= 0.8 * np.degrees(10.0 / b_h))
+    core.set_calibration_covariance(None)
+    assert core._st[0]["cal_var"] == 0.0

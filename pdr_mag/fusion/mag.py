@@ -275,10 +275,12 @@ def _heading_gradient(R, ex, ny, g):
 @njit(cache=True, error_model="numpy")
 def _calibration_variance(s, g):
     """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
-    (device frame) causes at this orientation (g from :func:`_heading_gradient`)."""
+    (device frame) causes at this orientation (g from :func:`_heading_gradient`, kept in ``cal_g`` so a new
+    ``Σ_b`` counts at once, :meth:`pdr_mag.fusion.FusionCore.set_calibration_covariance`)."""
     C = s.cal_cov
     v = 0.0
     for i in range(3):
+        s.cal_g[i] = g[i]
         v += g[i] * (C[i, 0] * g[0] + C[i, 1] * g[1] + C[i, 2] * g[2])
     s.cal_var = v
 
