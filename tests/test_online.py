@@ -392,6 +392,13 @@ def test_online_refits_are_judged_by_the_calibration_core_rules():
     verdict = judge(cal, OnlineSettings(), field_ref=47.0)
     assert not verdict.accepted
     assert any("eigenvalue spread" in r for r in verdict.reasons)
+    # a sphere fit of a disturbed buffer: the core's rules name the residual and the radius, once each
+    bad = judge(MagCalibration.from_arrays([10.0, -20.0, 30.0], None, field_uT=106.6, method="sphere",
+                                           n_samples=400, residual_rms_uT=20.3, offset_std_uT=[0.1] * 3),
+                OnlineSettings(), field_ref=47.1)  # fmt: skip
+    assert not bad.accepted
+    assert sum(r.startswith("radius") for r in bad.reasons) == 1, bad.reasons
+    assert sum(r.startswith("residual RMS") for r in bad.reasons) == 1, bad.reasons
     ok = judge(MagCalibration.from_arrays([10.0, -20.0, 30.0], None, field_uT=47.0, method="sphere",
                                           n_samples=400, residual_rms_uT=0.5, offset_std_uT=[0.1] * 3),
                OnlineSettings(), field_ref=47.0)

@@ -229,12 +229,15 @@ def judge(
     heading refusal).  The online rules below are applied to every refit: offset σ below
     ``max_offset_std_uT`` (for the very first calibration, ``first_offset_std_uT`` when larger), a finite
     radius, residual RMS relative to F, offset magnitude, radius within :data:`RADIUS_REL_TOL` of the
-    reference strength (without one, of the Earth's range, 22–67 µT: no Earth field has 14 µT).
+    reference strength (without one, of the Earth's range, 22–67 µT: no Earth field has 14 µT); the
+    residual and the radius are named once, by the core's rules when they named them (theirs are tighter).
     ``coverage`` given: the copy also gets it (for the gravity-aided refit, whose rules do not read it).
     """
     reasons: list[str] = []
     if cal.method != "gravity":
         reasons += list(core_accept(cal, field=field_ref).reasons)
+    # a subject the core's rules named already (their bounds are the tighter) is not named twice
+    named = {subject for subject in ("residual RMS", "radius") if any(r.startswith(subject) for r in reasons)}
     f = cal.field_uT
     s = settings
     bound = s.max_offset_std_uT if not first else max(s.first_offset_std_uT, s.max_offset_std_uT)
@@ -243,13 +246,14 @@ def judge(
         reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
     if not np.isfinite(f) or f <= 0:
         reasons.append("no finite field radius")
-    elif cal.residual_rms_uT > s.max_rms_frac * f:
+    elif cal.residual_rms_uT > s.max_rms_frac * f and "residual RMS" not in named:
         reasons.append(f"residual RMS {cal.residual_rms_uT:.2f} µT above {s.max_rms_frac:.0%} of F")
     if np.linalg.norm(cal.offset) > s.max_offset_uT:
         reasons.append(f"offset {np.linalg.norm(cal.offset):.0f} µT implausible")
-    if field_ref is not None and np.isfinite(f) and abs(f / field_ref - 1) > RADIUS_REL_TOL:
+    radius_open = "radius" not in named and np.isfinite(f)
+    if radius_open and field_ref is not None and abs(f / field_ref - 1) > RADIUS_REL_TOL:
         reasons.append(f"radius {f:.1f} µT far from the reference {field_ref:.1f} µT")
-    elif field_ref is None and cal.method == "gravity" and np.isfinite(f) \
+    elif radius_open and field_ref is None and cal.method == "gravity" \
             and not plausible_strength(f, None, RADIUS_REL_TOL):  # fmt: skip
         # (the core's rules, applied to every other refit above, hold its radius to the Earth's range)
         lo, hi = EARTH_STRENGTH_RANGE_UT
