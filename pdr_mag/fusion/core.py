@@ -198,20 +198,16 @@ class FusionCore:
         """Covariance of the calibration's offset (3×3, device frame, µT²; None = exact).  The heading error
         it causes, ``g Σ_b gᵀ`` at each sample's orientation, joins the stationary variance of the
         magnetometer error state c: a coarse early calibration (σ of a few µT against a horizontal field of
-        ~20 µT: ~10°) then weighs as little as it deserves, and the std says so.  The reported std's floor
-        (:func:`pdr_mag.fusion.kernel.calibration_floor`) takes the new covariance at once, at the latest
-        usable sample's orientation, rather than at the next usable sample (a flagged stretch may be long)."""
+        ~20 µT: ~10°) then weighs as little as it deserves (from the next usable sample on), and the std
+        says so at once (its floor, :func:`pdr_mag.fusion.kernel.calibration_floor`, is the new covariance at
+        the latest usable sample's orientation: a flagged stretch may be long)."""
         if cov_uT2 is None:
-            c = np.zeros((3, 3))
-        else:
-            c = np.asarray(cov_uT2, dtype=float)
-            if c.shape != (3, 3) or not np.all(np.isfinite(c)):
-                raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
-            c = 0.5 * (c + c.T)
-        st = self._st[0]
-        st["cal_cov"] = c
-        g = st["cal_g"]
-        st["cal_var"] = float(g @ c @ g)
+            self._st["cal_cov"] = 0.0
+            return
+        c = np.asarray(cov_uT2, dtype=float)
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+            raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
+        self._st["cal_cov"] = 0.5 * (c + c.T)
 
     def note_calibration_change(self, matrix_old, offset_old, matrix_new, offset_new) -> None:
         """The calibration in force changed from ``m = M_old (r − b_old)`` to ``m = M_new (r − b_new)`` (r the

@@ -71,13 +71,20 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
 
 @njit(cache=True, error_model="numpy")
 def calibration_floor(st):
-    """The least heading variance the calibration in force allows, rad²: ``cal_var = g Σ_b gᵀ`` at the
-    latest usable sample (0 before the first heading).  The calibration's offset error is one constant
-    vector in the device frame, so the heading error it causes stays while the device keeps its orientation;
-    the filter carries it in c, whose Gauss–Markov model lets it average out over a few ``mag.error_tau_s``,
-    and the reported variance ``max(P + U, cal_var)`` restores what does not (an uncertain prior's offset
-    — the phone's, a store's — and a first fit's)."""
-    return st.cal_var if st.init >= 2 else 0.0
+    """The least heading variance the calibration in force allows, rad²: ``g Σ_b gᵀ`` with g the heading
+    gradient at the latest usable sample (``cal_g``) and ``Σ_b`` the offset covariance in force now (0 before
+    the first heading).  The calibration's offset error is one constant vector in the device frame, so the
+    heading error it causes stays while the device keeps its orientation; the filter carries it in c, whose
+    Gauss–Markov model lets it average out over a few ``mag.error_tau_s``, and the reported variance
+    ``max(P + U, g Σ_b gᵀ)`` restores what does not (an uncertain prior's offset — the phone's, a store's —
+    and a first fit's)."""
+    if st.init < 2:
+        return 0.0
+    g, C = st.cal_g, st.cal_cov
+    v = 0.0
+    for i in range(3):
+        v += g[i] * (C[i, 0] * g[0] + C[i, 1] * g[1] + C[i, 2] * g[2])
+    return v
 
 
 @njit(cache=True, error_model="numpy")

@@ -275,8 +275,8 @@ def _heading_gradient(R, ex, ny, g):
 @njit(cache=True, error_model="numpy")
 def _calibration_variance(s, g):
     """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
-    (device frame) causes at this orientation (g from :func:`_heading_gradient`, kept in ``cal_g`` so a new
-    ``Σ_b`` counts at once, :meth:`pdr_mag.fusion.FusionCore.set_calibration_covariance`)."""
+    (device frame) causes at this orientation (g from :func:`_heading_gradient`, kept in ``cal_g``: the
+    reported std's floor takes a new ``Σ_b`` at once, :func:`pdr_mag.fusion.kernel.calibration_floor`)."""
     C = s.cal_cov
     v = 0.0
     for i in range(3):

@@ -82,7 +82,7 @@ STATE = np.dtype(
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
-        ("cal_g", np.float64, (3,)),  # ∂ψ/∂m_d at that sample, rad/µT (0: no usable sample yet)
+        ("cal_g", np.float64, (3,)),  # ∂ψ/∂m_d at that sample, rad/µT (the std's floor, g Σ_b gᵀ, from it)
         ("cal_jump_d", np.float64, (3, 3)),  # a calibration change: the old field is m − (D m + e), m the new
         ("cal_jump_e", np.float64, (3,)),  # … (µT, device frame; both zero: no change pending)
         ("t_cal_start", np.float64),  # since when the calibration in force shapes the heading, s
