@@ -53,6 +53,7 @@ STATE = np.dtype(
         ("rate_ema", np.float64),  # smoothed gyro rate, rad/s
         ("episode", np.bool_),  # a rotation-rich episode is on
         ("episode_seen", np.bool_),  # one was on since the last recalibration request
+        ("episode_t1", np.float64),  # when the latest episode ended, s (NaN: on, or none yet)
         ("ring_next", np.int64),  # samples written to the ring so far (the next goes to ring_next % len)
         ("ring_last_t", np.float64),  # time of the latest sample written to it
         ("n_buf", np.int64),  # samples in the diversity buffer
@@ -262,12 +263,14 @@ def _track_episode(i, ti, rate, st, p, found, n_ev):
     if not st.episode and st.rate_ema > p.episode_rate:
         st.episode = True
         st.episode_seen = True
+        st.episode_t1 = np.nan
         st.fit_new = np.inf
         ev_index[n_ev] = i
         ev_kind[n_ev] = EPISODE_START
         return n_ev + 1
     if st.episode and st.rate_ema < 0.5 * p.episode_rate:
         st.episode = False
+        st.episode_t1 = ti
         st.next_refit_t = ti
         st.fit_new = np.inf
         ev_index[n_ev] = i

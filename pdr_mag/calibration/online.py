@@ -19,6 +19,9 @@ that instant, and works with bounded memory:
   does not judge which samples enter the buffer, and refits are judged as first ones, so a wrong first fit
   (a few samples, a start in motion) gives way to the next — as does a prior that knows less than a first
   fit would;
+* at a rotation episode's end with an offset-only calibration in force, the full fit of the recent samples
+  (the ring, every sample: a figure-8's stretched fields, which a soft iron the offset does not model keeps
+  out of the buffer, :meth:`OnlineCalibrator._figure8_fit`) is a candidate too;
 * the **stale-calibration test** (:mod:`pdr_mag.calibration.stale`) tells an offset that moved from a passing
   disturbance.  A shift found again ``stale_confirm_s`` later requests a recalibration: the provisional
   offset ``b + M⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
@@ -104,6 +107,7 @@ class OnlineCalibrator:
         st["next_refit_t"] = -np.inf
         st["next_stale_t"] = -np.inf
         st["fit_scale"] = 1.0
+        st["episode_t1"] = np.nan
         self._cal = np.zeros(1, K.CAL)  # the calibration in force, as the loop reads it
         self._cal0 = np.zeros(1, K.CAL)  # … at the start of the open block
         self._buf = diversity.empty(s.buffer_size)
@@ -274,6 +278,8 @@ class OnlineCalibrator:
             self._buf["m"][:n], self._buf["u"][:n], self.calibration, full_fit_allowed, self.field_ref,
             self.sin_dip_ref, self.settings, times=self._buf["t"][:n],
         )  # fmt: skip
+        if self._state[0]["episode_t1"] == t and self.cal_state == "offset":
+            judged += self._figure8_fit(t)
         chosen = refit.best(judged)
         if chosen is None:
             if judged and self.calibration is None and t - self._last_reject_t > 30.0:
@@ -300,6 +306,19 @@ class OnlineCalibrator:
         self._use(cal, refit.state_of(cal))
         self._n_refits += 1
         events.append((t, "calibration_accepted", refit.summary(cal)))
+
+    def _figure8_fit(self, t: float) -> list:
+        """At a rotation episode's end, while an offset-only calibration is in force: the full fit of the
+        recent samples (the stale test's ring: the last ``stale_window_s``, every sample at up to
+        ``stale_rate_hz``).  The buffer admits only fields within ``add_tol_frac`` of F under that
+        calibration, and a phone's soft iron (real phones' axis scales differ by 7–16 %) leaves more, so the
+        samples of a figure-8 that reveal it never reach the buffer's full fit; the ring's all do, as a
+        requested recalibration's buffer does.  Gated by the ring's coverage as the buffer's full fit is, and
+        judged by the calibration core's rules (a swinging arm's episode does not cover the sphere; a
+        disturbed place's samples do not fit an ellipsoid).  ``[]`` when no fit was made."""
+        window = self._recent(t)
+        found = refit.full_fit(window["m"], self.calibration.offset_array, self.field_ref, self.settings)
+        return [] if found is None else [refit.judge(found, self.settings, self.field_ref)]
 
     def _check_prior(self, t: float, n: int, events: list) -> None:
         """Refuse the prior in force when the field it calibrates cannot be the Earth's (OnlineSettings

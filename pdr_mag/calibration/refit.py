@@ -81,16 +81,10 @@ def candidates(
             cands.append(replace(fit_sphere(m), coverage=cov))
         except (ValueError, ArithmeticError):
             pass
-    if (
-        cov >= s.ellipsoid_coverage
-        and full_fit_allowed
-        and core_coverage(centred) >= s.ellipsoid_precheck_frac * AcceptanceSettings().min_coverage
-    ):
-        try:
-            full = calibrate(m, method="auto", field=field_ref)
-            cands.append(replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage))
-        except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
-            pass
+    if full_fit_allowed:
+        full = full_fit(m, centre, field_ref, s)
+        if full is not None:
+            cands.append(full)
     first = current is None or provisional(current, s, vague_prior=True)
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
     judged = [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
@@ -106,6 +100,26 @@ def candidates(
             # its coverage: the inliers' directions about its own offset, not the polluted buffer's
             judged.append(judge(g, s, field_ref, first, coverage=direction_coverage(g.apply(m[mask]))))
     return judged
+
+
+def full_fit(m: np.ndarray, centre, field_ref: float | None, s: OnlineSettings) -> MagCalibration | None:
+    """The calibration core's full fit of raw samples ``m`` (model by BIC, geometric ML), not judged; None
+    when their directions about ``centre`` (the offset estimate; their mean without one) cover less than
+    ``ellipsoid_coverage`` or the core's grid less than ``ellipsoid_precheck_frac`` of its minimum, or when
+    the fit fails."""
+    if len(m) == 0:
+        return None
+    centred = m - (centre if centre is not None else m.mean(axis=0))
+    cov = direction_coverage(centred)
+    if cov < s.ellipsoid_coverage or core_coverage(centred) < (
+        s.ellipsoid_precheck_frac * AcceptanceSettings().min_coverage
+    ):
+        return None
+    try:
+        full = calibrate(m, method="auto", field=field_ref)
+    except Exception:  # the core's fit failing on odd data is a failed refit, never a crash
+        return None
+    return replace(full, coverage=cov if not np.isfinite(full.coverage) else full.coverage)
 
 
 def _consensus_wanted(judged, current, field_ref, sin_dip_ref, times, s: OnlineSettings) -> bool:
