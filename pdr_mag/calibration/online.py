@@ -278,6 +278,7 @@ class OnlineCalibrator:
             self._buf["m"][:n], self._buf["u"][:n], self.calibration, full_fit_allowed, self.field_ref,
             self.sin_dip_ref, self.settings, times=self._buf["t"][:n],
         )  # fmt: skip
+        # the refit that a rotation episode's end made due (at that very sample)
         if self._state[0]["episode_t1"] == t and self.cal_state == "offset":
             judged += self._figure8_fit(t)
         chosen = refit.best(judged)

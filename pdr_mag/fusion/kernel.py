@@ -26,7 +26,7 @@ from pdr_mag.fusion.accel import accel_step
 from pdr_mag.fusion.eskf import heading_var_u
 from pdr_mag.fusion.gyro import PREDICT_WORK, gyro_step
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
-from pdr_mag.fusion.mag import mag_step
+from pdr_mag.fusion.mag import mag_step, offset_heading_var
 from pdr_mag.fusion.quat import heading_deg
 from pdr_mag.fusion.rows import COL, FLAG
 from pdr_mag.fusion.state import TH_Z
@@ -78,13 +78,7 @@ def calibration_floor(st):
     Gauss–Markov model lets it average out over a few ``mag.error_tau_s``, and the reported variance
     ``max(P + U, g Σ_b gᵀ)`` restores what does not (an uncertain prior's offset — the phone's, a store's —
     and a first fit's)."""
-    if st.init < 2:
-        return 0.0
-    g, C = st.cal_g, st.cal_cov
-    v = 0.0
-    for i in range(3):
-        v += g[i] * (C[i, 0] * g[0] + C[i, 1] * g[1] + C[i, 2] * g[2])
-    return v
+    return offset_heading_var(st.cal_g, st.cal_cov) if st.init >= 2 else 0.0
 
 
 @njit(cache=True, error_model="numpy")

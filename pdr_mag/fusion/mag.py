@@ -277,12 +277,19 @@ def _calibration_variance(s, g):
     """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
     (device frame) causes at this orientation (g from :func:`_heading_gradient`, kept in ``cal_g``: the
     reported std's floor takes a new ``Σ_b`` at once, :func:`pdr_mag.fusion.kernel.calibration_floor`)."""
-    C = s.cal_cov
-    v = 0.0
     for i in range(3):
         s.cal_g[i] = g[i]
+    s.cal_var = offset_heading_var(g, s.cal_cov)
+
+
+@njit(cache=True, error_model="numpy")
+def offset_heading_var(g, C):
+    """``g C gᵀ``: the heading variance (rad²) an offset error of covariance C (µT², device frame) causes
+    where the heading's gradient is g (rad/µT)."""
+    v = 0.0
+    for i in range(3):
         v += g[i] * (C[i, 0] * g[0] + C[i, 1] * g[1] + C[i, 2] * g[2])
-    s.cal_var = v
+    return v
 
 
 @njit(cache=True, error_model="numpy")
