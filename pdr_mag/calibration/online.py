@@ -43,6 +43,7 @@ from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior, offset_sigma, prior_source
+from pdr_mag.calibration.sphere import fit_sphere
 from pdr_mag.field import plausible_strength
 
 __all__ = ["OnlineCalibrator", "OnlineSettings", "gravity_aided_offset"]
@@ -316,10 +317,20 @@ class OnlineCalibrator:
         samples of a figure-8 that reveal it never reach the buffer's full fit; the ring's all do, as a
         requested recalibration's buffer does.  Gated by the ring's coverage as the buffer's full fit is, and
         judged by the calibration core's rules (a swinging arm's episode does not cover the sphere; a
-        disturbed place's samples do not fit an ellipsoid).  ``[]`` when no fit was made."""
-        window = self._recent(t)
-        found = refit.full_fit(window["m"], self.calibration.offset_array, self.field_ref, self.settings)
-        return [] if found is None else [refit.judge(found, self.settings, self.field_ref)]
+        disturbed place's samples do not fit an ellipsoid), and tried only where a sphere fits the samples
+        within the residual every online refit must meet (``max_rms_frac`` of F: a soft iron's stretch
+        leaves 3–7 %, a walk past magnets 65–145 %).  ``[]`` when no fit was made."""
+        m = self._recent(t)["m"]
+        f = self.field_ref
+        if f is None or len(m) < 10:
+            return []
+        try:  # a disturbed place first (the core's full fit would refuse it, at ~0.1 s a fit)
+            if fit_sphere(m).residual_rms_uT > self.settings.max_rms_frac * f:
+                return []
+        except (ValueError, ArithmeticError):
+            return []
+        found = refit.full_fit(m, self.calibration.offset_array, f, self.settings)
+        return [] if found is None else [refit.judge(found, self.settings, f)]
 
     def _check_prior(self, t: float, n: int, events: list) -> None:
         """Refuse the prior in force when the field it calibrates cannot be the Earth's (OnlineSettings
