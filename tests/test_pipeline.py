@@ -395,3 +395,22 @@ def test_a_figure8_finds_the_soft_iron_an_offset_calibration_cannot_see(soft):
     assert pipe.cal_state == "ellipsoid"
     t, err, _ = twist_error_deg(out, res.truth)
     assert np.mean(np.abs(err[t > t[0] + 20.0])) < 3.0
+
+
+def test_a_walk_past_magnets_makes_no_figure8_full_fit(monkeypatch):
+    """The figure-8 fit of the recent samples is tried only where a sphere fits them within the online refits'
+    residual bound: a walk past magnets (tyrex Nexus5_Dist_FrontPocket, rotation episodes from the pocket's
+    swing) leaves 65–145 % of F to a sphere, and its full fits (~0.1 s each, refused by the core's rules)
+    made its replay seven times slower before this gate (two fits of 298 samples on this walk)."""
+    from pdr_mag.calibration import refit
+    from replay.formats import read_recording
+    from replay.run import replay
+    from tests.conftest import dataset
+
+    calls = []
+    calibrate = refit.calibrate  # the core's full fit: refit.full_fit runs it once its coverage gate passes
+    monkeypatch.setattr(refit, "calibrate", lambda m, **k: calls.append(len(m)) or calibrate(m, **k))
+    walk = read_recording(dataset("tyrex-pdrcsv", "Thibaud_Nexus5_Dist_FrontPocket"))
+    summary = replay(walk, progress=False)
+    assert summary["cal_state"] == "offset"
+    assert calls == []
