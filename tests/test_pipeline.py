@@ -393,6 +393,8 @@ def test_a_figure8_finds_the_soft_iron_an_offset_calibration_cannot_see(soft):
     pipe = HeadingPipeline(meta=res.meta)
     out = pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
     assert pipe.cal_state == "ellipsoid"
+    accepted = [e.data for e in pipe.pop_events() if e.kind == "calibration_accepted"]
+    assert accepted[-1]["figure8"] is True and accepted[-1]["method"] not in ("gravity", "sphere")
     t, err, _ = twist_error_deg(out, res.truth)
     assert np.mean(np.abs(err[t > t[0] + 20.0])) < 3.0
 

@@ -33,6 +33,8 @@ Its state is JSON-serialisable (:meth:`OnlineCalibrator.get_state` / :meth:`~Onl
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from pdr_mag._json import state_float
@@ -330,7 +332,9 @@ class OnlineCalibrator:
         except (ValueError, ArithmeticError):
             return []
         found = refit.full_fit(m, self.calibration.offset_array, f, self.settings)
-        return [] if found is None else [refit.judge(found, self.settings, f)]
+        if found is None:
+            return []
+        return [refit.judge(replace(found, extra={**found.extra, "figure8": True}), self.settings, f)]
 
     def _check_prior(self, t: float, n: int, events: list) -> None:
         """Refuse the prior in force when the field it calibrates cannot be the Earth's (OnlineSettings
