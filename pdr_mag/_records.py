@@ -111,13 +111,19 @@ def default_settings(cls):
 
 def check_numbers(settings, positive: tuple = ()) -> None:
     """``ValueError`` naming the first field of ``settings`` that is wrong: a group of settings (a field
-    declared as a dataclass) that is not of its declared class, or a number that is not finite and ≥ 0 —
-    for the names in ``positive``, not > 0 (the numbers inside a group are its own class's to check)."""
+    declared as a dataclass, or as one or None) that is not of its declared class, or a number that is not
+    finite and ≥ 0 — for the names in ``positive``, not > 0 (the numbers inside a group are its own class's
+    to check)."""
     where = type(settings).__name__
     hints = _hints(type(settings))
     for f in fields(settings):
         v = getattr(settings, f.name)
         kind = hints.get(f.name)
+        optional = [a for a in typing.get_args(kind) if a is not type(None)]
+        if len(optional) == 1 and len(typing.get_args(kind)) == 2 and is_dataclass(optional[0]):
+            if v is None:
+                continue
+            kind = optional[0]
         if isinstance(kind, type) and is_dataclass(kind):
             if not isinstance(v, kind):
                 raise ValueError(f"{where}.{f.name}: expected a {kind.__name__}, got {type(v).__name__}")

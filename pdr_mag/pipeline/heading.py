@@ -50,7 +50,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pdr_mag._json import state_float
-from pdr_mag._records import default_settings
+from pdr_mag._records import check_numbers, default_settings
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
 from pdr_mag.calibration.prior import (
@@ -129,18 +129,8 @@ class PipelineSettings:
     prior: PriorSettings = field(default_factory=PriorSettings)
 
     def __post_init__(self):
-        if not (np.isfinite(self.block_s) and self.block_s > 0):
-            raise ValueError(f"block_s: expected a positive number of seconds, got {self.block_s!r}")
-        if not (np.isfinite(self.max_lag_s) and self.max_lag_s > 0):
-            raise ValueError(f"max_lag_s: expected a positive number of seconds, got {self.max_lag_s!r}")
-        if int(self.max_pending) < 1:
-            raise ValueError(f"max_pending: expected a positive count, got {self.max_pending!r}")
-        groups = (("online_settings", OnlineSettings), ("fusion", FusionSettings), ("prior", PriorSettings))
-        for name, kind in groups:  # a group of another class (a dict, say) would fail deep inside a run
-            v = getattr(self, name)
-            if not (isinstance(v, kind) or (name == "fusion" and v is None)):
-                got = type(v).__name__
-                raise ValueError(f"PipelineSettings.{name}: expected a {kind.__name__}, got {got}")
+        # a group of another class (a dict, say) would fail deep inside a run
+        check_numbers(self, positive=("block_s", "max_lag_s", "max_pending"))
 
 
 class HeadingPipeline:
