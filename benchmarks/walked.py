@@ -19,6 +19,11 @@ Runs of the product, each ``replay.run.replay`` as ``pdr-mag replay`` runs it:
     devices' calibrations gets (the first trace starts cold).
 ``cold``
     ``--ignore-phone-calibration`` without a store: every trace starts with nothing known.
+``os_field``
+    ``pdr-mag replay`` of the trace as a logger that keeps only the OS-calibrated field would have written
+    it (IPIN's logger, iOS's calibrated field): a copy without its ``TYPE_MAGNETIC_FIELD_UNCALIBRATED``
+    lines (the floor's map beside it), so the product reads ``TYPE_MAGNETIC_FIELD`` — the very field the
+    VQF and imufusion peers are fed — and knows neither the OS's bias nor when the OS changes it.
 
 Figures per run: segments, median / mean |error|, segments beyond 20° / 45°, the share within 2σ (σ the
 median ``heading_std_deg`` over the window) and the segments more than 45° off with σ ≤ 20°; the peers on the
@@ -26,7 +31,7 @@ same segments.
 
 Usage::
 
-    python benchmarks/walked.py [--runs default store cold] [--write-results]
+    python benchmarks/walked.py [--runs default store cold os_field] [--write-results]
 """
 
 from __future__ import annotations
@@ -51,7 +56,7 @@ from replay.run import replay  # noqa: E402
 DATA = SHARED / "datasets"
 PEERS = SHARED / "benchmarks" / "walked_peers.csv"
 SECTION = "## Heading against the walked direction (issue 19)"
-RUNS = ("default", "store", "cold")
+RUNS = ("default", "store", "cold", "os_field")
 
 
 def traces() -> list[Path]:
@@ -70,11 +75,28 @@ def peers() -> dict:
     return out
 
 
+def os_field_copy(trace: Path, tmp: Path) -> Path:
+    """A copy of a mall trace without its raw magnetometer lines, the floor's ``geojson_map.json`` beside
+    it as in the dataset (``<floor>/path_data_files/<id>.txt``), under ``tmp``."""
+    floor = tmp / trace.parent.parent.name
+    (floor / "path_data_files").mkdir(parents=True, exist_ok=True)
+    geo = trace.parent.parent / "geojson_map.json"
+    if geo.is_file() and not (floor / geo.name).exists():
+        (floor / geo.name).write_bytes(geo.read_bytes())
+    out = floor / "path_data_files" / trace.name
+    with trace.open(encoding="utf-8") as src, out.open("w", encoding="utf-8") as dst:
+        dst.writelines(line for line in src if "\tTYPE_MAGNETIC_FIELD_UNCALIBRATED\t" not in line)
+    return out
+
+
 def run(kind: str, paths: list[Path], store_dir: Path) -> tuple[dict, float]:
-    """Every trace replayed as ``kind``; ``{(trace, segment): (error, sigma)}`` and the seconds taken."""
-    use_phone = kind == "default"
+    """Every trace replayed as ``kind``; ``{(trace, segment): (error, sigma)}`` and the seconds taken (the
+    ``os_field`` copies made before the clock starts)."""
+    use_phone = kind in ("default", "os_field")
     settings = PipelineSettings(prior=PriorSettings(use_phone=use_phone))
     store = DeviceStore(store_dir) if kind == "store" else None
+    if kind == "os_field":
+        paths = [os_field_copy(p, store_dir) for p in paths]
     out = {}
     t0 = time.perf_counter()
     for p in paths:
