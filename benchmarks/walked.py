@@ -150,7 +150,11 @@ def main() -> None:
             "`../shared/datasets/ms-indoor-location-2020`, in time order). |error| of the circular mean "
             "heading over the middle half of each segment between surveyed waypoints against its bearing, "
             "deg (`../shared/tools/walked-direction`'s scoring, `replay.heading_scores`); peers from "
-            "`../shared/benchmarks/walked_peers.csv` on the same segments.", "", *lines, ""])
+            "`../shared/benchmarks/walked_peers.csv` on the same segments. Runs: `default` = `pdr-mag replay "
+            "TRACE` (the phone's own estimates used as priors); `store` = one device store for all traces, "
+            "the phone's estimates not used; `cold` = nothing known at each start; `os_field` = each trace "
+            "without its raw magnetometer lines, as a logger keeping only the OS-calibrated field writes it "
+            "(the field the peers are fed).", "", *lines, ""])
         write_section(SECTION, text)
 
 
