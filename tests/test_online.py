@@ -247,7 +247,8 @@ def test_stale_offset_requests_recalibration_and_figure8_recalibrates():
     kinds = [(t, k) for t, k, _ in events]
     req = [t for t, k in kinds if k == "recalibration_requested"]
     rec = [t for t, k in kinds if k == "recalibrated"]
-    # earliest: the whole recent window after the change (both halves must agree), then the confirmation
+    # earliest: the newer half of the recent window after the change (its quarters must agree), then the
+    # confirmation; latest: the whole window after it
     st = OnlineSettings()
     latest = 40.0 + st.stale_window_s + st.stale_confirm_s + 2 * st.stale_check_s
     assert req and 40.0 + st.stale_confirm_s < req[0] < latest, kinds

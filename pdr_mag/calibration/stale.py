@@ -10,6 +10,12 @@ residual stays large; and it passes.  A building whose field differs from the WM
 one pose, it mimics a shift along the mean up vector, so a shift counts only where the data determine it
 with the local strength and dip free (:func:`device_fixed`).
 
+A shift that happens inside the window — the usual way: a case's magnet clasped, the phone's OS replacing
+its hard-iron estimate in a stream it calibrates — leaves the older samples explained by the calibration in
+force and the newer ones by the shifted one; the window's halves then disagree, so the newer half is tested
+on its own as a window (:func:`window_shift`) and the shift is found half a window after it happened rather
+than a whole one.
+
 The test runs on the recent window when its cheap first part found the strength deviating
 (:func:`pdr_mag.calibration._online_kernel.stale_precheck`); what follows a found shift (confirmation a
 while later, the recalibration request) is the calibrator's state machine
@@ -57,9 +63,29 @@ def window_shift(
     ``strength_tol_frac · F``), the shift is significant (above ``stale_min_shift_uT`` and 4 σ), well
     posed (σ below twice ``max_offset_std_uT``) and :func:`device_fixed`.
 
+    Where the whole-window fit explains the deviation but its halves disagree — the signature of a shift
+    that happened inside the window — the newer half (at least :data:`MIN_NEWER` samples) is tested the
+    same way on its own.
+
     Returns the :class:`Shift`, None when there is none, or :data:`INCONCLUSIVE` when a fit failed.  With
     no candidate pending, a whole-window fit that fails the tests ends the test at once (None).
     """
+    found, split = _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending)
+    half = len(mag_cal) // 2
+    if split and len(mag_cal) - half >= MIN_NEWER:
+        newer, _ = _stationary_shift(mag_cal[half:], up[half:], model, free_model, settings, False)
+        if isinstance(newer, Shift):
+            return newer
+    return found
+
+
+#: Fewest samples in a window's newer half for it to be tested on its own (4 s at ``stale_rate_hz``).
+MIN_NEWER = 40
+
+
+def _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending) -> tuple:
+    """One shift over the whole of ``mag_cal`` (:func:`window_shift`'s tests, without its newer half):
+    ``(verdict, split)``, ``split`` True when the whole fit explains the deviation and the halves disagree."""
     s = settings
     n = len(mag_cal)
     half = n // 2
@@ -68,18 +94,19 @@ def window_shift(
         try:
             fit = fit_offset(mag_cal[lo:hi], up[lo:hi], model)
         except ValueError:
-            return INCONCLUSIVE
+            return INCONCLUSIVE, False
         if not fit.ok:
-            return INCONCLUSIVE
+            return INCONCLUSIVE, False
         fits.append(Shift(fit.offset, np.sqrt(np.maximum(fit.offset_cov.diagonal(), 0)), fit.rms))
         if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], model.strength, s):
-            return None
+            return None, False
     whole, a, b = fits
     sig_ab = np.sqrt(a.sigma**2 + b.sigma**2)
     consistent = bool(np.all(np.abs(a.delta - b.delta) < np.maximum(3 * sig_ab, 3.0)))
-    if not (consistent and _explains(whole, model.strength, s) and device_fixed(mag_cal, up, free_model, s)):
-        return None
-    return whole
+    explains = _explains(whole, model.strength, s)
+    if not (consistent and explains and device_fixed(mag_cal, up, free_model, s)):
+        return None, explains and not consistent
+    return whole, False
 
 
 def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
