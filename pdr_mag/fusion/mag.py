@@ -95,8 +95,10 @@ residual is an ordinary update.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
 :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
-``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next usable sample that
-variance joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once.  (A change
+``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next sample that variance joins
+``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once — a flagged sample too,
+with the gradient of the latest usable one (``cal_g``), so that a heading taken through a wrong calibration
+does not keep its small σ while the flags hold the corrected field out.  (A change
 of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
 """
 
@@ -144,6 +146,10 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     if flag:
         s.interference_seen = True
     _flag_share_step(s, flag, t, det, p)
+    if s.init >= 2 and (flag or not allowed):
+        # a calibration change noted: the heading's variance grows now, not at the next clean field (the
+        # gradient of the latest usable sample: this field's direction is not to be trusted)
+        _calibration_jump(s, s.cal_g, mx, my, mz, R, t, p)
     # --- gates
     if not allowed:
         return
