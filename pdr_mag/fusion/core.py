@@ -214,12 +214,12 @@ class FusionCore:
         raw field).  A field calibrated with the new one, ``m``, was ``m − dm`` with the old, where
         ``dm = D m + e``, ``D = I − M_old M_new⁻¹``, ``e = M_old (b_old − b_new)``.  The heading so far was
         taken from the old fields, so it carries the heading error ``g · dm`` that the change removes
-        (``g = ∂ψ/∂m_d``): at the next usable magnetometer sample that variance joins the heading's, and a
-        field the new calibration turns by tens of degrees is then within the gate rather than rejected until
-        a re-acquisition.  Changes before that sample add up (to first order).  The detectors' local
-        references were learnt from the old fields: a change that moves the calibrated field by more than
-        the strength detector's tolerance (``|D|·F + |e| > max(tol_uT, tol_rel·F)``, F the reference
-        strength, or the Earth's smallest, 22 µT, without one) leaves them wrong by more than they
+        (``g = ∂ψ/∂m_d``): at the next magnetometer sample (a flagged one too) that variance joins the
+        heading's, and a field the new calibration turns by tens of degrees is then within the gate rather
+        than rejected until a re-acquisition.  Changes before that sample add up (to first order).  The
+        detectors' local references were learnt from the old fields: a change that moves the calibrated field
+        by more than the strength detector's tolerance (``|D|·F + |e| > max(tol_uT, tol_rel·F)``, F the
+        reference strength, or the Earth's smallest, 22 µT, without one) leaves them wrong by more than they
         tolerate — every field of the new calibration would be flagged against them — so they are learnt
         anew; a smaller change (a refit's refinement) leaves them to follow the new fields at their own pace
         (relearning them at every change cost the tyrex walks more than it gained)."""
