@@ -76,9 +76,9 @@ def peers() -> dict:
 
 
 def os_field_copy(trace: Path, tmp: Path) -> Path:
-    """A copy of a mall trace without its raw magnetometer lines, the floor's ``geojson_map.json`` beside
-    it as in the dataset (``<floor>/path_data_files/<id>.txt``), under ``tmp``."""
-    floor = tmp / trace.parent.parent.name
+    """A copy of a mall trace without its raw magnetometer lines, under ``tmp`` at its path in the dataset
+    (``<site>/<floor>/path_data_files/<id>.txt``), the floor's ``geojson_map.json`` beside it as there."""
+    floor = tmp / trace.parent.parent.relative_to(DATA)
     (floor / "path_data_files").mkdir(parents=True, exist_ok=True)
     geo = trace.parent.parent / "geojson_map.json"
     if geo.is_file() and not (floor / geo.name).exists():

@@ -307,7 +307,7 @@ def _calibration_jump(s, g, mx, my, mz, R, t, p):
     grows by ``min((g · dm / max(Δt, 10 s))², σ_b0²)`` (Δt: how long the old calibration was in force),
     the drift rate that error implies, as at a re-acquisition."""
     D, e = s.cal_jump_d, s.cal_jump_e
-    if e[0] == 0.0 and e[1] == 0.0 and e[2] == 0.0 and not np.any(D != 0.0):
+    if not _jump_noted(D, e):
         return
     if s.init >= 2:
         v = 0.0
@@ -321,6 +321,19 @@ def _calibration_jump(s, g, mx, my, mz, R, t, p):
         e[i] = 0.0
         for m in range(3):
             D[i, m] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _jump_noted(D, e):
+    """Whether a calibration change is noted (``D`` or ``e`` not all zero), without a temporary array: it is
+    asked at every magnetometer sample."""
+    for i in range(3):
+        if e[i] != 0.0:
+            return True
+        for m in range(3):
+            if D[i, m] != 0.0:
+                return True
+    return False
 
 
 @njit(cache=True, error_model="numpy")
