@@ -448,3 +448,71 @@ def test_a_hard_iron_that_jumps_mid_walk_is_found_half_a_window_later():
             tt, err, _ = twist_error_deg(out, res.truth)
             means.append(np.mean(np.abs(err[tt > t[0] + JUMP_T_S])))
     assert np.mean(means) < 8.0, means
+
+
+def test_a_shift_the_stale_test_suspects_widens_the_std_until_it_is_confirmed():
+    """Simulated walk (seed 2) whose hard iron jumps by 25 µT 60 s in: the shifted field passes the detectors
+    and pulls the heading 40–55° off at σ ≈ 11° before the stale test first finds the shift (16 s after the
+    jump); it is confirmed 10 s later.  In between, the shift is suspected (``online.suspected_shift``) and
+    the std counts the turn it would make: no frame 45° off at σ ≤ 20° from one block after the candidate
+    to the recalibration (without: every frame of those 10 s; the std's median there 22° with it, 11°
+    without)."""
+    from dataclasses import replace
+
+    from pdr_mag.sim import simulate
+    from tests.test_attitude import twist_error_deg
+
+    res = simulate("walk", seed=2)
+    t, xyz = res.mag
+    res = replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+    streams = {k: getattr(res, k) for k in ("accel", "gyro", "mag")}
+    pipe = HeadingPipeline(meta=res.meta)
+    out, suspected = [], None
+    for edge in np.arange(t[0] + 0.5, t[-1] + 0.5, 0.5):
+        for k, (tk, xk) in streams.items():
+            m = (tk >= edge - 0.5) & (tk < edge)
+            pipe.push_arrays(k, tk[m], xk[m])
+        out.append(pipe.poll())
+        if suspected is None and pipe.online.suspected_shift is not None:
+            suspected = pipe.online.suspect_key
+            assert np.linalg.norm(pipe.online.suspected_shift) > 15.0, pipe.online.suspected_shift
+    out.append(pipe.flush())
+    batch = EstimateBatch.concat(out)
+    asked = [e.t for e in pipe.pop_events() if e.kind == "recalibration_requested"]
+    assert suspected is not None and asked and t[0] + JUMP_T_S < suspected < asked[0], (suspected, asked)
+    tt, err, _ = twist_error_deg(batch, res.truth)
+    std = batch.heading_std_deg[np.searchsorted(batch.t, tt)]
+    inside = (tt > suspected + pipe.settings.block_s) & (tt < asked[0])
+    assert inside.sum() > 300  # 9.5 s of the truth's frames
+    kept = (np.abs(err) > 45.0) & (std <= 20.0)
+    assert not kept[inside].any(), tt[inside & kept][:5]
+    assert np.median(std[inside]) > 20.0, np.median(std[inside])
+
+
+def test_a_run_resumed_while_a_shift_is_suspected_goes_on_identically():
+    """The suspected shift lives in the calibrator's state and the filter's (``suspect_cov``): a pipeline
+    saved between the candidate and its confirmation (the 25-µT jump of the test above, 80 s in) and
+    resumed from JSON gives the uninterrupted run's rows and events."""
+    from dataclasses import replace
+
+    from pdr_mag.sim import simulate
+
+    res = simulate("walk", seed=2)
+    t, xyz = res.mag
+    res = replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+    streams = {k: getattr(res, k) for k in ("accel", "gyro", "mag")}
+    whole = HeadingPipeline(meta=res.meta)
+    ref = whole.run(streams)
+    a = HeadingPipeline(meta=res.meta)
+    rest = {}
+    for k, (tk, xk) in streams.items():
+        m = tk < t[0] + 80.0
+        a.push_arrays(k, tk[m], xk[m])
+        rest[k] = (tk[~m], xk[~m])
+    first = a.poll()
+    assert a.online.suspected_shift is not None  # the state is saved mid-suspicion
+    b = HeadingPipeline(meta=res.meta)
+    b.set_state(json.loads(json.dumps(a.get_state())))
+    _same(ref, EstimateBatch.concat([first, b.run(rest)]))
+    events = [(e.t, e.kind, e.data) for e in a.pop_events() + b.pop_events()]
+    assert events == [(e.t, e.kind, e.data) for e in whole.pop_events()]

@@ -68,7 +68,7 @@ STATE = np.dtype(
         ("candidate_t", np.float64),  # when it was found
         ("candidate_shift", np.float64, (3,)),  # the shift δ of the calibrated field, µT
         ("in_block", np.bool_),  # a block is open (its block-start copies are taken)
-        ("cal_changed", np.bool_),  # the calibration changed in the open block
+        ("cal_changed", np.bool_),  # the calibration, or the shift suspected of it, changed in the open block
         ("n_buf0", np.int64),  # samples in the block-start copy of the buffer
         ("n_old0", np.int64),  # block-start samples that may be older than refresh_s within the block
         ("hint", np.int64),  # block-start sample last found close (where the redundancy search starts)
@@ -141,7 +141,7 @@ class Found(NamedTuple):
 DONE = 0  # every sample taken in
 REFIT = 1  # a refit is due at the returned sample: the Python side fits, then runs stale_step
 STALE_TEST = 2  # the stale test's fits are due at the returned sample
-BLOCK_END = 3  # the returned sample ended a block in which the calibration changed
+BLOCK_END = 3  # the returned sample ended a block in which the calibration (or its suspected shift) changed
 
 # episode events
 EPISODE_START = 1
@@ -374,15 +374,17 @@ def stale_step(ti, st, c, p, ring):
     """The stale test's schedule at ``ti`` and its cheap first part: ``STALE_TEST`` when its fits are to run.
 
     Due every ``stale_check_s`` while ``c.stale_on``; a window whose strength does not deviate
-    (:func:`stale_precheck`) drops a pending candidate."""
+    (:func:`stale_precheck`) drops a pending candidate (the calibration's uncertainty in the filter changes
+    with it: the block ends there)."""
     if not (c.stale_on and ti >= st.next_stale_t):
         return STALE_NONE
     st.next_stale_t = ti + p.stale_check_s
     if not c.stale_ok:
         return STALE_NONE
     verdict = stale_precheck(ring, ti, c, p)
-    if verdict == STALE_CLEAR:
+    if verdict == STALE_CLEAR and st.has_candidate:
         st.has_candidate = False
+        st.cal_changed = True
     return verdict
 
 

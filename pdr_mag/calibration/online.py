@@ -23,7 +23,9 @@ that instant, and works with bounded memory:
   (the ring, every sample: a figure-8's stretched fields, which a soft iron the offset does not model keeps
   out of the buffer, :meth:`OnlineCalibrator._figure8_fit`) is a candidate too;
 * the **stale-calibration test** (:mod:`pdr_mag.calibration.stale`) tells an offset that moved from a passing
-  disturbance.  A shift found again ``stale_confirm_s`` later requests a recalibration: the provisional
+  disturbance.  A shift found (a candidate) is suspected of the calibration in force until the test
+  confirms or drops it (:attr:`OnlineCalibrator.suspected_shift`: the heading's std counts at once the turn
+  the shift would make); found again ``stale_confirm_s`` later it requests a recalibration: the provisional
   offset ``b + M⁻¹δ`` is used at once (``cal_state = "recalibrating"``), the buffer is cleared, and the next
   rotation-rich episode (a figure-8) with enough coverage gives the new calibration (``recalibrated``) —
   or, without one, the first refit accepted ``recal_fallback_s`` after the request.
@@ -147,6 +149,21 @@ class OnlineCalibrator:
         return None
 
     @property
+    def suspected_shift(self) -> np.ndarray | None:
+        """The offset shift a stale test found and has yet to confirm or drop, in the raw field's frame
+        (``M⁻¹δ``, µT, as a recalibration would move the offset), or None."""
+        st = self._state[0]
+        if not st["has_candidate"] or self.calibration is None:
+            return None
+        return np.linalg.solve(self.calibration.matrix, st["candidate_shift"])
+
+    @property
+    def suspect_key(self) -> float | None:
+        """When the pending candidate was found (None: none): it tells one suspected shift from another."""
+        st = self._state[0]
+        return float(st["candidate_t"]) if st["has_candidate"] else None
+
+    @property
     def episode(self) -> bool:
         """Whether a rotation-rich episode (figure-8) is on."""
         return bool(self._state[0]["episode"])
@@ -183,7 +200,8 @@ class OnlineCalibrator:
         self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray, block_end: np.ndarray
     ) -> tuple[list, int, np.ndarray]:
         """:meth:`update` for whole blocks, ``block_end`` (N,) bool marking the last sample of each; stops at
-        the end of the first block in which the calibration changed.
+        the end of the first block in which the calibration, or the shift suspected of it
+        (:attr:`suspected_shift`), changed.
 
         Returns ``(events, n, coverage)``: the events as ``(row, (t, kind, data))`` with the row that raised
         them, the number of rows taken in, and the buffer's coverage at each block end taken in (NaN
@@ -207,7 +225,7 @@ class OnlineCalibrator:
                 events.append((r, (float(t[r]), _EPISODE_EVENTS[int(found.ev_kind[k])], {})))
             if code == K.DONE:
                 return events, n, found.coverage
-            if code == K.BLOCK_END:  # the calibration changed in the block that ended at j
+            if code == K.BLOCK_END:  # the calibration or its suspected shift changed in the block ended at j
                 return events, j + 1, found.coverage
             ti = float(t[j])
             decided: list = []
@@ -362,7 +380,8 @@ class OnlineCalibrator:
 
     def _stale_test(self, t: float, events: list) -> None:
         """The stale test's fits on the recent window (its first part found the strength deviating); the
-        same shift found again ``stale_confirm_s`` later requests a recalibration."""
+        same shift found again ``stale_confirm_s`` later requests a recalibration.  A candidate found,
+        replaced or dropped ends the block (the filter takes the shift suspected of the calibration anew)."""
         s = self.settings
         st = self._state[0]
         cal = self.calibration
@@ -373,12 +392,15 @@ class OnlineCalibrator:
         if found is stale.INCONCLUSIVE:
             return
         if found is None:
-            st["has_candidate"] = False
+            if pending:
+                st["has_candidate"] = False
+                st["cal_changed"] = True
             return
-        same = st["has_candidate"] and np.all(
+        same = pending and np.all(
             np.abs(st["candidate_shift"] - found.delta) < np.maximum(3 * found.sigma, 3.0)
         )
         if not same:
+            st["cal_changed"] = True
             st["has_candidate"] = True
             st["candidate_t"] = t
             st["candidate_shift"] = found.delta

@@ -100,7 +100,7 @@ from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 10
+STATE_VERSION = 11
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -208,6 +208,19 @@ class FusionCore:
         if c.shape != (3, 3) or not np.all(np.isfinite(c)):
             raise ValueError(f"cov_uT2: expected a finite 3×3 covariance in µT², got {cov_uT2!r}")
         self._st["cal_cov"] = 0.5 * (c + c.T)
+
+    def set_suspected_shift(self, shift_uT) -> None:
+        """An offset shift ``shift_uT`` (3, µT, device frame) that the calibration in force is suspected of —
+        the stale test found it and has yet to confirm or drop it — or None (none): the reported std counts
+        the heading turn it would make, ``g ΔΔᵀ gᵀ`` (:func:`pdr_mag.fusion.kernel.calibration_floor`), from
+        the next row on; the filter's weights do not change."""
+        if shift_uT is None:
+            self._st["suspect_cov"] = 0.0
+            return
+        d = np.asarray(shift_uT, dtype=float)
+        if d.shape != (3,) or not np.all(np.isfinite(d)):
+            raise ValueError(f"shift_uT: expected 3 finite values in µT, got {shift_uT!r}")
+        self._st["suspect_cov"] = np.outer(d, d)
 
     def note_calibration_change(self, matrix_old, offset_old, matrix_new, offset_new) -> None:
         """The calibration in force changed from ``m = M_old (r − b_old)`` to ``m = M_new (r − b_new)`` (r the

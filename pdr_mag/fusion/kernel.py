@@ -71,14 +71,19 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
 
 @njit(cache=True, error_model="numpy")
 def calibration_floor(st):
-    """The least heading variance the calibration in force allows, rad²: ``g Σ_b gᵀ`` with g the heading
-    gradient at the latest usable sample (``cal_g``) and ``Σ_b`` the offset covariance in force now (0 before
-    the first heading).  The calibration's offset error is one constant vector in the device frame, so the
-    heading error it causes stays while the device keeps its orientation; the filter carries it in c, whose
+    """The least heading variance the calibration in force allows, rad²: ``g (Σ_b + ΔΔᵀ) gᵀ`` with g the
+    heading gradient at the latest usable sample (``cal_g``), ``Σ_b`` the offset covariance in force now and
+    Δ an offset shift the stale test suspects and has yet to confirm (``suspect_cov``; 0 before the first
+    heading).  The calibration's offset error is one constant vector in the device frame, so the heading
+    error it causes stays while the device keeps its orientation; the filter carries it in c, whose
     Gauss–Markov model lets it average out over a few ``mag.error_tau_s``, and the reported variance
-    ``max(P + U, g Σ_b gᵀ)`` restores what does not (an uncertain prior's offset — the phone's, a store's —
-    and a first fit's)."""
-    return offset_heading_var(st.cal_g, st.cal_cov) if st.init >= 2 else 0.0
+    ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)`` restores what does not (an uncertain prior's offset — the phone's, a
+    store's — and a first fit's).  The suspected shift is in the std only, not in the filter's weights: most
+    candidates are a building's field that the test then drops (on the shared recordings about one in ten is
+    confirmed), and until then the heading is what the calibration in force makes it."""
+    if st.init < 2:
+        return 0.0
+    return offset_heading_var(st.cal_g, st.cal_cov) + offset_heading_var(st.cal_g, st.suspect_cov)
 
 
 @njit(cache=True, error_model="numpy")

@@ -83,6 +83,7 @@ STATE = np.dtype(
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
         ("cal_g", np.float64, (3,)),  # ∂ψ/∂m_d at that sample, rad/µT (the std's floor, g Σ_b gᵀ, from it)
+        ("suspect_cov", np.float64, (3, 3)),  # ΔΔᵀ of an offset shift the stale test suspects, µT² (0: none)
         ("cal_jump_d", np.float64, (3, 3)),  # a calibration change: the old field is m − (D m + e), m the new
         ("cal_jump_e", np.float64, (3,)),  # … (µT, device frame; both zero: no change pending)
         ("t_cal_start", np.float64),  # since when the calibration in force shapes the heading, s

@@ -426,11 +426,11 @@ class HeadingPipeline:
         if len(pend) and (math.floor(pend["t"][-1] / b) + 1) * b <= t_end:
             # no later sample, but the horizon passed the end of the open block
             self._pend = pend[:0]
-            before = self.online.calibration
+            before = self._in_force()
             events, _, _, cov = self._close_blocks(pend, np.floor(pend["t"] / b))
             self._events += [ev for _, _, ev in events]
             self._coverage = float(cov[-1]) if len(cov) else self._coverage
-            if self.online.calibration is not before:
+            if self._in_force_changed(before):
                 self._use_calibration()
 
     def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
@@ -450,6 +450,7 @@ class HeadingPipeline:
         are fused for good: all, or those up to the end of the block whose close changed the calibration."""
         b = self.settings.block_s
         cal = self.online.calibration
+        in_force = self._in_force()
         cal_state = self.online.cal_state
         # the magnetometer calibrated as MagCalibration.apply does: (m − b) @ Mᵀ
         data, allowed, n_gyro, starts = PK.filter_input(kind, xyz, blk, self._mag_offset, cal is not None)
@@ -467,10 +468,10 @@ class HeadingPipeline:
             n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
             self._pend = rows[n_ended:]
-            if self.online.calibration is not cal:
-                # the blocks after the one whose close changed the calibration are to be fused with the new
-                # one: the filter goes back to its state at that block's end, and their rows are dropped
-                # (a block's samples are all later than the previous block's)
+            if self._in_force_changed(in_force):
+                # the blocks after the one whose close changed the calibration (or the shift suspected of it)
+                # are to be fused with the new one: the filter goes back to its state at that block's end,
+                # and their rows are dropped (a block's samples are all later than the previous block's)
                 self._span = _SPAN_MIN
                 self._pend = rows[:0]
                 end = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
@@ -517,10 +518,22 @@ class HeadingPipeline:
         events = [(row_blk[r], 1, Event(te, k, d)) for r, (te, k, d) in got]
         return events, n, row_blk[:n][closed], cov[:n][closed]
 
+    def _in_force(self) -> tuple:
+        """What the filter takes from the calibrator: the calibration in force and the shift suspected of it
+        (by when it was found)."""
+        return self.online.calibration, self.online.suspect_key
+
+    def _in_force_changed(self, before: tuple) -> bool:
+        """Whether :meth:`_in_force` differs from ``before`` (the calibration by identity)."""
+        cal, key = self._in_force()
+        return cal is not before[0] or key != before[1]
+
     def _use_calibration(self, restored: bool = False) -> None:
         """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = ``cal.matrix``; None
         for the identity) for the filter's input, and (unless ``restored`` with the filter's state) the
-        filter's :meth:`~pdr_mag.fusion.FusionCore.use_calibration`."""
+        filter's :meth:`~pdr_mag.fusion.FusionCore.use_calibration` and the shift the stale test suspects of
+        it (:attr:`OnlineCalibrator.suspected_shift`, :meth:`~pdr_mag.fusion.FusionCore.set_suspected_shift`):
+        until the test confirms or drops it, the heading's std counts the turn it would make."""
         cal = self.online.calibration
         old = self._cal_in_use
         self._cal_in_use = cal
@@ -534,6 +547,7 @@ class HeadingPipeline:
         if cal is not None and not self._calibrations:
             self._calibrations.append((-np.inf, cal))
         self.fusion.use_calibration(cal, old)
+        self.fusion.set_suspected_shift(self.online.suspected_shift)
 
     def _interference_events(self, batch: EstimateBatch) -> list[Event]:
         """The changes of the interference flag in these rows."""
