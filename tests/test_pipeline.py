@@ -456,7 +456,7 @@ def test_a_shift_the_stale_test_suspects_widens_the_std_until_it_is_confirmed():
     jump); it is confirmed 10 s later.  In between, the shift is suspected (``online.suspected_shift``) and
     the std counts the turn it would make: no frame 45° off at σ ≤ 20° from one block after the candidate
     to the recalibration (without: every frame of those 10 s; the std's median there 22° with it, 11°
-    without)."""
+    without).  A ``calibration_suspected`` event says when, and which shift."""
     from dataclasses import replace
 
     from pdr_mag.sim import simulate
@@ -478,8 +478,12 @@ def test_a_shift_the_stale_test_suspects_widens_the_std_until_it_is_confirmed():
             assert np.linalg.norm(pipe.online.suspected_shift) > 15.0, pipe.online.suspected_shift
     out.append(pipe.flush())
     batch = EstimateBatch.concat(out)
-    asked = [e.t for e in pipe.pop_events() if e.kind == "recalibration_requested"]
+    events = pipe.pop_events()
+    asked = [e.t for e in events if e.kind == "recalibration_requested"]
     assert suspected is not None and asked and t[0] + JUMP_T_S < suspected < asked[0], (suspected, asked)
+    said = [e for e in events if e.kind == "calibration_suspected"]
+    assert [e.t for e in said] == [suspected]  # the event a user sees in the log, with the shift
+    np.testing.assert_allclose(np.linalg.norm(said[0].data["offset_shift_uT"]), 25.0, atol=5.0)
     tt, err, _ = twist_error_deg(batch, res.truth)
     std = batch.heading_std_deg[np.searchsorted(batch.t, tt)]
     inside = (tt > suspected + pipe.settings.block_s) & (tt < asked[0])

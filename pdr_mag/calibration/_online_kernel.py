@@ -65,7 +65,7 @@ STATE = np.dtype(
         ("fit_scale", np.float64),  # back-off factor of the new samples the next fit needs
         ("next_stale_t", np.float64),  # a stale test is due from this time
         ("has_candidate", np.bool_),  # a stale test found an offset shift, awaiting confirmation
-        ("candidate_t", np.float64),  # when it was found
+        ("candidate_t", np.float64),  # when it was found (none pending: when the last one was dropped here)
         ("candidate_shift", np.float64, (3,)),  # the shift δ of the calibrated field, µT
         ("in_block", np.bool_),  # a block is open (its block-start copies are taken)
         ("cal_changed", np.bool_),  # the calibration, or the shift suspected of it, changed in the open block
@@ -384,6 +384,7 @@ def stale_step(ti, st, c, p, ring):
     verdict = stale_precheck(ring, ti, c, p)
     if verdict == STALE_CLEAR and st.has_candidate:
         st.has_candidate = False
+        st.candidate_t = ti
         st.cal_changed = True
     return verdict
 

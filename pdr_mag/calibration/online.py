@@ -218,11 +218,18 @@ class OnlineCalibrator:
         found = K.Found(np.full(n, np.nan), np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64))
         events: list = []
         i, resumed = 0, False
+        st = self._state[0]
         while True:
+            suspected = self.suspected_shift
             code, j, n_ev = K.scan(blocks, i, resumed, self._loop, found)
             for k in range(n_ev):
                 r = int(found.ev_index[k])
                 events.append((r, (float(t[r]), _EPISODE_EVENTS[int(found.ev_kind[k])], {})))
+            if suspected is not None and not st["has_candidate"]:  # the strength no longer deviates
+                t_drop = float(st["candidate_t"])
+                r = min(int(np.searchsorted(t, t_drop)), n - 1)
+                events.append((r, (t_drop, "suspicion_dropped", _shift_data(suspected))))
+                events.sort(key=lambda e: e[0])  # among this scan's episode events, in time order
             if code == K.DONE:
                 return events, n, found.coverage
             if code == K.BLOCK_END:  # the calibration or its suspected shift changed in the block ended at j
@@ -393,6 +400,7 @@ class OnlineCalibrator:
             return
         if found is None:
             if pending:
+                events.append((t, "suspicion_dropped", _shift_data(self.suspected_shift)))
                 st["has_candidate"] = False
                 st["cal_changed"] = True
             return
@@ -404,6 +412,8 @@ class OnlineCalibrator:
             st["has_candidate"] = True
             st["candidate_t"] = t
             st["candidate_shift"] = found.delta
+            data = {**_shift_data(self.suspected_shift), "residual_rms_uT": round(float(found.rms), 3)}
+            events.append((t, "calibration_suspected", data))
             return
         if t - st["candidate_t"] < s.stale_confirm_s:
             return
@@ -495,6 +505,11 @@ class OnlineCalibrator:
         buf[:] = np.nan
         buf[: len(st["buffer"])] = [float(x) for x in st["buffer"]]
         self._ring.view(np.float64)[:] = [float(x) for x in st["ring"]]
+
+
+def _shift_data(shift: np.ndarray) -> dict:
+    """The ``calibration_suspected`` / ``suspicion_dropped`` events' data: the suspected offset shift."""
+    return {"offset_shift_uT": [round(float(v), 3) for v in shift]}
 
 
 def _to_json(v):

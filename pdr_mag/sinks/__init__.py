@@ -29,7 +29,10 @@ from typing import Protocol
 import numpy as np
 
 #: Event kinds the sinks log as warnings (all others are info).
-WARNING_EVENTS = ("interference_start", "calibration_rejected", "recalibration_requested", "drift_episode")
+WARNING_EVENTS = (
+    "interference_start", "calibration_rejected", "calibration_suspected", "recalibration_requested",
+    "drift_episode",
+)
 
 
 class Sink(Protocol):
