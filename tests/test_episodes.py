@@ -156,11 +156,12 @@ def test_without_truth_no_error_episodes(known):
     assert all(e.peak_error_deg is None and e.error_at_flag_deg is None for e in eps)
 
 
-def test_recalibration_event_is_a_detector(known):
-    eps = _find(known, events=[Event(24.0, "recalibration_requested", {})])
+@pytest.mark.parametrize("kind", ["recalibration_requested", "calibration_suspected"])
+def test_recalibration_event_is_a_detector(known, kind):
+    eps = _find(known, events=[Event(24.0, kind, {})])
     e = next(x for x in eps if x.kind == "error")
-    assert ("recalibration_requested", 24.0) in e.detectors
-    assert "recalibration_requested" in e.describe()
+    assert (kind, 24.0) in e.detectors
+    assert kind in e.describe()
 
 
 @pytest.mark.parametrize(

@@ -29,7 +29,7 @@ before ``t_start``, whichever is later (a disturbance flagged and over is not th
 lists the first time each detector fired:
 ``interference`` (the flag rose), ``strength`` / ``dip`` (the field strength / dip angle left the
 detector's band ``ref ± tol``, the ``field_ref_uT ± strength_tol_uT`` and ``dip_ref_deg ± dip_tol_deg``
-columns) and the events ``recalibration_requested`` and ``calibration_rejected``.
+columns) and the events ``calibration_suspected``, ``recalibration_requested`` and ``calibration_rejected``.
 
 Detection latency: ``t_flag`` is the first rise of the interference flag in the window;
 ``t_field_out`` is when the field left its inner band — its deviation ``d = max(|F − F_ref| / tol_F,
@@ -56,7 +56,16 @@ from pdr_mag.fusion.detectors import BANDS
 KINDS = {"error": "deg", "sigma": "deg", "no_reference": "s"}
 
 #: Detectors an episode can name (see the module docstring).
-DETECTORS = ("strength", "dip", "interference", "recalibration_requested", "calibration_rejected")
+DETECTORS = (
+    "strength",
+    "dip",
+    "interference",
+    "calibration_suspected",
+    "recalibration_requested",
+    "calibration_rejected",
+)
+#: the detectors that are events of the pipeline
+_EVENT_DETECTORS = DETECTORS[3:]
 
 
 @dataclass(frozen=True)
@@ -301,7 +310,7 @@ class EpisodeFinder:
         """Take the next rows (an ``EstimateBatch``) and the events up to them; return the episodes closed."""
         for ev in events:
             d = ev if isinstance(ev, dict) else ev.to_dict()
-            if d["kind"] in ("recalibration_requested", "calibration_rejected"):
+            if d["kind"] in _EVENT_DETECTORS:
                 self._trans[d["kind"]].append(_Change(float(d["t"]), True, np.nan))
         if len(batch) == 0:
             return self._release()
