@@ -82,6 +82,20 @@ def test_truncated(tmp_path):
         read_recording(f)
 
 
+def test_a_corrupt_compressed_chunk_is_a_damaged_file(tmp_path):
+    """A chunk whose compressed bytes are damaged (zeroed in the middle of the file): the compression
+    library's error becomes the damaged-MCAP InputError, not a traceback."""
+    from pathlib import Path
+
+    data = bytearray((Path(__file__).parent / "fixtures" / "pdrmcap_v2_handwritten.mcap").read_bytes())
+    a = len(data) // 2
+    data[a : a + 64] = bytes(64)
+    f = tmp_path / "z.mcap"
+    f.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"z\.mcap: truncated or damaged MCAP \(ZstdError"):
+        read_recording(f)
+
+
 def _raw_mcap(path, topic, payloads):
     from mcap.writer import Writer
 

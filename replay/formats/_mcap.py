@@ -37,15 +37,15 @@ def scan(path: Path, max_records: int = 100_000) -> tuple[list[ChannelInfo], str
     From the summary section when there is one (cheap); else by reading records from the start until the
     first message (channels precede their messages) or a damaged record.
     """
-    from mcap.exceptions import McapError
     from mcap.reader import make_reader
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
 
+    errors = read_errors()
     with path.open("rb") as fh:
         try:
             summary = make_reader(fh).get_summary()
-        except (McapError, ValueError, OSError, EOFError):
+        except errors:
             summary = None
         if summary is not None:
             return [_info(c, summary.schemas.get(c.schema_id)) for c in summary.channels.values()], None
@@ -61,9 +61,27 @@ def scan(path: Path, max_records: int = 100_000) -> tuple[list[ChannelInfo], str
                     channels.append(_info(rec, schemas.get(rec.schema_id)))
                 elif (isinstance(rec, Message) and channels) or n > max_records:
                     break
-        except (McapError, ValueError, OSError, EOFError) as exc:
+        except errors as exc:
             error = damaged(exc)
     return channels, error
+
+
+def read_errors() -> tuple[type[BaseException], ...]:
+    """What reading a damaged MCAP raises inside the ``mcap`` package: its own errors, a record cut short
+    (``EOFError``, ``struct.error``, ``ValueError``), and a chunk whose compressed data is corrupt
+    (zstandard's ``ZstdError``; lz4's ``RuntimeError``)."""
+    import struct
+
+    from mcap.exceptions import McapError
+
+    errors: list[type[BaseException]] = [McapError, EOFError, OSError, ValueError, struct.error, RuntimeError]
+    try:
+        import zstandard
+
+        errors.append(zstandard.ZstdError)
+    except ImportError:  # the mcap package then reads no zstd chunk either
+        pass
+    return tuple(errors)
 
 
 def _info(channel, schema) -> ChannelInfo:
@@ -98,9 +116,9 @@ def iter_messages(path: Path, topics: list[str], decoder_factories=(), opened: l
     """Yield ``(channel, message[, decoded])`` of ``topics`` in file order; a damaged file → InputError.
 
     ``opened``, when given, gets the open file appended (its position tells the progress)."""
-    from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
+    errors = read_errors()
     with path.open("rb") as fh:
         if opened is not None:
             opened.append(fh)
@@ -114,5 +132,5 @@ def iter_messages(path: Path, topics: list[str], decoder_factories=(), opened: l
             else:
                 for _, channel, message in reader.iter_messages(topics=topics, log_time_order=False):
                     yield channel, message
-        except (McapError, EOFError, OSError) as exc:
+        except errors as exc:
             raise InputError(path, damaged(exc)) from None

@@ -72,7 +72,6 @@ def detect(path: Path) -> bool:
 
 
 def _meta(path: Path) -> dict:
-    from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     meta: dict = {}
@@ -86,7 +85,7 @@ def _meta(path: Path) -> dict:
                         meta[k] = json.loads(v)
                     except (json.JSONDecodeError, TypeError):
                         meta[k] = v
-        except (McapError, EOFError, OSError) as exc:
+        except _mcap.read_errors() as exc:
             raise InputError(path, _mcap.damaged(exc)) from None
     return meta
 

@@ -72,13 +72,12 @@ def _pick(channels, schema: str, counts: dict) -> str | None:
 
 
 def _message_counts(path: Path) -> dict:
-    from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     with path.open("rb") as fh:
         try:
             s = make_reader(fh).get_summary()
-        except (McapError, EOFError, OSError):
+        except _mcap.read_errors():
             return {}
     if s is None or s.statistics is None:
         return {}
