@@ -406,11 +406,12 @@ def _load_device(store: DeviceStore, meta: dict) -> tuple:
     t_unix = DeviceStore.recording_time(meta)
     if t_unix is None:
         t_unix = time.time()
-    path = store.path(meta)
     try:
+        path = store.path(meta)
         prior = store.load(meta, t_unix)
-    except ValueError as exc:
-        raise InputError(path or store.folder, str(exc).split(": ", 1)[-1]) from None
+    except ValueError as exc:  # "<file>: device store: …", the file the store could not use
+        where, _, why = str(exc).partition(": ")
+        raise InputError(where or store.folder, why or str(exc)) from None
     use = {"file": None if path is None else str(path), "loaded": prior is not None,
            "age_s": None if prior is None else round(prior.age_s, 1), "saved": False, "t_unix": t_unix}
     return prior, use

@@ -278,3 +278,17 @@ def test_odd_samples_diagnose(work, odd_rec):
     d = json.loads(out.read_text())
     assert _odd_counts(d["dropped_samples"]) == ODD
     assert d["missing_effects"] is not None and d["final"]["gap"] <= d["baseline"]["gap"]
+
+
+def test_a_broken_device_store_entry_is_named_in_one_line(work):
+    """A store file that cannot be read (cut short while written, say) is an error naming it — never a
+    traceback, never silently replaced (INTERFACE.md)."""
+    rec = _copy(work, "store_rec")
+    store = work / "store"
+    assert pdr_mag("replay", rec, "--device-store", store, cwd=work).returncode == 0
+    (entry,) = list(store.glob("*.json"))
+    text = entry.read_text()
+    entry.write_text(text[: len(text) // 2])
+    assert_one_line_exit_2(pdr_mag("replay", rec, "--device-store", store, cwd=work), entry, "device store",
+                           "cannot read")
+    assert entry.read_text() == text[: len(text) // 2]  # left as it was
