@@ -48,6 +48,18 @@ def test_bad_calibration_objects_raise_naming_the_key():
         )
     with pytest.raises(ValueError, match="soft_iron"):
         MagCalibration.from_dict({"format_version": 1, "offset_uT": [0, 0, 0]})
+    # values no calibration can have: each named, never a numpy error later
+    good = {"format_version": 1, "offset_uT": [0, 0, 0], "soft_iron": np.eye(3).tolist(), "field_uT": 48.0}
+    for key, value, needle in (
+        ("soft_iron", [[0, 0, 0], [0, 1, 0], [0, 0, 1]], "soft_iron: expected a positive-definite"),
+        ("soft_iron", [[-1, 0, 0], [0, 1, 0], [0, 0, 1]], "soft_iron: expected a positive-definite"),
+        ("soft_iron", [[float("nan"), 0, 0], [0, 1, 0], [0, 0, 1]], "soft_iron: .*NaN or infinite"),
+        ("field_uT", -5.0, "field_uT: expected a positive"),
+        ("offset_std_uT", [-1.0, 0.5, 0.5], "offset_std_uT"),
+    ):
+        with pytest.raises(ValueError, match=needle):
+            MagCalibration.from_dict({**good, key: value})
+    assert MagCalibration.from_dict({**good, "offset_std_uT": [None, 0.5, 0.5]}).field_uT == 48.0
     with pytest.raises(ValueError, match="samples"):
         fit_sphere(np.ones((3, 3)))
     with pytest.raises(ValueError, match="3-D"):

@@ -83,8 +83,10 @@ class MagCalibration:
             soft = IDENTITY_SOFT_IRON  # 0.5 (I + Iᵀ) = I
         else:
             a = np.asarray(soft_iron, dtype=float)
-            if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            if a.shape != (3, 3):
                 raise ValueError(f"soft_iron: expected a finite 3×3 matrix, got shape {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError("soft_iron: expected a finite 3×3 matrix, got NaN or infinite values")
             soft = _tuplify(0.5 * (a + a.T))
         for key in ("offset_std_uT",):
             if key in kwargs and kwargs[key] is not None:
@@ -182,7 +184,7 @@ class MagCalibration:
             if key not in d:
                 raise ValueError(f"calibration: missing key {key!r}")
         try:
-            return cls.from_arrays(
+            cal = cls.from_arrays(
                 d["offset_uT"],
                 d["soft_iron"],
                 field_uT=float(d.get("field_uT") if d.get("field_uT") is not None else float("nan")),
@@ -199,6 +201,8 @@ class MagCalibration:
             )
         except (TypeError, ValueError) as exc:
             raise ValueError(f"calibration: {exc}") from exc
+        _check_physical(cal)
+        return cal
 
     @classmethod
     def from_json(cls, path: str | Path) -> MagCalibration:
@@ -220,3 +224,19 @@ def _num(v: float):
 
 def _float(v) -> float:
     return float("nan") if v is None else float(v)
+
+
+def _check_physical(cal: MagCalibration) -> None:
+    """What a calibration file must state to be a calibration (the model of the class docstring): a soft-iron
+    matrix that is positive definite (a singular one maps the field onto a plane, a negative eigenvalue
+    mirrors it), a field strength that is positive (or unknown) and offset σ that are not negative (or
+    unknown); ValueError naming the key."""
+    eig = np.linalg.eigvalsh(cal.soft_iron_array)
+    if not eig.min() > 1e-9 * max(eig.max(), 1e-300):
+        got = np.round(eig, 6).tolist()
+        raise ValueError(f"calibration: soft_iron: expected a positive-definite matrix, eigenvalues {got}")
+    if np.isfinite(cal.field_uT) and not cal.field_uT > 0:
+        raise ValueError(f"calibration: field_uT: expected a positive strength in µT, got {cal.field_uT!r}")
+    std = np.asarray(cal.offset_std_uT, dtype=float)
+    if np.any(std[np.isfinite(std)] < 0):
+        raise ValueError(f"calibration: offset_std_uT: expected σ ≥ 0 in µT, got {list(cal.offset_std_uT)!r}")
