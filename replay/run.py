@@ -11,6 +11,7 @@ against the walked direction and the reference series.
 
 from __future__ import annotations
 
+import errno
 import sys
 import time
 from collections import Counter
@@ -81,6 +82,36 @@ class CsvSink(QuietSink):
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+class _SinkFile:
+    """A sink that writes a file (it has a ``path``), whose write errors name that file: a full disk, a
+    device gone, as ``OSError(filename=path)`` — ``pdr-mag: FILE: cannot write (…)``, exit 2 — where the
+    writer's own error names none (Python's file objects; the rerun SDK's I/O errors, a ``RuntimeError``
+    ending ``(os error N)``).  Everything else is the sink's."""
+
+    def __init__(self, sink):
+        self._sink = sink
+
+    def __getattr__(self, name):
+        attr = getattr(self._sink, name)
+        if not callable(attr):
+            return attr
+
+        def call(*args, **kwargs):
+            try:
+                return attr(*args, **kwargs)
+            except OSError as exc:
+                if exc.filename is not None:
+                    raise
+                why = f"cannot write ({exc.strerror or exc})"
+                raise OSError(exc.errno or errno.EIO, why, str(self._sink.path)) from None
+            except RuntimeError as exc:
+                if "os error" not in str(exc):
+                    raise
+                raise OSError(errno.EIO, f"cannot write ({exc})", str(self._sink.path)) from None
+
+        return call
 
 
 class MemorySink(QuietSink):
@@ -255,7 +286,7 @@ class ReplayRun:
         if calibration is not None and not isinstance(calibration, MagCalibration):
             calibration = load_calibration(calibration)
         scores = HeadingScores()  # against the walked direction and the references: the summary's figures
-        sinks = [*sinks, scores]
+        sinks = [*(_SinkFile(s) if getattr(s, "path", None) is not None else s for s in sinks), scores]
         wants = any(getattr(s, "wants_mag_calibrated", True) for s in sinks)
         if wants and (settings is None or not settings.keep_mag_calibrated):
             # the heavy sinks draw the calibrated field

@@ -292,3 +292,13 @@ def test_a_broken_device_store_entry_is_named_in_one_line(work):
     assert_one_line_exit_2(pdr_mag("replay", rec, "--device-store", store, cwd=work), entry, "device store",
                            "cannot read")
     assert entry.read_text() == text[: len(text) // 2]  # left as it was
+
+
+@pytest.mark.parametrize("option", ["--out-csv", "--mcap", "--rrd", "--json"])
+def test_a_full_disk_names_the_output_in_one_line(work, option):
+    """Writing an output fails (``/dev/full``: no space left): exit 2 and one line naming the file, from
+    every writer — Python's file objects and the rerun SDK name no file themselves."""
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system (a Linux device that is always full)")
+    res = pdr_mag("replay", work / "rec", option, "/dev/full", cwd=work)
+    assert_one_line_exit_2(res, "/dev/full", "cannot write")
