@@ -438,8 +438,7 @@ def _load_device(store: DeviceStore, meta: dict) -> tuple:
     if t_unix is None:
         t_unix = time.time()
     try:
-        path = store.path(meta)
-        prior = store.load(meta, t_unix)
+        path, prior = store.find(meta, t_unix)
     except ValueError as exc:  # "<file>: device store: …", the file the store could not use
         where, _, why = str(exc).partition(": ")
         raise InputError(where or store.folder, why or str(exc)) from None

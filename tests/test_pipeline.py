@@ -436,6 +436,17 @@ def test_a_walk_past_magnets_makes_no_figure8_full_fit(monkeypatch):
 JUMP_T_S, JUMP_UT = 60.0, np.array([15.0, -12.0, 16.0])
 
 
+def _jumped(scenario: str, seed: int):
+    """The simulated walk with its raw field shifted by :data:`JUMP_UT` from :data:`JUMP_T_S` on."""
+    from dataclasses import replace
+
+    from pdr_mag.sim import simulate
+
+    res = simulate(scenario, seed=seed)
+    t, xyz = res.mag
+    return replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+
+
 def test_a_hard_iron_that_jumps_mid_walk_is_found_half_a_window_later():
     """Six simulated walks (walk, pocket, swing; seeds 1–2) whose hard iron jumps by 25 µT 60 s in.  The
     stale test's window (30 s) straddles the jump for 30 s: its halves disagree, and only a window wholly
@@ -443,17 +454,13 @@ def test_a_hard_iron_that_jumps_mid_walk_is_found_half_a_window_later():
     60–120 s in off by 12.4° on the mean (37.9° and 1 665 frames 45° off at σ ≤ 20° on walk 2).  The newer
     half, tested on its own, finds it 25–33 s after (mean 5.8°).  Bounds: within 36 s on every walk, the
     mean under 8°."""
-    from dataclasses import replace
-
-    from pdr_mag.sim import simulate
     from tests.test_attitude import twist_error_deg
 
     means = []
     for scenario in ("walk", "pocket", "swing"):
         for seed in (1, 2):
-            res = simulate(scenario, seed=seed)
-            t, xyz = res.mag
-            res = replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+            res = _jumped(scenario, seed)
+            t = res.mag[0]
             pipe = HeadingPipeline(meta=res.meta)
             out = pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
             asked = [e.t - t[0] for e in pipe.pop_events() if e.kind == "recalibration_requested"]
@@ -470,14 +477,10 @@ def test_a_shift_the_stale_test_suspects_widens_the_std_until_it_is_confirmed():
     the std counts the turn it would make: no frame 45° off at σ ≤ 20° from one block after the candidate
     to the recalibration (without: every frame of those 10 s; the std's median there 22° with it, 11°
     without).  A ``calibration_suspected`` event says when, and which shift."""
-    from dataclasses import replace
-
-    from pdr_mag.sim import simulate
     from tests.test_attitude import twist_error_deg
 
-    res = simulate("walk", seed=2)
-    t, xyz = res.mag
-    res = replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+    res = _jumped("walk", 2)
+    t = res.mag[0]
     streams = {k: getattr(res, k) for k in ("accel", "gyro", "mag")}
     pipe = HeadingPipeline(meta=res.meta)
     out, suspected = [], None
@@ -510,13 +513,8 @@ def test_a_run_resumed_while_a_shift_is_suspected_goes_on_identically():
     """The suspected shift lives in the calibrator's state and the filter's (``suspect_cov``): a pipeline
     saved between the candidate and its confirmation (the 25-µT jump of the test above, 80 s in) and
     resumed from JSON gives the uninterrupted run's rows and events."""
-    from dataclasses import replace
-
-    from pdr_mag.sim import simulate
-
-    res = simulate("walk", seed=2)
-    t, xyz = res.mag
-    res = replace(res, mag=(t, np.where((t >= t[0] + JUMP_T_S)[:, None], xyz + JUMP_UT, xyz)))
+    res = _jumped("walk", 2)
+    t = res.mag[0]
     streams = {k: getattr(res, k) for k in ("accel", "gyro", "mag")}
     whole = HeadingPipeline(meta=res.meta)
     ref = whole.run(streams)

@@ -175,3 +175,5 @@ def test_a_save_and_a_load_read_the_file_once(tmp_path, monkeypatch):
     assert len(reads) == 1
     store.load(META, 2.0)
     assert len(reads) == 2
+    path, prior = store.find(META, 3.0)  # what replay --device-store asks: the file and its prior, one read
+    assert len(reads) == 3 and path == store.path(META) and prior.calibration is not None

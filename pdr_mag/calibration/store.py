@@ -121,11 +121,17 @@ class DeviceStore:
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
         """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
+        return self.find(meta, t_unix)[1]
+
+    def find(self, meta: dict, t_unix: float) -> tuple[Path | None, DevicePrior | None]:
+        """:meth:`path` and :meth:`load` together, the file read once."""
         found = self._locate(meta)
-        if found is None or found[1] is None:
-            return None
+        if found is None:
+            return None, None
+        if found[1] is None:
+            return found[0], None
         prior, t_saved = _entry(*found)
-        return aged(prior, t_unix - t_saved, self.settings)
+        return found[0], aged(prior, t_unix - t_saved, self.settings)
 
     def save(self, meta: dict, prior: DevicePrior, t_unix: float) -> Path | None:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps

@@ -55,17 +55,10 @@ from pdr_mag.fusion.detectors import BANDS
 #: Episode kinds, with the unit of their threshold and peak.
 KINDS = {"error": "deg", "sigma": "deg", "no_reference": "s"}
 
+#: The detectors that are events of the pipeline.
+_EVENT_DETECTORS = ("calibration_suspected", "recalibration_requested", "calibration_rejected")
 #: Detectors an episode can name (see the module docstring).
-DETECTORS = (
-    "strength",
-    "dip",
-    "interference",
-    "calibration_suspected",
-    "recalibration_requested",
-    "calibration_rejected",
-)
-#: the detectors that are events of the pipeline
-_EVENT_DETECTORS = DETECTORS[3:]
+DETECTORS = ("strength", "dip", "interference", *_EVENT_DETECTORS)
 
 
 @dataclass(frozen=True)
