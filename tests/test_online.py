@@ -262,6 +262,19 @@ def test_stale_offset_requests_recalibration_and_figure8_recalibrates():
     assert oc.cal_state in ("offset", "ellipsoid")
 
 
+@pytest.mark.parametrize("mag_rate", [50.0, 10.0, 5.0])
+def test_a_figure8_is_the_same_episode_at_any_magnetometer_rate(mag_rate):
+    """The rotation episode is the gyro rate smoothed over time, not over samples: a figure-8 from 20 to 35 s
+    starts one within 1.5 s and ends it within 3 s of its end whether the magnetometer gives 50 or 5
+    samples a second (measured 20.4 / 36.2–36.7 s; smoothed per sample, 5 Hz found it 6.6 s late and ended
+    it 17 s late)."""
+    d = synth_walk(duration=60.0, seed=3, mag_rate=mag_rate, figure8=(20.0, 35.0))
+    oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))
+    ep = [(t, k) for t, k, _ in _feed(oc, d) if k.startswith("rotation_episode")]
+    assert [k for _, k in ep] == ["rotation_episode_start", "rotation_episode_end"], ep
+    assert 20.0 < ep[0][0] < 21.5 and 35.0 < ep[1][0] < 38.0, ep
+
+
 def test_passing_disturbance_does_not_request_recalibration():
     d = synth_walk(duration=120.0, seed=6, anomaly=(50.0, 62.0, np.array([25.0, -15.0, 10.0])))
     oc = OnlineCalibrator(OnlineSettings(), strength=F, sin_dip=np.sin(INC))

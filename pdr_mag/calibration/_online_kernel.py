@@ -4,8 +4,9 @@ For every magnetometer sample, :func:`scan` runs, in this order:
 
 1. at a block's first sample, the block-start copies: the calibration parameters :data:`CAL` and the
    diversity buffer against which the block's samples are admitted;
-2. the rotation-episode tracker: the gyro rate smoothed as ``ema += 0.02 (rate − ema)``; an episode
-   (figure-8) starts above ``episode_rate`` and ends below half of it;
+2. the rotation-episode tracker: the gyro rate at each sample smoothed over time,
+   ``ema += (1 − exp(−Δt / episode_tau_s)) (rate − ema)``; an episode (figure-8) starts above
+   ``episode_rate`` and ends below half of it;
 3. the ring of recent samples (at most ``stale_rate_hz``) for the stale-calibration test;
 4. admission to the diversity buffer (:mod:`pdr_mag.calibration.diversity`): the sample must be consistent
    with the block-start calibration (:func:`consistent`) and not redundant;
@@ -47,10 +48,13 @@ from pdr_mag.calibration.diversity import (
     redundant,
 )
 from pdr_mag.calibration.online_settings import OnlineSettings
+from pdr_mag.fusion import ew
+from pdr_mag.fusion.ew import ew_alpha
 
 STATE = np.dtype(
     [
         ("rate_ema", np.float64),  # smoothed gyro rate, rad/s
+        ("rate_t", np.float64),  # time of the sample it last took in, s
         ("episode", np.bool_),  # a rotation-rich episode is on
         ("episode_seen", np.bool_),  # one was on since the last recalibration request
         ("episode_t1", np.float64),  # when the latest episode ended, s (NaN: on, or none yet)
@@ -259,7 +263,9 @@ def _track_episode(i, ti, rate, st, p, found, n_ev):
     """Step 2; a start or an end makes the next refit fit, an end makes it due now (an event in ``found``,
     the ``n_ev``-th)."""
     ev_index, ev_kind = found.ev_index, found.ev_kind
-    st.rate_ema += 0.02 * (rate - st.rate_ema)
+    if np.isfinite(st.rate_t):  # (the first sample: no time since, the average stays at rest)
+        st.rate_ema += ew_alpha(ti - st.rate_t, p.episode_tau_s) * (rate - st.rate_ema)
+    st.rate_t = ti
     if not st.episode and st.rate_ema > p.episode_rate:
         st.episode = True
         st.episode_seen = True
@@ -454,5 +460,5 @@ def coverage_now(loop):
     return current_coverage(loop.state[0], loop.cal[0], loop.buf)
 
 
-# numba's cache checks a kernel against its own file only: empty the caches when diversity.py changed too
-_jit_cache.refresh_if_changed((sys.modules[__name__], diversity), "online")
+# numba's cache checks a kernel against its own file only: empty the caches when diversity.py or ew.py changed
+_jit_cache.refresh_if_changed((sys.modules[__name__], diversity, ew), "online")

@@ -109,6 +109,7 @@ class OnlineCalibrator:
         self._state = np.zeros(1, K.STATE)
         st = self._state[0]
         st["ring_last_t"] = -np.inf
+        st["rate_t"] = np.nan
         st["next_refit_t"] = -np.inf
         st["next_stale_t"] = -np.inf
         st["fit_scale"] = 1.0

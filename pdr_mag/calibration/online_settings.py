@@ -92,6 +92,10 @@ class OnlineSettings:
         before a recalibration is requested.
     episode_rate : float
         Smoothed gyro rate (rad/s) above which a rotation-rich episode (figure-8) is on; off below half.
+    episode_tau_s : float
+        Time constant (s) of that smoothing, an exponential average over time: each magnetometer sample
+        ``Δt`` after the one before moves it by ``1 − exp(−Δt / τ)`` of the way to the sample's gyro rate,
+        so an episode means the same turning at any magnetometer rate (5–100 Hz).
     recal_fallback_s : float
         While recalibrating without a figure-8, an accepted gravity-aided refit on the new buffer older
         than this ends the recalibration.
@@ -155,6 +159,7 @@ class OnlineSettings:
     stale_confirm_s: float = 10.0
     stale_rate_hz: float = kernel_field(10.0, "ring_dt", lambda v: 1.0 / v)
     episode_rate: float = 1.5
+    episode_tau_s: float = 1.0
     recal_fallback_s: float = 20.0
     field_corr_s: float = 2.0
     prior_band_frac: float = 0.4

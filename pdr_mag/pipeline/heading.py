@@ -70,7 +70,7 @@ from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 5
+STATE_VERSION = 6
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration,
