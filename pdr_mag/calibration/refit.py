@@ -50,6 +50,10 @@ RADIUS_REL_TOL = 0.25
 #: Preference among accepted refits: the full fit's methods (ellipsoid, ml, …) rank 2.
 _RANK = {"gravity": 0, "sphere": 1}
 
+#: χ²₃ at 99.9 %: two offsets further apart than this in their combined covariance contradict each other —
+#: one of them was fitted on a field that was not the Earth's, which neither σ can tell.
+CONTRADICTION_CHI2 = 16.27
+
 
 def candidates(
     m: np.ndarray,
@@ -296,6 +300,8 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
         return False
     if provided and new.method in ("gravity", "sphere"):
         return False
+    if contradicts_with_less_evidence(new, old):
+        return False
     shift = np.linalg.norm(new.offset_array - old.offset_array)
     std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
@@ -306,6 +312,36 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
         if new.residual_rms_uT > 1.5 * float(np.sqrt(np.mean((f - np.median(f)) ** 2))) + 0.3:
             return False
     return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+
+
+def independent_samples(cal: MagCalibration) -> float:
+    """``N_eff`` of a fit: its samples over the inflation :func:`with_correlated_errors` gave its covariance
+    (errors correlated within ``field_corr_s``), its sample count when none was needed."""
+    return cal.n_samples / max(float(cal.extra.get("correlation_inflation", 1.0)), 1.0)
+
+
+def contradicts_with_less_evidence(new: MagCalibration, old: MagCalibration) -> bool:
+    """Whether an online refit ``new`` contradicts the online fit ``old`` in force (their offsets
+    :data:`CONTRADICTION_CHI2` apart in ``Σ_old + Σ_new``) on clearly less evidence: fewer than half its
+    independent samples (:func:`independent_samples`).  Two offsets that far apart cannot both be the
+    device's: one was fitted where the field was not the Earth's — a disturbance, which is local: a few
+    seconds of samples that happen to have the reference strength and dip (a consensus from one pass by
+    steel), or a first fit made next to it.  Neither σ can tell which (each is computed as if the field were
+    the Earth's); a much longer time base can, as the Earth's field is the one that holds everywhere.  With
+    comparable evidence the usual rules decide (a moved offset is the stale test's to find).  Not applied to
+    a prior (the phone's, a store's: :meth:`pdr_mag.calibration.online.OnlineCalibrator._check_prior`
+    judges those) or without both covariances."""
+    if is_prior(old):
+        return False
+    c_old, c_new = old.offset_covariance, new.offset_covariance
+    if c_old is None or c_new is None:
+        return False
+    d = new.offset_array - old.offset_array
+    try:
+        d2 = float(d @ np.linalg.solve(c_old + c_new, d))
+    except np.linalg.LinAlgError:
+        return False
+    return d2 > CONTRADICTION_CHI2 and independent_samples(new) < 0.5 * independent_samples(old)
 
 
 def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibration:
