@@ -230,17 +230,28 @@ def test_a_contradicting_refit_on_fewer_independent_samples_does_not_replace():
     assert not refit.contradicts_with_less_evidence(few, prior)
 
 
-def test_a_pass_by_steel_does_not_replace_the_walks_calibration():
-    """A simulated walk past steel (30–90 s) with the magnetometer at 100 Hz: the buffer fills with the
-    steel's fields under a first calibration that does not yet judge admission, and a consensus of 17 of
-    313 samples from 4 s of the pass (the reference strength and dip by chance) was accepted 68 µT off; the
-    heading was then lost for the rest of the walk (162° off at 110–120 s).  Every calibration in force
-    stays within 4σ of the true offset (measured: 1.7 µT at σ 3.8 µT)."""
+#: a walk past steel (30–90 s) that once replaced a good first calibration (σ 3.6–3.8 µT, within 2 µT):
+#: with the magnetometer at 100 Hz, a consensus of 17 of 313 samples from 4 s of the pass (the reference
+#: strength and dip by chance), 68 µT off, the heading then 160° off to the end; at São Paulo (22.8 µT), a
+#: refit of 13 samples one of which was the steel's, 33 µT off, taken because that one sample's strength
+#: made the RMS spread of the calibration in force look large — 156° off after the steel at σ ≤ 20°
+STEEL_PASSES = {
+    "consensus at 100 Hz": dict(seed=1, phone={"mag_rate_hz": 100.0}, site=None),
+    "one sample, weak field": dict(seed=2, phone={}, site={"latitude_deg": -23.55, "longitude_deg": -46.63,
+                                                            "altitude_m": 10.0, "date": "2026-06-15"}),
+}
+
+
+@pytest.mark.parametrize("case", sorted(STEEL_PASSES))
+def test_a_pass_by_steel_does_not_replace_the_walks_calibration(case):
+    """Every calibration in force stays within 4σ of the true offset (:data:`STEEL_PASSES`; measured: within
+    2.1 µT at σ 1.2–5.1 µT)."""
     from pdr_mag.pipeline import HeadingPipeline
     from pdr_mag.sim import simulate
     from pdr_mag.sim.sensor_model import PhoneSpec
 
-    res = simulate("steel", seed=1, phone=PhoneSpec(mag_rate_hz=100.0))
+    c = STEEL_PASSES[case]
+    res = simulate("steel", seed=c["seed"], phone=PhoneSpec(**c["phone"]), site=c["site"])
     pipe = HeadingPipeline(meta=res.meta)
     pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
     truth = np.asarray(res.meta["simulation"]["effects"]["hard_iron"], dtype=float)

@@ -289,10 +289,11 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
     sphere fit; not when the residual got worse (``> 1.5 · old + 0.3`` µT: disturbed samples in the
     buffer); not on noise: the offset must move by 2 σ (σ at least 0.2 µT) or its σ shrink by 20 %.  An
     upgrade to a soft-iron shape passes the last two rules.  The old calibration's residual is the larger
-    of its own and the RMS spread of the strength it gives ``m``, the buffer's raw samples the refit
-    fitted — a calibration fitted on a few samples and wrong by tens of µT explains the buffer worse than
-    the refit that replaces it, whatever its own small residual said (the spread is computed only when
-    the old residual alone would refuse the refit).
+    of its own and the spread (:func:`robust_spread`) of the strength it gives ``m``, the buffer's raw
+    samples the refit fitted — a calibration fitted on a few samples and wrong by tens of µT explains the
+    buffer worse than the refit that replaces it, whatever its own small residual said, while one sample of
+    a disturbance in the buffer makes no calibration look bad (the spread is computed only when the old
+    residual alone would refuse the refit).
     """
     if old is None:
         return True
@@ -309,9 +310,16 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
     if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
         f = np.linalg.norm(old.apply(m), axis=1)
-        if new.residual_rms_uT > 1.5 * float(np.sqrt(np.mean((f - np.median(f)) ** 2))) + 0.3:
+        if new.residual_rms_uT > 1.5 * robust_spread(f) + 0.3:
             return False
     return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+
+
+def robust_spread(x: np.ndarray) -> float:
+    """The spread of ``x`` as a Gaussian's σ, from its median absolute deviation (``1.4826 · MAD``): a few
+    samples of a disturbance in the buffer do not make it large, a calibration wrong for every sample
+    does."""
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
 
 
 def independent_samples(cal: MagCalibration) -> float:
