@@ -91,7 +91,7 @@ CAL = np.dtype(
         ("dip_check", np.bool_),  # a reference dip is known
         ("dip_deg", np.float64),  # reference dip, deg
         ("dip_tol_deg", np.float64),  # admission: |dip − reference| < add_dip_tol_deg
-        ("sep2", np.float64),  # (min_sep_frac · F)², µT² (F = 50 µT when unknown)
+        ("sep2", np.float64),  # the buffer's neighbourhood², µT² (online.separation)
         ("has_offset", np.bool_),  # a calibration is in force (coverage centre: its offset)
         ("stale_on", np.bool_),  # stale tests run (calibrated, not recalibrating)
         ("stale_ok", np.bool_),  # … and can: F and the dip are known

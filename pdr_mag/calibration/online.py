@@ -279,7 +279,7 @@ class OnlineCalibrator:
         c["dip_check"] = sd is not None
         c["dip_deg"] = np.nan if sd is None else np.degrees(np.arcsin(sd))
         c["dip_tol_deg"] = s.add_dip_tol_deg
-        c["sep2"] = (s.min_sep_frac * (f or 50.0)) ** 2
+        c["sep2"] = separation(s, f, sd) ** 2
         c["has_offset"] = cal is not None
         c["stale_on"] = cal is not None and cal_state != "recalibrating"
         c["stale_ok"] = f is not None and sd is not None
@@ -506,6 +506,15 @@ class OnlineCalibrator:
         buf[:] = np.nan
         buf[: len(st["buffer"])] = [float(x) for x in st["buffer"]]
         self._ring.view(np.float64)[:] = [float(x) for x in st["ring"]]
+
+
+def separation(s: OnlineSettings, strength: float | None, sin_dip: float | None) -> float:
+    """The diversity buffer's neighbourhood, raw µT: ``min_sep_frac · F`` (F 50 µT when unknown), or
+    ``min_sep_yaw · F cos I`` where the horizontal field makes that less (:class:`OnlineSettings`)."""
+    f = strength or 50.0
+    if sin_dip is None:
+        return s.min_sep_frac * f
+    return f * min(s.min_sep_frac, s.min_sep_yaw * float(np.sqrt(max(1.0 - sin_dip * sin_dip, 0.0))))
 
 
 def _shift_data(shift: np.ndarray) -> dict:

@@ -27,6 +27,12 @@ class OnlineSettings:
     min_sep_frac : float
         A new sample closer than ``min_sep_frac · F`` (raw µT) to a kept one with a similar gravity
         direction is redundant.
+    min_sep_yaw : float
+        … or closer than ``min_sep_yaw · B_h`` where that is less (``B_h = F cos I``, the reference's
+        horizontal field; rad): a walker's turns sweep the field round a circle of radius ``B_h``, so a
+        neighbourhood spans at most this much turn (0.24 rad, 14°: what ``min_sep_frac`` spans up to a dip
+        of 60°).  Near the magnetic poles ``B_h`` is a quarter of F and less; a turn there would otherwise
+        need 27° (dip 75°) to give a new sample, and a walk of 120 s with few turns no first calibration.
     min_sep_up_deg : float
         Gravity directions closer than this count as similar.
     refresh_s : float
@@ -131,6 +137,7 @@ class OnlineSettings:
 
     buffer_size: int = 400
     min_sep_frac: float = 0.12
+    min_sep_yaw: float = 0.3
     min_sep_up_deg: float = kernel_field(6.0, "cos_up", lambda v: np.cos(np.radians(v)))
     refresh_s: float = 120.0
     refit_period_s: float = 2.0
