@@ -179,9 +179,10 @@ def main() -> None:
         commit = f", commit {a.commit}" if a.commit else ""
         intro = (
             f"`python benchmarks/robustness.py --write-results` ({len(results)} simulated cases{commit}): "
-            "the pipeline with no calibration given (online calibration only) on phones and effects the "
-            "shared data do not have, one change per row from the default phone and the scenarios' default "
-            "effects; six scenarios × seeds 1–2 per row, after the first 20 s. Median / mean \\|error\\|: "
+            "the pipeline with no calibration given (online calibration only) on phones, effects and places "
+            "the shared data do not have, one change per row from the default phone, the scenarios' default "
+            "effects and the default site (Zurich: 48.4 µT, dip 63.5°); six scenarios × seeds 1–2 per row, "
+            "after the first 20 s. Median / mean \\|error\\|: "
             "over the cases, of each case's mean \\|heading error\\|; full calibration: cases that reached "
             "an ellipsoid fit."
         )
