@@ -30,9 +30,10 @@ class OnlineSettings:
     min_sep_yaw : float
         … or closer than ``min_sep_yaw · B_h`` where that is less (``B_h = F cos I``, the reference's
         horizontal field; rad): a walker's turns sweep the field round a circle of radius ``B_h``, so a
-        neighbourhood spans at most this much turn (0.24 rad, 14°: what ``min_sep_frac`` spans up to a dip
-        of 60°).  Near the magnetic poles ``B_h`` is a quarter of F and less; a turn there would otherwise
-        need 27° (dip 75°) to give a new sample, and a walk of 120 s with few turns no first calibration.
+        neighbourhood spans at most this much turn (0.3 rad, 17°: what ``min_sep_frac`` spans at a dip of
+        66°; below that dip, as everywhere the shared data were recorded, ``min_sep_frac`` is the smaller).
+        Near the magnetic poles ``B_h`` is a quarter of F and less; a turn there would otherwise need 27°
+        (dip 75°) to give a new sample, and a walk of 120 s with few turns no first calibration.
     min_sep_up_deg : float
         Gravity directions closer than this count as similar.
     refresh_s : float

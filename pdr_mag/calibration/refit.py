@@ -53,6 +53,9 @@ _RANK = {"gravity": 0, "sphere": 1}
 #: χ²₃ at 99.9 %: two offsets further apart than this in their combined covariance contradict each other —
 #: one of them was fitted on a field that was not the Earth's, which neither σ can tell.
 CONTRADICTION_CHI2 = 16.27
+#: … and the refit then replaces the fit in force only with at least this share of its independent samples
+#: (:func:`contradicts_with_less_evidence`: "clearly less evidence" is less than half)
+EVIDENCE_SHARE = 0.5
 
 
 def candidates(
@@ -349,7 +352,7 @@ def contradicts_with_less_evidence(new: MagCalibration, old: MagCalibration) -> 
         d2 = float(d @ np.linalg.solve(c_old + c_new, d))
     except np.linalg.LinAlgError:
         return False
-    return d2 > CONTRADICTION_CHI2 and independent_samples(new) < 0.5 * independent_samples(old)
+    return d2 > CONTRADICTION_CHI2 and independent_samples(new) < EVIDENCE_SHARE * independent_samples(old)
 
 
 def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibration:
