@@ -342,17 +342,16 @@ def contradicts_with_less_evidence(new: MagCalibration, old: MagCalibration) -> 
     comparable evidence the usual rules decide (a moved offset is the stale test's to find).  Not applied to
     a prior (the phone's, a store's: :meth:`pdr_mag.calibration.online.OnlineCalibrator._check_prior`
     judges those) or without both covariances."""
-    if is_prior(old):
-        return False
+    if is_prior(old) or independent_samples(new) >= EVIDENCE_SHARE * independent_samples(old):
+        return False  # (the evidence first: most refits rest on as much as the fit they would replace)
     c_old, c_new = old.offset_covariance, new.offset_covariance
     if c_old is None or c_new is None:
         return False
     d = new.offset_array - old.offset_array
     try:
-        d2 = float(d @ np.linalg.solve(c_old + c_new, d))
+        return float(d @ np.linalg.solve(c_old + c_new, d)) > CONTRADICTION_CHI2
     except np.linalg.LinAlgError:
         return False
-    return d2 > CONTRADICTION_CHI2 and independent_samples(new) < EVIDENCE_SHARE * independent_samples(old)
 
 
 def with_dip(cal: MagCalibration, m: np.ndarray, u: np.ndarray) -> MagCalibration:
