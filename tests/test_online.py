@@ -501,7 +501,7 @@ def test_a_walk_near_the_magnetic_pole_is_calibrated_as_soon_as_elsewhere(seed):
     """Reykjavik (dip 75°: the horizontal field a quarter of F): the buffer's neighbourhood spans at most
     ``min_sep_yaw`` of turn, so the walker's turns give samples as they do at mid latitudes.  With
     ``0.12 F`` alone a new sample needed 27° of turn: on these simulated walks the first calibration came at
-    33 s or never in 120 s (seed 3: 7 samples); now at 10.5 and 12.5 s, within 1σ per axis."""
+    33 s or never in 120 s (seed 3: 7 samples); now at 10.5 and 12.5 s, within 1.05σ per axis."""
     from pdr_mag.pipeline import HeadingPipeline
     from pdr_mag.sim import simulate
 

@@ -49,7 +49,6 @@ from pdr_mag.calibration.diversity import (
 )
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.fusion import ew
-from pdr_mag.fusion.ew import ew_alpha
 
 STATE = np.dtype(
     [
@@ -264,7 +263,7 @@ def _track_episode(i, ti, rate, st, p, found, n_ev):
     the ``n_ev``-th)."""
     ev_index, ev_kind = found.ev_index, found.ev_kind
     if np.isfinite(st.rate_t):  # (the first sample: no time since, the average stays at rest)
-        st.rate_ema += ew_alpha(ti - st.rate_t, p.episode_tau_s) * (rate - st.rate_ema)
+        st.rate_ema += ew.ew_alpha(ti - st.rate_t, p.episode_tau_s) * (rate - st.rate_ema)
     st.rate_t = ti
     if not st.episode and st.rate_ema > p.episode_rate:
         st.episode = True

@@ -326,8 +326,8 @@ def robust_spread(x: np.ndarray) -> float:
 
 
 def independent_samples(cal: MagCalibration) -> float:
-    """``N_eff`` of a fit: its samples over the inflation :func:`with_correlated_errors` gave its covariance
-    (errors correlated within ``field_corr_s``), its sample count when none was needed."""
+    """``N_eff`` of a gravity-aided fit: its samples over the inflation :func:`with_correlated_errors` gave
+    its covariance (errors correlated within ``field_corr_s``), its sample count when none was needed."""
     return cal.n_samples / max(float(cal.extra.get("correlation_inflation", 1.0)), 1.0)
 
 
@@ -339,10 +339,14 @@ def contradicts_with_less_evidence(new: MagCalibration, old: MagCalibration) -> 
     seconds of samples that happen to have the reference strength and dip (a consensus from one pass by
     steel), or a first fit made next to it.  Neither σ can tell which (each is computed as if the field were
     the Earth's); a much longer time base can, as the Earth's field is the one that holds everywhere.  With
-    comparable evidence the usual rules decide (a moved offset is the stale test's to find).  Not applied to
-    a prior (the phone's, a store's: :meth:`pdr_mag.calibration.online.OnlineCalibrator._check_prior`
-    judges those) or without both covariances."""
-    if is_prior(old) or independent_samples(new) >= EVIDENCE_SHARE * independent_samples(old):
+    comparable evidence the usual rules decide (a moved offset is the stale test's to find).  Applied between
+    gravity-aided fits (a consensus is one), whose independent samples are counted alike — a full fit's
+    covariance is not scaled for correlated errors, so its sample count is not comparable — and not to a
+    prior (the phone's, a store's: :meth:`pdr_mag.calibration.online.OnlineCalibrator._check_prior` judges
+    those) or without both covariances."""
+    if is_prior(old) or not new.method == old.method == "gravity":
+        return False
+    if independent_samples(new) >= EVIDENCE_SHARE * independent_samples(old):
         return False  # (the evidence first: most refits rest on as much as the fit they would replace)
     c_old, c_new = old.offset_covariance, new.offset_covariance
     if c_old is None or c_new is None:
