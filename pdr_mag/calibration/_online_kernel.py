@@ -105,12 +105,13 @@ PARAMS = settings_dtype(OnlineSettings)
 
 class Blocks(NamedTuple):
     """Magnetometer samples as :func:`scan` takes them, block by block: times ``t`` (N,) s, raw field ``mag``
-    (N, 3) µT, device-frame up ``up`` (N, 3), gyro ``rate`` (N,) rad/s, and ``block_end`` (N,) bool marking
-    each block's last sample."""
+    (N, 3) µT, device-frame up ``up`` (N, 3) and north ``north`` (N, 3: the filter's world y axis, NaN
+    unknown), gyro ``rate`` (N,) rad/s, and ``block_end`` (N,) bool marking each block's last sample."""
 
     t: np.ndarray
     mag: np.ndarray
     up: np.ndarray
+    north: np.ndarray
     rate: np.ndarray
     block_end: np.ndarray
 
@@ -166,7 +167,7 @@ def scan(blocks, i, resumed, loop, found):
     ``resumed``: sample ``i`` was taken in and returned (``REFIT``/``STALE_TEST``) by the previous call; only
     its block end is left.  Episode events go to ``found.ev_index``/``found.ev_kind`` (``n_events`` of them).
     """
-    t, mag, up, rate, block_end = blocks
+    t, mag, up, north, rate, block_end = blocks
     st = loop.state[0]
     c = loop.cal[0]
     cal0 = loop.cal0
@@ -185,7 +186,7 @@ def scan(blocks, i, resumed, loop, found):
             rate_i = rate[i] if np.isfinite(rate[i]) else 0.0
             n_ev = _track_episode(i, ti, rate_i, st, p, found, n_ev)
             if ti - st.ring_last_t >= p.ring_dt:
-                put(ring, st.ring_next % len(ring), ti, m, u)
+                put(ring, st.ring_next % len(ring), ti, m, u, north[i])
                 st.ring_next += 1
                 st.ring_last_t = ti
             if consistent(m, u, cal0[0]):
@@ -197,7 +198,7 @@ def scan(blocks, i, resumed, loop, found):
                     near = Near(c.sep2, p.cos_up, p.refresh_s)
                     slot = offer(ti, m, u, buf, st.n_buf, p.buffer_size, near)
                     if slot >= 0:
-                        _keep(st, c, buf, slot, ti, m, u)
+                        _keep(st, c, buf, slot, ti, m, u, north[i])
                         st.fit_new += 1.0
                         st.coverage_stale = True
             if ti >= st.next_refit_t and refit_due(ti, st, c, p):
@@ -318,14 +319,14 @@ def consistent(m, u, c):
 
 
 @njit(cache=True, error_model="numpy")
-def _keep(st, c, buf, j, t, m, u):
+def _keep(st, c, buf, j, t, m, u, n):
     """Put the sample in slot ``j`` of the buffer (``n_buf``: appended), the direction counts about the
     offset following the sample that leaves and the one that enters while they are valid."""
     if st.cover_ok and c.has_offset:
         if j < st.n_buf:
             count_directions(buf[j].m, c.offset, st.cover, -1)
         count_directions(m, c.offset, st.cover, 1)
-    put(buf, j, t, m, u)
+    put(buf, j, t, m, u, n)
     st.n_buf = max(st.n_buf, j + 1)
 
 

@@ -35,7 +35,7 @@ from numba import njit
 
 #: A kept magnetometer sample: time, raw field (µT) and up vector, device frame.  Packed (56 bytes), so
 #: ``buf["m"]`` is an (n, 3) view with the row stride of seven floats.
-SAMPLE = np.dtype([("t", np.float64), ("m", np.float64, (3,)), ("u", np.float64, (3,))])
+SAMPLE = np.dtype([("t", np.float64), ("m", np.float64, (3,)), ("u", np.float64, (3,)), ("n", np.float64, (3,))])
 
 
 class Near(NamedTuple):
@@ -182,8 +182,8 @@ def redundant(t, m, u, start, hint, near):
 
 
 @njit(cache=True, error_model="numpy")
-def put(buf, j, t, m, u):
-    """Write the sample ``(t, m, u)`` to slot ``j``."""
+def put(buf, j, t, m, u, n):
+    """Write the sample ``(t, m, u, n)`` to slot ``j``."""
     a = buf[j]
     a.t = t
     a.m[0] = m[0]
@@ -192,6 +192,9 @@ def put(buf, j, t, m, u):
     a.u[0] = u[0]
     a.u[1] = u[1]
     a.u[2] = u[2]
+    a.n[0] = n[0]
+    a.n[1] = n[1]
+    a.n[2] = n[2]
 
 
 @njit(cache=True, error_model="numpy")

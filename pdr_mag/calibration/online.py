@@ -42,7 +42,7 @@ import numpy as np
 from pdr_mag._json import state_float
 from pdr_mag._records import settings_record
 from pdr_mag.calibration import _online_kernel as K
-from pdr_mag.calibration import diversity, refit, stale
+from pdr_mag.calibration import diversity, refit, stale, turned
 from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
@@ -104,6 +104,9 @@ class OnlineCalibrator:
         self._recal_t = np.nan  # when the recalibration was requested
         self._n_refits = 0
         self._last_reject_t = -np.inf  # last calibration_rejected event (at most one per 30 s)
+        # since when the filter's heading is the gyroscope's alone (no calibration in force: the turned-field
+        # test's frame); a calibration in force: not until it is refused
+        self._gyro_heading_t = -np.inf if calibration is None else np.inf
         # the compiled loop's records (one-element structured arrays) and sample arrays
         self._params = settings_record(s)
         self._state = np.zeros(1, K.STATE)
@@ -183,9 +186,12 @@ class OnlineCalibrator:
         return float(K.coverage_now(self._loop))
 
     # ------------------------------------------------------------------ feeding
-    def update(self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray) -> list:
+    def update(
+        self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray, north: np.ndarray | None = None
+    ) -> list:
         """Take one block of raw magnetometer samples (time-ordered) with up vectors and gyro rates; return
-        the events.
+        the events.  ``north`` (N, 3): the device-frame world y axis of the attitude the up vectors come
+        from (the heading the gyroscope carries; None: unknown, and the turned-field test does not run).
 
         Every sample of the block is admitted to the buffer against the calibration and the buffer of the
         block's start.  Never raises on odd data: samples with NaN are skipped.
@@ -194,11 +200,17 @@ class OnlineCalibrator:
         ends = np.zeros(len(t), dtype=np.bool_)
         if len(t):
             ends[-1] = True
-        events, _, _ = self.update_blocks(t, mag, up, rate, ends)
+        events, _, _ = self.update_blocks(t, mag, up, rate, ends, north)
         return [e for _, e in events]
 
     def update_blocks(
-        self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray, block_end: np.ndarray
+        self,
+        t: np.ndarray,
+        mag: np.ndarray,
+        up: np.ndarray,
+        rate: np.ndarray,
+        block_end: np.ndarray,
+        north: np.ndarray | None = None,
     ) -> tuple[list, int, np.ndarray]:
         """:meth:`update` for whole blocks, ``block_end`` (N,) bool marking the last sample of each; stops at
         the end of the first block in which the calibration, or the shift suspected of it
@@ -214,7 +226,8 @@ class OnlineCalibrator:
         rate = np.asarray(rate, dtype=float)
         block_end = np.asarray(block_end, dtype=np.bool_)
         n = len(t)
-        blocks = K.Blocks(t, mag, up, rate, block_end)
+        north = np.full((n, 3), np.nan) if north is None else np.asarray(north, dtype=float)
+        blocks = K.Blocks(t, mag, up, north, rate, block_end)
         # at most one episode event per sample
         found = K.Found(np.full(n, np.nan), np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64))
         events: list = []
@@ -310,6 +323,8 @@ class OnlineCalibrator:
         # the refit that a rotation episode's end made due (at that very sample)
         if self._state[0]["episode_t1"] == t and self.cal_state == "offset":
             judged += self._figure8_fit(t)
+        if self.calibration is None and self.field_ref is None:
+            judged = [self._turned_field(c, n) for c in judged]
         chosen = refit.best(judged)
         if chosen is None:
             if judged and self.calibration is None and t - self._last_reject_t > 30.0:
@@ -336,6 +351,20 @@ class OnlineCalibrator:
         self._use(cal, refit.state_of(cal))
         self._n_refits += 1
         events.append((t, "calibration_accepted", refit.summary(cal)))
+
+    def _turned_field(self, cal: MagCalibration, n: int) -> MagCalibration:
+        """``cal`` refused when, about its offset, the buffer's field turned against the gyroscope
+        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above ``turned_field_deg``).  Judged on the
+        samples taken since the filter's heading has been the gyroscope's alone (``_gyro_heading_t``)."""
+        if not cal.accepted:
+            return cal
+        b = self._buf[:n]
+        k = b["t"] >= self._gyro_heading_t
+        spread = turned.azimuth_spread_deg(b["m"][k], b["u"][k], b["n"][k], b["t"][k], cal.offset_array)
+        if not spread > self.settings.turned_field_deg:
+            return cal
+        reason = f"the field turned {spread:.0f}° against the gyroscope (above {self.settings.turned_field_deg:g}°)"
+        return cal.with_acceptance(False, (*cal.reasons, reason))
 
     def _figure8_fit(self, t: float) -> list:
         """At a rotation episode's end, while an offset-only calibration is in force: the full fit of the
@@ -385,6 +414,7 @@ class OnlineCalibrator:
                 "median_dip_deg": round(dip, 2)}
         events.append((t, "prior_refused", data))
         self._use(None, "none")
+        self._gyro_heading_t = t  # the filter's heading had this prior's updates until now
 
     def _stale_test(self, t: float, events: list) -> None:
         """The stale test's fits on the recent window (its first part found the strength deviating); the
@@ -482,6 +512,7 @@ class OnlineCalibrator:
             "recal_t": state_float(self._recal_t),
             "n_refits": self._n_refits,
             "last_reject_t": state_float(self._last_reject_t),
+            "gyro_heading_t": state_float(self._gyro_heading_t),
             "loop": {name: _to_json(self._state[0][name]) for name in _SAVED_FIELDS},
             "buffer": _to_json(self._buf[: self._n_buf].view(np.float64)),
             "ring": _to_json(self._ring.view(np.float64)),
@@ -496,6 +527,7 @@ class OnlineCalibrator:
         self._recal_t = float(st["recal_t"])
         self._n_refits = int(st["n_refits"])
         self._last_reject_t = float(st["last_reject_t"])
+        self._gyro_heading_t = float(st["gyro_heading_t"])
         loop = self._state[0]
         for name in _BLOCK_FIELDS:
             loop[name] = 0  # False for the flags

@@ -25,9 +25,16 @@ from pdr_mag import _jit_cache
 from pdr_mag.fusion import kinds
 from pdr_mag.fusion.kinds import ACCEL, GYRO, MAG
 
-#: A magnetometer sample with its context: time, raw field (µT), up vector and gyro rate (rad/s).
+#: A magnetometer sample with its context: time, raw field (µT), the device-frame up and north axes of the
+#: filter's attitude (north NaN where the up vector comes from the accelerometer) and gyro rate (rad/s).
 MAG_ROW = np.dtype(
-    [("t", np.float64), ("m", np.float64, (3,)), ("up", np.float64, (3,)), ("rate", np.float64)]
+    [
+        ("t", np.float64),
+        ("m", np.float64, (3,)),
+        ("up", np.float64, (3,)),
+        ("north", np.float64, (3,)),
+        ("rate", np.float64),
+    ]
 )
 
 #: What the context needs from before a chunk: the latest output row's quaternion (w-first), the latest
@@ -177,6 +184,18 @@ def _up(q, out):
 
 
 @njit(cache=True, error_model="numpy")
+def _north(q, out):
+    """Device-frame north (world y) axis of the w-first quaternion ``q``: the second row of ``rot_wd``."""
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    out[0] = 2 * (x * y + w * z)
+    out[1] = 1 - 2 * (x * x + z * z)
+    out[2] = 2 * (y * z - w * x)
+
+
+@njit(cache=True, error_model="numpy")
 def mag_context(kind, t, xyz, row_t, row_q, carry, before, block_s):
     """:data:`MAG_ROW` records: ``before``'s, then those of the magnetometer samples (``kind == MAG``) of a
     merged chunk, given its filter output rows (``row_t``, ``row_q``) and the :data:`CARRY` record from
@@ -206,8 +225,10 @@ def mag_context(kind, t, xyz, row_t, row_q, carry, before, block_s):
                 r += 1
             if r > 0:
                 _up(row_q[r - 1], row.up)
+                _north(row_q[r - 1], row.north)
             else:
                 _up(c.q, row.up)
+                _north(c.q, row.north)
             if not np.isfinite(row.up[0]):
                 if a >= 0:
                     _direction(xyz[a], row.up)

@@ -70,7 +70,7 @@ from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 6
+STATE_VERSION = 7
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration,
@@ -511,7 +511,9 @@ class HeadingPipeline:
         ends[:-1] = row_blk[1:] != row_blk[:-1]
         ends[-1] = True
         before = self.online.calibration
-        got, n, cov = self.online.update_blocks(rows["t"], rows["m"], rows["up"], rows["rate"], ends)
+        got, n, cov = self.online.update_blocks(
+            rows["t"], rows["m"], rows["up"], rows["rate"], ends, rows["north"]
+        )
         if self.online.calibration is not before and self.online.calibration is not None:
             self._calibrations.append((float(rows["t"][n - 1]), self.online.calibration))
         closed = np.isfinite(cov[:n])

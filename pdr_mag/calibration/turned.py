@@ -1,0 +1,45 @@
+"""The turned-field test: the Earth's field keeps its azimuth in a frame that turns with the device.
+
+Before any calibration is in force the fusion filter's heading is the gyroscope's alone (no magnetometer
+update reaches it), so the attitude at each buffered sample — its device-frame up ``u_k`` and north ``n_k``
+(:data:`pdr_mag.pipeline._kernel.MAG_ROW`) — turns exactly as the device did.  For a fit's offset ``b`` the
+calibrated field of sample ``k`` has, in that frame, the azimuth
+
+    α_k = atan2(e_k · (m_k − b), n_k · (m_k − b)),   e_k = n_k × u_k  (east),
+
+and the Earth's field, fixed in the world, gives one α for every sample but for the gyroscope's bias (a drift
+``a + c t`` over the buffer's span) and the tilt's and the noise's few degrees.  Two things make α scatter by
+tens of degrees instead: a wrong offset (the samples' errors turn with the device, not with the world) and a
+field that turned while the device did not (a pass by steel, a magnet).  Where a reference field is known
+(F and the dip from the place, the WMM) the fit's radius and dip already expose both; without one the
+gravity-aided fit has F and the dip free, and the few seconds of a pass by steel can fit a sphere of
+plausible radius about an offset tens of µT off (benchmarks/NOTES.md, "No location, no reference field").
+This test is the physics left to judge that first fit: the gyroscope's turn against the field's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: samples (with a known north axis) below which the azimuth's spread is not judged
+MIN_SAMPLES = 5
+
+
+def azimuth_spread_deg(m: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.ndarray, offset) -> float:
+    """Robust spread (1.4826 × median absolute deviation), deg, of the azimuth ``α_k`` of the calibrated
+    field ``m − offset`` in the frame of the device-frame up ``u`` and north ``n`` axes (module docstring),
+    a straight line in time ``t`` (the gyroscope's bias) removed.  NaN with fewer than :data:`MIN_SAMPLES`
+    samples whose axes are known."""
+    ok = np.all(np.isfinite(n), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(t)
+    if np.count_nonzero(ok) < MIN_SAMPLES:
+        return float("nan")
+    v = np.asarray(m, dtype=float)[ok] - np.asarray(offset, dtype=float)
+    nk, tk = n[ok], t[ok]
+    east = np.cross(nk, u[ok])
+    alpha = np.arctan2(np.einsum("ij,ij->i", east, v), np.einsum("ij,ij->i", nk, v))
+    centre = np.angle(np.mean(np.exp(1j * alpha)))
+    alpha = np.angle(np.exp(1j * (alpha - centre)))  # about the circular mean, in (−π, π]
+    design = np.c_[np.ones_like(tk), tk - tk.mean()]
+    coef, *_ = np.linalg.lstsq(design, alpha, rcond=None)
+    r = alpha - design @ coef
+    return float(np.degrees(1.4826 * np.median(np.abs(r - np.median(r)))))
