@@ -76,30 +76,53 @@ def test_a_bad_calibration_change_is_rejected():
         core.note_calibration_change(np.eye(3), [1.0, np.nan, 0.0], np.eye(3), np.zeros(3))
 
 
-def test_broad_a_wrong_first_fit_is_replaced_at_once():
-    """BROAD trial 01 (slow rotations, undisturbed, factory-calibrated magnetometer), no calibration given:
-    the first online fit (after 40 s) is 27 µT off along y (4σ; offset σ 6.7 µT, accepted only under the
-    first calibration's looser bound) and the heading 75–90° off.  Such a provisional fit does not judge
-    which samples enter the buffer and a refit under the same bound replaces it; the noted change lets the
-    right fields in: the next fit comes 1.0 s later (bound 5 s: a wrong fit waiting for the stale test and a
-    recalibration stays tens of seconds), and from 10 to 20 s after the first the heading is within 7.3°
-    (median 5.8°; bound 10°, against the 75–90° of the wrong fit)."""
+def _broad_01(**online):
+    """BROAD trial 01 (slow rotations, undisturbed, factory-calibrated magnetometer, no place in its meta),
+    no calibration given: the pipeline (``online``: OnlineSettings fields), its output and events."""
+    from pdr_mag.calibration.online import OnlineSettings
     from pdr_mag.pipeline import HeadingPipeline
+    from pdr_mag.pipeline.heading import PipelineSettings
     from replay.formats import read_recording
 
     rec = read_recording(dataset("broad", "data_mat", "01_undisturbed_slow_rotation_A.mat"))
-    pipe = HeadingPipeline(meta=rec.meta)
+    pipe = HeadingPipeline(meta=rec.meta, settings=PipelineSettings(online_settings=OnlineSettings(**online)))
     b = pipe.run({k: (getattr(rec, k).t, getattr(rec, k).xyz) for k in ("accel", "gyro", "mag")})
-    fits = [e for e in pipe.pop_events() if e.kind == "calibration_accepted"]
+    tt, qt = rec.truth
+    ok = np.all(np.isfinite(qt), axis=1)
+    tr, err, _ = twist_error_deg(b, (tt[ok], qt[ok]))
+    return b, pipe.pop_events(), tr, err
+
+
+def test_broad_a_wrong_first_fit_is_replaced_at_once():
+    """BROAD trial 01 with the turned-field test off (it refuses this fit: the test below): the first online
+    fit (after 40 s) is 27 µT off along y (4σ; offset σ 6.7 µT, accepted only under the first calibration's
+    looser bound) and the heading 75–90° off.  Such a provisional fit does not judge which samples enter the
+    buffer and a refit under the same bound replaces it; the noted change lets the right fields in: the next
+    fit comes 1.0 s later (bound 5 s: a wrong fit waiting for the stale test and a recalibration stays tens
+    of seconds), and from 10 to 20 s after the first the heading is within 4.4° (bound 10°, against the
+    75–90° of the wrong fit)."""
+    b, events, tr, err = _broad_01(turned_field_deg=np.inf)
+    fits = [e for e in events if e.kind == "calibration_accepted"]
     assert len(fits) >= 2
     first, last = (np.array(e.data["offset_uT"]) for e in (fits[0], fits[-1]))
     assert np.linalg.norm(first - last) > 20.0, "the first fit is right: the test's premise is gone"
     assert fits[1].t - fits[0].t < 5.0
-    tt, qt = rec.truth
-    ok = np.all(np.isfinite(qt), axis=1)
-    tr, err, _ = twist_error_deg(b, (tt[ok], qt[ok]))
     after = (tr > fits[0].t + 10.0) & (tr < fits[0].t + 20.0)
     assert np.max(np.abs(err[after])) < 10.0
+
+
+def test_broad_the_wrong_first_fit_is_refused_by_the_turned_field():
+    """BROAD trial 01 as it runs: no place, so no reference field; the fit 27 µT off at 40 s turns the field
+    against the gyroscope (:mod:`pdr_mag.calibration.turned`) and is refused; the first accepted fit, 1 s
+    later, is within 1 µT of the last one (bound 4 µT) and no frame is 45° off at σ ≤ 20° (the wrong fit
+    kept 49)."""
+    b, events, tr, err = _broad_01()
+    fits = [e for e in events if e.kind == "calibration_accepted"]
+    assert len(fits) >= 2
+    first, last = (np.array(e.data["offset_uT"]) for e in (fits[0], fits[-1]))
+    assert np.linalg.norm(first - last) < 4.0, (first, last)
+    std = np.interp(tr, b.t, b.heading_std_deg)
+    assert not np.any((np.abs(err) > 45.0) & (std <= 20.0))
 
 
 def test_the_noted_change_is_the_fields_change_with_soft_iron_too():

@@ -33,9 +33,12 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-#: A kept magnetometer sample: time, raw field (µT) and up vector, device frame.  Packed (56 bytes), so
-#: ``buf["m"]`` is an (n, 3) view with the row stride of seven floats.
-SAMPLE = np.dtype([("t", np.float64), ("m", np.float64, (3,)), ("u", np.float64, (3,)), ("n", np.float64, (3,))])
+#: A kept magnetometer sample: time, raw field (µT), and the up and north (world y; NaN unknown) axes of the
+#: filter's attitude, device frame.  Packed (80 bytes), so ``buf["m"]`` is an (n, 3) view with the row
+#: stride of ten floats.
+SAMPLE = np.dtype(
+    [("t", np.float64), ("m", np.float64, (3,)), ("u", np.float64, (3,)), ("n", np.float64, (3,))]
+)
 
 
 class Near(NamedTuple):

@@ -187,7 +187,12 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ feeding
     def update(
-        self, t: np.ndarray, mag: np.ndarray, up: np.ndarray, rate: np.ndarray, north: np.ndarray | None = None
+        self,
+        t: np.ndarray,
+        mag: np.ndarray,
+        up: np.ndarray,
+        rate: np.ndarray,
+        north: np.ndarray | None = None,
     ) -> list:
         """Take one block of raw magnetometer samples (time-ordered) with up vectors and gyro rates; return
         the events.  ``north`` (N, 3): the device-frame world y axis of the attitude the up vectors come
@@ -363,7 +368,8 @@ class OnlineCalibrator:
         spread = turned.azimuth_spread_deg(b["m"][k], b["u"][k], b["n"][k], b["t"][k], cal.offset_array)
         if not spread > self.settings.turned_field_deg:
             return cal
-        reason = f"the field turned {spread:.0f}° against the gyroscope (above {self.settings.turned_field_deg:g}°)"
+        bound = self.settings.turned_field_deg
+        reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:g}°)"
         return cal.with_acceptance(False, (*cal.reasons, reason))
 
     def _figure8_fit(self, t: float) -> list:
