@@ -18,6 +18,9 @@ sites (:data:`SITES`)
     magnetic pole (Reykjavik, dip 75°, the horizontal field a quarter of F), near the magnetic equator
     (Singapore, dip −13°), the South Atlantic Anomaly's weak field (São Paulo, 23 µT), the south (Sydney,
     dip −64°, 57 µT);
+no place (:data:`NO_PLACE`)
+    the default site and the four above with the recording's meta withheld (a logger without position or
+    date: no reference field, F and the dip the calibration's own; headings against magnetic north);
 jumps (:data:`JUMPS`)
     the hard iron jumping by 25 µT 60 s in (a case's magnet clasped; in a stream the OS calibrates, the OS
     replacing its estimate): the simulated raw field shifted from then on.
@@ -84,6 +87,8 @@ SITES = {
     "site São Paulo (23 µT)": (-23.55, -46.63),
     "site Sydney (dip −64°)": (-33.87, 151.21),
 }
+#: the default site and :data:`SITES` with the meta withheld (no reference field), all in one row
+NO_PLACE = "no place known (5 sites, meta withheld)"
 #: the hard iron jumping mid-walk: (time after the start, s; the jump, µT), with the default phone and effects
 JUMPS = {
     "hard iron jumps 25 µT at 60 s": (60.0, (15.0, -12.0, 16.0)),
@@ -93,17 +98,18 @@ KEEP_STD, WRONG = 20.0, 45.0
 
 
 def run_case(args) -> dict:
-    """One case: ``(row, scenario, seed, phone, effects)`` → its figures (or the error it raised)."""
-    row, scenario, seed, phone, effects = args
+    """One case: ``(row, scenario, seed, phone, effects, site)`` → its figures (or the error it raised);
+    ``site``: a :data:`SITES` name, or None for the default site."""
+    row, scenario, seed, phone, effects, site_name = args
     from dataclasses import replace
 
     from pdr_mag.pipeline import HeadingPipeline
     from pdr_mag.sim import DEFAULT_SITE, simulate
 
-    out = {"row": row, "scenario": scenario, "seed": seed}
+    out = {"row": row, "scenario": scenario, "seed": seed, "site": site_name}
     site = None
-    if row in SITES:
-        lat, lon = SITES[row]
+    if site_name is not None:
+        lat, lon = SITES[site_name]
         site = {**DEFAULT_SITE, "latitude_deg": lat, "longitude_deg": lon, "altitude_m": 10.0}
     try:
         res = simulate(scenario, seed=seed, effects=effects, phone=phone, site=site)
@@ -111,9 +117,11 @@ def run_case(args) -> dict:
             t_jump, jump = JUMPS[row]
             t, xyz = res.mag
             res = replace(res, mag=(t, np.where((t >= t[0] + t_jump)[:, None], xyz + np.asarray(jump), xyz)))
-        pipe = HeadingPipeline(meta=res.meta)
+        pipe = HeadingPipeline(meta={} if row == NO_PLACE else res.meta)
         b = pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
         head, _ = errors(b.t, b.q_wd, res.truth)
+        if row == NO_PLACE:  # magnetic north: the declination is the place's
+            head = (head - res.meta["simulation"]["declination_deg"] + 180.0) % 360.0 - 180.0
         k = b.t > b.t[0] + T_SKIP
         e, s = np.abs(head[k]), b.heading_std_deg[k]
         out.update(mean=float(np.mean(e)), n=int(k.sum()), within2=int(np.sum(e <= 2.0 * s)),
@@ -125,11 +133,17 @@ def run_case(args) -> dict:
 
 
 def cases() -> list:
-    rows = [(name, PHONES[name], {}) for name in PHONES]
-    rows += [(name, PHONES["default"], eff) for name, eff in EFFECTS.items()]
-    rows += [(name, PHONES["default"], {}) for name in SITES]
-    rows += [(name, PHONES["default"], {}) for name in JUMPS]
-    return [(name, sc, seed, phone, eff) for name, phone, eff in rows for sc in SCENARIOS for seed in SEEDS]
+    rows = [(name, PHONES[name], {}, None) for name in PHONES]
+    rows += [(name, PHONES["default"], eff, None) for name, eff in EFFECTS.items()]
+    rows += [(name, PHONES["default"], {}, name) for name in SITES]
+    rows += [(NO_PLACE, PHONES["default"], {}, site) for site in (None, *SITES)]
+    rows += [(name, PHONES["default"], {}, None) for name in JUMPS]
+    return [
+        (name, sc, seed, phone, eff, site)
+        for name, phone, eff, site in rows
+        for sc in SCENARIOS
+        for seed in SEEDS
+    ]
 
 
 def _worst(results: list, row: str) -> dict | None:
@@ -138,18 +152,26 @@ def _worst(results: list, row: str) -> dict | None:
     return max(ok, key=lambda r: r["mean"], default=None)
 
 
+def _where(case: dict, row: str) -> str:
+    """The place of a :data:`NO_PLACE` case, for its row's worst case."""
+    if row != NO_PLACE:
+        return ""
+    site = case.get("site")
+    return ", Zurich" if site is None else ", " + site.split(" (")[0].removeprefix("site ")
+
+
 def table(results: list) -> list[str]:
     lines = ["| phone or effect | cases | median / mean \\|error\\| | worst case | full calibration "
              "| within 2σ | frames > 45° at σ ≤ 20° | raised |",
              "| --- | ---: | ---: | --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
-    for name in [*PHONES, *EFFECTS, *SITES, *JUMPS]:
+    for name in [*PHONES, *EFFECTS, *SITES, NO_PLACE, *JUMPS]:
         rs = [r for r in results if r["row"] == name]
         ok = [r for r in rs if "error" not in r]
         worst = _worst(results, name)
         means = [r["mean"] for r in ok]
         lines.append(
             f"| {name} | {len(rs)} | {np.median(means):.2f} / {np.mean(means):.2f}° "
-            f"| {worst['mean']:.1f}° ({worst['scenario']} {worst['seed']}) "
+            f"| {worst['mean']:.1f}° ({worst['scenario']} {worst['seed']}{_where(worst, name)}) "
             f"| {sum(r['cal_state'] == 'ellipsoid' for r in ok)} of {len(ok)} "
             f"| {100.0 * sum(r['within2'] for r in ok) / max(sum(r['n'] for r in ok), 1):.0f} % "
             f"| {sum(r['wrong_kept'] for r in ok)} | {len(rs) - len(ok)} |"
@@ -186,7 +208,7 @@ def main() -> None:
             "over the cases, of each case's mean \\|heading error\\|; full calibration: cases that reached "
             "an ellipsoid fit."
         )
-        worst = [_worst(results, row) for row in [*PHONES, *EFFECTS, *SITES, *JUMPS]]
+        worst = [_worst(results, row) for row in [*PHONES, *EFFECTS, *SITES, NO_PLACE, *JUMPS]]
         worst_cases = {(w["scenario"], w["seed"]) for w in worst if w is not None}
         if len(worst_cases) == 1:
             scenario, seed = worst_cases.pop()
