@@ -328,7 +328,7 @@ class OnlineCalibrator:
         # the refit that a rotation episode's end made due (at that very sample)
         if self._state[0]["episode_t1"] == t and self.cal_state == "offset":
             judged += self._figure8_fit(t)
-        if self.calibration is None and self.field_ref is None:
+        if self.calibration is None:
             judged = [self._turned_field(c, n) for c in judged]
         chosen = refit.best(judged)
         if chosen is None:

@@ -10,11 +10,12 @@ calibrated field of sample ``k`` has, in that frame, the azimuth
 and the Earth's field, fixed in the world, gives one α for every sample but for the gyroscope's bias (a drift
 ``a + c t`` over the buffer's span) and the tilt's and the noise's few degrees.  Two things make α scatter by
 tens of degrees instead: a wrong offset (the samples' errors turn with the device, not with the world) and a
-field that turned while the device did not (a pass by steel, a magnet).  Where a reference field is known
-(F and the dip from the place, the WMM) the fit's radius and dip already expose both; without one the
-gravity-aided fit has F and the dip free, and the few seconds of a pass by steel can fit a sphere of
-plausible radius about an offset tens of µT off (benchmarks/NOTES.md, "No location, no reference field").
-This test is the physics left to judge that first fit: the gyroscope's turn against the field's.
+field that turned while the device did not (a pass by steel, a magnet).  A reference field (F and the dip
+from the place, the WMM) exposes most of both through the fit's radius and dip, but not a steel field that
+happens to have the Earth's strength and dip; without a reference the gravity-aided fit has F and the dip
+free, and the few seconds of a pass by steel can fit a sphere of plausible radius about an offset tens of µT
+off (benchmarks/NOTES.md, "No location, no reference field").  The gyroscope's turn against the field's is
+physics neither case has used: the online calibrator judges every first calibration by it.
 """
 
 from __future__ import annotations
