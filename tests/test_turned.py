@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pdr_mag.calibration.turned import azimuth_spread_deg
+from pdr_mag.calibration.turned import azimuth_spread_deg, bound_deg
 
 F, DIP = 48.0, np.radians(63.0)
 OFFSET = np.array([40.0, -25.0, 60.0])
@@ -81,3 +81,31 @@ def test_a_first_fit_into_steel_without_a_location_is_refused():
     assert not np.any(kept_wrong), int(np.sum(kept_wrong))
     reasons = [r for ev in pipe.pop_events() if ev.kind == "calibration_rejected" for r in ev.data["reasons"]]
     assert any("turned" in r for r in reasons), reasons
+
+
+def test_the_bound_grows_with_the_dip_beyond_63_degrees():
+    """A tilt error δ turns the field's azimuth by about δ tan|I|: the bound is the setting up to a dip of
+    63.4° and grows as tan|I| beyond, either hemisphere."""
+    assert bound_deg(20.0, np.sin(np.radians(61.0))) == 20.0
+    assert bound_deg(20.0, np.sin(np.radians(-13.0))) == 20.0
+    assert np.isclose(bound_deg(20.0, np.sin(np.radians(-75.0))), 10.0 * np.tan(np.radians(75.0)))
+    assert bound_deg(20.0, np.nan) == 20.0
+
+
+def test_a_walk_near_the_magnetic_pole_is_calibrated():
+    """Resolute (dip 87°, a horizontal field of 3 µT): a tilt error of a degree turns the field's azimuth by
+    17°, so a right first fit spreads as a wrong one does at mid latitudes.  With the bound of 63° dips a
+    pocket walk there was never calibrated; with the bound grown by tan|I| its first calibration comes at
+    23.5 s (bound 30 s), within 3σ of the true offset."""
+    from pdr_mag.pipeline import HeadingPipeline
+    from pdr_mag.sim import simulate
+
+    site = {"latitude_deg": 74.7, "longitude_deg": -94.8, "altitude_m": 10.0, "date": "2026-06-15"}
+    res = simulate("pocket", seed=2, site=site)
+    pipe = HeadingPipeline(meta=res.meta)
+    pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
+    assert pipe.calibrations, "never calibrated"
+    t, cal = pipe.calibrations[0]
+    assert t - res.mag[0][0] < 30.0
+    truth = np.asarray(res.meta["simulation"]["effects"]["hard_iron"], dtype=float)
+    assert np.all(np.abs(cal.offset_array - truth) < 3 * np.asarray(cal.offset_std_uT))

@@ -359,17 +359,21 @@ class OnlineCalibrator:
 
     def _turned_field(self, cal: MagCalibration, n: int) -> MagCalibration:
         """``cal`` refused when, about its offset, the buffer's field turned against the gyroscope
-        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above ``turned_field_deg``).  Judged on the
+        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above :func:`~pdr_mag.calibration.turned.
+        bound_deg`, the reference dip's or the fit's own).  Judged on the
         samples taken since the filter's heading has been the gyroscope's alone (``_gyro_heading_t``)."""
         if not cal.accepted:
             return cal
         b = self._buf[:n]
         k = b["t"] >= self._gyro_heading_t
         spread = turned.azimuth_spread_deg(b["m"][k], b["u"][k], b["n"][k], b["t"][k], cal.offset_array)
-        if not spread > self.settings.turned_field_deg:
+        sin_dip = self.sin_dip_ref
+        if sin_dip is None:  # the fit's own dip
+            sin_dip = refit.median_sin_dip(cal.apply(b["m"]), b["u"])
+        bound = turned.bound_deg(self.settings.turned_field_deg, sin_dip)
+        if not spread > bound:
             return cal
-        bound = self.settings.turned_field_deg
-        reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:g}°)"
+        reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:.0f}°)"
         return cal.with_acceptance(False, (*cal.reasons, reason))
 
     def _figure8_fit(self, t: float) -> list:

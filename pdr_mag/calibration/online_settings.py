@@ -76,9 +76,11 @@ class OnlineSettings:
     turned_field_deg : float
         A first calibration (none in force) is refused when, about its offset, the buffer's field azimuth
         in the gyroscope's frame spreads more than this (1.4826 × MAD, a linear drift removed:
-        :mod:`pdr_mag.calibration.turned`) — the Earth's field does not turn against the device.  Without
-        a reference field, first fits spread 1–7° on the simulator and 1.5–24° on the tyrex walks (the
-        filter's tilt while running), fits into a pass by steel 38–95°.
+        :mod:`pdr_mag.calibration.turned`) — the Earth's field does not turn against the device.  The bound
+        holds up to a dip of 63.4° and grows as tan|I| beyond (a tilt error's share of the azimuth:
+        :func:`~pdr_mag.calibration.turned.bound_deg`).  Without a reference field, first fits spread
+        1–7° on the simulator and 1.5–24° on the tyrex walks (dip 61°; the filter's tilt while running),
+        fits into a pass by steel 38–95°.
     strength_tol_frac : float
         After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
         and count as deviating in the stale test.

@@ -44,3 +44,18 @@ def azimuth_spread_deg(m: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.ndarra
     coef, *_ = np.linalg.lstsq(design, alpha, rcond=None)
     r = alpha - design @ coef
     return float(np.degrees(1.4826 * np.median(np.abs(r - np.median(r)))))
+
+
+#: tan of the dip up to which the bound is the setting itself (63.4°: the tyrex walks' 61°, Zurich's 63.5°)
+TAN_DIP_REF = 2.0
+
+
+def bound_deg(base_deg: float, sin_dip: float) -> float:
+    """The spread a first fit may show, deg: ``base_deg`` where the dip is at most 63.4°, growing as tan|I|
+    beyond.  A tilt error δ turns the horizontal field's azimuth by about δ tan|I| (the vertical field leaks
+    into the horizontal plane), so near the magnetic pole (Longyearbyen 82.5°: tan 7.6; Resolute 86.7°:
+    17) a right fit's azimuth spreads by what a wrong one's does at mid latitudes."""
+    s = min(abs(float(sin_dip)), 1.0 - 1e-12) if np.isfinite(sin_dip) else 0.0
+    tan_dip = s / np.sqrt(1.0 - s * s)
+    return base_deg * max(1.0, tan_dip / TAN_DIP_REF)
+
