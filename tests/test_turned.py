@@ -36,7 +36,7 @@ def test_the_earth_field_keeps_its_azimuth_about_the_true_offset():
     measured 0.5–0.9° on these seeds."""
     for seed in range(4):
         m, u, n, t = _samples(seed)
-        assert azimuth_spread_deg(m, u, n, t, OFFSET) < 3.0
+        assert azimuth_spread_deg(m - OFFSET, u, n, t) < 3.0
 
 
 def test_a_wrong_offset_and_a_turned_field_spread_the_azimuth():
@@ -45,15 +45,15 @@ def test_a_wrong_offset_and_a_turned_field_spread_the_azimuth():
     (measured 64–82° and 38–40°)."""
     for seed in range(4):
         m, u, n, t = _samples(seed)
-        assert azimuth_spread_deg(m, u, n, t, OFFSET + [25.0, 0.0, 0.0]) > 20.0
+        assert azimuth_spread_deg(m - OFFSET - [25.0, 0.0, 0.0], u, n, t) > 20.0
         m, u, n, t = _samples(seed, field_turn_deg=40.0)
-        assert azimuth_spread_deg(m, u, n, t, OFFSET) > 20.0
+        assert azimuth_spread_deg(m - OFFSET, u, n, t) > 20.0
 
 
 def test_unknown_axes_are_not_judged():
     m, u, n, t = _samples(0)
     n[:36] = np.nan
-    assert np.isnan(azimuth_spread_deg(m, u, n, t, OFFSET))
+    assert np.isnan(azimuth_spread_deg(m - OFFSET, u, n, t))
 
 
 def test_a_first_fit_into_steel_without_a_location_is_refused():

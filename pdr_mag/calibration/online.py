@@ -365,11 +365,12 @@ class OnlineCalibrator:
         if not cal.accepted:
             return cal
         b = self._buf[:n]
+        mc = cal.apply(b["m"])
         k = b["t"] >= self._gyro_heading_t
-        spread = turned.azimuth_spread_deg(b["m"][k], b["u"][k], b["n"][k], b["t"][k], cal.offset_array)
+        spread = turned.azimuth_spread_deg(mc[k], b["u"][k], b["n"][k], b["t"][k])
         sin_dip = self.sin_dip_ref
         if sin_dip is None:  # the fit's own dip
-            sin_dip = refit.median_sin_dip(cal.apply(b["m"]), b["u"])
+            sin_dip = refit.median_sin_dip(mc, b["u"])
         bound = turned.bound_deg(self.settings.turned_field_deg, sin_dip)
         if not spread > bound:
             return cal

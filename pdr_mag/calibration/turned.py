@@ -26,15 +26,16 @@ import numpy as np
 MIN_SAMPLES = 5
 
 
-def azimuth_spread_deg(m: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.ndarray, offset) -> float:
+def azimuth_spread_deg(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.ndarray) -> float:
     """Robust spread (1.4826 × median absolute deviation), deg, of the azimuth ``α_k`` of the calibrated
-    field ``m − offset`` in the frame of the device-frame up ``u`` and north ``n`` axes (module docstring),
-    a straight line in time ``t`` (the gyroscope's bias) removed.  NaN with fewer than :data:`MIN_SAMPLES`
-    samples whose axes are known."""
+    field ``m_cal`` (device frame: ``m − b`` for an offset, :meth:`MagCalibration.apply` in general) in the
+    frame of the device-frame up ``u`` and north ``n`` axes (module docstring), a straight line in time
+    ``t`` (the gyroscope's bias) removed.  NaN with fewer than :data:`MIN_SAMPLES` samples whose axes are
+    known."""
     ok = np.all(np.isfinite(n), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(t)
     if np.count_nonzero(ok) < MIN_SAMPLES:
         return float("nan")
-    v = np.asarray(m, dtype=float)[ok] - np.asarray(offset, dtype=float)
+    v = np.asarray(m_cal, dtype=float)[ok]
     nk, tk = n[ok], t[ok]
     east = np.cross(nk, u[ok])
     alpha = np.arctan2(np.einsum("ij,ij->i", east, v), np.einsum("ij,ij->i", nk, v))
