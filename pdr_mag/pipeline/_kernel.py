@@ -172,27 +172,19 @@ def _direction(v, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _up(q, out):
-    """Device-frame up vector of the w-first quaternion ``q``: the third row of ``rot_wd``."""
+def _axes(q, up, north):
+    """Device-frame up and north (world z and y) axes of the w-first quaternion ``q``: the third and second
+    rows of ``rot_wd``."""
     w = q[0]
     x = q[1]
     y = q[2]
     z = q[3]
-    out[0] = 2 * (x * z - w * y)
-    out[1] = 2 * (y * z + w * x)
-    out[2] = 1 - 2 * (x * x + y * y)
-
-
-@njit(cache=True, error_model="numpy")
-def _north(q, out):
-    """Device-frame north (world y) axis of the w-first quaternion ``q``: the second row of ``rot_wd``."""
-    w = q[0]
-    x = q[1]
-    y = q[2]
-    z = q[3]
-    out[0] = 2 * (x * y + w * z)
-    out[1] = 1 - 2 * (x * x + z * z)
-    out[2] = 2 * (y * z - w * x)
+    up[0] = 2 * (x * z - w * y)
+    up[1] = 2 * (y * z + w * x)
+    up[2] = 1 - 2 * (x * x + y * y)
+    north[0] = 2 * (x * y + w * z)
+    north[1] = 1 - 2 * (x * x + z * z)
+    north[2] = 2 * (y * z - w * x)
 
 
 @njit(cache=True, error_model="numpy")
@@ -224,11 +216,9 @@ def mag_context(kind, t, xyz, row_t, row_q, carry, before, block_s):
             while r < len(row_t) and row_t[r] <= t[i]:
                 r += 1
             if r > 0:
-                _up(row_q[r - 1], row.up)
-                _north(row_q[r - 1], row.north)
+                _axes(row_q[r - 1], row.up, row.north)
             else:
-                _up(c.q, row.up)
-                _north(c.q, row.north)
+                _axes(c.q, row.up, row.north)
             if not np.isfinite(row.up[0]):
                 if a >= 0:
                     _direction(xyz[a], row.up)
