@@ -358,10 +358,10 @@ class OnlineCalibrator:
         events.append((t, "calibration_accepted", refit.summary(cal)))
 
     def _turned_field(self, cal: MagCalibration, n: int) -> MagCalibration:
-        """``cal`` refused when, about its offset, the buffer's field turned against the gyroscope
-        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above :func:`~pdr_mag.calibration.turned.
-        bound_deg`, the reference dip's or the fit's own).  Judged on the
-        samples taken since the filter's heading has been the gyroscope's alone (``_gyro_heading_t``)."""
+        """``cal`` refused when, about it, the buffer's field turned against the gyroscope
+        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above ``turned.bound_deg`` at the
+        reference dip, else the fit's own).  Judged on the samples taken since the filter's heading has been
+        the gyroscope's alone (``_gyro_heading_t``)."""
         if not cal.accepted:
             return cal
         b = self._buf[:n]
