@@ -554,7 +554,7 @@ class OnlineCalibrator:
 def separation(s: OnlineSettings, strength: float | None, sin_dip: float | None) -> float:
     """The diversity buffer's neighbourhood, raw µT: ``min_sep_frac · F`` (F 50 µT when unknown), or
     ``min_sep_yaw · F cos I`` where the horizontal field makes that less (:class:`OnlineSettings`)."""
-    f = strength or 50.0
+    f = 50.0 if strength is None else strength
     if sin_dip is None:
         return s.min_sep_frac * f
     return f * min(s.min_sep_frac, s.min_sep_yaw * float(np.sqrt(max(1.0 - sin_dip * sin_dip, 0.0))))

@@ -78,9 +78,9 @@ class OnlineSettings:
         in the gyroscope's frame spreads more than this (1.4826 × MAD, a linear drift removed:
         :mod:`pdr_mag.calibration.turned`) — the Earth's field does not turn against the device.  The bound
         holds up to a dip of 63.4° and grows as tan|I| beyond (a tilt error's share of the azimuth:
-        :func:`~pdr_mag.calibration.turned.bound_deg`).  Without a reference field, first fits spread
-        1–7° on the simulator and 1.5–24° on the tyrex walks (dip 61°; the filter's tilt while running),
-        fits into a pass by steel 38–95°.
+        :func:`~pdr_mag.calibration.turned.bound_deg`).  Without a reference field, right first fits spread
+        0.4–6.4° on the simulator and 1.5–22° on the tyrex walks (dip 61°; the filter's tilt while running),
+        fits into a pass by steel 38–95°, the one wrong tyrex first fit 24°.
     strength_tol_frac : float
         After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
         and count as deviating in the stale test.

@@ -22,16 +22,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from pdr_mag.calibration.refit import robust_spread
+
 #: samples (with a known north axis) below which the azimuth's spread is not judged
 MIN_SAMPLES = 5
 
 
 def azimuth_spread_deg(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.ndarray) -> float:
-    """Robust spread (1.4826 × median absolute deviation), deg, of the azimuth ``α_k`` of the calibrated
-    field ``m_cal`` (device frame: ``m − b`` for an offset, :meth:`MagCalibration.apply` in general) in the
-    frame of the device-frame up ``u`` and north ``n`` axes (module docstring), a straight line in time
-    ``t`` (the gyroscope's bias) removed.  NaN with fewer than :data:`MIN_SAMPLES` samples whose axes are
-    known."""
+    """Robust spread (:func:`~pdr_mag.calibration.refit.robust_spread`), deg, of the azimuth ``α_k`` of
+    the calibrated field ``m_cal`` (device frame: ``m − b`` for an offset, :meth:`MagCalibration.apply` in
+    general) in the frame of the device-frame up ``u`` and north ``n`` axes (module docstring), a straight
+    line in time ``t`` (the gyroscope's bias) removed.  NaN with fewer than :data:`MIN_SAMPLES` samples
+    whose axes are known."""
     ok = np.all(np.isfinite(n), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(t)
     if np.count_nonzero(ok) < MIN_SAMPLES:
         return float("nan")
@@ -43,8 +45,7 @@ def azimuth_spread_deg(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.nd
     alpha = np.angle(np.exp(1j * (alpha - centre)))  # about the circular mean, in (−π, π]
     design = np.c_[np.ones_like(tk), tk - tk.mean()]
     coef, *_ = np.linalg.lstsq(design, alpha, rcond=None)
-    r = alpha - design @ coef
-    return float(np.degrees(1.4826 * np.median(np.abs(r - np.median(r)))))
+    return float(np.degrees(robust_spread(alpha - design @ coef)))
 
 
 #: tan of the dip up to which the bound is the setting itself (63.4°: the tyrex walks' 61°, Zurich's 63.5°)
