@@ -95,6 +95,8 @@ JUMPS = {
 }
 T_SKIP = 20.0
 KEEP_STD, WRONG = 20.0, 45.0
+#: the table's rows, in order
+ROWS = [*PHONES, *EFFECTS, *SITES, NO_PLACE, *JUMPS]
 
 
 def run_case(args) -> dict:
@@ -164,7 +166,7 @@ def table(results: list) -> list[str]:
     lines = ["| phone or effect | cases | median / mean \\|error\\| | worst case | full calibration "
              "| within 2σ | frames > 45° at σ ≤ 20° | raised |",
              "| --- | ---: | ---: | --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
-    for name in [*PHONES, *EFFECTS, *SITES, NO_PLACE, *JUMPS]:
+    for name in ROWS:
         rs = [r for r in results if r["row"] == name]
         ok = [r for r in rs if "error" not in r]
         worst = _worst(results, name)
@@ -208,7 +210,7 @@ def main() -> None:
             "over the cases, of each case's mean \\|heading error\\|; full calibration: cases that reached "
             "an ellipsoid fit."
         )
-        worst = [_worst(results, row) for row in [*PHONES, *EFFECTS, *SITES, NO_PLACE, *JUMPS]]
+        worst = [_worst(results, row) for row in ROWS]
         worst_cases = {(w["scenario"], w["seed"]) for w in worst if w is not None}
         if len(worst_cases) == 1:
             scenario, seed = worst_cases.pop()
