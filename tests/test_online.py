@@ -496,16 +496,19 @@ def test_a_refit_whose_field_the_earth_cannot_produce_is_refused_without_a_refer
         assert any("Earth's field is 22–67 µT" in r for r in verdict.reasons)
 
 
-def first_calibration(scenario: str, seed: int, latitude_deg: float, longitude_deg: float):
-    """A simulated walk at that place (meta given), pushed through the pipeline with nothing known: the first
-    calibration's time after the start, s, the calibration, and the true hard iron (fails when none came)."""
+def first_calibration(
+    scenario: str, seed: int, latitude_deg: float, longitude_deg: float, place: bool = True
+):
+    """A simulated walk at that place, pushed through the pipeline with nothing known (``place`` False: the
+    meta withheld too, no reference field): the first calibration's time after the start, s, the
+    calibration, and the true hard iron (fails when none came)."""
     from pdr_mag.pipeline import HeadingPipeline
     from pdr_mag.sim import simulate
 
     site = {"latitude_deg": latitude_deg, "longitude_deg": longitude_deg, "altitude_m": 10.0,
             "date": "2026-06-15"}  # fmt: skip
     res = simulate(scenario, seed=seed, site=site)
-    pipe = HeadingPipeline(meta=res.meta)
+    pipe = HeadingPipeline(meta=res.meta if place else {})
     pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
     assert pipe.calibrations, "never calibrated"
     t, cal = pipe.calibrations[0]

@@ -328,7 +328,7 @@ class OnlineCalibrator:
         # the refit that a rotation episode's end made due (at that very sample)
         if self._state[0]["episode_t1"] == t and self.cal_state == "offset":
             judged += self._figure8_fit(t)
-        if self.calibration is None:
+        if self.calibration is None and self.field_ref is None:
             judged = [self._turned_field(c, n) for c in judged]
         chosen = refit.best(judged)
         if chosen is None:
@@ -358,20 +358,17 @@ class OnlineCalibrator:
         events.append((t, "calibration_accepted", refit.summary(cal)))
 
     def _turned_field(self, cal: MagCalibration, n: int) -> MagCalibration:
-        """``cal`` refused when, about it, the buffer's field turned against the gyroscope
-        (:mod:`pdr_mag.calibration.turned`: the azimuth's spread above ``turned.bound_deg`` at the
-        reference dip, else the fit's own).  Judged on the samples taken since the filter's heading has been
-        the gyroscope's alone (``_gyro_heading_t``)."""
+        """A first calibration without a reference field (no place known) refused when, about it, the
+        buffer's field turned against the gyroscope (:mod:`pdr_mag.calibration.turned`: the azimuth's spread
+        above ``turned.bound_deg`` at the fit's own dip).  Judged on the samples taken since the filter's
+        heading has been the gyroscope's alone (``_gyro_heading_t``)."""
         if not cal.accepted:
             return cal
         b = self._buf[:n]
         mc = cal.apply(b["m"])
         k = b["t"] >= self._gyro_heading_t
         spread = turned.azimuth_spread_deg(mc[k], b["u"][k], b["n"][k], b["t"][k])
-        sin_dip = self.sin_dip_ref
-        if sin_dip is None:  # the fit's own dip
-            sin_dip = refit.median_sin_dip(mc, b["u"])
-        bound = turned.bound_deg(self.settings.turned_field_deg, sin_dip)
+        bound = turned.bound_deg(self.settings.turned_field_deg, refit.median_sin_dip(mc, b["u"]))
         if not spread > bound:
             return cal
         reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:.0f}°)"

@@ -74,11 +74,12 @@ class OnlineSettings:
     max_offset_uT : float
         Offsets beyond this are implausible.
     turned_field_deg : float
-        A first calibration (none in force) is refused when, about its offset, the buffer's field azimuth
-        in the gyroscope's frame spreads more than this (1.4826 × MAD, a linear drift removed:
+        Without a reference field (no place known: F and the dip are the fit's own), a first calibration
+        (none in force) is refused when, about it, the buffer's field azimuth in the gyroscope's frame
+        spreads more than this (1.4826 × MAD, a linear drift removed:
         :mod:`pdr_mag.calibration.turned`) — the Earth's field does not turn against the device.  The bound
         holds up to a dip of 63.4° and grows as tan|I| beyond (a tilt error's share of the azimuth:
-        :func:`~pdr_mag.calibration.turned.bound_deg`).  Without a reference field, right first fits spread
+        :func:`~pdr_mag.calibration.turned.bound_deg`).  Right first fits spread
         0.4–6.4° on the simulator and 1.5–22° on the tyrex walks (dip 61°; the filter's tilt while running),
         fits into a pass by steel 38–95°, the one wrong tyrex first fit 24°.
     strength_tol_frac : float
