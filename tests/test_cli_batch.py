@@ -264,3 +264,17 @@ def test_batch_calibrate_and_diagnose_identical_to_the_single_commands(site, clu
     d = json.loads(single.read_text())
     assert row["diag_final_gap_uT"] == d["final"]["gap"]
     assert row["diag_missing_effects"] == ("+".join(d["missing_effects"]) or None)
+
+
+def test_batch_replay_place_and_date_as_the_single_command(site, local, cluster, monkeypatch, capsys,
+                                                          tmp_path):
+    """``batch replay --latitude --longitude --altitude --date`` gives every recording what ``pdr-mag replay``
+    with the same options gives one."""
+    where = ("--latitude", "-33.87", "--longitude", "151.21", "--altitude", "20", "--date", "2024-03-01")
+    rc, _ = _batch_here(site, monkeypatch, capsys, "replay", "in/walk", "--out", "out-place",
+                        "--scheduler", cluster, *where)
+    assert rc == 0
+    assert main(["replay", "in/walk", "--out-csv", str(tmp_path / "h.csv"), *where, "-q"]) == 0
+    batch = (site / "out-place" / "walk" / "heading.csv").read_bytes()
+    assert batch == (tmp_path / "h.csv").read_bytes()
+    assert batch != (local[1] / "in" / "walk" / "heading.csv").read_bytes()  # the place was taken

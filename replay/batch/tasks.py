@@ -48,7 +48,7 @@ ROW_FILE = "batch.json"
 
 #: Commands and their options with defaults (the single command's option names, as flags for files).
 OPTIONS = {
-    "replay": {"mcap": False, "rrd": False},
+    "replay": {"mcap": False, "rrd": False, "place": None, "date": None},
     "calibrate": {"method": "auto"},
     "diagnose": {"report": False, "use_truth": False},
 }
@@ -218,6 +218,7 @@ def _run_replay(task: Task, stage: Path) -> dict:
         mcap=stage / "replay.mcap" if o.get("mcap") else None,
         rrd=stage / "replay.rrd" if o.get("rrd") else None,
         progress=False, sinks=[metrics], source=task.label,
+        place=None if o.get("place") is None else tuple(o["place"]), date=o.get("date"),
     )
     row = empty_row(task.label, task.key)
     row["format"] = summary.get("format") or None
