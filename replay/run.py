@@ -468,7 +468,8 @@ def summary_table(summary: dict) -> str:
     rows = [
         ("recording", str(summary.get("source", ""))),
         ("outputs", f"{summary['n_outputs']} over {summary['duration_s']:.1f} s"),
-        ("north", summary["north"]),
+        ("north", summary["north"] if summary["north"] != "magnetic" else
+         "magnetic: no place and day known (--latitude, --longitude, --date give the field model)"),
         ("calibration", "given" if summary.get("calibration_given") else "online only"),
         ("prior", _prior_line(summary)),
         ("final cal_state", summary.get("cal_state", "")),

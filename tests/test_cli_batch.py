@@ -266,10 +266,10 @@ def test_batch_calibrate_and_diagnose_identical_to_the_single_commands(site, clu
     assert row["diag_missing_effects"] == ("+".join(d["missing_effects"]) or None)
 
 
-def test_batch_replay_place_and_date_as_the_single_command(site, local, cluster, monkeypatch, capsys,
+def test_batch_place_and_date_as_the_single_commands(site, local, cluster, monkeypatch, capsys,
                                                           tmp_path):
-    """``batch replay --latitude --longitude --altitude --date`` gives every recording what ``pdr-mag replay``
-    with the same options gives one."""
+    """``batch replay`` and ``batch calibrate`` with ``--latitude --longitude --altitude --date`` give every
+    recording what the single commands with the same options give one."""
     where = ("--latitude", "-33.87", "--longitude", "151.21", "--altitude", "20", "--date", "2024-03-01")
     rc, _ = _batch_here(site, monkeypatch, capsys, "replay", "in/walk", "--out", "out-place",
                         "--scheduler", cluster, *where)
@@ -278,3 +278,11 @@ def test_batch_replay_place_and_date_as_the_single_command(site, local, cluster,
     batch = (site / "out-place" / "walk" / "heading.csv").read_bytes()
     assert batch == (tmp_path / "h.csv").read_bytes()
     assert batch != (local[1] / "in" / "walk" / "heading.csv").read_bytes()  # the place was taken
+    rc, _ = _batch_here(site, monkeypatch, capsys, "calibrate", "in/walk", "--out", "out-place-cal",
+                        "--scheduler", cluster, *where)
+    assert rc == 0
+    assert main(["calibrate", "in/walk", "--json", str(tmp_path / "c.json"), *where]) == 0
+    single = json.loads((tmp_path / "c.json").read_text())
+    batch = json.loads((site / "out-place-cal" / "walk" / "calibration.json").read_text())
+    assert batch["extra"].pop("source") == single["extra"].pop("source") == "in/walk"
+    assert batch == single and single["extra"]["wmm"]["declination_deg"] > 10.0  # Sydney's, not the site's

@@ -73,6 +73,15 @@ def test_place_gives_what_meta_json_would(rec_dir, tmp_path):  # noqa: F811
     assert north == {"meta": "true", "option": "true", "none": "magnetic"}
 
 
+def test_the_summary_says_how_to_give_a_missing_place(rec_dir, tmp_path, capsys):  # noqa: F811
+    bare = _copy_without(rec_dir, tmp_path / "bare", "latitude_deg", "longitude_deg", "altitude_m")
+    for args, hint in (([str(bare)], True), ([str(rec_dir)], False)):
+        capsys.readouterr()
+        assert main(["replay", *args]) == 0
+        north = [line for line in capsys.readouterr().out.splitlines() if line.startswith("north")]
+        assert len(north) == 1 and ("--latitude" in north[0]) == hint, north
+
+
 def test_place_calibrates_a_phone_held_flat_that_nothing_else_could(tmp_path):
     """A texting walk (the phone held flat, turning only about up) without a position: the online fit has the
     field's strength and dip to find as well as the offset, and the vertical offset stays open; given the
@@ -107,3 +116,23 @@ def test_place_without_a_date_and_bad_places_are_input_errors(rec_dir, tmp_path,
         assert main(["replay", str(rec_dir), *args, "-q"]) == 2, args
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("pdr-mag: "), (args, err)
+
+
+def test_calibrate_takes_the_place_for_its_radius_check(rec_dir, tmp_path):  # noqa: F811
+    """``calibrate --latitude --longitude --altitude`` on a copy without a position: the same calibration file
+    as the recording whose meta.json states it, with its WMM field; without them, no WMM field."""
+    import json
+
+    from tests.test_pipeline import META
+
+    bare = _copy_without(rec_dir, tmp_path / "bare", "latitude_deg", "longitude_deg", "altitude_m")
+    place = ["--latitude", str(META["latitude_deg"]), "--longitude", str(META["longitude_deg"]),
+             "--altitude", str(META["altitude_m"])]
+    assert main(["calibrate", str(rec_dir), "--json", str(tmp_path / "meta.json")]) == 0
+    assert main(["calibrate", str(bare), *place, "--json", str(tmp_path / "option.json")]) == 0
+    assert main(["calibrate", str(bare), "--json", str(tmp_path / "none.json")]) == 0
+    cals = {name: json.loads((tmp_path / f"{name}.json").read_text()) for name in ("meta", "option", "none")}
+    for c in cals.values():
+        c["extra"].pop("source")
+    assert cals["option"] == cals["meta"] and "wmm" in cals["meta"]["extra"]
+    assert "wmm" not in cals["none"]["extra"]

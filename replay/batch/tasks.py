@@ -49,7 +49,7 @@ ROW_FILE = "batch.json"
 #: Commands and their options with defaults (the single command's option names, as flags for files).
 OPTIONS = {
     "replay": {"mcap": False, "rrd": False, "place": None, "date": None},
-    "calibrate": {"method": "auto"},
+    "calibrate": {"method": "auto", "place": None, "date": None},
     "diagnose": {"report": False, "use_truth": False},
 }
 
@@ -254,7 +254,9 @@ def _run_replay(task: Task, stage: Path) -> dict:
 
 
 def _run_calibrate(task: Task, stage: Path) -> dict:
-    res = calibrate.run(Path(task.path), task.options.get("method", "auto"), source=task.label)
+    o = task.options
+    res = calibrate.run(Path(task.path), o.get("method", "auto"), source=task.label,
+                        place=None if o.get("place") is None else tuple(o["place"]), date=o.get("date"))
     calibrate.write(res.calibration, stage / "calibration.json")
     row = empty_row(task.label, task.key)
     _common(row, res.recording)

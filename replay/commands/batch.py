@@ -6,9 +6,9 @@ files go to its own folder under DIR, mirroring the input tree, the same files t
 writes; ``DIR/summary.csv`` (and ``summary.parquet`` with pyarrow) is the fleet table, one row per
 recording (:mod:`replay.batch.table`). A recording that fails is an ``error`` row and the others go on;
 the exit code is 2 when any failed. A second run skips recordings whose outputs are complete (``--force``
-redoes them). ``batch replay --latitude DEG --longitude DEG [--altitude M] [--date YYYY-MM-DD]``: the place
-and day of every recording, as ``pdr-mag replay``'s options (a building's recordings, whose logger writes
-none).
+redoes them). ``--latitude DEG --longitude DEG [--altitude M] [--date YYYY-MM-DD]`` (``replay``,
+``calibrate``): the place and day of every recording, as the single commands' options (a building's
+recordings, whose logger writes none).
 
 By default the recordings run on a local Dask cluster of ``--workers`` processes started and stopped here;
 ``--scheduler tcp://HOST:8786`` sends them to an existing cluster (its workers need pdr_mag installed and
@@ -25,9 +25,9 @@ import click
 
 from replay.batch import execute, headline, plan, write_table
 from replay.batch.engine import Interrupted
+from replay.commands._place import place_of, place_options
 from replay.commands.calibrate import METHODS
 from replay.commands.diagnose import need_matplotlib
-from replay.commands.replay import place_option
 from replay.errors import InputError
 from replay.run import load_calibration
 
@@ -67,17 +67,11 @@ def command() -> None:
               help="calibrate --json file for every recording a manifest gives none.")
 @click.option("--mcap", is_flag=True, help="Also write replay.mcap per recording.")
 @click.option("--rrd", is_flag=True, help="Also write replay.rrd (rerun) per recording.")
-@click.option("--latitude", type=click.FloatRange(-90.0, 90.0), metavar="DEG",
-              help="Where every recording was made (as pdr-mag replay's), with --longitude.")
-@click.option("--longitude", type=click.FloatRange(-180.0, 360.0), metavar="DEG", help="… its longitude.")
-@click.option("--altitude", type=float, metavar="M", help="… its height, m.")
-@click.option("--date", type=click.DateTime(formats=["%Y-%m-%d"]), metavar="YYYY-MM-DD",
-              help="The day every recording was made (as pdr-mag replay's).")
+@place_options
 def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, calibration, mcap, rrd,
                latitude, longitude, altitude, date):
     """Replay every recording: heading.csv and replay.json per recording (pdr-mag replay's files)."""
-    place = place_option(latitude, longitude, altitude)
-    day = None if date is None else date.date().isoformat()
+    place, day = place_of(latitude, longitude, altitude, date)
     opts = {"mcap": mcap, "rrd": rrd, "place": place, "date": day}
     return _run("replay", inputs, out_dir, opts, calibration, workers, scheduler, force, progress, top,
                 dashboard)
@@ -87,10 +81,13 @@ def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashbo
 @_common
 @click.option("--method", type=click.Choice(METHODS),
               default="auto", show_default=True, help="Estimator (as pdr-mag calibrate).")
-def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, method):
+@place_options
+def calibrate_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, method, latitude,
+                  longitude, altitude, date):
     """Calibrate every recording: calibration.json per recording (pdr-mag calibrate --json)."""
-    return _run("calibrate", inputs, out_dir, {"method": method}, None, workers, scheduler, force, progress,
-                top, dashboard)
+    place, day = place_of(latitude, longitude, altitude, date)
+    opts = {"method": method, "place": place, "date": day}
+    return _run("calibrate", inputs, out_dir, opts, None, workers, scheduler, force, progress, top, dashboard)
 
 
 @command.command("diagnose")

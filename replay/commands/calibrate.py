@@ -1,9 +1,11 @@
-"""``pdr-mag calibrate REC [--method auto|sphere|ellipsoid|als|ml] [--json FILE]``: batch calibration.
+"""``pdr-mag calibrate REC [--method auto|sphere|ellipsoid|als|ml] [--latitude DEG --longitude DEG
+[--altitude M]] [--date YYYY-MM-DD] [--json FILE]``: batch calibration.
 
 Reads the recording (any format a reader recognises), fits :func:`pdr_mag.calibration.calibrate` on the
 raw magnetometer, uses the accelerometer's quasi-static instants (if any) for the magnetometer → IMU
-alignment and the WMM field of ``meta.json`` (position + date) for the radius check, prints a short
-summary and writes the ``calibrate --json`` object of INTERFACE.md (also the ``replay --calibration`` file).
+alignment and the WMM field of ``meta.json`` (position + date, or the options'
+:mod:`replay.commands._place`) for the radius check, prints a short summary and writes the ``calibrate
+--json`` object of INTERFACE.md (also the ``replay --calibration`` file).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pdr_mag.calibration.alignment import quasi_static_accel
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.field import earth_field_from_meta
 from replay.commands._output import writable_file
+from replay.commands._place import apply_place, place_of, place_options
 from replay.errors import InputError
 from replay.formats import read_recording
 from replay.recording import Recording
@@ -32,13 +35,15 @@ METHODS = ("auto", "sphere", "ellipsoid", "als", "ml", "radial", "lm9", "twostep
 @click.option("--method", type=click.Choice(METHODS), default="auto", show_default=True,
               help="Estimator: auto (geometric ML, model by BIC), sphere, ellipsoid, als, ml; "
                    "also radial (seed 000), lm9 (seed 001), twostep.")
+@place_options
 @click.option("--json", "json_path", type=click.Path(path_type=Path, dir_okay=False),
               help="Write the calibration (INTERFACE.md calibrate --json) to FILE.")
-def command(rec: Path, method: str, json_path: Path | None) -> int:
+def command(rec: Path, method: str, latitude, longitude, altitude, date, json_path: Path | None) -> int:
     """Calibrate the magnetometer of recording REC (hard and soft iron, quality, acceptance)."""
+    place, day = place_of(latitude, longitude, altitude, date)
     if json_path is not None:
         writable_file(json_path)
-    fit = run(rec, method)
+    fit = run(rec, method, place=place, date=day)
     if json_path is not None:
         write(fit.calibration, json_path)
     click.echo(summary(fit.calibration, rec, fit.field))
@@ -57,10 +62,13 @@ class CalibrateResult:
     recording: Recording
 
 
-def run(rec: Path, method: str = "auto", source: str | None = None) -> CalibrateResult:
+def run(rec: Path, method: str = "auto", source: str | None = None, place: tuple | None = None,
+        date: str | None = None) -> CalibrateResult:
     """What ``pdr-mag calibrate`` does with one recording (``source``: the name ``extra.source`` gives it,
-    when it is read under another path); :class:`InputError` on bad input."""
+    when it is read under another path; ``place``, ``date``: the options', :func:`.place_of`);
+    :class:`InputError` on bad input."""
     recording = read_recording(rec)
+    apply_place(recording.meta, rec, place, date)
     mag_file = rec / "mag.csv" if rec.is_dir() else rec
     mag = np.asarray(recording.mag.xyz, dtype=float)
     if mag.ndim != 2 or mag.shape[1] != 3 or len(mag) < 4:

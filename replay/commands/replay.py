@@ -3,12 +3,10 @@
 [--mcap-rate HZ]] [--rrd FILE] [--json FILE]``.
 
 ``--latitude``/``--longitude`` (``--altitude``) and ``--date`` say where and when the recording was made
-when it does not (a backend knows its building; many loggers write no position), as ``simulate``'s options
-of the same names: they set the recording's ``latitude_deg``, ``longitude_deg`` (``altitude_m``) and
-``date`` as its ``meta.json`` would, over what the recording says.  With them the field
-model gives the reference field and the declination (true north); without a place the online calibration
-must find the field's strength and dip as well as the offset, which a phone held flat cannot reveal
-(benchmarks/NOTES.md: the 42 tyrex walks in mode b 5.3° with the place, 19.1° without)."""
+when it does not (:mod:`replay.commands._place`).  With them the field model gives the reference field and
+the declination (true north); without a place the online calibration must find the field's strength and dip
+as well as the offset, which a phone held flat cannot reveal (benchmarks/NOTES.md: the 42 tyrex walks in
+mode b 5.3° with the place, 19.1° without)."""
 
 from __future__ import annotations
 
@@ -22,6 +20,7 @@ from pdr_mag.calibration.prior import PriorSettings
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.pipeline import PipelineSettings
 from replay.commands._output import writable_file
+from replay.commands._place import apply_place, place_of, place_options
 from replay.compiling import announced
 from replay.errors import InputError
 from replay.formats import open_recording
@@ -43,13 +42,7 @@ from replay.run import CsvSink, load_calibration, make_sink, replay, summary_tab
     is_flag=True,
     help="Do not start from the phone's own hard-iron and gyro estimates that the recording carries.",
 )
-@click.option("--latitude", type=click.FloatRange(-90.0, 90.0), metavar="DEG",
-              help="Where the recording was made (WGS-84, with --longitude), over what it says: the field "
-              "model gives the reference field and true north.")
-@click.option("--longitude", type=click.FloatRange(-180.0, 360.0), metavar="DEG", help="… its longitude.")
-@click.option("--altitude", type=float, metavar="M", help="… its height above the WGS-84 ellipsoid, m.")
-@click.option("--date", type=click.DateTime(formats=["%Y-%m-%d"]), metavar="YYYY-MM-DD",
-              help="The day the recording was made, over what it says (the field model's date).")
+@place_options
 @click.option("--out-csv", type=click.Path(path_type=Path), help="Estimates, one row per output epoch.")
 @click.option(
     "--mcap", type=click.Path(path_type=Path), help="MCAP file with inputs, outputs and references."
@@ -78,12 +71,11 @@ def command(rec, calibration, device_store, ignore_phone_calibration, latitude, 
         click.echo(msg, err=True)
     if mcap_rate is not None and mcap is None:
         raise click.UsageError("--mcap-rate needs --mcap FILE")
-    place = place_option(latitude, longitude, altitude)
+    place, day = place_of(latitude, longitude, altitude, date)
     with announced():
         summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate,
                       rrd=rrd, viewer=viewer, progress=progress, device_store=device_store,
-                      use_phone=not ignore_phone_calibration, place=place,
-                      date=None if date is None else date.date().isoformat())
+                      use_phone=not ignore_phone_calibration, place=place, date=day)
     if not quiet:
         click.echo(summary_table(summary))
     return 0
@@ -141,7 +133,7 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
         rec = open_recording(rec)
         if source is not None:
             rec.source = source
-        _say_where(rec, place, date)
+        apply_place(rec.meta, rec.source, place, date)
     store = None
     if device_store is not None:
         try:
@@ -157,33 +149,6 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
         except OSError as exc:
             raise InputError(json_path, f"cannot write ({exc.strerror})") from None
     return summary
-
-
-def place_option(latitude, longitude, altitude) -> tuple | None:
-    """``(latitude, longitude, altitude)`` from the options (None: no place given); a usage error when one of
-    latitude and longitude comes without the other, or an altitude without them."""
-    if latitude is None and longitude is None:
-        if altitude is not None:
-            raise click.UsageError("--altitude needs --latitude and --longitude")
-        return None
-    if latitude is None or longitude is None:
-        raise click.UsageError("--latitude and --longitude go together")
-    return latitude, longitude, altitude
-
-
-def _say_where(rec, place, date) -> None:
-    """The place and day options into the opened recording's ``meta`` (the module docstring); a place for a
-    recording that states no day, without ``--date``, is an input error: the field model needs the day."""
-    if date is not None:
-        rec.meta["date"] = date
-    if place is None:
-        return
-    rec.meta["latitude_deg"], rec.meta["longitude_deg"] = place[0], place[1]
-    if place[2] is not None:
-        rec.meta["altitude_m"] = place[2]
-    if not rec.meta.get("date"):
-        raise InputError(rec.source, "states no date: give --date YYYY-MM-DD with --latitude/--longitude "
-                         "(the field model needs the day)")
 
 
 def _clean(obj):
