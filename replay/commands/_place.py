@@ -1,7 +1,7 @@
 """``--latitude DEG --longitude DEG [--altitude M] [--date YYYY-MM-DD]``: the place and day of a recording
 that does not state them (a backend knows its building; many loggers write no position), for the commands
-that use the field model (``replay``, ``batch replay``, ``calibrate``; ``simulate`` has options of the same
-names for its site).  They set the recording's ``meta`` keys ``latitude_deg``, ``longitude_deg``,
+that use the field model (``replay``, ``calibrate`` and their ``batch`` forms; ``simulate`` has options of
+the same names for its site).  They set the recording's ``meta`` keys ``latitude_deg``, ``longitude_deg``,
 ``altitude_m`` and ``date`` as its ``meta.json`` would, over what the recording states."""
 
 from __future__ import annotations
