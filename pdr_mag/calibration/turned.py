@@ -61,4 +61,3 @@ def bound_deg(base_deg: float, sin_dip: float) -> float:
     s = min(abs(float(sin_dip)), 1.0 - 1e-12) if np.isfinite(sin_dip) else 0.0
     tan_dip = s / np.sqrt(1.0 - s * s)
     return base_deg * max(1.0, tan_dip / TAN_DIP_REF)
-

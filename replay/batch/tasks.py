@@ -209,6 +209,12 @@ def _calibration(row: dict, cal: dict) -> None:
     row["cal_accepted"] = cal.get("accepted")
 
 
+def _where(options: dict) -> dict:
+    """The ``place`` and ``date`` keywords of the single commands' ``run`` from a task's options."""
+    place = options.get("place")
+    return {"place": None if place is None else tuple(place), "date": options.get("date")}
+
+
 def _run_replay(task: Task, stage: Path) -> dict:
     cal = load_calibration(task.calibration_path) if task.calibration_path else None
     metrics = FleetMetrics()
@@ -217,8 +223,7 @@ def _run_replay(task: Task, stage: Path) -> dict:
         Path(task.path), cal, out_csv=stage / "heading.csv", json_path=stage / "replay.json",
         mcap=stage / "replay.mcap" if o.get("mcap") else None,
         rrd=stage / "replay.rrd" if o.get("rrd") else None,
-        progress=False, sinks=[metrics], source=task.label,
-        place=None if o.get("place") is None else tuple(o["place"]), date=o.get("date"),
+        progress=False, sinks=[metrics], source=task.label, **_where(o),
     )
     row = empty_row(task.label, task.key)
     row["format"] = summary.get("format") or None
@@ -255,8 +260,7 @@ def _run_replay(task: Task, stage: Path) -> dict:
 
 def _run_calibrate(task: Task, stage: Path) -> dict:
     o = task.options
-    res = calibrate.run(Path(task.path), o.get("method", "auto"), source=task.label,
-                        place=None if o.get("place") is None else tuple(o["place"]), date=o.get("date"))
+    res = calibrate.run(Path(task.path), o.get("method", "auto"), source=task.label, **_where(o))
     calibrate.write(res.calibration, stage / "calibration.json")
     row = empty_row(task.label, task.key)
     _common(row, res.recording)
