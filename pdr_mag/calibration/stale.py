@@ -70,13 +70,42 @@ def window_shift(
     Returns the :class:`Shift`, None when there is none, or :data:`INCONCLUSIVE` when a fit failed.  With
     no candidate pending, a whole-window fit that fails the tests ends the test at once (None).
     """
+    start = step_start(mag_cal, model.strength, settings)
+    if start is not None:
+        newer, _ = _stationary_shift(mag_cal[start:], up[start:], model, free_model, settings, False)
+        if isinstance(newer, Shift):
+            return newer
     found, split = _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending)
     half = len(mag_cal) // 2
-    if split and len(mag_cal) - half >= MIN_NEWER:
+    if split and (start is None or start > half) and len(mag_cal) - half >= MIN_NEWER:
         newer, _ = _stationary_shift(mag_cal[half:], up[half:], model, free_model, settings, False)
         if isinstance(newer, Shift):
             return newer
     return found
+
+
+def step_start(mag_cal: np.ndarray, strength: float | None, settings: OnlineSettings) -> int | None:
+    """Where the window's strength starts to deviate and keeps deviating: the sample ``j`` that maximises
+    the share of samples deviating from F by more than half ``strength_tol_frac`` (the precheck's measure)
+    after it less the share before it, when after it the share reaches ``stale_min_frac`` and before it
+    stays below half of that; None when there is no such step.
+
+    A device-fixed shift adds ``δ · m̂`` to the strength from the moment it happens, whatever the pose: a step
+    in that share.  The segment after it is the shifted calibration's alone, so it is tested as a window of
+    its own (:func:`window_shift`) as soon as it holds :data:`MIN_NEWER` samples, instead of waiting for a
+    window half to lie wholly after the shift."""
+    if strength is None or len(mag_cal) < 2 * MIN_NEWER:
+        return None
+    s = settings
+    dev = np.abs(np.linalg.norm(mag_cal, axis=1) - strength) > 0.5 * s.strength_tol_frac * strength
+    n = len(dev)
+    j = np.arange(MIN_NEWER, n - MIN_NEWER + 1)
+    before = np.cumsum(dev)[j - 1] / j
+    after = (dev.sum() - np.cumsum(dev)[j - 1]) / (n - j)
+    ok = (after >= s.stale_min_frac) & (before < 0.5 * s.stale_min_frac)
+    if not ok.any():
+        return None
+    return int(j[ok][np.argmax((after - before)[ok])])
 
 
 #: Fewest samples in a window's newer half for it to be tested on its own (4 s at ``stale_rate_hz``).
