@@ -27,6 +27,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from pdr_mag.calibration.gravity import FitModel, fit_offset
 from pdr_mag.calibration.online_settings import OnlineSettings
@@ -94,18 +95,30 @@ def step_start(mag_cal: np.ndarray, strength: float | None, settings: OnlineSett
     in that share.  The segment after it is the shifted calibration's alone, so it is tested as a window of
     its own (:func:`window_shift`) as soon as it holds :data:`MIN_NEWER` samples, instead of waiting for a
     window half to lie wholly after the shift."""
-    if strength is None or len(mag_cal) < 2 * MIN_NEWER:
+    if strength is None:
         return None
-    s = settings
-    dev = np.abs(np.linalg.norm(mag_cal, axis=1) - strength) > 0.5 * s.strength_tol_frac * strength
-    n = len(dev)
-    j = np.arange(MIN_NEWER, n - MIN_NEWER + 1)
-    before = np.cumsum(dev)[j - 1] / j
-    after = (dev.sum() - np.cumsum(dev)[j - 1]) / (n - j)
-    ok = (after >= s.stale_min_frac) & (before < 0.5 * s.stale_min_frac)
-    if not ok.any():
-        return None
-    return int(j[ok][np.argmax((after - before)[ok])])
+    tol = 0.5 * settings.strength_tol_frac * strength
+    j = _step_start(np.ascontiguousarray(mag_cal, dtype=np.float64), strength, tol, settings.stale_min_frac)
+    return None if j < 0 else int(j)
+
+
+@njit(cache=True, error_model="numpy")
+def _step_start(mag_cal, strength, tol, min_frac):
+    """:func:`step_start`'s search (−1: none), compiled: it runs at every stale test."""
+    n = mag_cal.shape[0]
+    if n < 2 * MIN_NEWER:
+        return -1
+    cum = np.zeros(n + 1)  # deviating samples before each index
+    for k in range(n):
+        x, y, z = mag_cal[k, 0], mag_cal[k, 1], mag_cal[k, 2]
+        cum[k + 1] = cum[k] + (abs(np.sqrt(x * x + y * y + z * z) - strength) > tol)
+    best, best_gain = -1, -np.inf
+    for j in range(MIN_NEWER, n - MIN_NEWER + 1):
+        before = cum[j] / j
+        after = (cum[n] - cum[j]) / (n - j)
+        if after >= min_frac and before < 0.5 * min_frac and after - before > best_gain:
+            best, best_gain = j, after - before
+    return best
 
 
 #: Fewest samples in a window's newer half for it to be tested on its own (4 s at ``stale_rate_hz``).
