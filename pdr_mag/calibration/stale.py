@@ -12,9 +12,12 @@ with the local strength and dip free (:func:`device_fixed`).
 
 A shift that happens inside the window — the usual way: a case's magnet clasped, the phone's OS replacing
 its hard-iron estimate in a stream it calibrates — leaves the older samples explained by the calibration in
-force and the newer ones by the shifted one; the window's halves then disagree, so the newer half is tested
-on its own as a window (:func:`window_shift`) and the shift is found half a window after it happened rather
-than a whole one.
+force and the newer ones by the shifted one.  From that moment the strength deviates from F (by ``δ · m̂``,
+whatever the pose): the window is cut where the share of deviating samples steps up (:func:`step_start`) and
+the segment after the cut is tested on its own as a window first (:func:`window_shift`), so the shift is
+found once that segment determines it (8–15 s after a 25-µT shift on simulated walks, phone in hand, in a
+pocket or swinging) rather than when a window half lies wholly after it (10–25 s).  Without such a step, a
+window whose halves disagree has its newer half tested on its own.
 
 The test runs on the recent window when its cheap first part found the strength deviating
 (:func:`pdr_mag.calibration._online_kernel.stale_precheck`); what follows a found shift (confirmation a
@@ -64,9 +67,10 @@ def window_shift(
     ``strength_tol_frac · F``), the shift is significant (above ``stale_min_shift_uT`` and 4 σ), well
     posed (σ below twice ``max_offset_std_uT``) and :func:`device_fixed`.
 
-    Where the whole-window fit explains the deviation but its halves disagree — the signature of a shift
-    that happened inside the window — the newer half (at least :data:`MIN_NEWER` samples) is tested the
-    same way on its own.
+    The segment after a step in the strength's deviation (:func:`step_start`) is tested first, the same way
+    on its own: it is the shifted calibration's alone.  Where the whole-window fit explains the deviation but
+    its halves disagree — the signature of a shift that happened inside the window — the newer half (at
+    least :data:`MIN_NEWER` samples) is tested on its own too, unless the step's segment was longer.
 
     Returns the :class:`Shift`, None when there is none, or :data:`INCONCLUSIVE` when a fit failed.  With
     no candidate pending, a whole-window fit that fails the tests ends the test at once (None).
@@ -121,7 +125,8 @@ def _step_start(mag_cal, strength, tol, min_frac):
     return best
 
 
-#: Fewest samples in a window's newer half for it to be tested on its own (4 s at ``stale_rate_hz``).
+#: Fewest samples in a segment tested on its own (a step's, or the newer half), and before a step (4 s at
+#: ``stale_rate_hz``).
 MIN_NEWER = 40
 
 
