@@ -220,6 +220,24 @@ class Merge:
             return out[0] if out else None
         return np.concatenate([t for t, _ in out]), np.concatenate([v for _, v in out])
 
+    def _next_edge(self, k: int, start: float, slice_s: float, delta: float) -> int:
+        """``k``, or the index of the first edge after the earliest pending sample when that sample lies at or
+        beyond edge ``k`` (a gap in every stream: its empty slices are skipped, however long the gap)."""
+        firsts = [blocks[0][0][0] for blocks in (self.pending[key] for key in self.present) if blocks]
+        if not firsts:
+            return k
+        first = min(firsts)
+
+        def edge(i: int) -> float:
+            return start if i == 0 else start + slice_s if i == 1 else start + i * delta
+
+        if first < edge(k):
+            return k
+        i = max(k, int((first - start) // delta))
+        while edge(i) <= first:
+            i += 1
+        return i
+
     def slices(self, slice_s: float) -> Iterator[tuple[bool, dict[str, Block]]]:
         """Yield ``(final, {key: (t, xyz)})``: each stream's samples before the next edge, then the rest.
 
@@ -227,7 +245,8 @@ class Merge:
         any stream), computed one at a time with numpy's own formula — ``start``, ``start + slice_s``, then
         ``start + k·((start + slice_s) − start)`` — so they are bit-identical without knowing ``t1`` before
         the streams end. A slice is cut once every stream has a sample at or after its edge, or has ended.
-        The last item (``final``) holds everything after the last edge.
+        The last item (``final``) holds everything after the last edge.  A slice in which no stream has a
+        sample (a gap in the recording) is not yielded.
         """
         start = self.t0 + slice_s
         delta = (start + slice_s) - start
@@ -243,6 +262,10 @@ class Merge:
                     n_edges = len(np.arange(start, t1 + slice_s, slice_s))
             if n_edges is not None and k >= n_edges:
                 break
+            after = self._next_edge(k, start, slice_s, delta)
+            if after > k:  # no stream has a sample before this edge: on to the first edge after one
+                k = after
+                continue
             yield False, {key: self._cut(key, edge) for key in self.present}
             k += 1
         yield True, {key: self._cut(key, np.inf) for key in self.present}

@@ -172,6 +172,18 @@ def test_mag_in_gauss_is_wrong_units(work):
     assert_one_line_exit_2(pdr_mag("diagnose", rec, cwd=work), rec / "mag.csv", "µT", "wrong unit")
 
 
+def test_time_in_milliseconds_is_wrong_units(work):
+    """Time in ms: the magnetometer's 20-ms interval read as 20 s (a replay would integrate the gyroscope
+    over hours)."""
+    rec = _copy(work, "time_ms")
+    for name in ("mag", "accel", "gyro"):
+        d = np.loadtxt(rec / f"{name}.csv", delimiter=",", skiprows=1)
+        d[:, 0] *= 1000.0
+        np.savetxt(rec / f"{name}.csv", d, delimiter=",", header="t,x,y,z", comments="", fmt="%.6f")
+    res = pdr_mag("replay", rec, cwd=work)
+    assert_one_line_exit_2(res, rec / "mag.csv", "interval between samples", "time not in seconds")
+
+
 def test_bad_header(work):
     rec = _copy(work, "header")
     _edit_lines(rec / "mag.csv", {1: "time,mx,my,mz"})

@@ -22,9 +22,9 @@ on (:meth:`StreamBuilder.take`), so a builder never holds more than one chunk. A
 how a stream's rows become the contract's units; its :class:`Converter` converts block by block and runs the
 checks that used to look at the whole stream, in streaming form:
 
-* the unit plausibility check (median vector norm, µT / m/s² / rad/s — a file in the wrong unit) looks at
-  the first :data:`UNIT_CHECK_SAMPLES` samples (or all, when the stream is shorter): blocks are held back
-  until it has run;
+* the unit plausibility checks (median vector norm, µT / m/s² / rad/s, and median sample interval, s — a
+  file in the wrong unit) look at the first :data:`UNIT_CHECK_SAMPLES` samples (or all, when the stream is
+  shorter): blocks are held back until they have run;
 * a sample with an axis beyond :data:`PHYSICAL_LIMITS` (a corrupt number: no sensor of the kind reports it)
   is dropped and counted (``"<key>:implausible"``);
 * the too-few-samples check runs when the stream ends;
@@ -153,6 +153,27 @@ def check_units(path, key: str, xyz: np.ndarray, unit_hint: str = "") -> None:
             path,
             f"median |{key}| is {med:.4g} {unit}{what}, outside the plausible {lo:g}–{hi:g} {unit} "
             "(wrong unit?)",
+        )
+
+
+#: Plausible median interval between a sensor stream's samples, s: 100 kHz to 1/1.5 Hz.  Phones log 5–500 Hz,
+#: IMUs up to a few kHz; a file whose time is in milliseconds (at up to 660 Hz), microseconds or nanoseconds
+#: falls above, and a replay of it would treat each sample interval as seconds of motion.
+SAMPLE_INTERVAL_S = (1.0e-5, 1.5)
+
+
+def check_time_unit(path, key: str, t: np.ndarray) -> None:
+    """InputError when the median interval between the (cleaned, increasing) times ``t`` of a sensor stream is
+    outside :data:`SAMPLE_INTERVAL_S` (time not in seconds)."""
+    if len(t) < 3:
+        return
+    med = float(np.median(np.diff(t)))
+    lo, hi = SAMPLE_INTERVAL_S
+    if not (lo <= med <= hi):
+        raise InputError(
+            path,
+            f"{key}: median interval between samples is {med:.4g} s, outside the plausible {lo:g}–{hi:g} s "
+            "(time not in seconds?)",
         )
 
 
@@ -394,6 +415,8 @@ class Converter:
         if held:
             head = np.concatenate([v for _, v in held])[:UNIT_CHECK_SAMPLES]
             check_units(self.spec.path, self.spec.key, head, self.spec.unit_hint)
+            times = np.concatenate([t for t, _ in held])[:UNIT_CHECK_SAMPLES]
+            check_time_unit(self.spec.path, self.spec.key, times)
         return self._plausible(held)
 
     def _plausible(self, blocks: list[Block]) -> list[Block]:
