@@ -39,6 +39,9 @@ from replay.source import Merge, RecordingSource
 #: span, the episode finder's batch) against ≈ 0.1–0.25 ms per second of 100–200 Hz data, so 30 s keeps it
 #: to a few per cent, and a slice in memory stays ≈ 15 000 samples at 200 Hz.
 SLICE_S = 30.0
+#: Streams whose first samples lie further apart than this (s) were not stamped by one clock (a logger mixing
+#: the time since boot with the time since the epoch): an input error, not a recording.
+MAX_START_SPREAD_S = 600.0
 
 #: Recordings of more input bytes than this get a progress bar (≈ 200 000 samples of text).
 PROGRESS_MIN_BYTES = 8_000_000
@@ -283,6 +286,11 @@ class ReplayRun:
         for key in ("accel", "gyro"):
             if key not in merge.present:
                 raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
+        starts = merge.starts
+        if max(starts.values()) - min(starts.values()) > MAX_START_SPREAD_S:
+            at = ", ".join(f"{k} at {t:.6g} s" for k, t in starts.items())
+            spread = max(starts.values()) - min(starts.values())
+            raise InputError(where, f"the streams start {spread:.4g} s apart ({at}): not one clock?")
         if calibration is not None and not isinstance(calibration, MagCalibration):
             calibration = load_calibration(calibration)
         scores = HeadingScores()  # against the walked direction and the references: the summary's figures

@@ -151,6 +151,8 @@ class Merge:
     ----------
     t0 : float
         The first sample time of any stream.
+    starts : dict
+        The first sample time of each stream present, s.
     present : tuple of str
         The streams with samples, in push order (:data:`KEYS`).
     max_pending : dict
@@ -170,7 +172,8 @@ class Merge:
         for k in src.specs:
             self._ensure(k, -np.inf)
         self.present = tuple(k for k in KEYS if k in src.specs and self.pending[k])
-        self.t0 = float(min(self.pending[k][0][0][0] for k in self.present))
+        self.starts = {k: float(self.pending[k][0][0][0]) for k in self.present}
+        self.t0 = min(self.starts.values())
 
     @property
     def position(self) -> int:

@@ -184,6 +184,16 @@ def test_time_in_milliseconds_is_wrong_units(work):
     assert_one_line_exit_2(res, rec / "mag.csv", "interval between samples", "time not in seconds")
 
 
+def test_streams_of_two_clocks_are_an_input_error(work):
+    """A magnetometer stamped by another clock (10⁵ s later: the time since boot against the epoch's) never
+    meets the IMU: exit 2 naming the recording, not a replay of a heading that never had a field."""
+    rec = _copy(work, "two_clocks")
+    d = np.loadtxt(rec / "mag.csv", delimiter=",", skiprows=1)
+    d[:, 0] += 1.0e5
+    np.savetxt(rec / "mag.csv", d, delimiter=",", header="t,x,y,z", comments="", fmt="%.6f")
+    assert_one_line_exit_2(pdr_mag("replay", rec, cwd=work), rec, "start", "apart", "not one clock")
+
+
 def test_bad_header(work):
     rec = _copy(work, "header")
     _edit_lines(rec / "mag.csv", {1: "time,mx,my,mz"})
