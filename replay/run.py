@@ -286,10 +286,9 @@ class ReplayRun:
         for key in ("accel", "gyro"):
             if key not in merge.present:
                 raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
-        starts = merge.starts
-        if max(starts.values()) - min(starts.values()) > MAX_START_SPREAD_S:
-            at = ", ".join(f"{k} at {t:.6g} s" for k, t in starts.items())
-            spread = max(starts.values()) - min(starts.values())
+        spread = max(merge.starts.values()) - min(merge.starts.values())
+        if spread > MAX_START_SPREAD_S:
+            at = ", ".join(f"{k} at {t:.6g} s" for k, t in merge.starts.items())
             raise InputError(where, f"the streams start {spread:.4g} s apart ({at}): not one clock?")
         if calibration is not None and not isinstance(calibration, MagCalibration):
             calibration = load_calibration(calibration)

@@ -223,21 +223,20 @@ class Merge:
             return out[0] if out else None
         return np.concatenate([t for t, _ in out]), np.concatenate([v for _, v in out])
 
+    @staticmethod
+    def _edge(k: int, start: float, slice_s: float, delta: float) -> float:
+        """Edge ``k`` of :meth:`slices`, by numpy's ``arange`` formula (``delta``: see there)."""
+        return start if k == 0 else start + slice_s if k == 1 else start + k * delta
+
     def _next_edge(self, k: int, start: float, slice_s: float, delta: float) -> int:
         """``k``, or the index of the first edge after the earliest pending sample when that sample lies at or
         beyond edge ``k`` (a gap in every stream: its empty slices are skipped, however long the gap)."""
         firsts = [blocks[0][0][0] for blocks in (self.pending[key] for key in self.present) if blocks]
-        if not firsts:
+        if not firsts or min(firsts) < self._edge(k, start, slice_s, delta):
             return k
         first = min(firsts)
-
-        def edge(i: int) -> float:
-            return start if i == 0 else start + slice_s if i == 1 else start + i * delta
-
-        if first < edge(k):
-            return k
         i = max(k, int((first - start) // delta))
-        while edge(i) <= first:
+        while self._edge(i, start, slice_s, delta) <= first:
             i += 1
         return i
 
@@ -256,7 +255,7 @@ class Merge:
         n_edges = None
         k = 0
         while True:
-            edge = start if k == 0 else start + slice_s if k == 1 else start + k * delta
+            edge = self._edge(k, start, slice_s, delta)
             if n_edges is None:
                 for key in self.present:
                     self._ensure(key, edge)
