@@ -34,13 +34,16 @@ counts only beyond what the filter's own bias uncertainty explains over the dete
 Gates. No update while the interference flag is up (except the first fix, below), when the caller disallows
 it, within ``mag.interval_s`` of the last update (the errors are correlated in time), when ``B_h`` < 1e-3 µT,
 or when ``r² > mag.gate² · S`` with ``S = h P hᵀ`` plus the *undisturbed* part of σ_ψ² (a suspect field gets
-less weight; it cannot widen the gate). While a clean-looking field keeps failing the gate, the heading may be
-what is wrong: ``P[δθ_z, δθ_z]`` grows by ``mag.reject_inflate_deg²`` per second (only the heading's, so the
-bias is not dragged when the gate opens), and the update that ends such a run takes the bias as a consider
-state, whatever the run's length: a heading that was wrong from its start (a first fix through a tilt 40°
-off) and is corrected after seconds of rejections would otherwise teach the gyro bias ``Δψ / Δt`` (15–18 °/s
-on two tyrex walks started 20 s in, more than any phone's offset), where re-acquisition lets the bias
-variance grow by that rate at most.
+less weight; it cannot widen the gate). While a clean-looking field keeps failing the gate, the heading's
+variance grows as the gyroscope's own uncertainty makes it grow, no faster: a field that disagrees with a
+heading the gyroscope vouches for is more likely turned (an offset that moved, a building's steel) than the
+heading lost, and a lost heading is re-acquired (below). (``mag.reject_inflate_deg`` > 0 adds that squared
+per second to ``P[δθ_z, δθ_z]`` during such a run, the heading's alone, so the bias is not dragged when the
+gate opens: a faster recovery that lets a turned field in as well.) The update that ends such a run takes the
+bias as a consider state, whatever the run's length: a heading that was wrong from its start (a first fix
+through a tilt 40° off) and is corrected after seconds of rejections would otherwise teach the gyro bias
+``Δψ / Δt`` (15–18 °/s on two tyrex walks started 20 s in, more than any phone's offset), where
+re-acquisition lets the bias variance grow by that rate at most.
 No heading update (the first fix aside, whose variance carries ``h_t P_tilt h_tᵀ``) while the tilt's
 variance exceeds ``2 · LINEAR_RAD²`` (:mod:`pdr_mag.fusion.accel`: a start in motion whose first sample's
 tilt is that uncertain): the heading row ``h_t`` is linearised about a tilt that may be tens of degrees

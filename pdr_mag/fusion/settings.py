@@ -233,7 +233,10 @@ class MagSettings:
         χ² gate of the heading innovation, in standard deviations.
     reject_inflate_deg : float
         While an undisturbed-looking field keeps failing the gate, the heading variance grows by this
-        squared per second (deg/√s), so a wrong heading (a disturbed start) is not kept forever.
+        squared per second (deg/√s) beyond the gyroscope's own uncertainty.  0 (default): a field that a
+        heading the gyroscope vouches for disagrees with is kept out until re-acquisition (``reacquire_s``)
+        or the stale test decides — 3 let a hard iron's shift into the heading within seconds (benchmarks/
+        NOTES.md).
     reacquire_s : float
         Re-acquisition: when a field that the detectors find clean has failed the gate for this long
         without a break, and the innovations agree among themselves (their circular spread, exponentially
@@ -260,7 +263,7 @@ class MagSettings:
     env_prior_uT: float = 5.0
     interval_s: float = 0.2
     gate: float = 4.0
-    reject_inflate_deg: float = _radians("reject_inflate_rad", 3.0)
+    reject_inflate_deg: float = _radians("reject_inflate_rad", 0.0)
     reacquire_s: float = 20.0
     reacquire_spread_deg: float = _radians("reacquire_spread_rad", 15.0)
 
