@@ -396,9 +396,48 @@ def stale_step(ti, st, c, p, ring):
 
 
 @njit(cache=True, error_model="numpy")
+def stale_deviates(c0, c1, c2, u, strength, tol, dip_check, dip_deg, dip_tol):
+    """Whether a calibrated field ``(c0, c1, c2)`` deviates for the stale test: its strength more than ``tol``
+    from F, or (with a reference dip) its dip, against the up vector ``u``, more than ``dip_tol`` degrees from
+    the reference.  A device-fixed shift moves both, in proportions that depend on the pose: one may stay
+    within its band while the other does not (a phone held flat, a shift across the field)."""
+    nm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    if abs(nm - strength) > tol:
+        return True
+    if not dip_check:
+        return False
+    un = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    s = min(max(-(c0 * u[0] + c1 * u[1] + c2 * u[2]) / max(nm * un, 1e-9), -1.0), 1.0)
+    return abs(np.degrees(np.arcsin(s)) - dip_deg) > dip_tol
+
+
+@njit(cache=True, error_model="numpy")
+def step_start_index(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol, min_frac, min_n):
+    """:func:`pdr_mag.calibration.stale.step_start`'s search (−1: none): the share of samples that
+    :func:`stale_deviates` after ``j`` less the share before it, largest over ``min_n ≤ j ≤ n − min_n``
+    among the ``j`` with the share after at least ``min_frac`` and before below half of it."""
+    n = mag_cal.shape[0]
+    if n < 2 * min_n:
+        return -1
+    cum = np.zeros(n + 1)  # deviating samples before each index
+    for k in range(n):
+        d = stale_deviates(mag_cal[k, 0], mag_cal[k, 1], mag_cal[k, 2], up[k], strength, tol, dip_check,
+                           dip_deg, dip_tol)
+        cum[k + 1] = cum[k] + d
+    best, best_gain = -1, -np.inf
+    for j in range(min_n, n - min_n + 1):
+        before = cum[j] / j
+        after = (cum[n] - cum[j]) / (n - j)
+        if after >= min_frac and before < 0.5 * min_frac and after - before > best_gain:
+            best, best_gain = j, after - before
+    return best
+
+
+@njit(cache=True, error_model="numpy")
 def stale_precheck(ring, ti, c, p):
     """The ring's samples newer than ``ti − stale_window_s`` (at least 40, spanning 0.6 of the window):
-    ``STALE_TEST`` when the share deviating from F by more than ``c.stale_tol`` reaches ``stale_min_frac``
+    ``STALE_TEST`` when the share deviating (:func:`stale_deviates`: from F by more than ``c.stale_tol``, or
+    from the reference dip by more than twice ``dip_tol_deg``) reaches ``stale_min_frac``
     in the window's last third and half of that overall; ``STALE_CLEAR`` otherwise; ``STALE_NONE`` when the
     samples are too few."""
     window = p.stale_window_s
@@ -416,7 +455,8 @@ def stale_precheck(ring, ti, c, p):
         t_min = min(t_min, tk)
         t_max = max(t_max, tk)
         c0, c1, c2 = _calibrated(ring[k].m, c)
-        d = abs(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2) - c.strength) > c.stale_tol
+        d = stale_deviates(c0, c1, c2, ring[k].u, c.strength, c.stale_tol, c.dip_check, c.dip_deg,
+                           2.0 * c.dip_tol_deg)
         dev += d
         if tk > ti - window / 3:
             n_last += 1

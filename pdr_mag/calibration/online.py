@@ -244,7 +244,7 @@ class OnlineCalibrator:
             for k in range(n_ev):
                 r = int(found.ev_index[k])
                 events.append((r, (float(t[r]), _EPISODE_EVENTS[int(found.ev_kind[k])], {})))
-            if suspected is not None and not st["has_candidate"]:  # the strength no longer deviates
+            if suspected is not None and not st["has_candidate"]:  # the field no longer deviates
                 t_drop = float(st["candidate_t"])
                 r = min(int(np.searchsorted(t, t_drop)), n - 1)
                 events.append((r, (t_drop, "suspicion_dropped", _shift_data(suspected))))
@@ -425,9 +425,10 @@ class OnlineCalibrator:
         self._gyro_heading_t = t  # the filter's heading had this prior's updates until now
 
     def _stale_test(self, t: float, events: list) -> None:
-        """The stale test's fits on the recent window (its first part found the strength deviating); the
-        same shift found again ``stale_confirm_s`` later requests a recalibration.  A candidate found,
-        replaced or dropped ends the block (the filter takes the shift suspected of the calibration anew)."""
+        """The stale test's fits on the recent window (its first part found the strength or the dip
+        deviating); the same shift found again ``stale_confirm_s`` later requests a recalibration.  A
+        candidate found, replaced or dropped ends the block (the filter takes the shift suspected of the
+        calibration anew)."""
         s = self.settings
         st = self._state[0]
         cal = self.calibration

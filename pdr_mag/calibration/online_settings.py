@@ -83,8 +83,9 @@ class OnlineSettings:
         0.4–6.4° on the simulator and 1.5–22° on the tyrex walks (dip 61°; the filter's tilt while running),
         fits into a pass by steel 38–95°, the one wrong tyrex first fit 24°.
     strength_tol_frac : float
-        After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered
-        and count as deviating in the stale test.
+        After a calibration, samples whose ``| |m_cal| − F |`` exceeds this fraction of F are not buffered;
+        half of it is the stale test's band (a sample beyond it, or whose dip is more than twice
+        ``add_dip_tol_deg`` off the reference, counts as deviating).
     add_tol_frac, add_dip_tol_deg : float
         Once calibrated, a sample enters the buffer only when its strength is within ``add_tol_frac · F`` and
         its dip within ``add_dip_tol_deg`` of the reference (no disturbed samples in the fits).

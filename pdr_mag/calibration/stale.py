@@ -12,14 +12,15 @@ with the local strength and dip free (:func:`device_fixed`).
 
 A shift that happens inside the window — the usual way: a case's magnet clasped, the phone's OS replacing
 its hard-iron estimate in a stream it calibrates — leaves the older samples explained by the calibration in
-force and the newer ones by the shifted one.  From that moment the strength deviates from F (by ``δ · m̂``,
-whatever the pose): the window is cut where the share of deviating samples steps up (:func:`step_start`) and
-the segment after the cut is tested on its own as a window first (:func:`window_shift`), so the shift is
-found once that segment determines it (8–15 s after a 25-µT shift on simulated walks, phone in hand, in a
-pocket or swinging) rather than when a window half lies wholly after it (10–25 s).  Without such a step, a
-window whose halves disagree has its newer half tested on its own.
+force and the newer ones by the shifted one.  From that moment the field deviates from the reference (its
+strength from F by ``δ · m̂``, and its dip, in proportions the pose sets: a phone held flat and a shift
+across the field move the dip alone).  The window is cut where the share of deviating samples steps up
+(:func:`step_start`) and the segment after the cut is tested on its own as a window first
+(:func:`window_shift`), so the shift is found once that segment determines it (7–15 s after a 25-µT shift
+on simulated walks, phone in hand, in a pocket or swinging) rather than when a window half lies wholly after
+it (10–25 s).  Without such a step, a window whose halves disagree has its newer half tested on its own.
 
-The test runs on the recent window when its cheap first part found the strength deviating
+The test runs on the recent window when its cheap first part found the strength or the dip deviating
 (:func:`pdr_mag.calibration._online_kernel.stale_precheck`); what follows a found shift (confirmation a
 while later, the recalibration request) is the calibrator's state machine
 (:class:`pdr_mag.calibration.online.OnlineCalibrator`).
@@ -30,8 +31,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
+from pdr_mag.calibration._online_kernel import step_start_index
 from pdr_mag.calibration.gravity import FitModel, fit_offset
 from pdr_mag.calibration.online_settings import OnlineSettings
 
@@ -67,7 +68,7 @@ def window_shift(
     ``strength_tol_frac · F``), the shift is significant (above ``stale_min_shift_uT`` and 4 σ), well
     posed (σ below twice ``max_offset_std_uT``) and :func:`device_fixed`.
 
-    The segment after a step in the strength's deviation (:func:`step_start`) is tested first, the same way
+    The segment after a step in the field's deviation (:func:`step_start`) is tested first, the same way
     on its own: it is the shifted calibration's alone.  Where the whole-window fit explains the deviation but
     its halves disagree — the signature of a shift that happened inside the window — the newer half (at
     least :data:`MIN_NEWER` samples) is tested on its own too, unless the step's segment was longer.
@@ -75,7 +76,7 @@ def window_shift(
     Returns the :class:`Shift`, None when there is none, or :data:`INCONCLUSIVE` when a fit failed.  With
     no candidate pending, a whole-window fit that fails the tests ends the test at once (None).
     """
-    start = step_start(mag_cal, model.strength, settings)
+    start = step_start(mag_cal, up, model, settings)
     if start is not None:
         newer, _ = _stationary_shift(mag_cal[start:], up[start:], model, free_model, settings, False)
         if isinstance(newer, Shift):
@@ -89,40 +90,26 @@ def window_shift(
     return found
 
 
-def step_start(mag_cal: np.ndarray, strength: float | None, settings: OnlineSettings) -> int | None:
-    """Where the window's strength starts to deviate and keeps deviating: the sample ``j`` that maximises
-    the share of samples deviating from F by more than half ``strength_tol_frac`` (the precheck's measure)
-    after it less the share before it, when after it the share reaches ``stale_min_frac`` and before it
-    stays below half of that; None when there is no such step.
+def step_start(mag_cal: np.ndarray, up: np.ndarray, model: FitModel, settings: OnlineSettings) -> int | None:
+    """Where the window's field starts to deviate and keeps deviating: the sample ``j`` that maximises the
+    share of samples deviating as the precheck counts them (strength beyond half ``strength_tol_frac`` of F,
+    or dip beyond twice ``add_dip_tol_deg`` of the reference) after it less the share before it, when after it
+    the share reaches ``stale_min_frac`` and before it stays below half of that; None when there is no step.
 
-    A device-fixed shift adds ``δ · m̂`` to the strength from the moment it happens, whatever the pose: a step
-    in that share.  The segment after it is the shifted calibration's alone, so it is tested as a window of
-    its own (:func:`window_shift`) as soon as it holds :data:`MIN_NEWER` samples, instead of waiting for a
-    window half to lie wholly after the shift."""
-    if strength is None:
+    A device-fixed shift adds ``δ`` to the calibrated field from the moment it happens, whatever the pose:
+    a step in that share.  The segment after it is the shifted calibration's alone, so it is tested as a
+    window of its own (:func:`window_shift`) as soon as it holds :data:`MIN_NEWER` samples, instead of
+    waiting for a window half to lie wholly after the shift."""
+    if model.strength is None:
         return None
-    tol = 0.5 * settings.strength_tol_frac * strength
-    j = _step_start(np.ascontiguousarray(mag_cal, dtype=np.float64), strength, tol, settings.stale_min_frac)
+    s = settings
+    tol = 0.5 * s.strength_tol_frac * model.strength
+    dip_check = model.sin_dip is not None
+    dip_deg = float(np.degrees(np.arcsin(model.sin_dip))) if dip_check else 0.0
+    j = step_start_index(np.ascontiguousarray(mag_cal, dtype=np.float64),
+                         np.ascontiguousarray(up, dtype=np.float64), model.strength, tol, dip_check, dip_deg,
+                         2.0 * s.add_dip_tol_deg, s.stale_min_frac, MIN_NEWER)
     return None if j < 0 else int(j)
-
-
-@njit(cache=True, error_model="numpy")
-def _step_start(mag_cal, strength, tol, min_frac):
-    """:func:`step_start`'s search (−1: none), compiled: it runs at every stale test."""
-    n = mag_cal.shape[0]
-    if n < 2 * MIN_NEWER:
-        return -1
-    cum = np.zeros(n + 1)  # deviating samples before each index
-    for k in range(n):
-        x, y, z = mag_cal[k, 0], mag_cal[k, 1], mag_cal[k, 2]
-        cum[k + 1] = cum[k] + (abs(np.sqrt(x * x + y * y + z * z) - strength) > tol)
-    best, best_gain = -1, -np.inf
-    for j in range(MIN_NEWER, n - MIN_NEWER + 1):
-        before = cum[j] / j
-        after = (cum[n] - cum[j]) / (n - j)
-        if after >= min_frac and before < 0.5 * min_frac and after - before > best_gain:
-            best, best_gain = j, after - before
-    return best
 
 
 #: Fewest samples in a segment tested on its own (a step's, or the newer half), and before a step (4 s at
