@@ -453,7 +453,7 @@ def test_a_hard_iron_that_jumps_mid_walk_is_found_once_the_data_after_it_determi
     disagree, the recalibration came 25–33 s after the jump and the heading 60–120 s in was off by 6.0° on
     the mean (walk 2: 17.1°, 180 frames 45° off at σ ≤ 20°).  The segment after the step in the strength's
     deviation (``stale.step_start``), tested first, finds it at 19–25 s, and meanwhile the gate keeps the
-    shifted field away from a heading the gyroscope vouches for (``mag.reject_inflate_deg`` 0): mean 2.8°
+    shifted field away from a heading the gyroscope vouches for (``mag.reject_inflate_deg`` 0): mean 2.9°
     (walk 2: 3.3°; the step's segment alone 4.8° and 12.2°).  Bounds: within 26 s on every walk, the mean
     under 4°."""
     from tests.test_attitude import twist_error_deg
