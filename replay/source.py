@@ -231,10 +231,10 @@ class Merge:
     def _next_edge(self, k: int, start: float, slice_s: float, delta: float) -> int:
         """``k``, or the index of the first edge after the earliest pending sample when that sample lies at or
         beyond edge ``k`` (a gap in every stream: its empty slices are skipped, however long the gap)."""
-        firsts = [blocks[0][0][0] for blocks in (self.pending[key] for key in self.present) if blocks]
-        if not firsts or min(firsts) < self._edge(k, start, slice_s, delta):
+        first = min((blocks[0][0][0] for blocks in (self.pending[key] for key in self.present) if blocks),
+                    default=-np.inf)
+        if first < self._edge(k, start, slice_s, delta):
             return k
-        first = min(firsts)
         i = max(k, int((first - start) // delta))
         while self._edge(i, start, slice_s, delta) <= first:
             i += 1

@@ -395,6 +395,11 @@ def stale_step(ti, st, c, p, ring):
     return verdict
 
 
+#: The stale test's dip band over the buffer's admission band (``add_dip_tol_deg``): twice it, as the
+#: consensus fit counts a walking phone's tilt (known to a few degrees).
+STALE_DIP_FACTOR = 2.0
+
+
 @njit(cache=True, error_model="numpy")
 def stale_deviates(c0, c1, c2, u, strength, tol, dip_check, dip_deg, dip_tol):
     """Whether a calibrated field ``(c0, c1, c2)`` deviates for the stale test: its strength more than ``tol``
@@ -437,7 +442,7 @@ def step_start_index(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol, mi
 def stale_precheck(ring, ti, c, p):
     """The ring's samples newer than ``ti − stale_window_s`` (at least 40, spanning 0.6 of the window):
     ``STALE_TEST`` when the share deviating (:func:`stale_deviates`: from F by more than ``c.stale_tol``, or
-    from the reference dip by more than twice ``dip_tol_deg``) reaches ``stale_min_frac``
+    from the reference dip by more than :data:`STALE_DIP_FACTOR` × ``dip_tol_deg``) reaches ``stale_min_frac``
     in the window's last third and half of that overall; ``STALE_CLEAR`` otherwise; ``STALE_NONE`` when the
     samples are too few."""
     window = p.stale_window_s
@@ -456,7 +461,7 @@ def stale_precheck(ring, ti, c, p):
         t_max = max(t_max, tk)
         c0, c1, c2 = _calibrated(ring[k].m, c)
         d = stale_deviates(c0, c1, c2, ring[k].u, c.strength, c.stale_tol, c.dip_check, c.dip_deg,
-                           2.0 * c.dip_tol_deg)
+                           STALE_DIP_FACTOR * c.dip_tol_deg)
         dev += d
         if tk > ti - window / 3:
             n_last += 1

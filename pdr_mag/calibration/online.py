@@ -301,7 +301,7 @@ class OnlineCalibrator:
         c["has_offset"] = cal is not None
         c["stale_on"] = cal is not None and cal_state != "recalibrating"
         c["stale_ok"] = f is not None and sd is not None
-        c["stale_tol"] = np.nan if f is None else s.strength_tol_frac * f * 0.5
+        c["stale_tol"] = np.nan if f is None else s.stale_band_uT(f)
         c["refit_period"] = s.refit_period_s if cal is not None else 0.5 * s.refit_period_s
         self._stale_model = fit_model(
             f, sd, s.sigma_strength_uT, s.sigma_tilt_deg, s.prior_strength_std_uT, s.prior_dip_std_deg

@@ -189,3 +189,8 @@ class OnlineSettings:
     consensus_pairs: int = 300
     consensus_strength_frac: float = 0.08
     consensus_dip_deg: float = 8.0
+
+    def stale_band_uT(self, strength: float) -> float:
+        """The stale test's strength band, µT: half ``strength_tol_frac`` of F (a sample beyond it deviates;
+        a whole-window fit explains the deviation with a residual RMS below it)."""
+        return 0.5 * self.strength_tol_frac * strength

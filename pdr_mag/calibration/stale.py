@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pdr_mag.calibration._online_kernel import step_start_index
+from pdr_mag.calibration._online_kernel import STALE_DIP_FACTOR, step_start_index
 from pdr_mag.calibration.gravity import FitModel, fit_offset
 from pdr_mag.calibration.online_settings import OnlineSettings
 
@@ -103,12 +103,12 @@ def step_start(mag_cal: np.ndarray, up: np.ndarray, model: FitModel, settings: O
     if model.strength is None:
         return None
     s = settings
-    tol = 0.5 * s.strength_tol_frac * model.strength
+    tol = s.stale_band_uT(model.strength)
     dip_check = model.sin_dip is not None
     dip_deg = float(np.degrees(np.arcsin(model.sin_dip))) if dip_check else 0.0
     j = step_start_index(np.ascontiguousarray(mag_cal, dtype=np.float64),
                          np.ascontiguousarray(up, dtype=np.float64), model.strength, tol, dip_check, dip_deg,
-                         2.0 * s.add_dip_tol_deg, s.stale_min_frac, MIN_NEWER)
+                         STALE_DIP_FACTOR * s.add_dip_tol_deg, s.stale_min_frac, MIN_NEWER)
     return None if j < 0 else int(j)
 
 
@@ -147,7 +147,7 @@ def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
     """The whole-window tests: explained, significant and well posed."""
     shift = np.linalg.norm(fit.delta)
     return bool(
-        fit.rms < 0.5 * s.strength_tol_frac * strength
+        fit.rms < s.stale_band_uT(strength)
         and shift > s.stale_min_shift_uT
         and shift > 4 * np.linalg.norm(fit.sigma)
         and float(fit.sigma.max()) < 2 * s.max_offset_std_uT
