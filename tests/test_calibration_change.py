@@ -70,6 +70,29 @@ def test_a_change_noted_while_the_field_is_flagged_widens_the_std_at_once():
         assert b.heading_std_deg[np.searchsorted(b.t, ts + 0.5)] > 15.0, seed
 
 
+def test_a_change_that_reverses_the_field_widens_the_std_to_unknown():
+    """A new calibration that moves the field by twice the latest one, backwards (``dm = −2 m``, device
+    frame): its fields are the reverse of the old ones, so the heading so far says nothing under it — though
+    the change lies along the field, where the heading's gradient is nil (``g · dm`` = 0: the first-order turn
+    says nothing).  The exact turn between the two fields widens the std to an unknown heading's at once
+    (measured 171–180° on seeds 11–13 from 6.3–6.4°; with the first-order turn 6.4–11.8°): bound above 90°,
+    and below 20° before."""
+    for seed in (11, 12, 13):
+        w = simulate("walk", seed=seed, effects=EFFECTS)
+        kind, t, xyz = merge(w)
+        ts = t[0] + 30.0
+        first = t < ts
+        core = FusionCore(field=w.field)
+        b1 = core.process(kind[first], t[first], xyz[first])
+        dm = -2.0 * xyz[first & (kind == 2)][-1]
+        core.note_calibration_change(np.eye(3), dm, np.eye(3), np.zeros(3))
+        later = ~first & (t < ts + 1.0)
+        moved = np.where((kind == 2)[:, None], xyz + dm, xyz)
+        b2 = core.process(kind[later], t[later], moved[later])
+        assert b1.heading_std_deg[-1] < 20.0
+        assert b2.heading_std_deg[np.searchsorted(b2.t, ts + 0.2)] > 90.0, seed
+
+
 def test_a_bad_calibration_change_is_rejected():
     core = FusionCore()
     with pytest.raises(ValueError, match="offset_old"):

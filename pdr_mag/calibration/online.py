@@ -374,6 +374,40 @@ class OnlineCalibrator:
         reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:.0f}°)"
         return cal.with_acceptance(False, (*cal.reasons, reason))
 
+    def gyro_heading_azimuths(self, cal: MagCalibration) -> tuple[np.ndarray, ...]:
+        """The recent samples (the stale test's ring: the last ``stale_window_s``, at up to ``stale_rate_hz``)
+        taken while the filter's heading was the gyroscope's alone (since ``_gyro_heading_t``), calibrated
+        with ``cal``: their times, the azimuths ``α_k`` of their fields in the filter's frame
+        (:func:`pdr_mag.calibration.turned.azimuths`), the azimuths' gradients with respect to the field
+        (:func:`~pdr_mag.calibration.turned.azimuth_gradients`: how ``cal``'s offset error turns them) and
+        the calibrated fields (N × 3, µT), for the first heading of a filter that had none
+        (:meth:`pdr_mag.fusion.FusionCore.fix_heading_from_history`).  Only the samples the buffer would
+        admit under ``cal`` count — the strength within ``add_tol_frac`` of the fit's field and, with a
+        reference dip, the dip within ``add_dip_tol_deg`` of it: a disturbance turns the field as it
+        changes its strength."""
+        ring = self._ring
+        none = np.empty(0), np.empty(0), np.empty((0, 3)), np.empty((0, 3))
+        if not np.isfinite(ring["t"]).any():
+            return none
+        r = self._recent(float(np.nanmax(ring["t"])))
+        r = r[(r["t"] >= self._gyro_heading_t) & np.all(np.isfinite(r["n"]), axis=1)]
+        if not len(r):
+            return none
+        s = self.settings
+        mc = cal.apply(r["m"])
+        f = cal.field_uT if np.isfinite(cal.field_uT) else self.field_ref
+        sd = self.sin_dip_ref
+        ok = np.ones(len(r), dtype=bool)
+        nm = np.linalg.norm(mc, axis=1)
+        if f is not None:
+            ok &= np.abs(nm - f) <= s.add_tol_frac * f
+        if sd is not None:
+            un = np.linalg.norm(r["u"], axis=1)
+            dip = np.degrees(np.arcsin(np.clip(-np.einsum("ij,ij->i", mc, r["u"]) / (nm * un), -1.0, 1.0)))
+            ok &= np.abs(dip - np.degrees(np.arcsin(sd))) <= s.add_dip_tol_deg
+        mc, u, n = mc[ok], r["u"][ok], r["n"][ok]
+        return r["t"][ok], turned.azimuths(mc, u, n), turned.azimuth_gradients(mc, u, n), mc
+
     def _figure8_fit(self, t: float) -> list:
         """At a rotation episode's end, while an offset-only calibration is in force: the full fit of the
         recent samples (the stale test's ring: the last ``stale_window_s``, every sample at up to

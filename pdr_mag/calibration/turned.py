@@ -38,15 +38,31 @@ def azimuth_spread_deg(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray, t: np.nd
     ok = np.all(np.isfinite(n), axis=1) & np.all(np.isfinite(u), axis=1) & np.isfinite(t)
     if np.count_nonzero(ok) < MIN_SAMPLES:
         return float("nan")
-    v = np.asarray(m_cal, dtype=float)[ok]
-    nk, tk = n[ok], t[ok]
-    east = np.cross(nk, u[ok])
-    alpha = np.arctan2(np.einsum("ij,ij->i", east, v), np.einsum("ij,ij->i", nk, v))
+    alpha = azimuths(np.asarray(m_cal, dtype=float)[ok], u[ok], n[ok])
+    tk = t[ok]
     centre = np.angle(np.mean(np.exp(1j * alpha)))
     alpha = np.angle(np.exp(1j * (alpha - centre)))  # about the circular mean, in (−π, π]
     design = np.c_[np.ones_like(tk), tk - tk.mean()]
     coef, *_ = np.linalg.lstsq(design, alpha, rcond=None)
     return float(np.degrees(robust_spread(alpha - design @ coef)))
+
+
+def azimuths(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """``α_k`` (rad, from north towards east) of the calibrated fields ``m_cal`` (N, 3, device frame) in the
+    frame of the device-frame up ``u`` and north ``n`` axes of the filter's attitude at each sample (module
+    docstring); NaN where an axis is unknown."""
+    east = np.cross(n, u)
+    return np.arctan2(np.einsum("ij,ij->i", east, m_cal), np.einsum("ij,ij->i", n, m_cal))
+
+
+def azimuth_gradients(m_cal: np.ndarray, u: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """``∂α_k/∂m`` (N, 3, rad/µT) of :func:`azimuths`: ``(n_m e − e_m n) / (e_m² + n_m²)`` with
+    ``e_m = e·m``, ``n_m = n·m`` — how an error of the calibrated field (an offset error, device frame) turns
+    each azimuth."""
+    east = np.cross(n, u)
+    em = np.einsum("ij,ij->i", east, m_cal)[:, None]
+    nm = np.einsum("ij,ij->i", n, m_cal)[:, None]
+    return (nm * east - em * n) / (em * em + nm * nm)
 
 
 #: tan of the dip up to which the bound is the setting itself (63.4°: the tyrex walks' 61°, Zurich's 63.5°)

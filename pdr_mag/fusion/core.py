@@ -87,6 +87,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+import scipy.linalg
 
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
@@ -100,7 +101,7 @@ from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 11
+STATE_VERSION = 12
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -137,6 +138,10 @@ class Snapshot:
 
     raw: np.ndarray
     reference_strength: float | None
+
+
+#: the fewest fields :meth:`FusionCore.fix_heading_from_history` takes a heading from
+HISTORY_MIN = 10
 
 
 class Snapshots(Sequence):
@@ -278,6 +283,67 @@ class FusionCore:
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
+    def fix_heading_from_history(self, t, azimuth, gradient=None, field=None) -> bool:
+        """The first heading of a filter that has none (no magnetometer update since the start, or since
+        :meth:`forget_heading`), from the fields of the calibration just found: ``azimuth`` (rad) of each
+        field at time ``t`` (s) in the filter's frame, which the gyroscope alone has carried, its gradient
+        with respect to the calibrated field (N × 3, rad/µT; None: the calibration counted exact) and the
+        calibrated field itself (N × 3, µT, device frame; None: unknown) — the pipeline gives the first fit's
+        own recent samples (:meth:`pdr_mag.calibration.OnlineCalibrator.gyro_heading_azimuths`).  The
+        latest field and its gradient are then the latest usable sample's, which a calibration change before
+        the next usable one is judged by (:mod:`pdr_mag.fusion.mag`).
+
+        The Earth's field keeps one azimuth ``a`` in that frame, so each ``α_k = a + ε_k``, the errors
+        correlated through four causes, each with the filter's own model of it (the covariance ``Σ``):
+        white noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process
+        ``σ_c² e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``); the frame's drift since
+        the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro bias about up, of the filter's variance ``σ_ḃ²``;
+        and the calibration's offset error, ``g_k Σ_b g_lᵀ`` (its covariance in force).  ``a`` is the
+        generalised least-squares mean, ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where
+        the fields scatter more than the model says (a field that turned, a calibration worse than its
+        covariance), by the larger of the residuals' ``χ² / (N − 1)`` and their robust spread's square over
+        one field's ``σ_h² + σ_c²``.  Taken from :data:`HISTORY_MIN` fields or more spanning two of c's
+        correlation times or more; a first fix from the next field would take that one field's error — or,
+        when it is disturbed, only a guess — and the next clean field now updates the heading instead, the
+        two weighed by their variances.  Returns whether the heading was set."""
+        st = self._st[0]
+        if st["init"] != 1:
+            return False
+        t = np.asarray(t, dtype=float).reshape(-1)
+        a = np.asarray(azimuth, dtype=float).reshape(-1)
+        g = np.zeros((len(t), 3)) if gradient is None else np.asarray(gradient, dtype=float).reshape(-1, 3)
+        f = np.full((len(t), 3), np.nan) if field is None else np.asarray(field, dtype=float).reshape(-1, 3)
+        ok = np.isfinite(t) & np.isfinite(a) & np.all(np.isfinite(g), axis=1)
+        t, a, g, f = t[ok], a[ok], g[ok], f[ok]
+        m = self.settings.mag
+        tau = m.error_tau_s
+        t_now = float(max(st["t_gyro"], st["t_acc"]))
+        if len(t) < HISTORY_MIN or not np.isfinite(t_now) or t.max() - t.min() < 2.0 * tau:
+            return False
+        white, corr = np.radians(m.noise_deg) ** 2, np.radians(m.error_std_deg) ** 2
+        up = _up_in_device(st["q"])
+        drift = t_now - t
+        cov = white * np.eye(len(t)) + corr * np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
+        cov += float(up @ st["P"][BIAS : BIAS + 3, BIAS : BIAS + 3] @ up) * np.outer(drift, drift)
+        cov += g @ st["cal_cov"] @ g.T
+        centre = float(np.angle(np.mean(np.exp(1j * a))))
+        e = np.angle(np.exp(1j * (a - centre)))
+        factor = scipy.linalg.cho_factor(cov)
+        w = scipy.linalg.cho_solve(factor, np.ones(len(t)))
+        var = 1.0 / w.sum()
+        mean = var * float(w @ e)
+        res = e - mean
+        spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+        chi2 = float(res @ scipy.linalg.cho_solve(factor, res))
+        var *= max(1.0, chi2 / (len(t) - 1), spread**2 / (white + corr))
+        latest = int(np.argmax(t))
+        r = float(np.angle(np.exp(1j * (centre + mean - st["declination"]))))
+        st["cal_g"] = g[latest]
+        st["cal_m"] = f[latest]
+        st["cal_var"] = float(g[latest] @ st["cal_cov"] @ g[latest])
+        kernel.fix_from_history(self._st, self._p, r, var, float(t_now - t.min()), t_now)
+        return True
+
     def forget_heading(self) -> None:
         """The heading so far came from a calibration found wrong and withdrawn (a prior refused): it is
         unknown again (``heading_std_deg`` 180°, its covariance with the rest dropped), the detectors learn
@@ -413,6 +479,13 @@ class FusionCore:
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)
+
+
+def _up_in_device(q) -> np.ndarray:
+    """The world's up axis in device coordinates for the attitude ``q`` (device → world, w-first): the third
+    row of its rotation matrix."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
 def heading_reset_events(batch: EstimateBatch) -> list[Event]:

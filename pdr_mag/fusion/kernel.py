@@ -145,6 +145,12 @@ def run_cut(span, state, params, cuts, snaps, out):
     return k
 
 
+@njit(cache=True, error_model="numpy")
+def fix_from_history(state, params, r, var, span, t):
+    """:func:`pdr_mag.fusion.mag.history_fix` on the one-element state and params arrays."""
+    mag.history_fix(state[0], r, var, span, t, params[0])
+
+
 # numba checks a cached function against its own file only: empty the caches when any of these changed
 _jit_cache.refresh_if_changed(
     (sys.modules[__name__], *detectors.SOURCES, kinds, state, rows, eskf, gyro, accel, mag), "fusion"

@@ -83,6 +83,20 @@ teaches the bias nothing), only the attitude is corrected.
 The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own c and no white
 noise, ``U_cc`` starting at the place's unmodelled variance.
 
+First heading from the first fit's own samples.  A filter without a calibration has no heading: its
+frame has turned with the gyroscope alone since the start.  When the first calibration is found, the
+fields of the last seconds that its fit explains (the calibrator's recent samples within the admission
+bands) each give the Earth's field's azimuth in that frame, which holds but for the gyro bias's drift; their
+fitted mean is the heading at once (:meth:`pdr_mag.fusion.FusionCore.fix_heading_from_history`,
+:func:`history_fix`), with the variance of a mean of correlated fields, rather than one field's — which may
+be disturbed then: a walker passing steel as the fit is accepted would otherwise start from a guess at σ 180°.
+The heading's covariance with the rest is dropped (its error is the fields' mean's, not the current c).  Only
+fields spanning two of c's correlation times or more: a shorter history averages nothing, and its samples'
+tilts are the start's, often unsettled — the first fix is then the next field's, as above.  A mean whose σ
+exceeds ``LINEAR_RAD`` (fields that scatter: steel) is treated as a first fix through an unsettled tilt
+(below): the first update finding it more than ``LINEAR_RAD`` off sets the heading anew rather than teach
+the gyro bias the difference.
+
 A first fix through an unsettled tilt.  A first fix made while the tilt is beyond the linear range
 (``P_xx + P_yy > 2 · LINEAR_RAD²``: a start in motion, whose first accelerometer sample may point 40° from up)
 saw the field through that tilt, and its heading is off by up to ``tan I`` times as much.  No linearised
@@ -152,7 +166,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     if s.init >= 2 and (flag or not allowed):
         # a calibration change noted: the heading's variance grows now, not at the next clean field (the
         # gradient of the latest usable sample: this field's direction is not to be trusted)
-        _calibration_jump(s, s.cal_g, mx, my, mz, R, t, p)
+        _calibration_jump(s, s.cal_g, mx, my, mz, R, t, p, False)
     # --- gates
     if not allowed:
         return
@@ -170,7 +184,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     g = np.empty(3)
     _heading_gradient(R, mwx * f, mwy * f, g)
     _calibration_variance(s, g)
-    _calibration_jump(s, g, mx, my, mz, R, t, p)
+    _calibration_jump(s, g, mx, my, mz, R, t, p, True)
+    s.cal_m[0], s.cal_m[1], s.cal_m[2] = mx, my, mz
     psi = np.arctan2(mwx, mwy)
     r = wrap(psi - s.declination)
     # --- noise
@@ -302,13 +317,19 @@ def offset_heading_var(g, C):
 
 
 @njit(cache=True, error_model="numpy")
-def _calibration_jump(s, g, mx, my, mz, R, t, p):
+def _calibration_jump(s, g, mx, my, mz, R, t, p, usable):
     """A calibration change noted since the last usable sample (``dm = D m + e``, m this calibrated sample,
-    :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`): the heading variance grows by
-    ``(g · dm)²``, capped at π², once the heading is known.  The old calibration's heading error changed
-    as the device turned, and the filter read those changes as gyro drift: the bias variance about up
-    grows by ``min((g · dm / max(Δt, 10 s))², σ_b0²)`` (Δt: how long the old calibration was in force),
-    the drift rate that error implies, as at a re-acquisition."""
+    :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`): the heading variance grows by the square of
+    the turn ``v`` the change makes, capped at π², once the heading is known: the larger of its first-order
+    turn ``g · dm`` and the exact turn between the headings of the horizontal fields ``R m`` and
+    ``R (m − dm)`` — a change as large as the horizontal field may turn it by anything, which the gradient
+    does not see (an offset error along the field that reversed it).  With this sample not ``usable``
+    (flagged, or held out by the caller: its direction is not to be trusted) the gradient is the latest
+    usable sample's and m its field ``cal_m`` as the new calibration gives it (``o + D o + e`` for its old
+    field o, to first order in D; the first-order turn alone before any).  The old calibration's heading
+    error changed as the device turned, and the filter read those changes as gyro drift: the bias variance
+    about up grows by ``min((v / max(Δt, 10 s))², σ_b0²)`` (Δt: how long the old calibration was in
+    force), the drift rate that error implies, as at a re-acquisition."""
     D, e = s.cal_jump_d, s.cal_jump_e
     if not _jump_noted(D, e):
         return
@@ -316,6 +337,24 @@ def _calibration_jump(s, g, mx, my, mz, R, t, p):
         v = 0.0
         for i in range(3):
             v += g[i] * (D[i, 0] * mx + D[i, 1] * my + D[i, 2] * mz + e[i])
+        if not usable and np.isfinite(s.cal_m[0]):
+            o = s.cal_m
+            mx = o[0] + D[0, 0] * o[0] + D[0, 1] * o[1] + D[0, 2] * o[2] + e[0]
+            my = o[1] + D[1, 0] * o[0] + D[1, 1] * o[1] + D[1, 2] * o[2] + e[1]
+            mz = o[2] + D[2, 0] * o[0] + D[2, 1] * o[1] + D[2, 2] * o[2] + e[2]
+            usable = True
+        if usable:
+            ox, oy, oz = mx, my, mz  # the old calibration's field, m − dm
+            ox -= D[0, 0] * mx + D[0, 1] * my + D[0, 2] * mz + e[0]
+            oy -= D[1, 0] * mx + D[1, 1] * my + D[1, 2] * mz + e[1]
+            oz -= D[2, 0] * mx + D[2, 1] * my + D[2, 2] * mz + e[2]
+            new_e = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
+            new_n = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz
+            old_e = R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz
+            old_n = R[1, 0] * ox + R[1, 1] * oy + R[1, 2] * oz
+            turn = wrap(np.arctan2(new_e, new_n) - np.arctan2(old_e, old_n))
+            if abs(turn) > abs(v):
+                v = turn
         P = s.P
         P[TH_Z, TH_Z] = min(P[TH_Z, TH_Z] + v * v, np.pi**2)
         _bias_drift_var(s, R, v, t - s.t_cal_start if np.isfinite(s.t_cal_start) else 0.0, p)
@@ -399,6 +438,43 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
     s.fix_through_tilt = tilt_beyond_linear(P)
+    s.t_mag_update = t
+    s.t_cal_start = t
+    s.mag_used = True
+
+
+@njit(cache=True, error_model="numpy")
+def history_fix(s, r, var, span, t, p):
+    """Set the heading of a filter that has none from the azimuth of many past fields (the module
+    docstring, "First heading from the first fit's own samples"): the turn ``r`` (rad, onto the fields'
+    heading less the declination) and the variance ``var`` of the fields' mean azimuth (rad², their c
+    included: :meth:`pdr_mag.fusion.FusionCore.fix_heading_from_history`), the fields spanning ``span``
+    seconds up to ``t``.  The consider part U gets c's unmodelled variance averaged over the span,
+    ``k = 2τ/T (1 − τ/T (1 − e^(−T/τ)))`` of it (the variance of an Ornstein–Uhlenbeck process's mean over
+    T, c's correlation time τ); the heading's error is uncorrelated with the c of the fields to come."""
+    P = s.P
+    U = s.U
+    P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], magerr_var(s, p))
+    settle_u(s)
+    U[C_ERR, C_ERR] = max(U[C_ERR, C_ERR], s.u_var)
+    tau = p.mag.error_tau_s
+    k = 1.0
+    if span > 0.0 and tau > 0.0:
+        x = span / tau
+        k = min(2.0 / x * (1.0 - (1.0 - np.exp(-x)) / x), 1.0)
+    rotate_world(s.q_gyro, 0.0, 0.0, r)
+    _turn_world_frame(s, r)
+    for i in range(NX):
+        P[TH_Z, i] = 0.0
+        P[i, TH_Z] = 0.0
+        U[TH_Z, i] = 0.0
+        U[i, TH_Z] = 0.0
+    P[TH_Z, TH_Z] = min(var, np.pi**2)
+    U[TH_Z, TH_Z] = k * U[C_ERR, C_ERR]
+    s.init = 2
+    s.guess_w = 0.0
+    # a mean this uncertain may be beyond the linear range as well: the first update is then a re-fix
+    s.fix_through_tilt = tilt_beyond_linear(P) or var > LINEAR_RAD**2
     s.t_mag_update = t
     s.t_cal_start = t
     s.mag_used = True

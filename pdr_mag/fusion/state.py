@@ -78,11 +78,12 @@ STATE = np.dtype(
         ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
         ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
         ("guess_w", np.float64),  # summed weight of the flagged fields in the heading guess (0: no guess)
-        ("fix_through_tilt", np.bool_),  # the first fix saw the field through a tilt beyond the linear range
+        ("fix_through_tilt", np.bool_),  # the first fix may be beyond the linear range (tilt, history)
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
         ("cal_g", np.float64, (3,)),  # ∂ψ/∂m_d at that sample, rad/µT (the std's floor, g Σ_b gᵀ, from it)
+        ("cal_m", np.float64, (3,)),  # that sample's calibrated field, device frame, µT (NaN: none yet)
         ("suspect_cov", np.float64, (3, 3)),  # ΔΔᵀ of an offset shift the stale test suspects, µT² (0: none)
         ("cal_jump_d", np.float64, (3, 3)),  # a calibration change: the old field is m − (D m + e), m the new
         ("cal_jump_e", np.float64, (3,)),  # … (µT, device frame; both zero: no change pending)
@@ -139,6 +140,7 @@ def _fresh_state() -> np.ndarray:
         "t_next_out",
         "bias0_var",
         "t_cal_start",
+        "cal_m",
     ):
         st[name] = np.nan
     st["u_phi"] = 1.0

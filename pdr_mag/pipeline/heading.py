@@ -10,7 +10,9 @@ What the output is.  Stream time is cut into blocks ``[k·block_s, (k+1)·block_
 of processing block by block: fuse the block's samples with the calibration in force, then close it —
 give its magnetometer samples to the online calibrator, each with the up vector of the filter's latest
 output row at or before it (the accelerometer's direction before the filter has an attitude) and the norm
-of the latest gyro sample.  The calibration thus changes only at block ends.
+of the latest gyro sample.  The calibration thus changes only at block ends.  When the first one comes into
+force (none before it), the filter, whose heading the gyroscope alone has carried, takes its heading from the
+recent fields that calibration explains (:meth:`~pdr_mag.fusion.FusionCore.fix_heading_from_history`).
 
 Streaming == batch.  Samples leave the pending buffers only once they are older than the newest sample of
 every stream (no later push can precede them; ties go accel < gyro < mag), so the merged stream does not
@@ -70,7 +72,7 @@ from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 7
+STATE_VERSION = 8
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration,
@@ -549,6 +551,9 @@ class HeadingPipeline:
         if cal is not None and not self._calibrations:
             self._calibrations.append((-np.inf, cal))
         self.fusion.use_calibration(cal, old)
+        if cal is not None and old is None:
+            # a first calibration: the heading from its recent fields at once (a filter that has one keeps it)
+            self.fusion.fix_heading_from_history(*self.online.gyro_heading_azimuths(cal))
         self.fusion.set_suspected_shift(self.online.suspected_shift)
 
     def _interference_events(self, batch: EstimateBatch) -> list[Event]:
