@@ -111,12 +111,14 @@ it; the turn reported in ``heading_reset_deg`` as a re-acquisition's) rather tha
 residual is an ordinary update.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
-:meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields off by
-``g · dm`` in heading (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`): at the next sample that variance joins
-``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once — a flagged sample too,
-with the gradient of the latest usable one (``cal_g``), so that a heading taken through a wrong calibration
-does not keep its small σ while the flags hold the corrected field out.  (A change
-of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
+:meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields turned
+by the change — to first order ``g · dm`` (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`), exactly the turn
+between the horizontal fields ``R m`` and ``R (m − dm)``, which may be anything for a change as large as the
+horizontal field (one along the field that reversed it has ``g · dm`` = 0): at the next sample the square of
+the larger joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once — a
+flagged sample too, with the latest usable one's field and gradient (``cal_m``, ``cal_g``), so that a heading
+taken through a wrong calibration does not keep its small σ while the flags hold the corrected field out.
+(A change of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
 """
 
 from __future__ import annotations
@@ -165,7 +167,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     _flag_share_step(s, flag, t, det, p)
     if s.init >= 2 and (flag or not allowed):
         # a calibration change noted: the heading's variance grows now, not at the next clean field (the
-        # gradient of the latest usable sample: this field's direction is not to be trusted)
+        # latest usable sample's field and gradient: this field's direction is not to be trusted)
         _calibration_jump(s, s.cal_g, mx, my, mz, R, t, p, False)
     # --- gates
     if not allowed:
