@@ -48,6 +48,17 @@ def test_a_noted_calibration_change_lets_the_right_field_in():
     assert np.mean(without) > np.mean(with_note) + 10.0
 
 
+def _walked_30_s(seed: int):
+    """A simulated walk (``EFFECTS``) fed to a filter for its first 30 s: the walk, its merged input, the
+    time the 30 s end, the mask of the samples before it, the filter and its rows."""
+    w = simulate("walk", seed=seed, effects=EFFECTS)
+    kind, t, xyz = merge(w)
+    ts = t[0] + 30.0
+    first = t < ts
+    core = FusionCore(field=w.field)
+    return w, (kind, t, xyz), ts, first, core, core.process(kind[first], t[first], xyz[first])
+
+
 def test_a_change_noted_while_the_field_is_flagged_widens_the_std_at_once():
     """A calibration changed by 25 µT while a magnet held to the phone (60 µT along x) has every field
     flagged: the heading so far carries the change's error, so σ grows at the next sample, with the last
@@ -55,12 +66,7 @@ def test_a_change_noted_while_the_field_is_flagged_widens_the_std_at_once():
     after the note: 16.9 / 47.0 / 56.3° against 6.6 / 6.4 / 6.4° when it waited; σ before 6.3–6.4°).
     Bound: above 15° on each."""
     for seed in (11, 12, 13):
-        w = simulate("walk", seed=seed, effects=EFFECTS)
-        kind, t, xyz = merge(w)
-        ts = t[0] + 30.0
-        first = t < ts
-        core = FusionCore(field=w.field)
-        core.process(kind[first], t[first], xyz[first])
+        _, (kind, t, xyz), ts, first, core, _ = _walked_30_s(seed)
         core.note_calibration_change(np.eye(3), np.zeros(3), np.eye(3), np.array([0.0, 25.0, 0.0]))
         later = ~first & (t < ts + 5.0)
         magnet = xyz.copy()
@@ -78,12 +84,7 @@ def test_a_change_that_reverses_the_field_widens_the_std_to_unknown():
     (measured 171–180° on seeds 11–13 from 6.3–6.4°; with the first-order turn 6.4–11.8°): bound above 90°,
     and below 20° before."""
     for seed in (11, 12, 13):
-        w = simulate("walk", seed=seed, effects=EFFECTS)
-        kind, t, xyz = merge(w)
-        ts = t[0] + 30.0
-        first = t < ts
-        core = FusionCore(field=w.field)
-        b1 = core.process(kind[first], t[first], xyz[first])
+        _, (kind, t, xyz), ts, first, core, b1 = _walked_30_s(seed)
         dm = -2.0 * xyz[first & (kind == 2)][-1]
         core.note_calibration_change(np.eye(3), dm, np.eye(3), np.zeros(3))
         later = ~first & (t < ts + 1.0)
