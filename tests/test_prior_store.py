@@ -177,3 +177,29 @@ def test_a_save_and_a_load_read_the_file_once(tmp_path, monkeypatch):
     assert len(reads) == 2
     path, prior = store.find(META, 3.0)  # what replay --device-store asks: the file and its prior, one read
     assert len(reads) == 3 and path == store.path(META) and prior.calibration is not None
+
+
+def test_a_session_that_agrees_with_the_stored_calibration_refines_it(tmp_path):
+    """Two sessions' fits 2 µT apart along x, σ 1 and 2 µT (within χ²₃ 99 %): the store keeps their
+    information-weighted mean, −57 + 2 · 1 / (1 + 4) = −56.6 µT, at the later fit's covariance (their errors
+    are partly shared); a fit 20 µT away (a changed device), one of another soft-iron shape, or the entry left
+    standing as this session's prior replace or keep it as they are."""
+    store = DeviceStore(tmp_path)
+    store.save(META, DevicePrior(calibration=_stored_cal(1.0)), t_unix=0.0)
+    near = MagCalibration.from_arrays([-55.0, -91.0, -302.0], field_uT=43.0, method="gravity",
+                                      offset_std_uT=(2.0, 2.0, 2.0))  # fmt: skip
+    store.save(META, DevicePrior(calibration=near), t_unix=0.0)
+    back = store.load(META, 0.0).calibration
+    np.testing.assert_allclose(back.offset, (-56.6, -91.0, -302.0), atol=1e-9)
+    np.testing.assert_allclose(back.offset_std_uT, (2.0, 2.0, 2.0), rtol=1e-12)
+    far = MagCalibration.from_arrays([-37.0, -91.0, -302.0], field_uT=43.0, method="gravity",
+                                     offset_std_uT=(2.0, 2.0, 2.0))  # fmt: skip
+    store.save(META, DevicePrior(calibration=far), t_unix=0.0)
+    assert store.load(META, 0.0).calibration.offset == far.offset
+    shaped = MagCalibration.from_arrays([-36.0, -91.0, -302.0], np.diag([1.05, 0.95, 1.0]), field_uT=43.0,
+                                        method="ml", offset_std_uT=(2.0, 2.0, 2.0))  # fmt: skip
+    store.save(META, DevicePrior(calibration=shaped), t_unix=0.0)
+    assert store.load(META, 0.0).calibration.offset == shaped.offset
+    again = store.load(META, 0.0)
+    store.save(META, again, t_unix=0.0)  # the entry itself, left standing: nothing new
+    assert store.load(META, 0.0).calibration.offset == shaped.offset

@@ -1,8 +1,9 @@
 """Device calibration store: what a backend learnt of each phone, for the next recording of the same phone.
 
 A folder with one JSON file per device (the key: the recording's ``device`` model, and its ``device_id`` when
-the recording has one).  Each file holds the last good magnetometer calibration of that device with its
-offset covariance, the gyroscope bias with its σ, and when they were known (Unix time)::
+the recording has one).  Each file holds the last good magnetometer calibration of that device (refined by
+the sessions that agreed with it) with its offset covariance, the gyroscope bias with its σ, and when they
+were known (Unix time)::
 
     {"format_version": 1, "key": "OPPO PBCM10", "device": "OPPO PBCM10", "device_id": null,
      "t_unix": 1574572530.2,
@@ -13,8 +14,9 @@ offset covariance, the gyroscope bias with its σ, and when they were known (Uni
 recording's start (:func:`~pdr_mag.calibration.prior.aged`: the offset's covariance grows with the days
 passed, the gyro bias gets a power-up's σ), so a stale entry weighs what it deserves and the pipeline's stale
 test and online fits replace it when the data disagree; :meth:`DeviceStore.save` writes atomically (a
-concurrent reader sees the old file or the new one).  A file that cannot be read is reported (``ValueError``
-naming it), never silently replaced.
+concurrent reader sees the old file or the new one). A session's fit that agrees with the entry refines it
+(:func:`accumulate`): the device's sessions add up, as a phone's OS keeps refining its own estimate. A file
+that cannot be read is reported (``ValueError`` naming it), never silently replaced.
 """
 
 from __future__ import annotations
@@ -29,8 +31,11 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+import scipy.stats
+
 from pdr_mag.calibration.model import MagCalibration
-from pdr_mag.calibration.prior import DevicePrior, PriorSettings, aged
+from pdr_mag.calibration.prior import DevicePrior, PriorSettings, aged, is_prior
 
 FORMAT_VERSION = 1
 
@@ -136,8 +141,8 @@ class DeviceStore:
     def save(self, meta: dict, prior: DevicePrior, t_unix: float) -> Path | None:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps
         the stored one: a calibration aged to ``t_unix``, a gyro bias as it was stored — a power-up's σ is
-        added at each load, not at each save); returns the file, or None when the recording names no
-        device."""
+        added at each load, not at each save; a calibration that agrees with the stored one refines it,
+        :func:`accumulate`); returns the file, or None when the recording names no device."""
         found = self._locate(meta)
         if found is None:
             return None
@@ -145,6 +150,8 @@ class DeviceStore:
         stored = None if d is None else _entry(p, d)
         old = None if stored is None else aged(stored[0], t_unix - stored[1], self.settings)
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
+        if prior.calibration is not None and old is not None and old.calibration is not None:
+            cal = accumulate(old.calibration, prior.calibration)
         src = stored[0] if prior.gyro_bias is None and stored is not None else prior
         gyro, std = src.gyro_bias, src.gyro_bias_std
         entry = {
@@ -168,6 +175,31 @@ class DeviceStore:
             Path(tmp).unlink(missing_ok=True)
             raise
         return p
+
+
+#: χ²₃ at 99 %: a session's offset farther than this from the stored one (in the Mahalanobis distance of
+#: their summed covariances) is a changed device (a case's magnet, a repair), not a refinement
+AGREE_CHI2 = float(scipy.stats.chi2.ppf(0.99, 3))
+
+
+def accumulate(stored: MagCalibration, new: MagCalibration) -> MagCalibration:
+    """What the store keeps when a session ends with calibration ``new`` and the entry (aged to now) is
+    ``stored``: ``new`` with its offset the information-weighted mean ``(Σ_s⁻¹ + Σ_n⁻¹)⁻¹ (Σ_s⁻¹ b_s +
+    Σ_n⁻¹ b_n)`` when the two agree (``d² = Δᵀ(Σ_s + Σ_n)⁻¹Δ`` within :data:`AGREE_CHI2`) and share the
+    soft-iron shape; otherwise ``new`` as it is.  Its covariance stays ``new``'s: successive sessions' fits of
+    a phone held alike in the same buildings share part of their error (the building's field along the
+    device's axes, NOTES), so the mean is no surer than the latest fit — it only averages what differs between
+    sessions.  A prior (the phone's estimate, this entry itself left standing) brings nothing new."""
+    so, sn = stored.offset_covariance, new.offset_covariance
+    if is_prior(new) or so is None or sn is None or not np.array_equal(stored.matrix, new.matrix):
+        return new
+    b_s, b_n = stored.offset_array, new.offset_array
+    d = b_n - b_s
+    if not np.any(d) or float(d @ np.linalg.solve(so + sn, d)) > AGREE_CHI2:
+        return new
+    info_s, info_n = np.linalg.inv(so), np.linalg.inv(sn)
+    b = np.linalg.solve(info_s + info_n, info_s @ b_s + info_n @ b_n)
+    return replace(new, offset=tuple(float(v) for v in b))
 
 
 def _entry(p: Path, d: dict) -> tuple[DevicePrior, float]:
