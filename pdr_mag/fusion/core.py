@@ -144,6 +144,18 @@ class Snapshot:
 HISTORY_MIN = 10
 
 
+class HistoryFix(NamedTuple):
+    """A heading taken from past fields (:meth:`FusionCore.fix_heading_from_history`): when (s), from how
+    many fields over how many seconds, the turn it made (deg, counter-clockwise seen from above: the world
+    frame turned onto the fields' heading) and the std it left (deg)."""
+
+    t: float
+    fields: int
+    span_s: float
+    turn_deg: float
+    std_deg: float
+
+
 class Snapshots(Sequence):
     """The :class:`Snapshot` s an :meth:`FusionCore.advance` kept, in order (made on access)."""
 
@@ -283,7 +295,7 @@ class FusionCore:
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
-    def fix_heading_from_history(self, t, azimuth, gradient=None, field=None) -> bool:
+    def fix_heading_from_history(self, t, azimuth, gradient=None, field=None) -> HistoryFix | None:
         """The first heading of a filter that has none (no magnetometer update since the start, or since
         :meth:`forget_heading`), from the fields of the calibration just found: ``azimuth`` (rad) of each
         field at time ``t`` (s) in the filter's frame, which the gyroscope alone has carried, its gradient
@@ -305,10 +317,11 @@ class FusionCore:
         one field's ``σ_h² + σ_c²``.  Taken from :data:`HISTORY_MIN` fields or more spanning two of c's
         correlation times or more; a first fix from the next field would take that one field's error — or,
         when it is disturbed, only a guess — and the next clean field now updates the heading instead, the
-        two weighed by their variances.  Returns whether the heading was set."""
+        two weighed by their variances.  Returns the :class:`HistoryFix` made, or None when the heading was
+        not set."""
         st = self._st[0]
         if st["init"] != 1:
-            return False
+            return None
         t = np.asarray(t, dtype=float).reshape(-1)
         a = np.asarray(azimuth, dtype=float).reshape(-1)
         g = np.zeros((len(t), 3)) if gradient is None else np.asarray(gradient, dtype=float).reshape(-1, 3)
@@ -319,7 +332,7 @@ class FusionCore:
         tau = m.error_tau_s
         t_now = float(max(st["t_gyro"], st["t_acc"]))
         if len(t) < HISTORY_MIN or not np.isfinite(t_now) or t.max() - t.min() < 2.0 * tau:
-            return False
+            return None
         white, corr = np.radians(m.noise_deg) ** 2, np.radians(m.error_std_deg) ** 2
         up = _up_in_device(st["q"])
         drift = t_now - t
@@ -341,8 +354,10 @@ class FusionCore:
         st["cal_g"] = g[latest]
         st["cal_m"] = f[latest]
         st["cal_var"] = float(g[latest] @ st["cal_cov"] @ g[latest])
-        kernel.fix_from_history(self._st, self._p, r, var, float(t_now - t.min()), t_now)
-        return True
+        span = float(t_now - t.min())
+        kernel.fix_from_history(self._st, self._p, r, var, span, t_now)
+        std = float(np.degrees(np.sqrt(min(var, np.pi**2))))
+        return HistoryFix(t_now, len(t), span, float(np.degrees(r)), std)
 
     def forget_heading(self) -> None:
         """The heading so far came from a calibration found wrong and withdrawn (a prior refused): it is

@@ -433,7 +433,8 @@ class HeadingPipeline:
             self._events += [ev for _, _, ev in events]
             self._coverage = float(cov[-1]) if len(cov) else self._coverage
             if self._in_force_changed(before):
-                self._use_calibration()
+                fixed = self._use_calibration()
+                self._events += [] if fixed is None else [fixed]
 
     def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
         """Fuse the span of blocks that starts at sample ``i`` (see the module docstring); returns the index
@@ -480,7 +481,11 @@ class HeadingPipeline:
                 if end < len(t):
                     self.fusion.restore(snapshots[int(starts.searchsorted(end))])
                     batch = batch.head(int(batch.t.searchsorted(t[end])))
-                self._use_calibration()  # after the filter's state (with its reference strength) is put back
+                # after the filter's state (with its reference strength) is put back; the history's heading
+                # after the calibrator's events of its block
+                fixed = self._use_calibration()
+                if fixed is not None:
+                    events.append((math.floor(fixed.t / b), 2, fixed))
             PK.carry_over(kind[:end], xyz[:end], batch.q_wd, self._carry)
         if len(batch):
             batch.diag["coverage"] = PK.rows_coverage(batch.t, b, closed_blk, closed_cov, self._coverage)
@@ -532,12 +537,15 @@ class HeadingPipeline:
         cal, key = self._in_force()
         return cal is not before[0] or key != before[1]
 
-    def _use_calibration(self, restored: bool = False) -> None:
+    def _use_calibration(self, restored: bool = False) -> Event | None:
         """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = ``cal.matrix``; None
         for the identity) for the filter's input, and (unless ``restored`` with the filter's state) the
         filter's :meth:`~pdr_mag.fusion.FusionCore.use_calibration` and the shift the stale test suspects of
         it (:attr:`OnlineCalibrator.suspected_shift`, :meth:`~pdr_mag.fusion.FusionCore.set_suspected_shift`):
-        until the test confirms or drops it, the heading's std counts the turn it would make."""
+        until the test confirms or drops it, the heading's std counts the turn it would make.  A first
+        calibration (none before it) also gives the filter its heading from the calibration's recent fields
+        (:meth:`~pdr_mag.fusion.FusionCore.fix_heading_from_history`); the ``heading_from_history`` event of
+        that is returned, for the caller to put after the calibrator's events of the block (None: none)."""
         cal = self.online.calibration
         old = self._cal_in_use
         self._cal_in_use = cal
@@ -547,14 +555,20 @@ class HeadingPipeline:
             a = cal.matrix
             self._mag_matrix_t = None if (a == _EYE3).all() else a.T
         if restored:
-            return
+            return None
         if cal is not None and not self._calibrations:
             self._calibrations.append((-np.inf, cal))
         self.fusion.use_calibration(cal, old)
+        fix = None
         if cal is not None and old is None:
             # a first calibration: the heading from its recent fields at once (a filter that has one keeps it)
-            self.fusion.fix_heading_from_history(*self.online.gyro_heading_azimuths(cal))
+            fix = self.fusion.fix_heading_from_history(*self.online.gyro_heading_azimuths(cal))
         self.fusion.set_suspected_shift(self.online.suspected_shift)
+        if fix is None:
+            return None
+        data = {"fields": fix.fields, "span_s": round(fix.span_s, 3), "jump_deg": round(fix.turn_deg, 3),
+                "heading_std_deg": round(fix.std_deg, 3)}  # fmt: skip
+        return Event(fix.t, "heading_from_history", data)
 
     def _interference_events(self, batch: EstimateBatch) -> list[Event]:
         """The changes of the interference flag in these rows."""
