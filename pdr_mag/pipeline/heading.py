@@ -434,7 +434,8 @@ class HeadingPipeline:
             self._coverage = float(cov[-1]) if len(cov) else self._coverage
             if self._in_force_changed(before):
                 fixed = self._use_calibration()
-                self._events += [] if fixed is None else [fixed]
+                if fixed is not None:  # after the calibrator's events of its block
+                    self._events.append(fixed)
 
     def _fuse_span(self, kind, t, xyz, blk, i: int, t_end: float) -> int:
         """Fuse the span of blocks that starts at sample ``i`` (see the module docstring); returns the index
