@@ -104,8 +104,7 @@ def _broad_01(**online):
     """BROAD trial 01 (slow rotations, undisturbed, factory-calibrated magnetometer, no place in its meta),
     no calibration given: the pipeline (``online``: OnlineSettings fields), its output and events."""
     from pdr_mag.calibration.online import OnlineSettings
-    from pdr_mag.pipeline import HeadingPipeline
-    from pdr_mag.pipeline.heading import PipelineSettings
+    from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
     from replay.formats import read_recording
 
     rec = read_recording(dataset("broad", "data_mat", "01_undisturbed_slow_rotation_A.mat"))

@@ -2,7 +2,11 @@
 
 :mod:`~pdr_mag.pipeline.heading`
     :class:`HeadingPipeline` (the streaming state machine: merge → calibrate → fuse → online calibration
-    → events) and :class:`PipelineSettings`;
+    → events);
+:mod:`~pdr_mag.pipeline.settings`
+    :class:`PipelineSettings`;
+:mod:`~pdr_mag.pipeline.state`
+    the pipeline's resumable state as JSON;
 :mod:`~pdr_mag.pipeline.streams`
     each stream's pending samples and their merge in time order;
 :mod:`~pdr_mag.pipeline._kernel`
@@ -13,6 +17,8 @@ The filter it drives is :mod:`pdr_mag.fusion` (through its public API), the cali
 """
 
 from pdr_mag.fusion.kinds import KINDS
-from pdr_mag.pipeline.heading import STATE_VERSION, HeadingPipeline, PipelineSettings
+from pdr_mag.pipeline.heading import HeadingPipeline
+from pdr_mag.pipeline.settings import PipelineSettings
+from pdr_mag.pipeline.state import STATE_VERSION
 
 __all__ = ["KINDS", "STATE_VERSION", "HeadingPipeline", "PipelineSettings"]

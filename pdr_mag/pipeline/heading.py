@@ -44,20 +44,16 @@ NaN row, a repeated or backward timestamp, and a stalled sensor's value delivere
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pdr_mag._json import state_float
-from pdr_mag._records import check_numbers, default_settings
+from pdr_mag._records import default_settings
 from pdr_mag.calibration.model import MagCalibration
-from pdr_mag.calibration.online import OnlineCalibrator, OnlineSettings
+from pdr_mag.calibration.online import OnlineCalibrator
 from pdr_mag.calibration.prior import (
     DevicePrior,
-    PriorSettings,
     choose,
     phone_calibration,
     phone_changes,
@@ -66,13 +62,13 @@ from pdr_mag.calibration.prior import (
 )
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
-from pdr_mag.fusion import FusionCore, FusionSettings, Span, heading_reset_events
+from pdr_mag.fusion import FusionCore, Span, heading_reset_events
 from pdr_mag.fusion.kinds import KINDS, MAG, NAMES
 from pdr_mag.pipeline import _kernel as PK
+from pdr_mag.pipeline import state as state_json
+from pdr_mag.pipeline.settings import PipelineSettings, fusion_settings
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
-#: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 8
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
 #: Blocks fused in one speculative span (see the module docstring): the first after a change of calibration,
@@ -81,58 +77,6 @@ _EYE3 = np.eye(3)
 #: blocks (6 s) makes fewer spans than 4 for about the same waste (1 ms less on a swinging walk).
 _SPAN_MIN = 12
 _SPAN_MAX = 32
-
-
-def _fusion_settings(settings, meta: dict):
-    """The fusion settings (defaults when None), with the accelerometer range the recording states
-    (``meta["accel_range_m_s2"]``, per axis) unless the settings give one."""
-    settings = settings or default_settings(FusionSettings)
-    rng = meta.get("accel_range_m_s2")
-    if settings.accel.range == 0.0 and rng is not None:
-        if not (isinstance(rng, int | float) and math.isfinite(rng) and rng > 0):
-            raise ValueError(f"meta: accel_range_m_s2: expected a positive number of m/s², got {rng!r}")
-        settings = replace(settings, accel=replace(settings.accel, range=float(rng)))
-    return settings
-
-
-@dataclass(frozen=True)
-class PipelineSettings:
-    """Settings of :class:`HeadingPipeline`.
-
-    Attributes
-    ----------
-    block_s : float
-        Calibration block length, s: the online calibration may change at each block boundary (the
-        output latency does not depend on it: samples are fused as soon as every stream has passed them).
-    max_lag_s : float
-        :meth:`HeadingPipeline.poll` does not wait for a stream more than this behind the newest sample, s.
-    max_pending : int
-        ``push`` processes what it safely can once this many samples are pending.
-    online : bool
-        Run the online calibrator (refits, stale test, recalibration).  False: the given calibration only.
-    online_settings : OnlineSettings
-        Its settings.
-    fusion : FusionSettings or None
-        Settings of :class:`pdr_mag.fusion.FusionCore` (None: its defaults).
-    keep_mag_calibrated : bool
-        Keep the calibrated magnetometer samples for :meth:`HeadingPipeline.pop_mag_calibrated` (sinks).
-    prior : PriorSettings
-        What is taken from the phone's own estimates in the metadata and how sure they are
-        (:mod:`pdr_mag.calibration.prior`).
-    """
-
-    block_s: float = 0.5
-    max_lag_s: float = 1.0
-    max_pending: int = 20000
-    online: bool = True
-    online_settings: OnlineSettings = field(default_factory=OnlineSettings)
-    fusion: FusionSettings | None = None
-    keep_mag_calibrated: bool = False
-    prior: PriorSettings = field(default_factory=PriorSettings)
-
-    def __post_init__(self):
-        # a group of another class (a dict, say) would fail deep inside a run
-        check_numbers(self, positive=("block_s", "max_lag_s", "max_pending"))
 
 
 class HeadingPipeline:
@@ -189,7 +133,7 @@ class HeadingPipeline:
         except ValueError as exc:
             raise ValueError(f"meta: {exc}") from exc
         if fusion is None:
-            fusion = FusionCore(_fusion_settings(self.settings.fusion, self.meta), self.field)
+            fusion = FusionCore(fusion_settings(self.settings.fusion, self.meta), self.field)
         self.fusion = fusion
         try:
             phone = phone_prior(self.meta, self.settings.prior)
@@ -639,60 +583,12 @@ class HeadingPipeline:
     def get_state(self) -> dict:
         """JSON-serialisable state (resume after a restart with :meth:`set_state` on a pipeline built with
         the same settings and meta).  Pending samples are included; estimates and events not yet
-        polled are not — poll them first."""
-        pend = {}
-        for name, s in self._streams.items():
-            t, x = s.pending()
-            pend[name] = {"t": t.tolist(), "xyz": x.tolist(), "last_t": state_float(s.last_t),
-                          "last_xyz": [state_float(v) for v in s.last_xyz], "repeats": s.repeats}
-        st = {
-            "version": STATE_VERSION,
-            "pending": pend,
-            "done_t": state_float(self._done_t),
-            "dropped": dict(self.dropped),
-            "mag_rows": [state_float(v) for v in self._pend.view(np.float64)],
-            "carry": [state_float(v) for v in self._carry.view(np.float64)],
-            "coverage": self._coverage,
-            "interf": self._interf,
-            "calibrations": [[state_float(t), c.to_dict()] for t, c in self._calibrations],
-            "n_out": self._n_out,
-            "t_first": state_float(self._t_first),
-            "t_last": state_float(self._t_last),
-            "fusion": self.fusion.get_state(),
-            "online": self.online.get_state(),
-            "phone_changes": [[t, list(b)] for t, b in self._phone_changes],
-        }
-        json.dumps(st)  # fail here, not at the caller's, if something is not serialisable
-        return st
+        polled are not — poll them first (:func:`pdr_mag.pipeline.state.to_json`)."""
+        return state_json.to_json(self)
 
     def set_state(self, state: dict) -> None:
         """Restore from :meth:`get_state` (ValueError when the dict is not such a state)."""
-        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
-            raise ValueError(f"state: expected a HeadingPipeline state of version {STATE_VERSION}")
-        try:
-            for name, s in self._streams.items():
-                p = state["pending"][name]
-                t = np.asarray(p["t"], dtype=float)
-                x = np.asarray(p["xyz"], dtype=float).reshape(-1, 3)
-                s.t, s.xyz, s.lo, s.hi = t, x, 0, len(t)
-                s.last_t = float(p["last_t"])
-                s.last_xyz = np.array([float(v) for v in p["last_xyz"]])
-                s.repeats = int(p["repeats"])
-            self._done_t = float(state["done_t"])
-            self.dropped = Counter(state["dropped"])
-            self._pend = np.array([float(v) for v in state["mag_rows"]]).view(PK.MAG_ROW)
-            self._carry.view(np.float64)[:] = [float(v) for v in state["carry"]]
-            self._coverage = float(state["coverage"])
-            self._interf = bool(state["interf"])
-            self._calibrations = [(float(t), MagCalibration.from_dict(c)) for t, c in state["calibrations"]]
-            self._n_out = int(state["n_out"])
-            self._t_first = float(state["t_first"])
-            self._t_last = float(state["t_last"])
-            self.fusion.set_state(state["fusion"])  # with its reference strength
-            self.online.set_state(state["online"])
-            self._phone_changes = [(float(t), tuple(float(v) for v in b)) for t, b in state["phone_changes"]]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"state: malformed ({exc!r})") from exc
+        state_json.from_json(self, state)
         self._use_calibration(restored=True)
         self._out, self._events, self._magcal = [], [], []
 
