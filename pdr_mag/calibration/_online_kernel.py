@@ -300,22 +300,40 @@ def _calibrated(m, c):
 
 
 @njit(cache=True, error_model="numpy")
+def deviates(c0, c1, c2, u, strength, tol, dip_check, dip_deg, dip_tol):
+    """Whether a calibrated field ``(c0, c1, c2)`` deviates from the reference: its strength more than ``tol``
+    from F, or (with a reference dip) its dip ``asin(−c·u / |c||u|)``, against the up vector ``u``, more than
+    ``dip_tol`` degrees from the reference — with the admission bands, a sample the buffer refuses
+    (:func:`consistent`); with the stale test's, one it counts (a device-fixed shift moves both, in
+    proportions that depend on the pose: one may stay within its band while the other does not)."""
+    nm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    if abs(nm - strength) > tol:
+        return True
+    if not dip_check:
+        return False
+    un = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    s = min(max(-(c0 * u[0] + c1 * u[1] + c2 * u[2]) / max(nm * un, 1e-9), -1.0), 1.0)
+    return abs(np.degrees(np.arcsin(s)) - dip_deg) > dip_tol
+
+
+@njit(cache=True, error_model="numpy")
+def deviating(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol):
+    """:func:`deviates` of each calibrated field of ``mag_cal`` (N × 3) with its up vector (N × 3)."""
+    out = np.empty(mag_cal.shape[0], dtype=np.bool_)
+    for k in range(mag_cal.shape[0]):
+        c0, c1, c2 = mag_cal[k, 0], mag_cal[k, 1], mag_cal[k, 2]
+        out[k] = deviates(c0, c1, c2, up[k], strength, tol, dip_check, dip_deg, dip_tol)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def consistent(m, u, c):
     """Whether a sample agrees with the calibration ``c`` (always, when ``c.check`` is off): strength within
     ``strength_tol`` of F, dip ``asin(−M(m − b)·u / |M(m − b)|)`` within ``dip_tol_deg`` of the reference."""
     if not c.check:
         return True
     c0, c1, c2 = _calibrated(m, c)
-    nm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-    if not abs(nm - c.strength) <= c.strength_tol:
-        return False
-    if c.dip_check:
-        un = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-        s = -(c0 * u[0] + c1 * u[1] + c2 * u[2]) / max(nm * un, 1e-9)
-        s = min(max(s, -1.0), 1.0)
-        if not abs(np.degrees(np.arcsin(s)) - c.dip_deg) < c.dip_tol_deg:
-            return False
-    return True
+    return not deviates(c0, c1, c2, u, c.strength, c.strength_tol, c.dip_check, c.dip_deg, c.dip_tol_deg)
 
 
 @njit(cache=True, error_model="numpy")
@@ -401,34 +419,17 @@ STALE_DIP_FACTOR = 2.0
 
 
 @njit(cache=True, error_model="numpy")
-def stale_deviates(c0, c1, c2, u, strength, tol, dip_check, dip_deg, dip_tol):
-    """Whether a calibrated field ``(c0, c1, c2)`` deviates for the stale test: its strength more than ``tol``
-    from F, or (with a reference dip) its dip, against the up vector ``u``, more than ``dip_tol`` degrees from
-    the reference.  A device-fixed shift moves both, in proportions that depend on the pose: one may stay
-    within its band while the other does not (a phone held flat, a shift across the field)."""
-    nm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-    if abs(nm - strength) > tol:
-        return True
-    if not dip_check:
-        return False
-    un = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-    s = min(max(-(c0 * u[0] + c1 * u[1] + c2 * u[2]) / max(nm * un, 1e-9), -1.0), 1.0)
-    return abs(np.degrees(np.arcsin(s)) - dip_deg) > dip_tol
-
-
-@njit(cache=True, error_model="numpy")
 def step_start_index(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol, min_frac, min_n):
     """:func:`pdr_mag.calibration.stale.step_start`'s search (−1: none): the share of samples that
-    :func:`stale_deviates` after ``j`` less the share before it, largest over ``min_n ≤ j ≤ n − min_n``
+    :func:`deviates` after ``j`` less the share before it, largest over ``min_n ≤ j ≤ n − min_n``
     among the ``j`` with the share after at least ``min_frac`` and before below half of it."""
     n = mag_cal.shape[0]
     if n < 2 * min_n:
         return -1
+    d = deviating(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol)
     cum = np.zeros(n + 1)  # deviating samples before each index
     for k in range(n):
-        d = stale_deviates(mag_cal[k, 0], mag_cal[k, 1], mag_cal[k, 2], up[k], strength, tol, dip_check,
-                           dip_deg, dip_tol)
-        cum[k + 1] = cum[k] + d
+        cum[k + 1] = cum[k] + d[k]
     best, best_gain = -1, -np.inf
     for j in range(min_n, n - min_n + 1):
         before = cum[j] / j
@@ -441,7 +442,7 @@ def step_start_index(mag_cal, up, strength, tol, dip_check, dip_deg, dip_tol, mi
 @njit(cache=True, error_model="numpy")
 def stale_precheck(ring, ti, c, p):
     """The ring's samples newer than ``ti − stale_window_s`` (at least 40, spanning 0.6 of the window):
-    ``STALE_TEST`` when the share deviating (:func:`stale_deviates`: from F by more than ``c.stale_tol``, or
+    ``STALE_TEST`` when the share deviating (:func:`deviates`: from F by more than ``c.stale_tol``, or
     from the reference dip by more than :data:`STALE_DIP_FACTOR` × ``dip_tol_deg``) reaches ``stale_min_frac``
     in the window's last third and half of that overall; ``STALE_CLEAR`` otherwise; ``STALE_NONE`` when the
     samples are too few."""
@@ -460,8 +461,8 @@ def stale_precheck(ring, ti, c, p):
         t_min = min(t_min, tk)
         t_max = max(t_max, tk)
         c0, c1, c2 = _calibrated(ring[k].m, c)
-        d = stale_deviates(c0, c1, c2, ring[k].u, c.strength, c.stale_tol, c.dip_check, c.dip_deg,
-                           STALE_DIP_FACTOR * c.dip_tol_deg)
+        d = deviates(c0, c1, c2, ring[k].u, c.strength, c.stale_tol, c.dip_check, c.dip_deg,
+                     STALE_DIP_FACTOR * c.dip_tol_deg)
         dev += d
         if tk > ti - window / 3:
             n_last += 1

@@ -397,14 +397,12 @@ class OnlineCalibrator:
         mc = cal.apply(r["m"])
         f = cal.field_uT if np.isfinite(cal.field_uT) else self.field_ref
         sd = self.sin_dip_ref
-        ok = np.ones(len(r), dtype=bool)
-        nm = np.linalg.norm(mc, axis=1)
-        if f is not None:
-            ok &= np.abs(nm - f) <= s.add_tol_frac * f
-        if sd is not None:
-            un = np.linalg.norm(r["u"], axis=1)
-            dip = np.degrees(np.arcsin(np.clip(-np.einsum("ij,ij->i", mc, r["u"]) / (nm * un), -1.0, 1.0)))
-            ok &= np.abs(dip - np.degrees(np.arcsin(sd))) <= s.add_dip_tol_deg
+        if f is None:
+            ok = np.ones(len(r), dtype=bool)
+        else:
+            dip_deg = 0.0 if sd is None else float(np.degrees(np.arcsin(sd)))
+            ok = ~K.deviating(np.ascontiguousarray(mc), np.ascontiguousarray(r["u"]), float(f),
+                              s.add_tol_frac * f, sd is not None, dip_deg, s.add_dip_tol_deg)  # fmt: skip
         mc, u, n = mc[ok], r["u"][ok], r["n"][ok]
         return r["t"][ok], turned.azimuths(mc, u, n), turned.azimuth_gradients(mc, u, n), mc
 

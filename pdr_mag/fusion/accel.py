@@ -269,7 +269,7 @@ def _averaged_update(s, R, ax, ay, az, t, clipped, p):
             hx[BIAS + m] = -tau * Rb[1, m]
             hy[BIAS + m] = tau * Rb[0, m]
     dx = np.zeros(NX)
-    unknown = s.init < 2 or s.fix_through_tilt  # no heading yet, or one seen through an unsettled tilt
+    unknown = s.init < 2 or s.fix_beyond_linear  # no heading yet, or a first one maybe beyond linear
     update_h(s, dx, hx, aw[0] / na, rv, False, unknown, not linear)
     update_h(s, dx, hy, aw[1] / na, rv, False, unknown, not linear)
     inject(s, dx)

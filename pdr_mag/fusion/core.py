@@ -91,11 +91,14 @@ import scipy.linalg
 
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.refit import robust_spread
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
 from pdr_mag.fusion.detectors import forget_learnt
 from pdr_mag.fusion.kinds import GYRO, check_kinds
+from pdr_mag.fusion.mag import offset_heading_var
+from pdr_mag.fusion.quat import rotation_matrix
 from pdr_mag.fusion.rows import DIAG_NAMES, columns, new_rows
 from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
@@ -334,7 +337,9 @@ class FusionCore:
         if len(t) < HISTORY_MIN or not np.isfinite(t_now) or t.max() - t.min() < 2.0 * tau:
             return None
         white, corr = np.radians(m.noise_deg) ** 2, np.radians(m.error_std_deg) ** 2
-        up = _up_in_device(st["q"])
+        R = np.empty((3, 3))
+        rotation_matrix(st["q"], R)
+        up = R[2]  # the world's up in device coordinates
         drift = t_now - t
         cov = white * np.eye(len(t)) + corr * np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
         cov += float(up @ st["P"][BIAS : BIAS + 3, BIAS : BIAS + 3] @ up) * np.outer(drift, drift)
@@ -346,14 +351,14 @@ class FusionCore:
         var = 1.0 / w.sum()
         mean = var * float(w @ e)
         res = e - mean
-        spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+        spread = robust_spread(e)
         chi2 = float(res @ scipy.linalg.cho_solve(factor, res))
         var *= max(1.0, chi2 / (len(t) - 1), spread**2 / (white + corr))
         latest = int(np.argmax(t))
         r = float(np.angle(np.exp(1j * (centre + mean - st["declination"]))))
         st["cal_g"] = g[latest]
         st["cal_m"] = f[latest]
-        st["cal_var"] = float(g[latest] @ st["cal_cov"] @ g[latest])
+        st["cal_var"] = offset_heading_var(g[latest], st["cal_cov"])
         span = float(t_now - t.min())
         kernel.fix_from_history(self._st, self._p, r, var, span, t_now)
         std = float(np.degrees(np.sqrt(min(var, np.pi**2))))
@@ -494,13 +499,6 @@ class FusionCore:
         self._ref_strength = state.get("reference_strength_uT")
         # the reference field of this object wins over the saved one
         self.set_field(self.field)
-
-
-def _up_in_device(q) -> np.ndarray:
-    """The world's up axis in device coordinates for the attitude ``q`` (device → world, w-first): the third
-    row of its rotation matrix."""
-    w, x, y, z = (float(v) for v in q)
-    return np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
 def heading_reset_events(batch: EstimateBatch) -> list[Event]:

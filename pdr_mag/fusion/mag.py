@@ -103,7 +103,7 @@ saw the field through that tilt, and its heading is off by up to ``tan I`` times
 update undoes that: the accelerometer's corrections of the tilt would carry over to the heading through
 ``P``'s first-order correlation (a 40° tilt error turned a heading 18° off into 87° off on a tyrex walk
 started 20 s in), and the first heading updates after would teach the gyro bias the difference (8 °/s
-there).  So, until the first heading update once the tilt is in the linear range (``fix_through_tilt``), the
+there).  So, until the first heading update once the tilt is in the linear range (``fix_beyond_linear``), the
 heading is a consider state of the accelerometer's updates, as before any fix; and when that update's residual
 is beyond ``LINEAR_RAD`` the heading is set from the field anew (:func:`_set_heading`: the attitude turned
 onto the field's heading and its covariance rows as at the first fix, the gyroscope-only attitude turned with
@@ -215,7 +215,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     if tilt_beyond_linear(P):
         return  # a tilt this uncertain makes the linearised heading row meaningless (the module docstring)
     r = wrap(r - s.c)
-    if s.fix_through_tilt and abs(r) > LINEAR_RAD:  # a first fix through a wrong tilt (the module docstring)
+    if s.fix_beyond_linear and abs(r) > LINEAR_RAD:  # a first fix beyond the linear range (module docstring)
         rotate_world(s.q_gyro, 0.0, 0.0, r)  # the gyroscope-only attitude started from that first fix too
         _set_heading(s, h, r, rv, t)
         return
@@ -230,7 +230,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
             P[TH_Z, TH_Z] += p.mag.reject_inflate_rad**2 * min(t - s.t_reject, 1.0)
         _rejected(s, R, h, r, rv, t, p)
         return
-    s.fix_through_tilt = False
+    s.fix_beyond_linear = False
     s.guess_w = 0.0
     after_run = np.isfinite(s.t_reject_start)
     s.t_reject = np.nan
@@ -439,7 +439,7 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(P, h, rv)
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
-    s.fix_through_tilt = tilt_beyond_linear(P)
+    s.fix_beyond_linear = tilt_beyond_linear(P)
     s.t_mag_update = t
     s.t_cal_start = t
     s.mag_used = True
@@ -476,7 +476,7 @@ def history_fix(s, r, var, span, t, p):
     s.init = 2
     s.guess_w = 0.0
     # a mean this uncertain may be beyond the linear range as well: the first update is then a re-fix
-    s.fix_through_tilt = tilt_beyond_linear(P) or var > LINEAR_RAD**2
+    s.fix_beyond_linear = tilt_beyond_linear(P) or var > LINEAR_RAD**2
     s.t_mag_update = t
     s.t_cal_start = t
     s.mag_used = True
@@ -533,7 +533,7 @@ def _set_heading(s, h, r, rv, t):
     settle_u(s)
     _heading_from_field(s.U, h, 0.0)
     s.guess_w = 0.0
-    s.fix_through_tilt = False
+    s.fix_beyond_linear = False
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     s.reset_jump += r

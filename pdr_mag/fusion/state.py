@@ -78,7 +78,7 @@ STATE = np.dtype(
         ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
         ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
         ("guess_w", np.float64),  # summed weight of the flagged fields in the heading guess (0: no guess)
-        ("fix_through_tilt", np.bool_),  # the first fix may be beyond the linear range (tilt, history)
+        ("fix_beyond_linear", np.bool_),  # the first fix may be beyond the linear range (tilt, history)
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
         ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
