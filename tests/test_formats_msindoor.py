@@ -95,6 +95,24 @@ def test_calibrated_streams_only(tmp_path):
     np.testing.assert_allclose(rec.mag.xyz[0], [20.0, 5.0, -40.0])
 
 
+def test_uncalibrated_accelerometer_when_no_calibrated_one(tmp_path):
+    """A trace that logged only ``TYPE_ACCELEROMETER_UNCALIBRATED`` is read with it (its bias columns are
+    not applied); with both, the calibrated one is read."""
+    lines = FIXTURE.read_text().splitlines()
+    uncal = [ln.replace("\tTYPE_ACCELEROMETER\t", "\tTYPE_ACCELEROMETER_UNCALIBRATED\t").replace(
+        "0.1\t0.2\t", "0.3\t0.4\t").replace("\t3", "\t0.01\t0.02\t0.03\t3") for ln in lines
+        if "\tTYPE_ACCELEROMETER\t" in ln]
+    only = [ln for ln in lines if "\tTYPE_ACCELEROMETER\t" not in ln] + uncal
+    only.sort(key=lambda ln: ln.split("\t")[0] if not ln.startswith("#") else "")
+    f = tmp_path / "uncal.txt"
+    f.write_text("\n".join(only) + "\n")
+    rec = read_recording(f)
+    np.testing.assert_allclose(rec.accel.xyz[0], [0.3, 0.4, 9.8])
+    both = tmp_path / "both.txt"
+    both.write_text("\n".join(lines + uncal) + "\n")
+    np.testing.assert_allclose(read_recording(both).accel.xyz[0], [0.1, 0.2, 9.8])
+
+
 def _write(tmp_path, replace_from, replace_to):
     text = FIXTURE.read_text().replace(replace_from, replace_to, 1)
     f = tmp_path / "trace.txt"

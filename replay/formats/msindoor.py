@@ -6,6 +6,7 @@ Data lines are ``<unix ms> <TAB> TYPE_… <TAB> values…``:
 
 ======================================  ===================================================
 ``TYPE_ACCELEROMETER``                  x, y, z (m/s², Android frame), accuracy
+``TYPE_ACCELEROMETER_UNCALIBRATED``     x, y, z (m/s², no factory bias compensation), bias x, y, z, accuracy
 ``TYPE_GYROSCOPE``                      x, y, z (rad/s), accuracy
 ``TYPE_GYROSCOPE_UNCALIBRATED``         x, y, z (rad/s), drift x, y, z, accuracy
 ``TYPE_MAGNETIC_FIELD``                 x, y, z (µT, calibrated by the OS), accuracy
@@ -17,7 +18,9 @@ Data lines are ``<unix ms> <TAB> TYPE_… <TAB> values…``:
 Android's frame and units are the contract's, so nothing is converted. The raw streams are preferred:
 the magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope from
 ``TYPE_GYROSCOPE_UNCALIBRATED``; the calibrated types are used only when the raw ones are absent (then
-``meta["mag_os_calibrated"]`` / ``meta["gyro_os_calibrated"]`` is True, else False). What the phone states
+``meta["mag_os_calibrated"]`` / ``meta["gyro_os_calibrated"]`` is True, else False). The accelerometer is
+the other way round: ``TYPE_ACCELEROMETER`` (the tilt wants the factory's bias compensation, and no estimate
+of it is learnt here), ``TYPE_ACCELEROMETER_UNCALIBRATED`` only when a trace has no calibrated one. What the phone states
 about its own calibration (:mod:`replay.formats._phone`): the OS's hard-iron estimate (the bias columns of
 ``TYPE_MAGNETIC_FIELD_UNCALIBRATED``) in force at the first magnetometer sample, ``mag_os_bias_uT``, and its
 later changes, ``mag_os_bias_changes`` (one trace of the dataset's 40 changes it, once); the same for the
@@ -73,6 +76,7 @@ _TYPES = {
     "TYPE_MAGNETIC_FIELD_UNCALIBRATED": ("mag", 0, 14),
     "TYPE_MAGNETIC_FIELD": ("mag", 1, 2),
     "TYPE_ACCELEROMETER": ("accel", 0, 1),
+    "TYPE_ACCELEROMETER_UNCALIBRATED": ("accel", 1, 35),
     "TYPE_GYROSCOPE_UNCALIBRATED": ("gyro", 0, 16),
     "TYPE_GYROSCOPE": ("gyro", 1, 4),
 }
