@@ -113,6 +113,20 @@ def test_uncalibrated_accelerometer_when_no_calibrated_one(tmp_path):
     np.testing.assert_allclose(read_recording(both).accel.xyz[0], [0.1, 0.2, 9.8])
 
 
+def test_no_start_time_header_the_first_line_dates_the_trace(tmp_path):
+    """Without ``#\tstartTime``, the first data line's Unix time (ms) is the start and gives the date (so the
+    field model and true north are known where the place is); a time that is no Unix time gives neither."""
+    lines = [ln for ln in FIXTURE.read_text().splitlines() if "startTime" not in ln]
+    f = tmp_path / "nostart.txt"
+    f.write_text("\n".join(lines) + "\n")
+    rec = read_recording(f)
+    assert rec.meta["start_time_unix"] == 1574562661.0 and rec.meta["date"] == "2019-11-24"
+    np.testing.assert_allclose(rec.mag.t, [0.02, 0.06, 0.08])
+    f.write_text("\n".join(ln.replace("15745626610", "10") for ln in lines) + "\n")
+    rec = read_recording(f)
+    assert "date" not in rec.meta and "start_time_unix" not in rec.meta
+
+
 def _write(tmp_path, replace_from, replace_to):
     text = FIXTURE.read_text().replace(replace_from, replace_to, 1)
     f = tmp_path / "trace.txt"

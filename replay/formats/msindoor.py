@@ -27,7 +27,8 @@ later changes, ``mag_os_bias_changes`` (one trace of the dataset's 40 changes it
 gyroscope's drift columns, ``gyro_os_bias_rad_s`` / ``gyro_os_bias_changes``; a bias cell that is NaN or
 infinite, or missing, is counted as ``mag_os_bias:nan`` / ``gyro_os_bias:nan`` (text in a cell makes the line
 garbled, below). The header states no device id. Times are seconds since the header's ``startTime``
-(``meta["start_time_unix"]``). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
+(``meta["start_time_unix"]``; without that header line, the first data line's time when it is a Unix time in
+ms, which gives the date as well). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]``
 (truth for position and segment headings, true north). Samples at the sensor's ``maximumRange`` from the
 header are counted as ``<stream>:saturated``. A line of a type read here with more values than the type has (4
 with the accuracy, 7 for the uncalibrated types, 2 for a waypoint) or with a field that is not a number is
@@ -83,6 +84,14 @@ _MOST = {kind: 7 if kind.endswith("_UNCALIBRATED") else 4 for kind in _TYPES} | 
     "TYPE_WAYPOINT": 2,
     "TYPE_ROTATION_VECTOR": 4,
 }
+
+
+#: Unix times in ms from 2000 to 2100: a data line's time that is one states the trace's date.
+_UNIX_MS = (946_684_800_000.0, 4_102_444_800_000.0)
+
+
+def _is_unix_ms(t_ms: float) -> bool:
+    return _UNIX_MS[0] <= t_ms < _UNIX_MS[1]
 
 
 def detect(path: Path) -> bool:
@@ -251,6 +260,8 @@ def open_source(path) -> RecordingSource:
     for kind, est in estimates.items():
         if kind in chosen.values():  # the raw stream read: its OS estimate is what the file states
             est.to_meta(meta)
+    if "start_time_unix" not in meta and found["t0_ms"] is not None and _is_unix_ms(found["t0_ms"]):
+        meta["start_time_unix"] = found["t0_ms"] / 1000.0  # the times are since the first line's
     if "start_time_unix" in meta:
         meta["date"] = utc_date(meta["start_time_unix"])
     _site_location(p, meta)
