@@ -127,6 +127,17 @@ def test_no_start_time_header_the_first_line_dates_the_trace(tmp_path):
     assert "date" not in rec.meta and "start_time_unix" not in rec.meta
 
 
+def test_a_zero_bias_is_no_estimate(tmp_path):
+    """A phone whose uncalibrated magnetometer states a zero bias has no hard-iron estimate: the raw stream is
+    read, and no ``mag_os_bias_uT`` (so ``replay`` starts without a prior, not from an offset of zero)."""
+    f = _write(tmp_path, "50.0\t-90.0\t-300.0", "50.0\t-90.0\t-300.0")
+    f.write_text(f.read_text().replace("50.0\t-90.0\t-300.0", "0\t0\t0"))
+    rec = read_recording(f)
+    assert rec.meta["mag_os_calibrated"] is False and "mag_os_bias_uT" not in rec.meta
+    assert "mag_os_bias_changes" not in rec.meta and not any(k.startswith("mag_os_bias") for k in rec.dropped)
+    np.testing.assert_allclose(rec.mag.xyz[:, 0], [70.0, 71.0, 72.0])
+
+
 def _write(tmp_path, replace_from, replace_to):
     text = FIXTURE.read_text().replace(replace_from, replace_to, 1)
     f = tmp_path / "trace.txt"

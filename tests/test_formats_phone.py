@@ -96,6 +96,31 @@ def test_os_estimate_blocks_as_samples():
     assert one_dropped["gyro_os_bias:nan"] == int(np.isnan(v[:, 0]).sum())
 
 
+def test_os_estimate_zero_states_no_estimate():
+    """Bias columns of exactly zero are an OS without an estimate: not one, not an odd cell — sample by
+    sample and in blocks alike."""
+    rows = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [50.0, -90.0, -300.0], [0.0, 0.0, 0.0], [51.0, -90.0, -300.0]]
+    t = [0.0, 0.02, 0.04, 0.06, 0.08]
+    for blocks in (False, True):
+        est = OsEstimate("mag_os_bias", Counter())
+        if blocks:
+            est.add_block(np.array(t[:2]), np.array(rows[:2]))
+            est.add_block(np.array(t[2:]), np.array(rows[2:]))
+        else:
+            for ti, r in zip(t, rows, strict=True):
+                est.add(ti, [str(x) for x in r])
+        meta: dict = {}
+        est.to_meta(meta)
+        assert meta == {"mag_os_bias_uT": [50.0, -90.0, -300.0],
+                        "mag_os_bias_changes": [[0.08, 51.0, -90.0, -300.0]]}
+        assert not est.dropped
+    never = OsEstimate("gyro_os_bias", Counter())
+    never.add_block(np.array(t), np.zeros((5, 3)))
+    meta = {}
+    never.to_meta(meta)
+    assert meta == {}
+
+
 def test_os_estimate_nothing_stated():
     meta: dict = {}
     OsEstimate("mag_os_bias", Counter()).to_meta(meta)

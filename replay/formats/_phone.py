@@ -16,7 +16,12 @@ later change ``[t, x, y, z]`` (``t`` the time of the first sample that carries t
 recording's clock) — a few numbers however long the recording. A value that is NaN, infinite or missing
 is an odd sample: counted in the recording's ``dropped`` as ``<key>:nan`` (``key`` = ``mag_os_bias`` or
 ``gyro_os_bias``), and the estimate in force stays as it was (the readers drop a row with a cell of text
-before it gets here, as ``<stream>:non_numeric``).
+before it gets here, as ``<stream>:non_numeric``). A value of exactly (0, 0, 0) is an OS that states no
+estimate (a phone without its own hard-iron calibration reports its raw field with a zero bias; no estimate
+of a real offset comes out at zero to the last bit): it says nothing, like a row without the columns — so a
+phone that never estimated has no ``mag_os_bias_uT`` (the pipeline starts as with no prior instead of from
+an offset of zero: the raw field, hundreds of µT, is not the Earth's), and an OS that drops its estimate
+mid-recording leaves the one in force as it was.
 
 Dates
 -----
@@ -80,6 +85,8 @@ class OsEstimate:
         if len(v) != 3 or not all(math.isfinite(x) for x in v):
             self.dropped[f"{self.key}:nan"] += 1
             return
+        if v == [0.0, 0.0, 0.0]:  # no estimate stated (module docstring)
+            return
         if self.first is None:
             self.first = v
         elif v != self.last:
@@ -94,6 +101,8 @@ class OsEstimate:
         if (~ok).any():
             self.dropped[f"{self.key}:nan"] += int((~ok).sum())
         t, v = t[ok], v[ok]
+        stated = np.any(v != 0.0, axis=1)  # (0, 0, 0): no estimate stated (module docstring)
+        t, v = t[stated], v[stated]
         if len(t) == 0:
             return
         if self.first is None:
