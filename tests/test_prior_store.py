@@ -61,8 +61,18 @@ def test_ageing_grows_the_offset_variance_by_the_drift_rate_and_adds_a_power_up_
     assert a.age_s == 2 * DAY_S
 
 
+def test_a_zero_estimate_states_none():
+    """Android's bias columns of exactly zero: an OS without an estimate — no prior from them (the raw field
+    is not the Earth's); a stream the OS calibrated is still a zero offset."""
+    assert phone_prior({"mag_os_bias_uT": [0.0, 0.0, 0.0], "gyro_os_bias_rad_s": [0.0, 0.0, 0.0]}) is None
+    p = phone_prior({"mag_os_bias_uT": [0.0, 0.0, 0.0], "gyro_os_bias_rad_s": [0.001, 0.0, 0.0]})
+    assert p.calibration is None and p.gyro_bias == (0.001, 0.0, 0.0)
+    p = phone_prior({"mag_os_bias_uT": [0.0, 0.0, 0.0], "mag_os_calibrated": True})
+    assert p.calibration.offset == (0.0, 0.0, 0.0)
+
+
 def test_choose_takes_the_surer_part_from_each_source():
-    phone = phone_prior({"mag_os_bias_uT": [0.0, 0.0, 0.0], "gyro_os_bias_rad_s": [0.0, 0.0, 0.0]})
+    phone = phone_prior({"mag_os_bias_uT": [0.5, -0.5, 0.0], "gyro_os_bias_rad_s": [0.001, 0.0, 0.0]})
     fresh = aged(DevicePrior(calibration=_stored_cal(0.5), source="store"), 600.0)  # 10 min old: ≈ 1.1 µT
     old = aged(DevicePrior(calibration=_stored_cal(0.5), source="store"), 3 * DAY_S)  # ≈ 23 µT
     c = choose(phone, fresh)

@@ -149,23 +149,30 @@ def phone_changes(meta: dict) -> list[tuple[float, tuple]]:
     return sorted(out)
 
 
+def _stated(v: np.ndarray | None) -> np.ndarray | None:
+    """An OS estimate, None for (0, 0, 0): no estimate stated."""
+    return None if v is None or not np.any(v != 0.0) else v
+
+
 def phone_prior(meta: dict, settings: PriorSettings | None = None) -> DevicePrior | None:
     """The phone's own calibration as the recording's ``meta`` states it (None when it states none).
 
     ``mag_os_bias_uT`` gives the offset, ``mag_os_calibrated`` a zero offset (the stream is already
     corrected), each with ``phone_offset_std_uT``; ``gyro_os_bias_rad_s`` / ``gyro_os_calibrated`` the gyro
-    bias with ``phone_gyro_bias_std``.  A malformed value is a ``ValueError`` naming the key."""
+    bias with ``phone_gyro_bias_std``.  An estimate of exactly (0, 0, 0) is an OS that states none
+    (INTERFACE.md; :mod:`replay.formats._phone`), as if the key were absent.  A malformed value is a
+    ``ValueError`` naming the key."""
     s = settings or PriorSettings()
     if not s.use_phone:
         return None
     cal = None
-    bias = _vector(meta, "mag_os_bias_uT")
+    bias = _stated(_vector(meta, "mag_os_bias_uT"))
     if bias is None and meta.get("mag_os_calibrated") is True:
         bias = np.zeros(3)
     if bias is not None:
         sd = s.phone_offset_std_uT
         cal = phone_calibration(bias, (sd, sd, sd))
-    gyro = _vector(meta, "gyro_os_bias_rad_s")
+    gyro = _stated(_vector(meta, "gyro_os_bias_rad_s"))
     if gyro is None and meta.get("gyro_os_calibrated") is True:
         gyro = np.zeros(3)
     if cal is None and gyro is None:
