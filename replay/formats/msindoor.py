@@ -20,31 +20,38 @@ magnetometer from ``TYPE_MAGNETIC_FIELD_UNCALIBRATED`` and the gyroscope from ``
 the calibrated types are used only when the raw ones are absent (then ``meta["mag_os_calibrated"]`` /
 ``meta["gyro_os_calibrated"]`` is True, else False). The accelerometer is the other way round:
 ``TYPE_ACCELEROMETER`` (the tilt wants the factory's bias compensation, and no estimate of it is learnt here),
-``TYPE_ACCELEROMETER_UNCALIBRATED`` only when a trace has no calibrated one. What the phone states about its
-own calibration (:mod:`replay.formats._phone`): the OS's hard-iron estimate (the bias columns of
-``TYPE_MAGNETIC_FIELD_UNCALIBRATED``) in force at the first magnetometer sample that states one (bias columns
-of exactly zero state none), ``mag_os_bias_uT``, and its later changes, ``mag_os_bias_changes`` (one trace of
-the dataset's 40 changes it, once); the same for the gyroscope's drift columns, ``gyro_os_bias_rad_s`` /
-``gyro_os_bias_changes``; a bias cell that is NaN or infinite, or missing, is counted as ``mag_os_bias:nan`` /
-``gyro_os_bias:nan`` (text in a cell makes the line garbled, below). The header states no device id. Times are
-seconds since the header's ``startTime`` (``meta["start_time_unix"]``; without that header line, the first
-data line's time when it is a Unix time in ms, which gives the date as well). The surveyor's waypoints go to
-``meta["waypoints"]`` as ``[t, x_m, y_m]`` (truth for position and segment headings, true north). Samples at
-the sensor's ``maximumRange`` from the header are counted as ``<stream>:saturated``. A line of a type read
-here with more values than the type has (4 with the accuracy, 7 for the uncalibrated types, 2 for a waypoint)
-or with a field that is not a number is dropped and counted (``<stream>:extra_fields``,
+``TYPE_ACCELEROMETER_UNCALIBRATED`` only when a trace has no calibrated one.
+
+What the phone states about its own calibration (:mod:`replay.formats._phone`): the OS's hard-iron estimate
+(the bias columns of ``TYPE_MAGNETIC_FIELD_UNCALIBRATED``) in force at the first magnetometer sample that
+states one (bias columns of exactly zero state none), ``mag_os_bias_uT``, and its later changes,
+``mag_os_bias_changes`` (one trace of the dataset's 40 changes it, once); the same for the gyroscope's drift
+columns, ``gyro_os_bias_rad_s`` / ``gyro_os_bias_changes``; a bias cell that is NaN or infinite, or missing,
+is counted as ``mag_os_bias:nan`` / ``gyro_os_bias:nan`` (text in a cell makes the line garbled, below). The
+header states no device id. Times are seconds since the header's ``startTime`` (``meta["start_time_unix"]``;
+without that header line, the first data line's time when it is a Unix time in ms, which gives the date as
+well). The surveyor's waypoints go to ``meta["waypoints"]`` as ``[t, x_m, y_m]`` (truth for position and
+segment headings, true north).
+
+Samples at the sensor's ``maximumRange`` from the header are counted as ``<stream>:saturated``. A line of a
+type read here with more values than the type has (4 with the accuracy, 7 for the uncalibrated types, 2 for a
+waypoint) or with a field that is not a number is dropped and counted (``<stream>:extra_fields``,
 ``<stream>:non_numeric``; ``waypoint:…``); one with fewer than the x, y, z (x, y) it needs is a truncated
-file. The phone's own fusion (``TYPE_ROTATION_VECTOR``) becomes ``references["os"]``
+file.
+
+The phone's own fusion (``TYPE_ROTATION_VECTOR``) becomes ``references["os"]``
 (:mod:`replay.formats._attitude`: in the pipeline's north, i.e. turned by the WMM declination when the map
 gives the position); its lines are garbled like the others (more than x, y, z and the accuracy:
 ``os:extra_fields``; a field not a number: ``os:non_numeric``), and one with a value NaN or missing is counted
-as ``os:nan``. Other line types (Wi-Fi, beacons, …) are skipped. Choosing the streams needs the whole file
-(and the header's ``endTime``, the waypoints and the OS's estimates are spread over it): a first pass reads it
-without keeping samples (but the waypoints, the rotation vectors and the estimates' changes), the second
-streams the chosen types. When the floor's ``geojson_map.json`` is beside ``path_data_files/`` (the dataset's
-layout), the centre of its WGS84 bounding box gives ``latitude_deg``/``longitude_deg`` (so the field model,
-and true north, are known) and ``map_bbox_deg`` = [lat_min, lon_min, lat_max, lon_max] (the waypoints' origin
-is its south-west corner). """
+as ``os:nan``. Other line types (Wi-Fi, beacons, …) are skipped.
+
+Choosing the streams needs the whole file (and the header's ``endTime``, the waypoints and the OS's estimates
+are spread over it): a first pass reads it without keeping samples (but the waypoints, the rotation vectors
+and the estimates' changes), the second streams the chosen types. When the floor's ``geojson_map.json`` is
+beside ``path_data_files/`` (the dataset's layout), the centre of its WGS84 bounding box gives
+``latitude_deg``/``longitude_deg`` (so the field model, and true north, are known) and ``map_bbox_deg`` =
+[lat_min, lon_min, lat_max, lon_max] (the waypoints' origin is its south-west corner).
+"""
 
 from __future__ import annotations
 
