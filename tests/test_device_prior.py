@@ -88,6 +88,18 @@ def test_a_wrong_phone_estimate_is_a_prior_the_data_replace(walk):
     assert np.median(e) < 4.0  # measured 2.2° (from a cold start 1.4°: the bias taught meanwhile fades)
 
 
+def test_a_phone_stating_a_zero_bias_starts_as_with_no_estimate(walk):
+    """Android's bias columns of exactly zero: the OS has no estimate (INTERFACE.md).  Taken as a prior of a
+    zero offset, the raw field (≈ 320 µT) would be flagged until that prior was refused; read as none, the
+    run is the cold start's, row for row (both in this process: compared bitwise)."""
+    meta = {**walk.meta, "mag_os_bias_uT": [0.0, 0.0, 0.0], "gyro_os_bias_rad_s": [0.0, 0.0, 0.0]}
+    pipe, rows, _ = _run(walk, meta)
+    assert pipe.prior is None
+    _, cold, _ = _run(walk, meta, settings=NO_PHONE)
+    np.testing.assert_array_equal(rows.heading_deg, cold.heading_deg)
+    np.testing.assert_array_equal(rows.heading_std_deg, cold.heading_std_deg)
+
+
 def test_the_phones_gyro_drift_estimate_starts_the_bias(walk):
     """The OS's drift estimate is the filter's first bias (with the OS's σ): the bias is right from the
     first output row instead of being learnt from the magnetometer over tens of seconds."""
