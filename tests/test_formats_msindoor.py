@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -136,6 +137,28 @@ def test_a_zero_bias_is_no_estimate(tmp_path):
     assert rec.meta["mag_os_calibrated"] is False and "mag_os_bias_uT" not in rec.meta
     assert "mag_os_bias_changes" not in rec.meta and not any(k.startswith("mag_os_bias") for k in rec.dropped)
     np.testing.assert_allclose(rec.mag.xyz[:, 0], [70.0, 71.0, 72.0])
+
+
+def _floor(tmp_path, coords) -> Path:
+    """The fixture at ``<floor>/path_data_files/`` with a ``geojson_map.json`` of one polygon beside it."""
+    floor = tmp_path / "site" / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    geo = {"type": "FeatureCollection",
+           "features": [{"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [coords]}}]}
+    (floor / "geojson_map.json").write_text(json.dumps(geo))
+    f = floor / "path_data_files" / "trace.txt"
+    f.write_text(FIXTURE.read_text())
+    return f
+
+
+def test_the_floor_map_gives_the_place_only_in_degrees(tmp_path):
+    """A map in longitude and latitude gives the place (its box's centre); one drawn in metres (a box of
+    tens of units) gives none, though its numbers lie within ±90 / ±180."""
+    f = _floor(tmp_path / "deg", [[120.13, 30.30], [120.1325, 30.30], [120.1325, 30.304], [120.13, 30.304]])
+    meta = read_recording(f).meta
+    assert meta["latitude_deg"] == pytest.approx(30.302) and meta["longitude_deg"] == pytest.approx(120.13125)
+    f = _floor(tmp_path / "m", [[0.0, 0.0], [80.0, 0.0], [80.0, 60.0], [0.0, 60.0]])
+    assert "latitude_deg" not in read_recording(f).meta
 
 
 def _write(tmp_path, replace_from, replace_to):

@@ -130,9 +130,15 @@ def _header(line: str, meta: dict, ranges: dict) -> None:
             pass
 
 
+#: A floor map's bounding box spans at most this many degrees (11 km): wider, its coordinates are no
+#: longitude and latitude (a map drawn in metres) and it gives no place.
+MAP_SPAN_DEG = 0.1
+
+
 def _site_location(path: Path, meta: dict) -> None:
     """Position from the floor's ``geojson_map.json`` (``<floor>/geojson_map.json`` beside
-    ``path_data_files/``): the centre of its WGS84 bounding box, whose south-west corner is the map origin."""
+    ``path_data_files/``): the centre of its WGS84 bounding box, whose south-west corner is the map origin
+    (none when the box spans more than :data:`MAP_SPAN_DEG`)."""
     geo = path.parent.parent / "geojson_map.json"
     if not geo.is_file():
         return
@@ -153,7 +159,8 @@ def _site_location(path: Path, meta: dict) -> None:
 
     for f in features if isinstance(features, list) else []:
         walk((f.get("geometry") or {}).get("coordinates"))
-    if lats and -90 <= min(lats) <= max(lats) <= 90 and -180 <= min(lons) <= max(lons) <= 180:
+    if (lats and -90 <= min(lats) <= max(lats) <= 90 and -180 <= min(lons) <= max(lons) <= 180
+            and max(max(lats) - min(lats), max(lons) - min(lons)) <= MAP_SPAN_DEG):
         meta["latitude_deg"] = (min(lats) + max(lats)) / 2
         meta["longitude_deg"] = (min(lons) + max(lons)) / 2
         meta["map_bbox_deg"] = [min(lats), min(lons), max(lats), max(lons)]
