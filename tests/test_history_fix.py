@@ -53,6 +53,29 @@ def test_the_heading_is_the_fields_mean_azimuth_at_the_last_sample():
     assert not core.fix_heading_from_history(t, az + 1.0)  # it has a heading now
 
 
+def test_a_first_calibrations_fields_give_the_share_the_detectors_would_flag():
+    """Before a first calibration the detectors judge no field; its recent fields give them the share they
+    would have flagged: 60 of 100 fields 30 µT stronger than the reference (beyond max(10 µT, 0.3 F)), the
+    rest right, over 20 s — a share of 0.6 weighing 20 s of the environment's time constant, and c's
+    consider variance no longer nil.  A filter whose detectors have judged fields is left alone."""
+    core, t_now = _gyro_only_core()
+    st = core.get_state()["state"]
+    f_ref, dip_ref = st["f_ref"], st["dip_ref"]
+    assert np.isfinite(f_ref) and np.isfinite(dip_ref)
+    i = np.radians(dip_ref)
+    clean = f_ref * np.array([0.0, np.cos(i), -np.sin(i)])  # a phone lying flat: device z is up
+    fields = np.array([clean * (f_ref + 30.0) / f_ref] * 60 + [clean] * 40)
+    up = np.tile([0.0, 0.0, 1.0], (100, 1))
+    t = np.linspace(t_now - 20.0, t_now, 100)
+    assert st["u_var"] == 0.0
+    assert core.seed_flag_share(t, fields, up) == 0.6
+    st = core.get_state()["state"]
+    assert st["flag_share"] == 0.6 and st["u_var"] > 0.0
+    tau = core.settings.mag.env_tau_s
+    assert abs(st["flag_w"] - (1.0 - np.exp(-20.0 / tau))) < 1e-12
+    assert core.seed_flag_share(t, fields, up) is None
+
+
 def test_a_disturbance_as_the_first_calibration_is_found_does_not_lose_the_heading():
     """Simulated walks without a calibration (modes as ``replay`` without one): right after the first fit is
     accepted the walker passes steel for 12 s (25 µT along the field, ±20 µT across it, flagged).  Taking the

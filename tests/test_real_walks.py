@@ -349,3 +349,22 @@ def test_a_backend_started_20_s_into_a_walk_does_not_fail(walk, mode, day_file):
     window = (max(score.WINDOW[0], start + 5.0 - t0), score.WINDOW[1])
     mean = score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0, window=window)["heading_err_mean"]
     assert mean < 45.0, f"{walk} mode {mode} from 20 s: mean |error| {mean:.1f}°"
+
+
+def test_a_first_calibration_next_to_magnets_counts_the_place(day_file):
+    """A backend started 30 s into Nexus5_Dist_AR, no calibration: the first fit comes 21 s later, its first
+    heading from a field next to the magnets 127° off.  The filter's detectors had judged no field before
+    (none was calibrated) and weighed that heading as a clean place's, at σ 10°: 2 733 frames 45° off at
+    σ ≤ 20° until the field came back 46 s later.  Now the recent fields the fit calibrates give the share the
+    detectors would have flagged (0.58) and its consider part: σ 21° from that heading on, no such frame."""
+    score = _scorer()
+    d = dataset("tyrex-pdrcsv", "Thibaud_Nexus5_Dist_AR")
+    b, start = _restarted("Thibaud_Nexus5_Dist_AR", 30.0, None)
+    t_ref, q_ref = score.C.read_quat_csv(str(d / "truth.csv"))
+    ok = np.all(np.isfinite(q_ref), axis=1) & (t_ref >= start + 5.0) & (t_ref <= b.t[-1])
+    qi, valid = score.C.slerp_at(b.t, b.q_wd, t_ref[ok])
+    _, head, _ = score.error_angles(qi[valid], q_ref[ok][valid])
+    sd = np.interp(t_ref[ok][valid], b.t, b.heading_std_deg)
+    assert np.sum(np.abs(head) > 45.0) > 2000  # the heading itself is as wrong as before: the σ says so
+    kept = int(np.sum((np.abs(head) > 45.0) & (sd <= 20.0)))
+    assert kept == 0, f"{kept} frames 45° off at σ ≤ 20°"

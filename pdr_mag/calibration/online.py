@@ -374,6 +374,23 @@ class OnlineCalibrator:
         reason = f"the field turned {spread:.0f}° against the gyroscope (above {bound:.0f}°)"
         return cal.with_acceptance(False, (*cal.reasons, reason))
 
+    def gyro_heading_fields(self, cal: MagCalibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The recent samples (the stale test's ring: the last ``stale_window_s``, at up to
+        ``stale_rate_hz``) taken while the filter's heading was the gyroscope's alone (since
+        ``_gyro_heading_t``), every one of them, calibrated with ``cal``: their times, fields (N × 3, µT) and
+        up vectors (N × 3), device frame — what the place was like before any calibrated field reached the
+        filter's detectors (:meth:`pdr_mag.fusion.FusionCore.seed_flag_share`)."""
+        r = self._gyro_heading_ring()
+        return r["t"], cal.apply(r["m"]), r["u"]
+
+    def _gyro_heading_ring(self) -> np.ndarray:
+        """The ring's samples since ``_gyro_heading_t`` with the filter's north known."""
+        ring = self._ring
+        if not np.isfinite(ring["t"]).any():
+            return ring[:0]
+        r = self._recent(float(np.nanmax(ring["t"])))
+        return r[(r["t"] >= self._gyro_heading_t) & np.all(np.isfinite(r["n"]), axis=1)]
+
     def gyro_heading_azimuths(self, cal: MagCalibration) -> tuple[np.ndarray, ...]:
         """The recent samples (the stale test's ring: the last ``stale_window_s``, at up to ``stale_rate_hz``)
         taken while the filter's heading was the gyroscope's alone (since ``_gyro_heading_t``), calibrated
@@ -385,14 +402,9 @@ class OnlineCalibrator:
         admit under ``cal`` count — the strength within ``add_tol_frac`` of the fit's field and, with a
         reference dip, the dip within ``add_dip_tol_deg`` of it: a disturbance turns the field as it
         changes its strength."""
-        ring = self._ring
-        none = np.empty(0), np.empty(0), np.empty((0, 3)), np.empty((0, 3))
-        if not np.isfinite(ring["t"]).any():
-            return none
-        r = self._recent(float(np.nanmax(ring["t"])))
-        r = r[(r["t"] >= self._gyro_heading_t) & np.all(np.isfinite(r["n"]), axis=1)]
+        r = self._gyro_heading_ring()
         if not len(r):
-            return none
+            return np.empty(0), np.empty(0), np.empty((0, 3)), np.empty((0, 3))
         s = self.settings
         mc = cal.apply(r["m"])
         f = cal.field_uT if np.isfinite(cal.field_uT) else self.field_ref

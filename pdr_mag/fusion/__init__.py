@@ -49,7 +49,8 @@ consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gy
     ``V_u = [max(k_u² d_seen² − k_e² d_env², 0) + k_f s_flag d_tol² / 2] / B_h²``
     (``k_u, k_f`` the ``uncertainty`` settings, ``k_e`` ``mag.env_k``: the unseen turning
     component of the detectors' deviations and of the disturbances behind the recent flagged share
-    ``s_flag``); it never changes the estimate, only the reported std.
+    ``s_flag``, which a first calibration's recent fields set where the detectors judged none:
+    :meth:`FusionCore.seed_flag_share`); it never changes the estimate, only the reported std.
 
 Modules
 -------

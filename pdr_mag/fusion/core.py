@@ -298,6 +298,46 @@ class FusionCore:
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
+    def seed_flag_share(self, t, field, up) -> float | None:
+        """The share of flagged samples (the consider part's weight of the detectors' tolerance,
+        :func:`pdr_mag.fusion.gyro.unmodelled_var`) from the fields the filter had no calibration for: the
+        recent ones a first calibration now calibrates — times ``t`` (s), fields (N × 3, µT) and up vectors
+        (N × 3), device frame (:meth:`pdr_mag.calibration.OnlineCalibrator.gyro_heading_fields`).
+
+        The detectors judge calibrated fields only, so a filter started without a calibration has seen none
+        when its first comes: its first heading was weighed as if the place were clean, and next to steel it
+        could be 120° off at σ 10° (a tyrex walk restarted 30 s in).  Each field is flagged here as the
+        detectors' reference bands would (strength beyond ``max(tol_uT, tol_rel F_ref)`` of the reference
+        ``F_ref``, dip beyond ``tol_deg`` of the reference dip where one is known), the share weighted as
+        the span's worth of ``mag.env_tau_s``; the next samples carry it on.  Only for a filter whose
+        detectors have seen no field; returns the share set, or None."""
+        st = self._st[0]
+        t = np.asarray(t, dtype=float).reshape(-1)
+        f = np.asarray(field, dtype=float).reshape(-1, 3)
+        u = np.asarray(up, dtype=float).reshape(-1, 3)
+        ok = np.isfinite(t) & np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(u), axis=1)
+        t, f, u = t[ok], f[ok], u[ok]
+        f_ref, dip_ref = float(st["f_ref"]), float(st["dip_ref"])
+        if np.isfinite(st["t_flag"]) or not len(t) or not f_ref > 0.0:
+            return None
+        det = self.settings.interference
+        tol_f = max(det.strength.tol_uT, det.strength.tol_rel * f_ref)
+        strength = np.linalg.norm(f, axis=1)
+        flagged = np.abs(strength - f_ref) > tol_f
+        tol_dip = 0.0
+        if np.isfinite(dip_ref):
+            tol_dip = det.dip.tol_deg
+            cos_up = np.sum(f * u, axis=1) / (strength * np.linalg.norm(u, axis=1))
+            dip = np.degrees(np.arcsin(np.clip(-cos_up, -1.0, 1.0)))
+            flagged |= np.abs(dip - dip_ref) > tol_dip
+        share = float(np.mean(flagged))
+        st["flag_share"] = share
+        st["flag_w"] = -np.expm1(-(t.max() - t.min()) / self.settings.mag.env_tau_s)
+        st["t_flag"] = t.max()
+        st["flag_d2"] = tol_f**2 + (f_ref * np.radians(tol_dip)) ** 2
+        kernel.refresh_unmodelled(self._st, self._p)
+        return share
+
     def fix_heading_from_history(self, t, azimuth, gradient=None, field=None) -> HistoryFix | None:
         """The first heading of a filter that has none (no magnetometer update since the start, or since
         :meth:`forget_heading`), from the fields of the calibration just found: ``azimuth`` (rad) of each

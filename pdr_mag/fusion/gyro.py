@@ -167,13 +167,18 @@ def unmodelled_var(s, p):
     ``V_u = [max(k_u² d_seen² − k_e² d_env², 0) + k_f · s_flag · d_tol² / 2] / B_h²`` (``k_u``, ``k_f``
     ``uncertainty.env_k``, ``uncertainty.flag_k``, ``k_e`` ``mag.env_k``; ``d_seen²`` the environment level of
     the samples seen, ``d_env²`` the filter's, which starts from a prior; ``s_flag`` the recent share of
-    flagged samples, ``d_tol`` the detectors' tolerance as a disturbance)."""
-    if not s.bh_ref > 0.0:
+    flagged samples, ``d_tol`` the detectors' tolerance as a disturbance; ``B_h`` the local reference's
+    horizontal strength, or until the detectors have learnt it the reference field's ``F_ref cos I_ref``
+    (``F_ref`` while its dip is unknown): the first fix of a start is made before they learn)."""
+    b = s.bh_ref
+    if not b > 0.0:
+        b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
+    if not b > 0.0:
         return 0.0
     v = max(p.uncertainty.env_k**2 * s.env_seen2 - p.mag.env_k**2 * s.env_d2, 0.0)
     if p.uncertainty.flag_k > 0.0 and s.flag_share > 0.0:
         v += p.uncertainty.flag_k * s.flag_share * 0.5 * s.flag_d2
-    return v / (s.bh_ref * s.bh_ref)
+    return v / (b * b)
 
 
 @njit(cache=True, error_model="numpy")

@@ -151,6 +151,14 @@ def fix_from_history(state, params, r, var, span, t):
     mag.history_fix(state[0], r, var, span, t, params[0])
 
 
+@njit(cache=True, error_model="numpy")
+def refresh_unmodelled(state, params):
+    """c's unmodelled variance ``u_var`` (:func:`pdr_mag.fusion.gyro.unmodelled_var`) anew, after its inputs
+    were set outside the loop (:meth:`pdr_mag.fusion.FusionCore.seed_flag_share`)."""
+    s = state[0]
+    s.u_var = gyro.unmodelled_var(s, params[0])
+
+
 # numba checks a cached function against its own file only: empty the caches when any of these changed
 _jit_cache.refresh_if_changed(
     (sys.modules[__name__], *detectors.SOURCES, kinds, state, rows, eskf, gyro, accel, mag), "fusion"

@@ -506,7 +506,9 @@ class HeadingPipeline:
         self.fusion.use_calibration(cal, old)
         fix = None
         if cal is not None and old is None:
-            # a first calibration: the heading from its recent fields at once (a filter that has one keeps it)
+            # a first calibration: the place its recent fields show, and the heading from them at once (a
+            # filter that has one keeps it)
+            self.fusion.seed_flag_share(*self.online.gyro_heading_fields(cal))
             fix = self.fusion.fix_heading_from_history(*self.online.gyro_heading_azimuths(cal))
         self.fusion.set_suspected_shift(self.online.suspected_shift)
         if fix is None:
