@@ -2,7 +2,7 @@
 
 The walks of ``../shared/datasets/tyrex-pdrcsv`` all start with the walker standing still in an undisturbed
 spot.  A PDR backend restarts its filter wherever its user is: running, swinging the phone, next to steel.
-Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 20 s by default), in
+Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 10, 20, 30 s by default), in
 mode a (the day's calibration file, as a backend keeps it across restarts) and mode b (no calibration), and
 scored by the shared scorer as ``heading.py`` scores (``score_arrays``: mean |heading error| against motion
 capture, frames across an estimate gap > 1 s dropped) with its window's start moved: from the scorer's own
@@ -107,7 +107,7 @@ def table(results: list[dict], starts) -> list[str]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--starts", type=float, nargs="+", default=[0.0, 5.0, 20.0])
+    ap.add_argument("--starts", type=float, nargs="+", default=[0.0, 5.0, 10.0, 20.0, 30.0])
     ap.add_argument("--walks", default=None, help="comma-separated globs on the walk names")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--write-results", action="store_true")
