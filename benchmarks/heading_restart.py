@@ -1,14 +1,14 @@
 """Heading when the filter starts late: every tyrex walk replayed from S seconds in (a backend restarted).
 
 The walks of ``../shared/datasets/tyrex-pdrcsv`` all start with the walker standing still in an undisturbed
-spot.  A PDR backend restarts its filter wherever its user is: running, swinging the phone, next to steel.
-Here each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 10, 20, 30 s by default), in
+spot. A PDR backend restarts its filter wherever its user is: running, swinging the phone, next to steel. Here
+each walk is replayed with the first S seconds of every stream dropped (S = 0, 5, 10, 20, 30 s by default), in
 mode a (the day's calibration file, as a backend keeps it across restarts) and mode b (no calibration), and
 scored by the shared scorer as ``heading.py`` scores (``score_arrays``: mean |heading error| against motion
 capture, frames across an estimate gap > 1 s dropped) with its window's start moved: from the scorer's own
-start (5 s after the motion capture's ``t0``) for S = 0, so that row is ``heading.py``'s; for S > 0 from
-5 s after the restart (the recording's first sample + S + 5 s) when that is later, to the scorer's end
-(120 s).  The σ columns are over the same frames (``heading.Truth.frames`` with the same window).
+start (5 s after the motion capture's ``t0``) for S = 0, so that row is ``heading.py``'s; for S > 0 from 5 s
+after the restart (the recording's first sample + S + 5 s) when that is later, to the scorer's end (120 s).
+The σ columns are over the same frames (``heading.Truth.frames`` with the same window).
 
 Per start and mode: mean / median over walks of the mean |heading error|, walks above 20° / 45°, the pooled
 share of frames within 2σ of ``heading_std_deg``, walks with more than 10 % of their frames beyond 3σ, and
