@@ -90,6 +90,7 @@ import numpy as np
 import scipy.linalg
 
 from pdr_mag._records import settings_record
+from pdr_mag.calibration._online_kernel import deviating
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.refit import robust_spread
 from pdr_mag.estimates import EstimateBatch, Event
@@ -308,7 +309,8 @@ class FusionCore:
         when its first comes: its first heading was weighed as if the place were clean, and next to steel it
         could be 120° off at σ 10° (a tyrex walk restarted 30 s in).  Each field is flagged here as the
         detectors' reference bands would (strength beyond ``max(tol_uT, tol_rel F_ref)`` of the reference
-        ``F_ref``, dip beyond ``tol_deg`` of the reference dip where one is known), the share weighted as
+        ``F_ref``, dip beyond ``tol_deg`` of the reference dip where one is known: the calibrator's
+        :func:`~pdr_mag.calibration._online_kernel.deviating` with those bands), the share weighted as
         the span's worth of ``mag.env_tau_s``; the next samples carry it on.  Only for a filter whose
         detectors have seen no field; returns the share set, or None."""
         st = self._st[0]
@@ -322,14 +324,9 @@ class FusionCore:
             return None
         det = self.settings.interference
         tol_f = max(det.strength.tol_uT, det.strength.tol_rel * f_ref)
-        strength = np.linalg.norm(f, axis=1)
-        flagged = np.abs(strength - f_ref) > tol_f
-        tol_dip = 0.0
-        if np.isfinite(dip_ref):
-            tol_dip = det.dip.tol_deg
-            cos_up = np.sum(f * u, axis=1) / (strength * np.linalg.norm(u, axis=1))
-            dip = np.degrees(np.arcsin(np.clip(-cos_up, -1.0, 1.0)))
-            flagged |= np.abs(dip - dip_ref) > tol_dip
+        tol_dip = det.dip.tol_deg if np.isfinite(dip_ref) else 0.0
+        flagged = deviating(np.ascontiguousarray(f), np.ascontiguousarray(u), f_ref, tol_f,
+                            bool(np.isfinite(dip_ref)), dip_ref, tol_dip)  # fmt: skip
         share = float(np.mean(flagged))
         st["flag_share"] = share
         st["flag_w"] = -np.expm1(-(t.max() - t.min()) / self.settings.mag.env_tau_s)

@@ -319,6 +319,14 @@ def offset_heading_var(g, C):
 
 
 @njit(cache=True, error_model="numpy")
+def _change_of(D, e, x, y, z):
+    """``dm = D m + e``: how a noted calibration change moves the calibrated field ``m = (x, y, z)``."""
+    return (D[0, 0] * x + D[0, 1] * y + D[0, 2] * z + e[0],
+            D[1, 0] * x + D[1, 1] * y + D[1, 2] * z + e[1],
+            D[2, 0] * x + D[2, 1] * y + D[2, 2] * z + e[2])  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
 def _calibration_jump(s, g, mx, my, mz, R, t, p, usable):
     """A calibration change noted since the last usable sample (``dm = D m + e``, m this calibrated sample,
     :meth:`pdr_mag.fusion.FusionCore.note_calibration_change`): the heading variance grows by the square of
@@ -336,20 +344,16 @@ def _calibration_jump(s, g, mx, my, mz, R, t, p, usable):
     if not _jump_noted(D, e):
         return
     if s.init >= 2:
-        v = 0.0
-        for i in range(3):
-            v += g[i] * (D[i, 0] * mx + D[i, 1] * my + D[i, 2] * mz + e[i])
+        dx, dy, dz = _change_of(D, e, mx, my, mz)
+        v = g[0] * dx + g[1] * dy + g[2] * dz
         if not usable and np.isfinite(s.cal_m[0]):
             o = s.cal_m
-            mx = o[0] + D[0, 0] * o[0] + D[0, 1] * o[1] + D[0, 2] * o[2] + e[0]
-            my = o[1] + D[1, 0] * o[0] + D[1, 1] * o[1] + D[1, 2] * o[2] + e[1]
-            mz = o[2] + D[2, 0] * o[0] + D[2, 1] * o[1] + D[2, 2] * o[2] + e[2]
+            dx, dy, dz = _change_of(D, e, o[0], o[1], o[2])
+            mx, my, mz = o[0] + dx, o[1] + dy, o[2] + dz
+            dx, dy, dz = _change_of(D, e, mx, my, mz)
             usable = True
         if usable:
-            ox, oy, oz = mx, my, mz  # the old calibration's field, m − dm
-            ox -= D[0, 0] * mx + D[0, 1] * my + D[0, 2] * mz + e[0]
-            oy -= D[1, 0] * mx + D[1, 1] * my + D[1, 2] * mz + e[1]
-            oz -= D[2, 0] * mx + D[2, 1] * my + D[2, 2] * mz + e[2]
+            ox, oy, oz = mx - dx, my - dy, mz - dz  # the old calibration's field, m − dm
             new_e = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
             new_n = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz
             old_e = R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz
