@@ -490,9 +490,9 @@ def summary_table(summary: dict) -> str:
     if cals:
         last = cals[-1]
         off = ", ".join(f"{v:.1f}" for v in last["offset_uT"])
-        rows.append(
-            ("last calibration", f"{last['method']} offset ({off}) µT, field {last['field_uT'] or 0:.1f} µT")
-        )
+        # an offset the phone stated, or one fitted without the field's norm, knows no field strength
+        field = f"field {last['field_uT']:.1f} µT" if last.get("field_uT") else "field not estimated"
+        rows.append(("last calibration", f"{last['method']} offset ({off}) µT, {field}"))
     episodes = summary.get("episodes", [])
     kinds = Counter(e["kind"] for e in episodes)
     rows.append(("drift episodes", ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"))

@@ -245,3 +245,16 @@ def test_replay_real_tyrex_walk_online_only():
     # measure 3.2° over 5–120 s: no worse than the phone's plus the 2° the motion-capture body's misalignment
     # allows between two equally right estimators (PEERS.md; tests/test_real_walks.py's MARGIN_DEG)
     assert np.mean(err) < 3.3 + 2.0
+
+
+def test_summary_table_says_when_no_field_strength_was_estimated():
+    """A calibration without the field's norm (the phone's stated offset, an offset-only fit) prints no
+    made-up strength; one with it prints the strength."""
+    from replay.run import summary_table
+
+    base = {"n_outputs": 1, "duration_s": 1.0, "north": "magnetic", "events": [], "dropped_samples": {}}
+    cal = {"method": "phone", "offset_uT": [-12.0, -11.1, -361.1], "field_uT": None}
+    text = summary_table({**base, "calibrations": [cal]})
+    assert "field not estimated" in text and "field 0.0" not in text
+    text = summary_table({**base, "calibrations": [{**cal, "method": "ellipsoid", "field_uT": 47.06}]})
+    assert "field 47.1 µT" in text
