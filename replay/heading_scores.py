@@ -299,8 +299,10 @@ class ReferenceErrors:
         t = np.asarray(t, dtype=float)
         q = np.asarray(q_wd, dtype=float)
         # a sample that is no attitude (non-finite, or a quaternion far from norm 1: an all-zero row) is left
-        # out, by the readers' rule: the slerp between two unit quaternions is never zero
-        norm = np.linalg.norm(q, axis=1)
+        # out, by the readers' rule: the slerp between two unit quaternions is never zero.  (The norm summed
+        # column by column: np.linalg.norm's sum along rows of 4 gives the same bits, ~4× slower.)
+        w, x, y, z = q.T
+        norm = np.sqrt(w * w + x * x + y * y + z * z)
         ok = np.isfinite(t) & (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
         if not ok.all():
             t, q = t[ok], q[ok]
