@@ -81,10 +81,10 @@ def window_shift(
         newer, _ = _stationary_shift(mag_cal[start:], up[start:], model, free_model, settings, False)
         if isinstance(newer, Shift):
             return newer
-    found, split = _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending)
+    found, newer_fit = _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending)
     half = len(mag_cal) // 2
-    if split and (start is None or start > half) and len(mag_cal) - half >= MIN_NEWER:
-        newer, _ = _stationary_shift(mag_cal[half:], up[half:], model, free_model, settings, False)
+    if newer_fit is not None and (start is None or start > half) and len(mag_cal) - half >= MIN_NEWER:
+        newer, _ = _stationary_shift(mag_cal[half:], up[half:], model, free_model, settings, False, newer_fit)
         if isinstance(newer, Shift):
             return newer
     return found
@@ -117,30 +117,35 @@ def step_start(mag_cal: np.ndarray, up: np.ndarray, model: FitModel, settings: O
 MIN_NEWER = 40
 
 
-def _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending) -> tuple:
+def _stationary_shift(mag_cal, up, model, free_model, settings, candidate_pending, whole=None) -> tuple:
     """One shift over the whole of ``mag_cal`` (:func:`window_shift`'s tests, without its newer half):
-    ``(verdict, split)``, ``split`` True when the whole fit explains the deviation and the halves disagree."""
+    ``(verdict, newer)``, ``newer`` the newer half's fit when the whole fit explains the deviation and the
+    halves disagree (else None): the whole-window fit of that half's own test.  ``whole``: the whole-window
+    fit when it is known already."""
     s = settings
     n = len(mag_cal)
     half = n // 2
     fits = []
     for lo, hi in ((0, n), (0, half), (half, n)):
-        try:
-            fit = fit_offset(mag_cal[lo:hi], up[lo:hi], model)
-        except ValueError:
-            return INCONCLUSIVE, False
-        if not fit.ok:
-            return INCONCLUSIVE, False
-        fits.append(Shift(fit.offset, np.sqrt(np.maximum(fit.offset_cov.diagonal(), 0)), fit.rms))
+        if lo == 0 and hi == n and whole is not None:
+            fits.append(whole)
+        else:
+            try:
+                fit = fit_offset(mag_cal[lo:hi], up[lo:hi], model)
+            except ValueError:
+                return INCONCLUSIVE, None
+            if not fit.ok:
+                return INCONCLUSIVE, None
+            fits.append(Shift(fit.offset, np.sqrt(np.maximum(fit.offset_cov.diagonal(), 0)), fit.rms))
         if hi == n and lo == 0 and not candidate_pending and not _explains(fits[0], model.strength, s):
-            return None, False
+            return None, None
     whole, a, b = fits
     sig_ab = np.sqrt(a.sigma**2 + b.sigma**2)
     consistent = bool(np.all(np.abs(a.delta - b.delta) < np.maximum(3 * sig_ab, 3.0)))
     explains = _explains(whole, model.strength, s)
     if not (consistent and explains and device_fixed(mag_cal, up, free_model, s)):
-        return None, explains and not consistent
-    return whole, False
+        return None, b if explains and not consistent else None
+    return whole, None
 
 
 def _explains(fit: Shift, strength: float, s: OnlineSettings) -> bool:
