@@ -261,7 +261,13 @@ def _fit(m, up, f_guess, strength, s_given, free, sig_str, sig_dip, iterations, 
 @njit(cache=True, error_model="numpy")
 def _initial_value(x, u, f_guess, strength, s_given, free, sig_str, sig_dip):
     """Step 1: ``(ok, b, F, s)`` from the linear rows of the module docstring (``ok`` False when they are
-    rank-deficient)."""
+    rank-deficient: singular values ``σ_min < 1e-9 σ_max``).
+
+    The least squares of the 2N × p rows ``A z = y`` is solved by its normal equations ``AᵀA z = Aᵀy`` when
+    they are well conditioned, ``λ_min(AᵀA) > 1e-10 λ_max`` (so ``σ_min / σ_max > 1e-5``: not
+    rank-deficient, and the solution good to ~cond(AᵀA)·ε), otherwise by an SVD of the rows, which also
+    tells a rank-deficient set.  On the tyrex walks ``σ_max / σ_min`` stays below 400; for a window of 300
+    samples the SVD costs ~30 µs of the fit's ~85 µs, the normal equations ~9 µs."""
     n = x.shape[0]
     p = 5 if free else 4
     a = np.zeros((2 * n, p))
@@ -282,11 +288,16 @@ def _initial_value(x, u, f_guess, strength, s_given, free, sig_str, sig_dip):
             a[i, 3] = -1.0 / k2 / sig_str
             y[i] = (xx - strength * strength) / k2 / sig_str
             y[n + i] = (xu + s_given) / sig_dip
-    rcond = np.finfo(np.float64).eps * max(2 * n, p)
-    sol, _, rank, sv = np.linalg.lstsq(a, y, rcond)
     b = np.zeros(3)
-    if rank < p or sv[-1] < 1e-9 * sv[0]:
-        return False, b, 0.0, 0.0
+    ata = a.T @ a
+    lam = np.linalg.eigvalsh(ata)  # ascending
+    if lam[0] > 1e-10 * lam[-1]:
+        sol = np.linalg.solve(ata, a.T @ y)
+    else:
+        rcond = np.finfo(np.float64).eps * max(2 * n, p)
+        sol, _, rank, sv = np.linalg.lstsq(a, y, rcond)
+        if rank < p or sv[-1] < 1e-9 * sv[0]:
+            return False, b, 0.0, 0.0
     b[:] = sol[:3]
     if free:
         return True, b, np.sqrt(max(sol[3] + b[0] * b[0] + b[1] * b[1] + b[2] * b[2], 1e-6)), sol[4]
