@@ -543,6 +543,47 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     assert np.mean(np.abs(err_off[(t_err > ev.t) & (t_err < ev.t + 10.0)])) > 20.0
 
 
+def test_reacquisition_follows_a_lost_heading_that_drifts():
+    """The re-acquisition test on its own (``mag._rejected``, fed the innovations of clean fields that fail
+    the gate, 5 Hz): a heading lost by 170° whose gyro bias is also off by 3 °/s gives innovations along a
+    line — re-acquired after ``reacquire_s``, onto the line's value then (≈ 170 + 3 · 20 = 230°), though their
+    circular spread about their mean (≈ 17°) is beyond ``reacquire_spread_deg``; the same innovations with
+    the filter's bias known to 0.3 °/s about up cannot be its drift (a field that turns): no re-acquisition;
+    a constant 170° with 3° of noise: re-acquired onto 170°."""
+    from pdr_mag._records import settings_record
+    from pdr_mag.fusion.mag import _rejected
+    from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_Z, new_state
+
+    settings = FusionSettings()
+    p = settings_record(settings)[0]
+
+    def run(slope_deg_s, bias_std_deg_s, seed=4):
+        st = new_state()
+        rec = st[0]
+        rec["init"] = 2
+        P = np.diag(np.full(NX, 1e-4))
+        P[BIAS + 2, BIAS + 2] = np.radians(bias_std_deg_s) ** 2
+        rec["P"] = P
+        h = np.zeros(NX)
+        h[TH_Z] = h[C_ERR] = 1.0
+        noise = np.random.default_rng(seed).normal(0.0, np.radians(3.0), 200)
+        for k in range(200):  # 40 s of rejections
+            t = 0.2 * k
+            r = np.radians(170.0 + slope_deg_s * t) + noise[k]
+            r = (r + np.pi) % (2 * np.pi) - np.pi
+            _rejected(rec, np.eye(3), h, r, 1e-4, t, p)
+            if rec["reset_jump"] != 0.0:
+                return t, np.degrees(rec["reset_jump"]) % 360.0
+        return None, None
+
+    t, jump = run(3.0, 1.5)
+    assert t is not None and abs(t - settings.mag.reacquire_s) < 0.5
+    assert abs(jump - (170.0 + 3.0 * t)) < 5.0
+    assert run(3.0, 0.3) == (None, None)
+    t, jump = run(0.0, 0.3)
+    assert t is not None and abs(jump - 170.0) < 3.0
+
+
 def test_accelerometer_range_is_found_in_the_data():
     """Running with a ±2-g accelerometer piles samples up at the range: the filter finds it (its peak within
     the band of 2 g, many hits) and counts clipped samples in the average; a texting walk, which never comes

@@ -51,11 +51,16 @@ off, and its updates would shrink the heading's variance around a heading off by
 
 Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
 field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
-without a break for ``mag.reacquire_s`` and its innovations agree among themselves (circular spread of their
-exponentially weighted mean below ``mag.reacquire_spread_deg``: a lost heading is off by one angle whatever
-the device does, a turned field in a steel building changes as the walker moves), the heading is set to the
-magnetometer's, ``q ← Exp(r̄ e_z) ⊗ q`` with r̄ that mean, exactly as at the first fix (the covariance
-below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², σ_b0²)``, the drift rate
+without a break for ``mag.reacquire_s`` and its innovations agree among themselves, the heading is set to
+the magnetometer's.  A lost heading is off by one angle whatever the device does, which drifts at the gyro
+bias's error; a turned field in a steel building changes as the walker moves.  So the innovations
+``x = wrap(r − r₀)`` (r₀ the run's first) are fitted by a line in time, ``x ≈ x̄ + β (τ − τ̄)``, from their
+exponentially weighted moments over the run (weights as the run's, time constant ``mag.reacquire_s``), and
+they agree when the scatter about it, ``var x − β² var τ``, is below ``mag.reacquire_spread_deg²`` — a slope
+``|β|`` beyond three times the filter's own bias σ about up being no drift it can have, the scatter is then
+taken about the mean (``β = 0``).  The heading is turned by the line's value now, ``q ← Exp(r̄ e_z) ⊗ q`` with
+``r̄ = r₀ + x̄ + β (τ − τ̄)``, exactly as at the first fix (the covariance below), and the bias variance about
+up grows by ``min((r̄ / max(Δt, 10 s))², σ_b0²)``, the drift rate
 that the jump implies over the time Δt since the last heading update (σ_b0 the bias prior's,
 :func:`pdr_mag.fusion.gyro.bias_prior_var`).  The jump is reported in the
 ``heading_reset_deg`` output column (a ``heading_reset`` event in the pipeline).
@@ -137,6 +142,8 @@ from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
 #: the weight of a first field's guess that says nothing of north (its disturbance at least the horizontal
 #: field): the next flagged field that can carry a heading replaces it
 GUESS_W_NONE = 1e-9
+#: a lost heading's innovations drift at most this many times the filter's bias σ about up (re-acquisition)
+DRIFT_K = 3.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -248,22 +255,45 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
 @njit(cache=True, error_model="numpy")
 def _rejected(s, R, h, r, rv, t, p):
     """A gate rejection of a clean-looking field (innovation r): the run's statistics; re-acquisition once
-    the run is ``mag.reacquire_s`` long and its innovations agree."""
-    mean = s.reject_mean
+    the run is ``mag.reacquire_s`` long and its innovations agree about a line in time (a lost heading is off
+    by one angle that drifts at the gyro bias's error)."""
+    ln = s.reject_line
     if not np.isfinite(s.t_reject) or not np.isfinite(s.t_reject_start):
         s.t_reject_start = t
-        mean[0], mean[1] = np.cos(r), np.sin(r)
+        s.reject_r0 = r
+        for i in range(5):
+            ln[i] = 0.0
     else:
         a = ew_alpha(t - s.t_reject, p.mag.reacquire_s)
-        mean[0] += a * (np.cos(r) - mean[0])
-        mean[1] += a * (np.sin(r) - mean[1])
+        tau = t - s.t_reject_start
+        x = wrap(r - s.reject_r0)
+        for i, v in enumerate((tau, tau * tau, x, tau * x, x * x)):
+            ln[i] += a * (v - ln[i])
     s.t_reject = t
     if p.mag.reacquire_s <= 0.0 or t - s.t_reject_start < p.mag.reacquire_s:
         return
-    rbar = np.sqrt(mean[0] * mean[0] + mean[1] * mean[1])
-    if rbar <= 0.0 or -2.0 * np.log(min(rbar, 1.0)) > p.mag.reacquire_spread_rad**2:
+    var_t = ln[1] - ln[0] * ln[0]
+    cov = ln[3] - ln[0] * ln[2]
+    var_x = ln[4] - ln[2] * ln[2]
+    slope = cov / var_t if var_t > 0.0 else 0.0
+    if abs(slope) > DRIFT_K * _bias_up_std(s, R):
+        slope = 0.0  # faster than the gyro can drift: a turning field, judged about its mean
+    res = var_x - 2.0 * slope * cov + slope * slope * var_t
+    if res > p.mag.reacquire_spread_rad**2:
         return
-    _reacquire(s, R, np.arctan2(mean[1], mean[0]), h, rv, t, p)
+    jump = wrap(s.reject_r0 + ln[2] + slope * (t - s.t_reject_start - ln[0]))
+    _reacquire(s, R, jump, h, rv, t, p)
+
+
+@njit(cache=True, error_model="numpy")
+def _bias_up_std(s, R):
+    """The filter's gyro-bias σ about up, rad/s (R's row 2: up in device coordinates)."""
+    P = s.P
+    v = 0.0
+    for i in range(3):
+        for m in range(3):
+            v += R[2, i] * P[BIAS + i, BIAS + m] * R[2, m]
+    return np.sqrt(max(v, 0.0))
 
 
 @njit(cache=True, error_model="numpy")

@@ -76,7 +76,8 @@ STATE = np.dtype(
         ("t_mag_update", np.float64),  # time of the last heading update, s
         ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
         ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
-        ("reject_mean", np.float64, (2,)),  # EW mean of (cos r, sin r) over that run (r the innovation)
+        ("reject_r0", np.float64),  # the run's first innovation, rad
+        ("reject_line", np.float64, (5,)),  # EW means of τ, τ², x, τx, x² (x = wrap(r − r0), τ = t − start)
         ("guess_w", np.float64),  # summed weight of the flagged fields in the heading guess (0: no guess)
         ("fix_beyond_linear", np.bool_),  # the first fix may be beyond the linear range (tilt, history)
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
