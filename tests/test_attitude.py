@@ -547,9 +547,9 @@ def test_reacquisition_follows_a_lost_heading_that_drifts():
     """The re-acquisition test on its own (``mag._rejected``, fed the innovations of clean fields that fail
     the gate, 5 Hz): a heading lost by 170° whose gyro bias is also off by 3 °/s gives innovations along a
     line — re-acquired after ``reacquire_s``, onto the line's value then (≈ 170 + 3 · 20 = 230°), though their
-    circular spread about their mean (≈ 17°) is beyond ``reacquire_spread_deg``; the same innovations with
-    the filter's bias known to 0.3 °/s about up cannot be its drift (a field that turns): no re-acquisition;
-    a constant 170° with 3° of noise: re-acquired onto 170°."""
+    circular spread about their mean (computed: 22.7° at 20 s) is beyond the 15° bound; the same innovations
+    with the filter's bias known to 0.3 °/s about up cannot be its drift (a field that turns): no
+    re-acquisition; a constant 170° with 3° of noise: re-acquired onto 170°."""
     from pdr_mag._records import settings_record
     from pdr_mag.fusion.mag import _rejected
     from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_Z, new_state

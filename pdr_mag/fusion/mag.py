@@ -56,7 +56,7 @@ the magnetometer's.  A lost heading is off by one angle whatever the device does
 bias's error; a turned field in a steel building changes as the walker moves.  So the innovations
 ``x = wrap(r − r₀)`` (r₀ the run's first) are fitted by a line in time, ``x ≈ x̄ + β (τ − τ̄)``, from their
 exponentially weighted moments over the run (weights as the run's, time constant ``mag.reacquire_s``), and
-they agree when the scatter about it, ``var x − β² var τ``, is below ``mag.reacquire_spread_deg²`` — a slope
+they agree when the scatter about it, ``var(x − β τ)``, is below ``mag.reacquire_spread_deg²`` — a slope
 ``|β|`` beyond three times the filter's own bias σ about up being no drift it can have, the scatter is then
 taken about the mean (``β = 0``).  The heading is turned by the line's value now, ``q ← Exp(r̄ e_z) ⊗ q`` with
 ``r̄ = r₀ + x̄ + β (τ − τ̄)``, exactly as at the first fix (the covariance below), and the bias variance about
@@ -276,24 +276,15 @@ def _rejected(s, R, h, r, rv, t, p):
     cov = ln[3] - ln[0] * ln[2]
     var_x = ln[4] - ln[2] * ln[2]
     slope = cov / var_t if var_t > 0.0 else 0.0
-    if abs(slope) > DRIFT_K * _bias_up_std(s, R):
+    P = s.P  # the bias's variance about up (R's row 2: up in device coordinates), the same quadratic form
+    sb_up = np.sqrt(max(offset_heading_var(R[2], P[BIAS : BIAS + 3, BIAS : BIAS + 3]), 0.0))
+    if abs(slope) > DRIFT_K * sb_up:
         slope = 0.0  # faster than the gyro can drift: a turning field, judged about its mean
     res = var_x - 2.0 * slope * cov + slope * slope * var_t
     if res > p.mag.reacquire_spread_rad**2:
         return
     jump = wrap(s.reject_r0 + ln[2] + slope * (t - s.t_reject_start - ln[0]))
     _reacquire(s, R, jump, h, rv, t, p)
-
-
-@njit(cache=True, error_model="numpy")
-def _bias_up_std(s, R):
-    """The filter's gyro-bias σ about up, rad/s (R's row 2: up in device coordinates)."""
-    P = s.P
-    v = 0.0
-    for i in range(3):
-        for m in range(3):
-            v += R[2, i] * P[BIAS + i, BIAS + m] * R[2, m]
-    return np.sqrt(max(v, 0.0))
 
 
 @njit(cache=True, error_model="numpy")
