@@ -584,6 +584,47 @@ def test_reacquisition_follows_a_lost_heading_that_drifts():
     assert t is not None and abs(jump - 170.0) < 3.0
 
 
+def test_reacquisition_waits_as_long_as_the_fields_behind_the_heading_span():
+    """A run of clean fields that agree among themselves (a constant 170° off, 3° of noise, 5 Hz) against a
+    heading whose accepted updates span T_s since it was set from the field: re-acquired once the run spans
+    T_s, at least two of c's correlation times (10 s: the run's fields then carry errors of their own) and at
+    most ``reacquire_s`` (20 s) — a first fix followed by 2 s of updates gives way after 10 s, one resting
+    on 14 s of fields after 14 s, one resting on a minute of them (or on nothing known) after 20 s."""
+    from pdr_mag._records import settings_record
+    from pdr_mag.fusion.mag import _rejected
+    from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_Z, new_state
+
+    settings = FusionSettings()
+    p = settings_record(settings)[0]
+    tau_c = settings.mag.error_tau_s
+
+    def run(t_set, t_update):
+        st = new_state()
+        rec = st[0]
+        rec["init"] = 2
+        rec["t_heading_set"] = t_set
+        rec["t_mag_update"] = t_update
+        P = np.diag(np.full(NX, 1e-4))
+        P[BIAS + 2, BIAS + 2] = np.radians(0.3) ** 2
+        rec["P"] = P
+        h = np.zeros(NX)
+        h[TH_Z] = h[C_ERR] = 1.0
+        noise = np.random.default_rng(5).normal(0.0, np.radians(3.0), 200)
+        for k in range(200):  # 40 s of rejections from t = 0
+            t = 0.2 * k
+            _rejected(rec, np.eye(3), h, np.radians(170.0) + noise[k], 1e-4, t, p)
+            if rec["reset_jump"] != 0.0:
+                return t, np.degrees(rec["reset_jump"]) % 360.0
+        return None, None
+
+    for (t_set, t_update), wait in (((-3.0, -1.0), 2.0 * tau_c), ((-15.0, -1.0), 14.0),
+                                    ((-61.0, -1.0), settings.mag.reacquire_s),
+                                    ((np.nan, np.nan), settings.mag.reacquire_s)):  # fmt: skip
+        t, jump = run(t_set, t_update)
+        assert t is not None and abs(t - wait) < 0.5, (t_set, t_update, t)
+        assert abs(jump - 170.0) < 3.0
+
+
 def test_accelerometer_range_is_found_in_the_data():
     """Running with a ±2-g accelerometer piles samples up at the range: the filter finds it (its peak within
     the band of 2 g, many hits) and counts clipped samples in the average; a texting walk, which never comes

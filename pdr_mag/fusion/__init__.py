@@ -42,7 +42,8 @@ magnetometer (:mod:`~pdr_mag.fusion.mag`)
     (:mod:`pdr_mag.fusion.detectors`) is up, when the caller disallows it or beyond a χ² gate.  The
     stationary variance of ``c`` grows with the recent environment's disturbance level and with the
     heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
-    the gate for ``mag.reacquire_s`` re-acquires the heading (``heading_reset``).
+    the gate for ``mag.reacquire_s`` (or as long as the fields behind the heading span, if shorter, but two
+    of c's correlation times at least) re-acquires the heading (``heading_reset``).
 consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gyro`)
     the same Φ and the same gains as ``P`` (Joseph form), driven only by the part of c's stationary
     variance that the weighting leaves out,

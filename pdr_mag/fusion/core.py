@@ -105,7 +105,7 @@ from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 13
+STATE_VERSION = 14
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 

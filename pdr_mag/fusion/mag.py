@@ -49,21 +49,26 @@ variance exceeds ``2 · LINEAR_RAD²`` (:mod:`pdr_mag.fusion.accel`: a start in 
 tilt is that uncertain): the heading row ``h_t`` is linearised about a tilt that may be tens of degrees
 off, and its updates would shrink the heading's variance around a heading off by ``tan I`` times that.
 
-Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned
-field — and then rejects every correct field that follows.  When a clean-looking field has failed the gate
-without a break for ``mag.reacquire_s`` and its innovations agree among themselves, the heading is set to
-the magnetometer's.  A lost heading is off by one angle whatever the device does, which drifts at the gyro
-bias's error; a turned field in a steel building changes as the walker moves.  So the innovations
-``x = wrap(r − r₀)`` (r₀ the run's first) are fitted by a line in time, ``x ≈ x̄ + β (τ − τ̄)``, from their
-exponentially weighted moments over the run (weights as the run's, time constant ``mag.reacquire_s``), and
-they agree when the scatter about it, ``var(x − β τ)``, is below ``mag.reacquire_spread_deg²`` — a slope
-``|β|`` beyond three times the filter's own bias σ about up being no drift it can have, the scatter is then
-taken about the mean (``β = 0``).  The heading is turned by the line's value now, ``q ← Exp(r̄ e_z) ⊗ q`` with
-``r̄ = r₀ + x̄ + β (τ − τ̄)``, exactly as at the first fix (the covariance below), and the bias variance about
-up grows by ``min((r̄ / max(Δt, 10 s))², σ_b0²)``, the drift rate
-that the jump implies over the time Δt since the last heading update (σ_b0 the bias prior's,
-:func:`pdr_mag.fusion.gyro.bias_prior_var`).  The jump is reported in the
-``heading_reset_deg`` output column (a ``heading_reset`` event in the pipeline).
+Re-acquisition.  A filter can be lost while believing itself — a bias taught wrong, a start in a turned field
+— and then rejects every correct field that follows.  When a clean-looking field has failed the gate without a
+break and its innovations agree among themselves, the heading is set to the magnetometer's.  The run must span
+as long as the fields behind the heading do — from when it was set from the field (a first fix; a mean of the
+first calibration's fields, from the oldest of them; a re-acquisition, from its run's start; the first clean
+field after a guess) to its latest accepted update — at least two of c's correlation times
+(``mag.error_tau_s``: the run's fields then carry errors of their own, not one turned field's) and at most
+``mag.reacquire_s``: a heading that one turned field set is not held against many clean ones for longer than a
+heading that minutes of fields agree with.  A lost heading is off by one angle whatever the device does, which
+drifts at the gyro bias's error; a turned field in a steel building changes as the walker moves.  So the
+innovations ``x = wrap(r − r₀)`` (r₀ the run's first) are fitted by a line in time, ``x ≈ x̄ + β (τ − τ̄)``,
+from their exponentially weighted moments over the run (weights as the run's, time constant
+``mag.reacquire_s``), and they agree when the scatter about it, ``var(x − β τ)``, is below
+``mag.reacquire_spread_deg²`` — a slope ``|β|`` beyond three times the filter's own bias σ about up being no
+drift it can have, the scatter is then taken about the mean (``β = 0``).  The heading is turned by the line's
+value now, ``q ← Exp(r̄ e_z) ⊗ q`` with ``r̄ = r₀ + x̄ + β (τ − τ̄)``, exactly as at the first fix (the
+covariance below), and the bias variance about up grows by ``min((r̄ / max(Δt, 10 s))², σ_b0²)``, the drift
+rate that the jump implies over the time Δt since the last heading update (σ_b0 the bias prior's,
+:func:`pdr_mag.fusion.gyro.bias_prior_var`).  The jump is reported in the ``heading_reset_deg`` output column
+(a ``heading_reset`` event in the pipeline).
 
 First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
 specific force turned with it).  The residual is then zero, so ``δθ_z = −(δc + h_t·δθ_xy + n)``: the
@@ -238,6 +243,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
         _rejected(s, R, h, r, rv, t, p)
         return
     s.fix_beyond_linear = False
+    if s.guess_w > 0.0:
+        s.t_heading_set = t  # the first clean field after a guess sets the heading
     s.guess_w = 0.0
     after_run = np.isfinite(s.t_reject_start)
     s.t_reject = np.nan
@@ -255,8 +262,9 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
 @njit(cache=True, error_model="numpy")
 def _rejected(s, R, h, r, rv, t, p):
     """A gate rejection of a clean-looking field (innovation r): the run's statistics; re-acquisition once
-    the run is ``mag.reacquire_s`` long and its innovations agree about a line in time (a lost heading is off
-    by one angle that drifts at the gyro bias's error)."""
+    the run spans the fields behind the heading (``t_heading_set`` to ``t_mag_update``), within two of c's
+    correlation times and ``mag.reacquire_s``, and its innovations agree about a line in time (a lost heading
+    is off by one angle that drifts at the gyro bias's error; the module docstring)."""
     ln = s.reject_line
     if not np.isfinite(s.t_reject) or not np.isfinite(s.t_reject_start):
         s.t_reject_start = t
@@ -270,7 +278,10 @@ def _rejected(s, R, h, r, rv, t, p):
         for i, v in enumerate((tau, tau * tau, x, tau * x, x * x)):
             ln[i] += a * (v - ln[i])
     s.t_reject = t
-    if p.mag.reacquire_s <= 0.0 or t - s.t_reject_start < p.mag.reacquire_s:
+    need = p.mag.reacquire_s
+    if np.isfinite(s.t_heading_set) and np.isfinite(s.t_mag_update):
+        need = min(need, max(s.t_mag_update - s.t_heading_set, 2.0 * p.mag.error_tau_s))
+    if p.mag.reacquire_s <= 0.0 or t - s.t_reject_start < need:
         return
     var_t = ln[1] - ln[0] * ln[0]
     cov = ln[3] - ln[0] * ln[2]
@@ -292,7 +303,9 @@ def _reacquire(s, R, jump, h, rv, t, p):
     """Turn the attitude about up by ``jump`` onto the magnetometer's heading, the bias variance about up
     grown by the drift the jump implies (the module docstring)."""
     dt_ref = t - s.t_mag_update if np.isfinite(s.t_mag_update) else 0.0
+    run_start = s.t_reject_start
     _set_heading(s, h, jump, rv, t)
+    s.t_heading_set = run_start  # the new heading rests on the run's fields
     rotation_matrix(s.q, R)
     _bias_drift_var(s, R, jump, dt_ref, p)
 
@@ -465,6 +478,7 @@ def _first_fix(s, h, r, rv, t, p):
     _heading_from_field(s.U, h, 0.0)
     s.init = 2
     s.fix_beyond_linear = tilt_beyond_linear(P)
+    s.t_heading_set = t
     s.t_mag_update = t
     s.t_cal_start = t
     s.mag_used = True
@@ -500,6 +514,7 @@ def history_fix(s, r, var, span, t, p):
     U[TH_Z, TH_Z] = k * U[C_ERR, C_ERR]
     s.init = 2
     s.guess_w = 0.0
+    s.t_heading_set = t - span  # the heading rests on the fields of the span
     # a mean this uncertain may be beyond the linear range as well: the first update is then a re-fix
     s.fix_beyond_linear = tilt_beyond_linear(P) or var > LINEAR_RAD**2
     s.t_mag_update = t
@@ -562,6 +577,7 @@ def _set_heading(s, h, r, rv, t):
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     s.reset_jump += r
+    s.t_heading_set = t
     s.t_mag_update = t
     s.mag_used = True
 

@@ -239,14 +239,15 @@ class MagSettings:
         NOTES.md).
     reacquire_s : float
         Re-acquisition: when a field that the detectors find clean has failed the gate for this long
-        without a break, and the innovations agree among themselves (their scatter about a line in time —
-        a lost heading drifts at the bias's error — exponentially weighted over this time, is below
-        ``reacquire_spread_deg``; :mod:`pdr_mag.fusion.mag`), the filter is what is lost: the
-        heading is set to the magnetometer's (a ``heading_reset`` event carries the jump), uncorrelated
-        from the bias, whose variance about up grows to the drift rate the jump implies.  0 = off.  A field
-        turned by steel is local: 20 s of walking (~25 m) leaves the reach of a building's structure, so a
-        field that still disagrees by the same angle is right and the heading wrong; a steel area passed in
-        less time is waited out.
+        without a break (or for as long as the accepted fields behind the heading span, if shorter, but no
+        less than two of c's correlation times ``error_tau_s``), and the innovations agree among themselves
+        (their scatter about a line in time — a lost heading drifts at the bias's error — exponentially
+        weighted over this time, is below ``reacquire_spread_deg``; :mod:`pdr_mag.fusion.mag`), the filter is
+        what is lost: the heading is set to the magnetometer's (a ``heading_reset`` event carries the jump),
+        uncorrelated from the bias, whose variance about up grows to the drift rate the jump implies.  0 =
+        off.  A field turned by steel is local: 20 s of walking (~25 m) leaves the reach of a building's
+        structure, so a field that still disagrees by the same angle is right and the heading wrong; a steel
+        area passed in less time is waited out — unless the heading itself rests on fields of a shorter span.
     reacquire_spread_deg : float
         Largest spread (standard deviation) of those innovations about their line, deg.
     """

@@ -76,6 +76,7 @@ STATE = np.dtype(
         ("t_mag_update", np.float64),  # time of the last heading update, s
         ("t_reject", np.float64),  # last gate rejection of a clean-looking field, s (NaN: last one accepted)
         ("t_reject_start", np.float64),  # start of the current run of such rejections, s (NaN: none)
+        ("t_heading_set", np.float64),  # since when the fields the heading rests on were taken, s (NaN: none)
         ("reject_r0", np.float64),  # the run's first innovation, rad
         ("reject_line", np.float64, (5,)),  # EW means of τ, τ², x, τx, x² (x = wrap(r − r0), τ = t − start)
         ("guess_w", np.float64),  # summed weight of the flagged fields in the heading guess (0: no guess)
@@ -135,6 +136,7 @@ def _fresh_state() -> np.ndarray:
         "t_mag_update",
         "t_reject",
         "t_reject_start",
+        "t_heading_set",
         "t_env",
         "t_flag",
         "bh_ref",
