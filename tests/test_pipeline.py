@@ -287,6 +287,42 @@ def test_span_length_does_not_change_the_result(walk, monkeypatch):
         assert pipe.fusion.get_state() == ref.fusion.get_state()
 
 
+def test_a_suspicion_changed_inside_a_span_gives_the_rows_of_one_block_at_a_time(monkeypatch):
+    """A change of the suspected shift alone gives the rows after its block their std anew instead of running
+    the filter again (FusionCore.suspect_from): the same rows, coverage, events, calibrations and state as
+    block-by-block processing, on a walk where the stale test suspects and drops shifts inside spans."""
+    import pdr_mag.pipeline.heading as pl
+    from pdr_mag.fusion import FusionCore
+    from replay.formats import read_recording
+    from tests.conftest import dataset
+
+    r = read_recording(dataset("tyrex-pdrcsv", "Thibaud_Nexus5_NoDist_BackPocket"))
+    streams = {"accel": (r.accel.t, r.accel.xyz), "gyro": (r.gyro.t, r.gyro.xyz), "mag": (r.mag.t, r.mag.xyz)}
+    patched = []
+    suspect_from = FusionCore.suspect_from
+
+    def counted(core, advanced, first, shift_uT):
+        before = advanced.rows.heading_std_deg.copy()
+        suspect_from(core, advanced, first, shift_uT)
+        patched.append(int(np.sum(advanced.rows.heading_std_deg != before)))
+
+    monkeypatch.setattr(FusionCore, "suspect_from", counted)
+    ref = HeadingPipeline(meta=r.meta)
+    out = ref.run(streams)
+    assert sum(n > 0 for n in patched) >= 5 and sum(patched) > 1000  # rows whose std the change moved
+    monkeypatch.setattr(pl, "_SPAN_MIN", 1)
+    monkeypatch.setattr(pl, "_SPAN_MAX", 1)
+    pipe = HeadingPipeline(meta=r.meta)
+    got = pipe.run(streams)
+    _same(out, got)  # the std among them
+    for key in out.diag:
+        np.testing.assert_array_equal(out.diag[key], got.diag[key], err_msg=key)
+    events = [(e.t, e.kind, e.data) for e in ref.pop_events()]
+    assert [(e.t, e.kind, e.data) for e in pipe.pop_events()] == events
+    assert [t for t, _ in pipe.calibrations] == [t for t, _ in ref.calibrations]
+    assert pipe.fusion.get_state() == ref.fusion.get_state()
+
+
 def test_accelerometer_range_from_the_recording():
     """``meta["accel_range_m_s2"]`` reaches the filter unless its settings give one; a bad one is named."""
     from pdr_mag.fusion.settings import AccelSettings, FusionSettings

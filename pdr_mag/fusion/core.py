@@ -40,8 +40,9 @@ equations in its module).  In short:
 Interface
 ---------
 ``FusionCore(settings, field)``; ``process(kind, t, xyz, mag_allowed) -> EstimateBatch`` (checked input),
-or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows and
-a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`; what the pipeline uses):
+or, for a caller that made the input itself, ``advance(Span(...), snapshot_before) -> Advanced`` (the rows,
+a :class:`Snapshot` before each given sample, for :meth:`FusionCore.restore`, and the columns the rows are
+views of, for :meth:`FusionCore.suspect_from`; what the pipeline uses):
 
 ``kind`` int8 (N,)
     :data:`~pdr_mag.fusion.kinds.ACCEL` (m/s²), :data:`~pdr_mag.fusion.kinds.GYRO` (rad/s),
@@ -100,7 +101,7 @@ from pdr_mag.fusion.detectors import forget_learnt
 from pdr_mag.fusion.kinds import GYRO, check_kinds
 from pdr_mag.fusion.mag import offset_heading_var
 from pdr_mag.fusion.quat import rotation_matrix
-from pdr_mag.fusion.rows import DIAG_NAMES, columns, new_rows
+from pdr_mag.fusion.rows import DIAG_NAMES, Rows, columns, new_rows
 from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
@@ -175,10 +176,13 @@ class Snapshots(Sequence):
 
 
 class Advanced(NamedTuple):
-    """What :meth:`FusionCore.advance` gives: the output rows and the snapshots asked for."""
+    """What :meth:`FusionCore.advance` gives: the output rows, the snapshots asked for and the columns the
+    rows are views of (:class:`~pdr_mag.fusion.rows.Rows`, with the variance's parts: for
+    :meth:`FusionCore.suspect_from`)."""
 
     rows: EstimateBatch
     snapshots: Snapshots
+    columns: Rows
 
 
 class FusionCore:
@@ -488,7 +492,15 @@ class FusionCore:
             cal_state=np.full(k, cal_state, dtype="<U13"),
             diag={name: col[name] for name in DIAG_NAMES},
         )
-        return Advanced(rows, Snapshots(snaps, self._ref_strength))
+        return Advanced(rows, Snapshots(snaps, self._ref_strength), out)
+
+    def suspect_from(self, advanced: Advanced, first: int, shift_uT) -> None:
+        """:meth:`set_suspected_shift` as if it had been set before row ``first`` of ``advanced`` (the latest
+        :meth:`advance`'s): that row's and the later rows' ``heading_std_deg`` count the new shift (in place),
+        and the state goes on with it.  The suspected shift is in the std only, so these are the rows a run
+        from a snapshot before that row with the shift set would give, without running the filter again."""
+        self.set_suspected_shift(shift_uT)
+        kernel.rewrite_std(self._st, advanced.columns, first, len(advanced.rows))
 
     # ------------------------------------------------------------------ state
     @property

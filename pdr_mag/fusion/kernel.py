@@ -70,20 +70,28 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
 
 
 @njit(cache=True, error_model="numpy")
-def calibration_floor(st):
-    """The least heading variance the calibration in force allows, rad²: ``g (Σ_b + ΔΔᵀ) gᵀ`` with g the
-    heading gradient at the latest usable sample (``cal_g``), ``Σ_b`` the offset covariance in force now and
-    Δ an offset shift the stale test suspects and has yet to confirm (``suspect_cov``; 0 before the first
-    heading).  The calibration's offset error is one constant vector in the device frame, so the heading
-    error it causes stays while the device keeps its orientation; the filter carries it in c, whose
-    Gauss–Markov model lets it average out over a few ``mag.error_tau_s``, and the reported variance
-    ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)`` restores what does not (an uncertain prior's offset — the phone's, a
-    store's — and a first fit's).  The suspected shift is in the std only, not in the filter's weights: most
-    candidates are a building's field that the test then drops (on the shared recordings about one in ten is
-    confirmed), and until then the heading is what the calibration in force makes it."""
-    if st.init < 2:
-        return 0.0
-    return offset_heading_var(st.cal_g, st.cal_cov) + offset_heading_var(st.cal_g, st.suspect_cov)
+def calibration_floor(f, n, suspect_cov):
+    """The least heading variance the calibration in force allows at row ``n`` of the float columns ``f``
+    (:class:`~pdr_mag.fusion.rows.Rows`), rad²: ``g (Σ_b + ΔΔᵀ) gᵀ`` with g the heading gradient at the
+    latest usable sample (``cal_g``), ``Σ_b`` the offset covariance in force and Δ an offset shift the stale
+    test suspects and has yet to confirm (``suspect_cov`` = ``ΔΔᵀ``); 0 before the first heading.  The row
+    holds ``g Σ_b gᵀ`` and g (:data:`~pdr_mag.fusion.rows.VAR_PARTS`, written by :func:`_write_row`).  The
+    calibration's offset error is one constant vector in the device frame, so the heading error it causes
+    stays while the device keeps its orientation; the filter carries it in c, whose Gauss–Markov model lets
+    it average out over a few ``mag.error_tau_s``, and the reported variance ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)``
+    restores what does not (an uncertain prior's offset — the phone's, a store's — and a first fit's).  The
+    suspected shift is in the std only, not in the filter's weights: most candidates are a building's field
+    that the test then drops (on the shared recordings about one in ten is confirmed), and until then the
+    heading is what the calibration in force makes it."""
+    g = (f[COL.cal_gx, n], f[COL.cal_gy, n], f[COL.cal_gz, n])
+    return f[COL.var_cal, n] + offset_heading_var(g, suspect_cov)
+
+
+@njit(cache=True, error_model="numpy")
+def _write_std(f, n, suspect_cov):
+    """Row ``n``'s ``heading_std_deg`` from its variance parts and the suspected shift's ``suspect_cov``."""
+    var = min(max(f[COL.var_filter, n], calibration_floor(f, n, suspect_cov)), np.pi**2)
+    f[COL.heading_std_deg, n] = np.degrees(np.sqrt(max(var, 0.0)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -94,8 +102,13 @@ def _write_row(st, ti, out, n):
     f[COL.t, n] = ti
     for c in range(4):
         out.q[n, c] = st.q[c]
-    var = min(max(st.P[TH_Z, TH_Z] + heading_var_u(st), calibration_floor(st)), np.pi**2)
-    f[COL.heading_std_deg, n] = np.degrees(np.sqrt(max(var, 0.0)))
+    f[COL.var_filter, n] = st.P[TH_Z, TH_Z] + heading_var_u(st)
+    floor = st.init >= 2  # no floor before the first heading
+    f[COL.var_cal, n] = offset_heading_var(st.cal_g, st.cal_cov) if floor else 0.0
+    f[COL.cal_gx, n] = st.cal_g[0] if floor else 0.0
+    f[COL.cal_gy, n] = st.cal_g[1] if floor else 0.0
+    f[COL.cal_gz, n] = st.cal_g[2] if floor else 0.0
+    _write_std(f, n, st.suspect_cov)
     out.flags[FLAG.mag_used, n] = st.mag_used
     out.flags[FLAG.interference, n] = st.det.flag or st.interference_seen
     st.mag_used = False
@@ -143,6 +156,15 @@ def run_cut(span, state, params, cuts, snaps, out):
         out.floats[COL.h_y, i] = 2.0 * (x * y - w * z)
         out.floats[COL.h_x, i] = 1.0 - 2.0 * (x * x + z * z)
     return k
+
+
+@njit(cache=True, error_model="numpy")
+def rewrite_std(state, out, lo, hi):
+    """``heading_std_deg`` of the rows ``lo … hi − 1`` of ``out`` anew, with the suspected shift of the
+    one-element ``state`` (its ``suspect_cov``), from the variance parts the rows keep."""
+    S = state[0].suspect_cov
+    for n in range(lo, hi):
+        _write_std(out.floats, n, S)
 
 
 @njit(cache=True, error_model="numpy")

@@ -28,6 +28,9 @@ ahead over a span of blocks with the calibration in force, in one call that also
 before each block; then the span's ended blocks go to the calibrator in one call, which stops at the end
 of the first block whose close changed the calibration.  Then the filter is put back to its state at that
 block's end and the rows after it are dropped, and the next span starts there with the new calibration.
+A change of the shift suspected of the calibration alone (the stale test's) needs no new run: the filter's
+weights do not see it, so the rows after that block only get their std anew
+(:meth:`~pdr_mag.fusion.FusionCore.suspect_from`) and the blocks after it go on to the calibrator.
 Changes are rare (a few per recording, most while the calibration converges), so a span is short after a
 change and doubles after each span without one (``_SPAN_MIN`` … ``_SPAN_MAX`` blocks), once a calibration
 is in force.  The rows are those of block-by-block processing whatever the span length (tested).
@@ -406,7 +409,8 @@ class HeadingPipeline:
             is_mag = kind == MAG
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
         # the filter over the span, keeping its state before each block (``starts``: each one's first sample)
-        batch, snapshots = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
+        advanced = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
+        batch, snapshots = advanced.rows, advanced.snapshots
         end = len(t)
         events: list = []  # (block, 0: the filter's / 1: the calibrator's, Event)
         closed_blk = closed_cov = np.empty(0)  # the blocks closed here, the coverage after each
@@ -415,6 +419,18 @@ class HeadingPipeline:
             rows, row_blk = PK.mag_context(kind, t, xyz, batch.t, batch.q_wd, self._carry, self._pend, b)
             n_ended = len(rows) if last_ended else int(row_blk.searchsorted(blk[-1]))
             events, n_taken, closed_blk, closed_cov = self._close_blocks(rows[:n_ended], row_blk[:n_ended])
+            while self._only_suspicion_changed(in_force):
+                # the filter's weights do not see the suspected shift: the rows after the block whose close
+                # changed it keep all but their std, and the blocks after it go on to the calibrator
+                after = int(blk.searchsorted(row_blk[n_taken - 1], side="right"))
+                first = len(batch) if after == len(t) else int(batch.t.searchsorted(t[after]))
+                self.fusion.suspect_from(advanced, first, self.online.suspected_shift)
+                in_force = self._in_force()
+                rest = slice(n_taken, n_ended)
+                more, n_more, more_blk, more_cov = self._close_blocks(rows[rest], row_blk[rest])
+                events += more
+                n_taken += n_more
+                closed_blk, closed_cov = np.r_[closed_blk, more_blk], np.r_[closed_cov, more_cov]
             self._pend = rows[n_ended:]
             if self._in_force_changed(in_force):
                 # the blocks after the one whose close changed the calibration (or the shift suspected of it)
@@ -481,6 +497,12 @@ class HeadingPipeline:
         """Whether :meth:`_in_force` differs from ``before`` (the calibration by identity)."""
         cal, key = self._in_force()
         return cal is not before[0] or key != before[1]
+
+    def _only_suspicion_changed(self, before: tuple) -> bool:
+        """Whether the shift suspected of the calibration in force changed since ``before`` (an
+        :meth:`_in_force`) and the calibration did not."""
+        cal, key = self._in_force()
+        return cal is before[0] and key != before[1]
 
     def _use_calibration(self, restored: bool = False) -> Event | None:
         """Take the calibration in force into use: its ``b`` and ``Mᵀ`` (``M`` = ``cal.matrix``; None
