@@ -331,6 +331,19 @@ def test_a_replay_started_mid_run_stays_honest(walk, mode, day_file):
     assert beyond <= BEYOND_3SIGMA_MAX, f"{walk} mode {mode} from 5 s: {beyond:.0%} of the frames beyond 3σ"
 
 
+def _restart_mean(walk: str, b, start: float) -> float:
+    """The shared scorer's mean |heading error| of a replay started at ``start`` (:func:`_restarted`), scored
+    from 5 s after it."""
+    score = _scorer()
+    truth = dataset("tyrex-pdrcsv", walk) / "truth.csv"
+    t_ref, q_ref = score.C.read_quat_csv(str(truth))
+    ok = np.all(np.isfinite(q_ref), axis=1)
+    t_ref, q_ref = t_ref[ok], q_ref[ok]
+    t0, _ = score.truth_t0(str(truth), t_ref)
+    window = (max(score.WINDOW[0], start + 5.0 - t0), score.WINDOW[1])
+    return score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0, window=window)["heading_err_mean"]
+
+
 @pytest.mark.parametrize("mode", ("a", "b"))
 @pytest.mark.parametrize("walk", WALKS)
 def test_a_backend_started_20_s_into_a_walk_does_not_fail(walk, mode, day_file):
@@ -339,15 +352,8 @@ def test_a_backend_started_20_s_into_a_walk_does_not_fail(walk, mode, day_file):
     worst measured: mode a 23.2° (Nexus5_Dist_FrontPocket), mode b 43.5° (Nexus5_Dist_AR: its first fit
     at 33 s, then 15 s of steel; 57.7° when the first calibration's heading was the next field's — a guess at
     σ 180° in the steel — where it is now the mean of the fit's own recent fields)."""
-    score = _scorer()
     b, start = _restarted(walk, 20.0, day_file(walk) if mode == "a" else None)
-    truth = dataset("tyrex-pdrcsv", walk) / "truth.csv"
-    t_ref, q_ref = score.C.read_quat_csv(str(truth))
-    ok = np.all(np.isfinite(q_ref), axis=1)
-    t_ref, q_ref = t_ref[ok], q_ref[ok]
-    t0, _ = score.truth_t0(str(truth), t_ref)
-    window = (max(score.WINDOW[0], start + 5.0 - t0), score.WINDOW[1])
-    mean = score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0, window=window)["heading_err_mean"]
+    mean = _restart_mean(walk, b, start)
     assert mean < 45.0, f"{walk} mode {mode} from 20 s: mean |error| {mean:.1f}°"
 
 
@@ -358,16 +364,9 @@ def test_a_heading_one_history_set_gives_way_to_a_longer_run_of_clean_fields():
     fields is held for; a run as long as the fields behind this heading span re-acquires it.  Scored as the
     20-s restarts (from 5 s after the start): mean below 45° — measured 34.9°, 46.7° when every lost heading
     was held for 20 s."""
-    score = _scorer()
     walk = "Thibaud_iPhone4S_Dist_Phoning"
     b, start = _restarted(walk, 7.5, None)
-    truth = dataset("tyrex-pdrcsv", walk) / "truth.csv"
-    t_ref, q_ref = score.C.read_quat_csv(str(truth))
-    ok = np.all(np.isfinite(q_ref), axis=1)
-    t_ref, q_ref = t_ref[ok], q_ref[ok]
-    t0, _ = score.truth_t0(str(truth), t_ref)
-    window = (max(score.WINDOW[0], start + 5.0 - t0), score.WINDOW[1])
-    mean = score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0, window=window)["heading_err_mean"]
+    mean = _restart_mean(walk, b, start)
     assert mean < 45.0, f"{walk} mode b from 7.5 s: mean |error| {mean:.1f}°"
 
 
