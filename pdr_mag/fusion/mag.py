@@ -229,7 +229,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     r = wrap(r - s.c)
     if s.fix_beyond_linear and abs(r) > LINEAR_RAD:  # a first fix beyond the linear range (module docstring)
         rotate_world(s.q_gyro, 0.0, 0.0, r)  # the gyroscope-only attitude started from that first fix too
-        _set_heading(s, h, r, rv, t)
+        _set_heading(s, h, r, rv, t, t)
         return
     # χ² gate with the undisturbed noise
     S = rv_clean
@@ -303,9 +303,7 @@ def _reacquire(s, R, jump, h, rv, t, p):
     """Turn the attitude about up by ``jump`` onto the magnetometer's heading, the bias variance about up
     grown by the drift the jump implies (the module docstring)."""
     dt_ref = t - s.t_mag_update if np.isfinite(s.t_mag_update) else 0.0
-    run_start = s.t_reject_start
-    _set_heading(s, h, jump, rv, t)
-    s.t_heading_set = run_start  # the new heading rests on the run's fields
+    _set_heading(s, h, jump, rv, t, s.t_reject_start)  # the new heading rests on the run's fields
     rotation_matrix(s.q, R)
     _bias_drift_var(s, R, jump, dt_ref, p)
 
@@ -563,11 +561,12 @@ def _guess_weight(s, det, bh, dmin2, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _set_heading(s, h, r, rv, t):
+def _set_heading(s, h, r, rv, t, since):
     """Set the heading from the field anew (residual r: the turn, reported in ``heading_reset_deg``), as at
     the first fix: a re-acquisition (:func:`_reacquire`), and the first heading update once the tilt is
     settled that finds a first fix made through an unsettled tilt more than ``LINEAR_RAD`` off (the module
-    docstring; no bias variance is added then: no heading update has taught the bias since the first fix)."""
+    docstring; no bias variance is added then: no heading update has taught the bias since the first fix);
+    ``since``: when the fields it now rests on began (``t_heading_set``: the re-acquisition's support)."""
     _turn_world_frame(s, r)
     _heading_from_field(s.P, h, rv)
     settle_u(s)
@@ -577,7 +576,7 @@ def _set_heading(s, h, r, rv, t):
     s.t_reject = np.nan
     s.t_reject_start = np.nan
     s.reset_jump += r
-    s.t_heading_set = t
+    s.t_heading_set = since
     s.t_mag_update = t
     s.mag_used = True
 
