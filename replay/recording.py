@@ -45,7 +45,9 @@ class Recording:
         True orientation, device → ENU true north; for evaluation only.
     references : dict
         Other orientation series to compare with, by name (``"os"``: the phone's own fused attitude, w-first
-        device → ENU), as ``(t (N,), q_wxyz (N, 4))``; for evaluation only, never read by the pipeline.
+        device → ENU), as ``(t (N,), q_wxyz (N, 4))``; never read by the pipeline's filter — ``replay`` gives
+        the phone's heading to the rows whose heading pdr_mag does not know
+        (:func:`pdr_mag.pipeline.fill_unknown_heading`), the rest is evaluation.
     temperature : (t (N,), °C (N,)) or None
         Sensor temperature when the device logs it (e.g. the breadboard IMU's MPU6050).
     source : str

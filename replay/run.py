@@ -25,7 +25,7 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
-from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
+from pdr_mag.pipeline import HeadingPipeline, PipelineSettings, fill_unknown_heading
 from pdr_mag.sinks import QuietSink
 from replay.compiling import CompileWatch
 from replay.errors import InputError
@@ -267,6 +267,11 @@ class ReplayRun:
         self.n_cal_seen = len(pipe.calibrations)
         self.store = store
         self.store_use = store_use
+        # the phone's own attitude, for the rows whose heading pdr_mag does not know (fill_unknown_heading);
+        # not with --ignore-phone-calibration, whose runs start from nothing the phone knows
+        osref = os_reference(src)
+        self.phone_attitude = osref if osref is not None and pipe.settings.prior.use_phone else None
+        self.n_phone_heading = 0
 
     @classmethod
     def start(cls, rec_path, calibration=None, sinks=(), settings: PipelineSettings | None = None,
@@ -380,6 +385,9 @@ class ReplayRun:
             if len(tm):
                 for s in sinks:
                     s.mag_calibrated(tm, xm)
+        if len(batch) and self.phone_attitude is not None:
+            batch, n = fill_unknown_heading(batch, *self.phone_attitude)
+            self.n_phone_heading += n
         if len(batch):
             _count_states(batch.cal_state, self.state_counts)
             for s in sinks:
@@ -424,6 +432,7 @@ class ReplayRun:
                 "dropped_samples": dict(sorted(dropped.items())),
                 "n_samples": self.n_pushed,
                 "cal_state_rows": dict(sorted(self.state_counts.items())),
+                "phone_heading_rows": self.n_phone_heading,
                 "calibration_given": self.calibration is not None,
                 "device_store": None if self.store_use is None else {
                     k: v for k, v in self.store_use.items() if k != "t_unix"},
@@ -484,6 +493,9 @@ def summary_table(summary: dict) -> str:
     rows.append(
         ("rows per cal_state", ", ".join(f"{k} {v}" for k, v in summary.get("cal_state_rows", {}).items()))
     )
+    if summary.get("phone_heading_rows"):
+        rows.append(("phone's heading", f"{summary['phone_heading_rows']} rows, where pdr_mag's was unknown "
+                     "(σ 180°)"))
     kinds = Counter(e["kind"] for e in summary["events"])
     rows.append(("events", ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"))
     cals = summary["calibrations"]

@@ -63,7 +63,7 @@ short when it ends (its message then names the odd samples dropped from it). Odd
 
 The phone's own attitude (``references["os"]``) counts its odd rows by the same names, under ``os:``; where
 its records are read among the others' (``ms-indoor``, ``ipin``), one too short is counted as ``os:nan`` (a
-value missing) rather than ending the read, the series being for evaluation only.
+value missing) rather than ending the read, the series being a reference, not a sensor stream.
 
 What the phone states about itself
 ----------------------------------

@@ -1,4 +1,5 @@
-"""The phone's own fused attitude as a reference series (``Recording.references["os"]``): for evaluation only.
+"""The phone's own fused attitude as a reference series (``Recording.references["os"]``): for evaluation, and
+the heading of the rows whose heading pdr_mag does not know (:func:`pdr_mag.pipeline.fill_unknown_heading`).
 
 Android's ``TYPE_ROTATION_VECTOR`` gives the vector part (x, y, z) = sin(θ/2)·axis of the unit quaternion
 of the device → world rotation, the world being east, north (magnetic), up; the scalar part, when not

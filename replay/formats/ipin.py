@@ -30,8 +30,8 @@ first one also sets ``latitude_deg``/``longitude_deg``. The ``AHRS`` rotation ve
 their yaw's sign), on the app clock by the streams' shift when their sensor clock is the same (within
 0.5 s), else by their own; an ``AHRS`` record is garbled like the others (more than its nine fields:
 ``os:extra_fields``; a field that is not a number: ``os:non_numeric``), and one with a value that is NaN or
-missing (too short) is counted as ``os:nan`` — the series is for evaluation only, never an error. The
-``% Model:`` and ``% Manufacturer:`` header lines give ``meta["device"]``.
+missing (too short) is counted as ``os:nan`` — the series is a reference, not a sensor stream, never an
+error. The ``% Model:`` and ``% Manufacturer:`` header lines give ``meta["device"]``.
 
 What the phone states about itself (:mod:`replay.formats._phone`): ``MAGN`` and ``GYRO`` are Android's
 ``TYPE_MAGNETIC_FIELD`` and ``TYPE_GYROSCOPE``, the streams the OS has already calibrated

@@ -224,7 +224,7 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
 def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:
     """One ``TYPE_ROTATION_VECTOR`` line into ``b`` (t in ms, x, y, z): a garbled one is dropped as
     ``os:extra_fields`` / ``os:non_numeric``, one with a value NaN or missing as ``os:nan`` (the series is
-    for evaluation only: never an error)."""
+    a reference, not a sensor stream: never an error)."""
     most = 1 + _MOST["TYPE_ROTATION_VECTOR"]
     vals = row_values([parts[0], *parts[2:]], most, dropped=b.dropped, keys=(b.key,))
     if vals is not None:

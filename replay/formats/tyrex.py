@@ -40,11 +40,12 @@ the day's calibration recording (105.8, 292.7, 62.9) µT). The gyroscope, though
 Motion's device-motion epochs, keeps its bias — it differs from the rate of the logged attitude by a constant
 (0.111, −0.023, 0.012) rad/s (median over each of the three iPhone 5 trials, within 0.005 rad/s).
 
-The phone's own fusion, when logged, becomes ``references["os"]`` (device → ENU, for evaluation only):
-Android's ``rotation-vector.txt`` (t, qx, qy, qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic
-north) and iOS's ``attitude.txt`` (t, qw, qx, qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to
-magnetic north, z up, so ``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north
-(:mod:`replay.formats._attitude`); odd rows are counted as the streams' are, under ``os:`` (``os:nan``,
+The phone's own fusion, when logged, becomes ``references["os"]`` (device → ENU; a reference, and the
+heading of the rows whose heading pdr_mag does not know): Android's ``rotation-vector.txt`` (t, qx, qy,
+qz, qw, heading accuracy; ``TYPE_ROTATION_VECTOR``, magnetic north) and iOS's ``attitude.txt`` (t, qw, qx,
+qy, qz; CoreMotion's ``XMagneticNorthZVertical`` frame, x to magnetic north, z up, so
+``q_ENU = q_z(90°) ⊗ q``), both then put in the pipeline's north (:mod:`replay.formats._attitude`); odd
+rows are counted as the streams' are, under ``os:`` (``os:nan``,
 ``os:duplicate_t``, a garbled row ``os:extra_fields`` / ``os:non_numeric``).
 
 Truth. When the benchmark's mocap file ``../../qualisys/<trial>.mat`` and the trial's ``timeAlignment.txt``
