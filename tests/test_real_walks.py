@@ -352,8 +352,8 @@ def _restart_mean(walk: str, b, start: float) -> float:
 def test_a_backend_started_20_s_into_a_walk_does_not_fail(walk, mode, day_file):
     """Issue 19: a backend started in the middle of a walk (replayed from 20 s in, the day's calibration in
     mode a, none in mode b), scored by the shared scorer from 5 s after the start: no walk above 45°.  The
-    worst measured: mode a 23.2° (Nexus5_Dist_FrontPocket), mode b 25.5° (iPhone5_Dist_BackPocket; Nexus5_Dist_AR
-    19.7°: :func:`test_rows_without_a_heading_take_the_phones_on_a_restart_next_to_magnets`)."""
+    worst measured: mode a 23.2° (Nexus5_Dist_FrontPocket), mode b 25.5° (iPhone5_Dist_BackPocket;
+    Nexus5_Dist_AR 19.7°: the next test)."""
     b, start = _restarted(walk, 20.0, day_file(walk) if mode == "a" else None)
     mean = _restart_mean(walk, b, start)
     assert mean < 45.0, f"{walk} mode {mode} from 20 s: mean |error| {mean:.1f}°"
