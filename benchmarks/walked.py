@@ -12,10 +12,11 @@ Runs of the product, each ``replay.run.replay`` as ``pdr-mag replay`` runs it:
 
 ``default``
     ``pdr-mag replay TRACE``: what the file itself carries may be used (the phone's own hard-iron and gyro
-    estimates, :mod:`pdr_mag.calibration.prior`).
+    estimates, :mod:`pdr_mag.calibration.prior`; its fused heading on the rows pdr_mag has none for,
+    :mod:`pdr_mag.pipeline.phone_heading`).
 ``store``
     ``pdr-mag replay TRACE --device-store DIR --ignore-phone-calibration``: one device store for all the
-    traces, replayed in time order, the phone's own estimates not used — what a backend that keeps its
+    traces, replayed in time order, the phone's own estimates (and heading) not used — what a backend that keeps its
     devices' calibrations gets (the first trace starts cold).
 ``cold``
     ``--ignore-phone-calibration`` without a store: every trace starts with nothing known.
@@ -151,8 +152,8 @@ def main() -> None:
             "heading over the middle half of each segment between surveyed waypoints against its bearing, "
             "deg (`../shared/tools/walked-direction`'s scoring, `replay.heading_scores`); peers from "
             "`../shared/benchmarks/walked_peers.csv` on the same segments. Runs: `default` = `pdr-mag replay "
-            "TRACE` (the phone's own estimates used as priors); `store` = one device store for all traces, "
-            "the phone's estimates not used; `cold` = nothing known at each start; `os_field` = each trace "
+            "TRACE` (the phone's own estimates used as priors, its heading on the rows pdr_mag has none "
+            "for); `store` = one device store for all traces, the phone's estimates not used; `cold` = nothing known at each start; `os_field` = each trace "
             "without its raw magnetometer lines, as a logger keeping only the OS-calibrated field writes it "
             "(the field the peers are fed).", "", *lines, ""])
         write_section(SECTION, text)
