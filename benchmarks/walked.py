@@ -16,8 +16,8 @@ Runs of the product, each ``replay.run.replay`` as ``pdr-mag replay`` runs it:
     :mod:`pdr_mag.pipeline.phone_heading`).
 ``store``
     ``pdr-mag replay TRACE --device-store DIR --ignore-phone-calibration``: one device store for all the
-    traces, replayed in time order, the phone's own estimates (and heading) not used — what a backend that keeps its
-    devices' calibrations gets (the first trace starts cold).
+    traces, replayed in time order, the phone's own estimates (and heading) not used — what a backend that
+    keeps its devices' calibrations gets (the first trace starts cold).
 ``cold``
     ``--ignore-phone-calibration`` without a store: every trace starts with nothing known.
 ``os_field``
@@ -153,7 +153,8 @@ def main() -> None:
             "deg (`../shared/tools/walked-direction`'s scoring, `replay.heading_scores`); peers from "
             "`../shared/benchmarks/walked_peers.csv` on the same segments. Runs: `default` = `pdr-mag replay "
             "TRACE` (the phone's own estimates used as priors, its heading on the rows pdr_mag has none "
-            "for); `store` = one device store for all traces, the phone's estimates not used; `cold` = nothing known at each start; `os_field` = each trace "
+            "for); `store` = one device store for all traces, the phone's estimates not used; "
+            "`cold` = nothing known at each start; `os_field` = each trace "
             "without its raw magnetometer lines, as a logger keeping only the OS-calibrated field writes it "
             "(the field the peers are fed).", "", *lines, ""])
         write_section(SECTION, text)
