@@ -66,6 +66,8 @@ def test_only_an_attitude_at_or_before_the_row_and_at_most_max_age_old_is_taken(
     assert old[0].heading_deg[2] == b.heading_deg[2] and old[0].heading_deg[4] == b.heading_deg[4]
     bad = fill_unknown_heading(b, np.array([10.0]), np.array([[np.nan, 0.0, 0.0, 0.0]]))
     assert bad[1] == 0
+    scaled = fill_unknown_heading(b, np.array([10.0]), 3.0 * _yaw([-70.0]))  # not a unit quaternion
+    np.testing.assert_allclose(scaled[0].heading_deg[[1, 2, 4]], 70.0, atol=1e-9)
     assert fill_unknown_heading(b, np.empty(0), np.empty((0, 4)))[1] == 0
     with pytest.raises(ValueError, match="2 times for 1 attitudes"):
         fill_unknown_heading(b, np.array([1.0, 2.0]), _yaw([0.0]))

@@ -59,12 +59,15 @@ def fill_unknown_heading(
     k = np.searchsorted(t_phone, batch.t[rows], side="right") - 1
     fresh = k >= 0
     fresh[fresh] = batch.t[rows[fresh]] - t_phone[k[fresh]] <= max_age_s
-    q_ph = q_phone[k[fresh]] if np.any(fresh) else np.empty((0, 4))
-    fresh[fresh] = np.all(np.isfinite(q_ph), axis=1) & (np.linalg.norm(q_ph, axis=1) > 0)
-    rows, k = rows[fresh], k[fresh]
+    q_ph = q_phone[k[fresh]]
+    norm = np.linalg.norm(q_ph, axis=1)
+    usable = np.all(np.isfinite(q_ph), axis=1) & (norm > 0)
+    fresh[fresh] = usable
+    rows = rows[fresh]
     if not len(rows):
         return batch, 0
-    half = 0.5 * np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_phone[k]))
+    q_ph = q_ph[usable] / norm[usable, None]  # heading_deg_from_quat takes unit quaternions
+    half = 0.5 * np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_ph))
     zero = np.zeros(len(rows))
     turn = np.column_stack([np.cos(half), zero, zero, np.sin(half)])
     q = batch.q_wd.copy()
