@@ -269,8 +269,8 @@ class ReplayRun:
         self.store_use = store_use
         # the phone's own attitude, for the rows whose heading pdr_mag does not know (fill_unknown_heading);
         # not with --ignore-phone-calibration, whose runs start from nothing the phone knows
-        osref = os_reference(src)
-        self.phone_attitude = osref if osref is not None and pipe.settings.prior.use_phone else None
+        osref = os_reference(src) if pipe.settings.prior.use_phone else None
+        self.phone_attitude = None if osref is None else _in_time_order(*osref)
         self.n_phone_heading = 0
 
     @classmethod
@@ -461,6 +461,20 @@ def _load_device(store: DeviceStore, meta: dict) -> tuple:
     use = {"file": None if path is None else str(path), "loaded": prior is not None,
            "age_s": None if prior is None else round(prior.age_s, 1), "saved": False, "t_unix": t_unix}
     return prior, use
+
+
+def _in_time_order(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The phone's attitudes ``(t, q)`` with finite, strictly increasing times (a reader's series may hold a
+    repeated or out-of-order time: the first in time order is kept), as :func:`fill_unknown_heading` takes
+    them."""
+    t = np.asarray(t, dtype=float).reshape(-1)
+    q = np.asarray(q, dtype=float).reshape(-1, 4)
+    if len(t) < 2 or np.all(np.diff(t) > 0):
+        return t, q
+    order = np.argsort(t, kind="stable")
+    t, q = t[order], q[order]
+    keep = np.isfinite(t) & np.r_[True, np.diff(t) > 0]
+    return t[keep], q[keep]
 
 
 def _count_states(cal_state: np.ndarray, counts: Counter) -> None:

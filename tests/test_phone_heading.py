@@ -111,3 +111,17 @@ def test_a_run_that_ignores_what_the_phone_knows_leaves_its_heading_out():
     b, summary, _ = _pocket(True, settings)
     plain, _, _ = _pocket(False, settings)
     assert summary["phone_heading_rows"] == 0 and np.array_equal(b.q_wd, plain.q_wd)
+
+
+def test_replay_takes_the_phones_attitudes_in_time_order():
+    """A reader's attitude series with a repeated and an out-of-order time is put in time order (the first of
+    a repeated time kept) before the rows look up their latest attitude."""
+    from replay.run import _in_time_order
+
+    t = np.array([0.0, 2.0, 1.0, 2.0, np.nan, 3.0])
+    q = _yaw([0.0, 20.0, 10.0, 99.0, 50.0, 30.0])
+    t2, q2 = _in_time_order(t, q)
+    assert t2.tolist() == [0.0, 1.0, 2.0, 3.0]
+    np.testing.assert_allclose(-wrap_deg(heading_deg_from_quat(q2)), [0.0, 10.0, 20.0, 30.0], atol=1e-9)
+    t3, q3 = _in_time_order(t[:2], q[:2])
+    assert t3 is not None and np.array_equal(t3, t[:2]) and np.array_equal(q3, q[:2])
