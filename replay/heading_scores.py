@@ -291,27 +291,34 @@ def _score(tr, qr, ts, qs, max_gap, bin_deg, counts):
     return n45
 
 
+def attitude_series(t: np.ndarray, q_wd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An orientation series (``t`` (N,), w-first ``q_wd`` (N, 4)) as the scores and the phone's heading
+    (:func:`pdr_mag.pipeline.fill_unknown_heading`) take it: samples that are no attitude (a non-finite time
+    or value, a quaternion far from norm 1: an all-zero row) left out, by the readers' rule — the slerp
+    between two unit quaternions is never zero — and the rest in time order, a repeated time holding its
+    first sample.  Contiguous arrays."""
+    t = np.asarray(t, dtype=float).reshape(-1)
+    q = np.asarray(q_wd, dtype=float).reshape(-1, 4)
+    # (the norm summed column by column: np.linalg.norm's sum along rows of 4 gives the same bits, ~4× slower)
+    w, x, y, z = q.T
+    norm = np.sqrt(w * w + x * x + y * y + z * z)
+    ok = np.isfinite(t) & (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
+    if not ok.all():
+        t, q = t[ok], q[ok]
+    if np.any(np.diff(t) <= 0):  # (a series in time order, as recorded, needs neither)
+        order = np.argsort(t, kind="stable")
+        t, q = t[order], q[order]
+        keep = np.r_[True, np.diff(t) > 0]
+        t, q = t[keep], q[keep]
+    return np.ascontiguousarray(t), np.ascontiguousarray(q)
+
+
 class ReferenceErrors:
-    """One reference series (``t`` (N,), w-first device → world ``q_wd`` (N, 4)) and the |heading error|
-    of the estimates against it: a :class:`Histogram` and the count beyond 45°."""
+    """One reference series (``t`` (N,), w-first device → world ``q_wd`` (N, 4); :func:`attitude_series`)
+    and the |heading error| of the estimates against it: a :class:`Histogram` and the count beyond 45°."""
 
     def __init__(self, t: np.ndarray, q_wd: np.ndarray):
-        t = np.asarray(t, dtype=float)
-        q = np.asarray(q_wd, dtype=float)
-        # a sample that is no attitude (non-finite, or a quaternion far from norm 1: an all-zero row) is left
-        # out, by the readers' rule: the slerp between two unit quaternions is never zero.  (The norm summed
-        # column by column: np.linalg.norm's sum along rows of 4 gives the same bits, ~4× slower.)
-        w, x, y, z = q.T
-        norm = np.sqrt(w * w + x * x + y * y + z * z)
-        ok = np.isfinite(t) & (norm >= QUAT_NORM[0]) & (norm <= QUAT_NORM[1])
-        if not ok.all():
-            t, q = t[ok], q[ok]
-        if np.any(np.diff(t) <= 0):  # (a series in time order, as recorded, needs neither)
-            order = np.argsort(t, kind="stable")
-            t, q = t[order], q[order]
-            keep = np.r_[True, np.diff(t) > 0]  # a repeated time holds its first sample
-            t, q = t[keep], q[keep]
-        self.t, self.q = np.ascontiguousarray(t), np.ascontiguousarray(q)
+        self.t, self.q = attitude_series(t, q_wd)
         self.errors = Histogram()
         self.n_over_45 = 0
 
@@ -357,13 +364,21 @@ class HeadingScores(QuietSink):
         if name in REFERENCES:
             self.references[name] = ReferenceErrors(t, q_wd)
 
-    def estimates(self, batch) -> None:
+    def estimates(self, batch, phone_rows: np.ndarray | None = None) -> None:
+        """Score the rows; ``phone_rows``: the indices of those that took the phone's own heading
+        (:func:`pdr_mag.pipeline.fill_unknown_heading`), left out of the ``os`` score — they agree with it
+        by construction."""
         if not len(batch):
             return
         t = np.asarray(batch.t, dtype=float)
         q = np.asarray(batch.q_wd, dtype=float)
-        for ref in self.references.values():
-            ref.add(t, q)
+        for name, ref in self.references.items():
+            if name == "os" and phone_rows is not None and len(phone_rows):
+                own = np.ones(len(t), dtype=bool)
+                own[phone_rows] = False
+                ref.add(t[own], q[own])
+            else:
+                ref.add(t, q)
         if self.walked is not None:
             self.walked.add(t, batch.heading_deg, batch.heading_std_deg)
 

@@ -30,7 +30,7 @@ from pdr_mag.sinks import QuietSink
 from replay.compiling import CompileWatch
 from replay.errors import InputError
 from replay.formats import open_recording
-from replay.heading_scores import HeadingScores
+from replay.heading_scores import HeadingScores, attitude_series
 from replay.recording import Recording
 from replay.source import Merge, RecordingSource
 
@@ -270,7 +270,7 @@ class ReplayRun:
         # the phone's own attitude, for the rows whose heading pdr_mag does not know (fill_unknown_heading);
         # not with --ignore-phone-calibration, whose runs start from nothing the phone knows
         osref = os_reference(src) if pipe.settings.prior.use_phone else None
-        self.phone_attitude = None if osref is None else _in_time_order(*osref)
+        self.phone_attitude = None if osref is None else attitude_series(*osref)
         self.n_phone_heading = 0
 
     @classmethod
@@ -385,13 +385,17 @@ class ReplayRun:
             if len(tm):
                 for s in sinks:
                     s.mag_calibrated(tm, xm)
+        phone_rows = None
         if len(batch) and self.phone_attitude is not None:
-            batch, n = fill_unknown_heading(batch, *self.phone_attitude)
-            self.n_phone_heading += n
+            batch, phone_rows = fill_unknown_heading(batch, *self.phone_attitude)
+            self.n_phone_heading += len(phone_rows)
         if len(batch):
             _count_states(batch.cal_state, self.state_counts)
             for s in sinks:
-                s.estimates(batch)
+                if s is self.scores:
+                    s.estimates(batch, phone_rows)
+                else:
+                    s.estimates(batch)
         for ev in evs:
             self.events.append(ev.to_dict())
             for s in sinks:
@@ -461,20 +465,6 @@ def _load_device(store: DeviceStore, meta: dict) -> tuple:
     use = {"file": None if path is None else str(path), "loaded": prior is not None,
            "age_s": None if prior is None else round(prior.age_s, 1), "saved": False, "t_unix": t_unix}
     return prior, use
-
-
-def _in_time_order(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The phone's attitudes ``(t, q)`` with finite, strictly increasing times (a reader's series may hold a
-    repeated or out-of-order time: the first in time order is kept), as :func:`fill_unknown_heading` takes
-    them."""
-    t = np.asarray(t, dtype=float).reshape(-1)
-    q = np.asarray(q, dtype=float).reshape(-1, 4)
-    if len(t) < 2 or np.all(np.diff(t) > 0):
-        return t, q
-    order = np.argsort(t, kind="stable")
-    t, q = t[order], q[order]
-    keep = np.isfinite(t) & np.r_[True, np.diff(t) > 0]
-    return t[keep], q[keep]
 
 
 def _count_states(cal_state: np.ndarray, counts: Counter) -> None:

@@ -42,8 +42,8 @@ def test_unknown_rows_take_the_phone_heading_with_their_own_tilt_and_std():
     b = _batch()
     t_ph = np.array([9.0, 10.05, 10.25])  # the row at 10.1 s takes 10.05's, 10.2 s too, 10.4 s 10.25's
     q_ph = quat_multiply(_yaw([-250.0, -300.0, -40.0]), np.tile([np.cos(0.3), 0.0, np.sin(0.3), 0.0], (3, 1)))
-    out, n = fill_unknown_heading(b, t_ph, q_ph)
-    assert n == 3
+    out, rows = fill_unknown_heading(b, t_ph, q_ph)
+    assert rows.tolist() == [1, 2, 4]
     np.testing.assert_allclose(wrap_deg(out.heading_deg[[1, 2, 4]] - [300.0, 300.0, 40.0]), 0.0, atol=1e-9)
     np.testing.assert_allclose(out.heading_deg, heading_deg_from_quat(out.q_wd), atol=1e-9)
     up = np.array([0.0, 0.0, 1.0])
@@ -60,15 +60,15 @@ def test_unknown_rows_take_the_phone_heading_with_their_own_tilt_and_std():
 def test_only_an_attitude_at_or_before_the_row_and_at_most_max_age_old_is_taken():
     b = _batch()
     later = fill_unknown_heading(b, np.array([10.45]), _yaw([-90.0]))  # after rows 1, 2 and 4 (10.4 s)
-    assert later[1] == 0 and np.array_equal(later[0].q_wd, b.q_wd)
+    assert len(later[1]) == 0 and np.array_equal(later[0].q_wd, b.q_wd)
     old = fill_unknown_heading(b, np.array([9.0]), _yaw([-90.0]), max_age_s=1.15)  # 1.1, 1.2, 1.4 s old
-    assert old[1] == 1 and old[0].heading_deg[1] == pytest.approx(90.0)
+    assert old[1].tolist() == [1] and old[0].heading_deg[1] == pytest.approx(90.0)
     assert old[0].heading_deg[2] == b.heading_deg[2] and old[0].heading_deg[4] == b.heading_deg[4]
     bad = fill_unknown_heading(b, np.array([10.0]), np.array([[np.nan, 0.0, 0.0, 0.0]]))
-    assert bad[1] == 0
+    assert len(bad[1]) == 0
     scaled = fill_unknown_heading(b, np.array([10.0]), 3.0 * _yaw([-70.0]))  # not a unit quaternion
     np.testing.assert_allclose(scaled[0].heading_deg[[1, 2, 4]], 70.0, atol=1e-9)
-    assert fill_unknown_heading(b, np.empty(0), np.empty((0, 4)))[1] == 0
+    assert len(fill_unknown_heading(b, np.empty(0), np.empty((0, 4)))[1]) == 0
     with pytest.raises(ValueError, match="2 times for 1 attitudes"):
         fill_unknown_heading(b, np.array([1.0, 2.0]), _yaw([0.0]))
 
@@ -104,6 +104,9 @@ def test_replay_gives_the_rows_without_a_heading_the_phones(pocket):
     assert np.array_equal(filled.q_wd[~unknown], plain.q_wd[~unknown])
     assert np.array_equal(filled.heading_std_deg, plain.heading_std_deg)
     assert [e["kind"] for e in s_filled["events"]] == [e["kind"] for e in s_plain["events"]]
+    # the phone's own score leaves those rows out: they agree with it by construction
+    assert s_filled["heading_error"]["os"]["n_epochs"] == len(filled) - unknown.sum()
+    assert s_filled["heading_error"]["truth"]["n_epochs"] == len(filled)
 
 
 def test_a_run_that_ignores_what_the_phone_knows_leaves_its_heading_out():
@@ -113,15 +116,15 @@ def test_a_run_that_ignores_what_the_phone_knows_leaves_its_heading_out():
     assert summary["phone_heading_rows"] == 0 and np.array_equal(b.q_wd, plain.q_wd)
 
 
-def test_replay_takes_the_phones_attitudes_in_time_order():
-    """A reader's attitude series with a repeated and an out-of-order time is put in time order (the first of
-    a repeated time kept) before the rows look up their latest attitude."""
-    from replay.run import _in_time_order
+def test_an_attitude_series_is_put_in_time_order_without_what_is_no_attitude():
+    """A reader's series with a repeated and an out-of-order time, a NaN time and an all-zero row: in time
+    order, the first of a repeated time kept, the NaN time and the zero row left out — as both the scores and
+    the phone's heading take it."""
+    from replay.heading_scores import attitude_series
 
-    t = np.array([0.0, 2.0, 1.0, 2.0, np.nan, 3.0])
-    q = _yaw([0.0, 20.0, 10.0, 99.0, 50.0, 30.0])
-    t2, q2 = _in_time_order(t, q)
+    t = np.array([0.0, 2.0, 1.0, 2.0, np.nan, 3.0, 4.0])
+    q = _yaw([0.0, 20.0, 10.0, 99.0, 50.0, 30.0, 0.0])
+    q[6] = 0.0
+    t2, q2 = attitude_series(t, q)
     assert t2.tolist() == [0.0, 1.0, 2.0, 3.0]
     np.testing.assert_allclose(-wrap_deg(heading_deg_from_quat(q2)), [0.0, 10.0, 20.0, 30.0], atol=1e-9)
-    t3, q3 = _in_time_order(t[:2], q[:2])
-    assert t3 is not None and np.array_equal(t3, t[:2]) and np.array_equal(q3, q[:2])

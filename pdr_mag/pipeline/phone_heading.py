@@ -39,9 +39,9 @@ UNKNOWN_STD_DEG = 180.0 - 1e-6
 
 def fill_unknown_heading(
     batch: EstimateBatch, t_phone: np.ndarray, q_phone: np.ndarray, max_age_s: float = 1.0
-) -> tuple[EstimateBatch, int]:
+) -> tuple[EstimateBatch, np.ndarray]:
     """``batch`` with its unknown-heading rows (``heading_std_deg`` at 180°) turned onto the phone's heading
-    (the module docstring), and how many rows were.
+    (the module docstring), and the indices of the rows that were.
 
     ``t_phone`` (M,) increasing times in the estimates' clock, s; ``q_phone`` (M, 4) w-first device → ENU
     attitudes in the output's north.  A row with no attitude sample at or before it within ``max_age_s``
@@ -51,11 +51,12 @@ def fill_unknown_heading(
     q_phone = np.asarray(q_phone, dtype=float).reshape(-1, 4)
     if len(t_phone) != len(q_phone):
         raise ValueError(f"t_phone, q_phone: {len(t_phone)} times for {len(q_phone)} attitudes")
+    none = np.empty(0, dtype=np.intp)
     if not len(batch) or not len(t_phone):
-        return batch, 0
+        return batch, none
     rows = np.flatnonzero(batch.heading_std_deg >= UNKNOWN_STD_DEG)
     if not len(rows):
-        return batch, 0
+        return batch, none
     k = np.searchsorted(t_phone, batch.t[rows], side="right") - 1
     fresh = k >= 0
     fresh[fresh] = batch.t[rows[fresh]] - t_phone[k[fresh]] <= max_age_s
@@ -65,7 +66,7 @@ def fill_unknown_heading(
     fresh[fresh] = usable
     rows = rows[fresh]
     if not len(rows):
-        return batch, 0
+        return batch, none
     q_ph = q_ph[usable] / norm[usable, None]  # heading_deg_from_quat takes unit quaternions
     half = 0.5 * np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_ph))
     zero = np.zeros(len(rows))
@@ -75,4 +76,4 @@ def fill_unknown_heading(
     q[rows] *= np.where(q[rows, :1] < 0.0, -1.0, 1.0)  # the rows' convention: w ≥ 0
     heading = batch.heading_deg.copy()
     heading[rows] = heading_deg_from_quat(q[rows])
-    return replace(batch, q_wd=q, heading_deg=heading), len(rows)
+    return replace(batch, q_wd=q, heading_deg=heading), rows
