@@ -10,8 +10,9 @@ attitude, the IPIN logger's ``AHRS``).
 
 :func:`fill_unknown_heading` gives those rows the phone's heading: the latest attitude sample at or before
 the row's time (causal: what a backend has when the row is made), at most ``max_age_s`` older, the row's
-own tilt kept — the world turned about Up, ``q ← q_z(ψ − ψ_phone) ⊗ q`` with ``q_z(α) = (cos α/2, 0, 0,
-sin α/2)``, which moves the heading ψ (clockwise from north) onto ψ_phone and nothing else.  The std stays
+own tilt kept — the world turned about Up by ``ψ − ψ_phone`` counter-clockwise
+(:func:`pdr_mag.conventions.rotation_about_up`), which moves the heading ψ (clockwise from north) onto
+ψ_phone and nothing else.  The std stays
 180°: pdr_mag does not vouch for the phone's heading (a CoreMotion frame may be arbitrary in yaw; on the
 tyrex walks the iPhones' fusions are 80–160° off at 20 s on 4 of 28), so a backend weighting by 1/σ² still
 gives these rows no weight and no row is kept as sure that was not before; the filter never reads it.
@@ -30,7 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from pdr_mag.conventions import heading_deg_from_quat, quat_multiply
+from pdr_mag.conventions import heading_deg_from_quat, quat_to_rotation, rotation_about_up, rotation_to_quat
 from pdr_mag.estimates import EstimateBatch
 
 #: a row's heading is unknown when its reported std is at the cap (π² of variance, 180°), deg
@@ -68,12 +69,9 @@ def fill_unknown_heading(
     if not len(rows):
         return batch, none
     q_ph = q_ph[usable] / norm[usable, None]  # heading_deg_from_quat takes unit quaternions
-    half = 0.5 * np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_ph))
-    zero = np.zeros(len(rows))
-    turn = np.column_stack([np.cos(half), zero, zero, np.sin(half)])
+    turn = rotation_about_up(np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_ph)))
     q = batch.q_wd.copy()
-    q[rows] = quat_multiply(turn, q[rows])
-    q[rows] *= np.where(q[rows, :1] < 0.0, -1.0, 1.0)  # the rows' convention: w ≥ 0
+    q[rows] = rotation_to_quat(turn * quat_to_rotation(q[rows]))  # w ≥ 0, the rows' convention
     heading = batch.heading_deg.copy()
     heading[rows] = heading_deg_from_quat(q[rows])
     return replace(batch, q_wd=q, heading_deg=heading), rows
