@@ -18,6 +18,7 @@ from pdr_mag.conventions import (
 )
 from pdr_mag.estimates import EstimateBatch
 from pdr_mag.pipeline import PipelineSettings, fill_unknown_heading
+from pdr_mag.pipeline.phone_heading import UNKNOWN_STD_DEG
 from pdr_mag.sim import simulate
 from replay.recording import Recording, Stream
 from replay.run import MemorySink, replay
@@ -100,7 +101,7 @@ def pocket():
 
 def test_replay_gives_the_rows_without_a_heading_the_phones(pocket):
     (plain, s_plain, _), (filled, s_filled, (t_ph, q_ph)) = pocket
-    unknown = plain.heading_std_deg >= 180.0 - 1e-6
+    unknown = plain.heading_std_deg >= UNKNOWN_STD_DEG
     assert unknown.sum() > 500 and s_plain["phone_heading_rows"] == 0
     assert s_filled["phone_heading_rows"] == unknown.sum()
     k = np.searchsorted(t_ph, filled.t[unknown], side="right") - 1
