@@ -96,9 +96,10 @@ def _one_line_exit_2(capsys, argv, must_name):
     "name,file,old,new,where",
     [
         ("sensorlogger_android", "Gyroscope.csv", "0.010000000,", "-0.010000000,", "Gyroscope.csv:3"),
-        ("phyphox", "Magnetometer.csv", "4.000000000E-03,5.010257830E+00,", "4.000000000E-03\n",
+        # a row cut short (new ends with "|"): the file ends with it — inside a file it is dropped
+        ("phyphox", "Magnetometer.csv", "4.000000000E-03,5.010257830E+00,", "4.000000000E-03|",
          "Magnetometer.csv:2"),
-        ("msindoor_small.txt", None, "72.0\t-85.0\t-340.0\t50.0\t-90.0\t-300.0\t3", "72.0\t-85.0",
+        ("msindoor_small.txt", None, "72.0\t-85.0\t-340.0\t50.0\t-90.0\t-300.0\t3", "72.0\t-85.0|",
          "msindoor_small.txt:25"),
         ("ipin_small.txt", None, "MAGN;0.226;5123.022000", "MAGN;0.226;5122.022000", "ipin_small.txt:21"),
     ],
@@ -111,7 +112,10 @@ def test_cli_exit_2_on_malformed(tmp_path, capsys, name, file, old, new, where):
     else:
         dst = f = tmp_path / name
         shutil.copy(src, dst)
-    f.write_text(f.read_text(encoding="utf-8").replace(old, new, 1), encoding="utf-8")
+    text = f.read_text(encoding="utf-8").replace(old, new, 1)
+    if new.endswith("|"):
+        text = text[: text.index(new) + len(new) - 1] + "\n"
+    f.write_text(text, encoding="utf-8")
     _one_line_exit_2(capsys, ["calibrate", str(dst)], where)
 
 

@@ -1,6 +1,8 @@
 """A garbled row is an odd sample in every reader: a text row with more fields than the header (or the
-format) defines, or with a field anywhere in it that is not a number, is dropped whole and counted under
-``<stream>:extra_fields`` / ``<stream>:non_numeric``; the rows around it read as before.
+format) defines, with a field anywhere in it that is not a number, or with fewer fields than the format needs
+but more rows after it (a write cut short and resumed; as a file's last row it is a truncated file, an
+error), is dropped whole and counted under ``<stream>:extra_fields`` / ``<stream>:non_numeric`` /
+``<stream>:short_row``; the rows around it read as before.
 
 Each reader family reads a small recording twice, clean and with garbled rows inserted: the streams (and the
 truth, waypoints, positions) are equal, and the only difference is the garbled rows' counts.
@@ -18,7 +20,8 @@ import numpy as np
 import pytest
 
 from replay.cli import main
-from replay.formats import read_recording
+from replay.errors import InputError
+from replay.formats import _common, read_recording
 from tests.test_formats_mcap import _raw_mcap
 from tests.test_formats_sunsided import _fixture as _sunsided
 from tests.test_formats_xio import HEADER as XIO_HEADER
@@ -73,10 +76,28 @@ def test_pdrcsv(tmp_path):
     _insert(bad / "mag.csv", {"0.100000,": "0.110000,45.03479,-58.094788,12.3,4x5,abc\n0.115000,20,5,-4O"})
     _insert(bad / "gyro.csv", {"0.200000,": "O.21,0.01,0,0"})  # the time is not a number
     _insert(bad / "truth.csv", {"0.300000,": "0.31,1,0,0,0,0"})
+    _insert(bad / "accel.csv", {"0.400000,": "0.41,0.0\n0.42"})  # two rows cut short, and more after them
     _assert_only_the_garbled_rows_differ(
         read_recording(clean), read_recording(bad),
-        {"mag:extra_fields": 1, "mag:non_numeric": 1, "gyro:non_numeric": 1, "truth:extra_fields": 1},
+        {"mag:extra_fields": 1, "mag:non_numeric": 1, "gyro:non_numeric": 1, "truth:extra_fields": 1,
+         "accel:short_row": 2},
     )
+
+
+def test_pdrcsv_short_row_at_a_chunk_end(tmp_path, monkeypatch):
+    """A row cut short as the last of a chunk (the next chunk tells whether the file goes on) is dropped
+    when rows follow; as the file's last row it ends the read with an error naming it."""
+    monkeypatch.setattr(_common, "CHUNK", 7)
+    clean, bad = _pdrcsv(tmp_path / "clean"), tmp_path / "bad"
+    shutil.copytree(clean, bad)
+    lines = (bad / "mag.csv").read_text().splitlines()
+    lines.insert(7, "0.121,20")  # line 8: the header and six rows before it, the 7th line of a chunk of 7
+    (bad / "mag.csv").write_text("\n".join(lines) + "\n")
+    _assert_only_the_garbled_rows_differ(read_recording(clean), read_recording(bad), {"mag:short_row": 1})
+    (bad / "mag.csv").write_text("\n".join(lines[:8]) + "\n")
+    with pytest.raises(InputError) as ei:
+        read_recording(bad)
+    assert ei.value.line == 8 and "truncated file" in ei.value.problem
 
 
 def test_the_issue_row_in_a_replay_is_dropped_and_named(tmp_path, capsys):
@@ -163,10 +184,12 @@ def test_phyphox(tmp_path):
     clean, bad = FIX / "phyphox", tmp_path / "bad"
     shutil.copytree(clean, bad)
     _insert(bad / "Magnetometer.csv", {
-        "4.000000000E-03,": "5.0E-03,5.0,22.4,-40.6,46.6,1\n6.0E-03,5.0,22.4,-40.6,n/a",  # "Absolute": unread
+        "4.000000000E-03,": "5.0E-03,5.0,22.4,-40.6,46.6,1\n6.0E-03,5.0,22.4,-40.6,n/a"  # "Absolute": unread
+                            "\n7.0E-03,5.0",
     })
     _assert_only_the_garbled_rows_differ(
-        read_recording(clean), read_recording(bad), {"mag:extra_fields": 1, "mag:non_numeric": 1}
+        read_recording(clean), read_recording(bad),
+        {"mag:extra_fields": 1, "mag:non_numeric": 1, "mag:short_row": 1},
     )
 
 
@@ -180,10 +203,13 @@ def test_msindoor(tmp_path):
         "1574562661000\tTYPE_WAYPOINT": "1574562661001\tTYPE_WAYPOINT\t10.0\t2O.0",
         # the OS-calibrated field is not read (the raw one is there): its garbled lines are not counted
         "1574562661020\tTYPE_MAGNETIC_FIELD\t": "1574562661021\tTYPE_MAGNETIC_FIELD\t2x\t5.0\t-40.0\t3",
+        # cut short: a gyroscope row (its stream counts it) and a line of one column (every stream read does)
+        "1574562661040\tTYPE_GYROSCOPE_UNCAL": "1574562661041\tTYPE_GYROSCOPE_UNCALIBRATED\t0.01\n1574562661",
     })
     _assert_only_the_garbled_rows_differ(
         read_recording(clean), read_recording(bad),
-        {"mag:extra_fields": 1, "accel:non_numeric": 1, "waypoint:non_numeric": 1},
+        {"mag:extra_fields": 1, "accel:non_numeric": 1, "waypoint:non_numeric": 1, "gyro:short_row": 2,
+         "mag:short_row": 1, "accel:short_row": 1},
     )
 
 
@@ -193,11 +219,13 @@ def test_ipin(tmp_path):
     _insert(bad, {
         "MAGN;0.206;": "MAGN;0.207;5123.003000;11.7646;25.2246;-37.5096;3;1",
         "ACCE;0.205;": "ACCE;0.2055;5123.005000;0.07351;0.19503;9.80841;III",
-        "POSI;0.100;": "POSI;0.101;1;4O.3134;-3.4837;0;0",
+        "POSI;0.100;": "POSI;0.101;1;4O.3134;-3.4837;0;0\nPOSI;0.102;1",
+        "GYRO;": "GYRO;0.2041;5123.004000;0.01",  # cut short
     })
     _assert_only_the_garbled_rows_differ(
         read_recording(clean), read_recording(bad),
-        {"mag:extra_fields": 1, "accel:non_numeric": 1, "position:non_numeric": 1},
+        {"mag:extra_fields": 1, "accel:non_numeric": 1, "position:non_numeric": 1, "position:short_row": 1,
+         "gyro:short_row": 1},
     )
 
 
@@ -208,10 +236,12 @@ def _xio(path: Path, rows: list[str]) -> Path:
 
 def test_xio(tmp_path):
     rows = [f"{i * 0.01:.2f},0,0,1,0,0,1,{20 + i},0,-40" for i in range(20)]
-    garbled = [*rows[:5], "0.045,0,0,1,0,0,1,24.5,0,-40,7", "0.046,0,0,1,O,0,1,24.6,0,-40", *rows[5:]]
+    garbled = [*rows[:5], "0.045,0,0,1,0,0,1,24.5,0,-40,7", "0.046,0,0,1,O,0,1,24.6,0,-40", "0.047,0,0",
+               *rows[5:]]  # fmt: skip
     _assert_only_the_garbled_rows_differ(
         read_recording(_xio(tmp_path / "a.csv", rows)), read_recording(_xio(tmp_path / "b.csv", garbled)),
-        {f"{k}:{why}": 1 for k in ("mag", "accel", "gyro") for why in ("extra_fields", "non_numeric")},
+        {f"{k}:{why}": 1 for k in ("mag", "accel", "gyro") for why in ("extra_fields", "non_numeric",
+                                                                        "short_row")},
     )
 
 

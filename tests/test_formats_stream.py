@@ -179,8 +179,8 @@ def test_merge_holds_a_bounded_number_of_samples(tmp_path, tiny, write, name):
 def test_late_error_names_its_line_after_slices_went_through(tmp_path, tiny, capsys):
     rec = _pdrcsv(tmp_path / "r", 30.0)
     lines = (rec / "gyro.csv").read_text().splitlines(keepends=True)
-    lines[2500] = "25.0,0,0\n"  # line 2501, in the 358th chunk: a row cut short
-    (rec / "gyro.csv").write_text("".join(lines))
+    # line 2501, in the 358th chunk: a row cut short, where the file ends (inside it, it would be dropped)
+    (rec / "gyro.csv").write_text("".join(lines[:2500]) + "25.0,0,0\n")
     m = Merge(open_recording(rec))
     done = 0
     with pytest.raises(InputError) as err:

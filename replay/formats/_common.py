@@ -14,8 +14,9 @@ A garbled text row never reaches a builder as a sample: a row with more fields t
 format) defines, :data:`EXTRA_FIELDS`, or with a field anywhere in it that is not a number,
 :data:`NON_NUMERIC`, is dropped whole, never read in part, and counted in the recording's ``dropped``:
 every text parser (:func:`iter_table` here, the readers' own line parsers) decides and counts it with
-:func:`row_values`. A row with fewer fields than the format needs is a truncated file: an
-:class:`~replay.errors.InputError`.
+:func:`row_values`. A row with fewer fields than the format needs is judged by :class:`ShortRows`: as the
+file's last row, a file cut short (an :class:`~replay.errors.InputError`); with rows after it, a garbled
+row like the others (:data:`SHORT_ROW`).
 
 Readers stream: after every chunk (:data:`CHUNK` lines or messages) a parser hands the rows cleaned so far
 on (:meth:`StreamBuilder.take`), so a builder never holds more than one chunk. A :class:`StreamSpec` says
@@ -67,6 +68,8 @@ Block = tuple[np.ndarray, np.ndarray]
 #: header or the format defines, and a field (any of the row's) that is not a number.
 EXTRA_FIELDS = "extra_fields"
 NON_NUMERIC = "non_numeric"
+#: … and a row with fewer fields than the format needs that more rows follow (:class:`ShortRows`)
+SHORT_ROW = "short_row"
 
 # Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
 UNIT_RANGES = {
@@ -91,6 +94,43 @@ def is_float(v: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+class ShortRows:
+    """The rows of a text file with fewer fields than its format needs.
+
+    The last row of a file is short when the logger stopped in the middle of writing it: the file is cut
+    short, an :class:`~replay.errors.InputError` naming that row (raised by :meth:`end`, when the file ends
+    there).  A short row that more rows follow is a garbled row inside a good file (a write interrupted and
+    resumed): dropped and counted under ``"<key>:short_row"`` (:data:`SHORT_ROW`) for each stream it would
+    have fed, as :func:`row_values` counts the others.  A parser calls :meth:`found` for a short row,
+    :meth:`follows` for every other row (a cheap test while nothing is pending) and :meth:`end` at the end
+    of the file."""
+
+    __slots__ = ("path", "dropped", "pending")
+
+    def __init__(self, path, dropped: Counter):
+        self.path = path
+        self.dropped = dropped
+        self.pending: tuple | None = None  # (line number, message, stream keys) of the last short row
+
+    def found(self, lineno: int, message: str, keys=()) -> None:
+        """Row ``lineno`` is short (``message`` says how, for the error if it is the last)."""
+        self.follows()
+        self.pending = (lineno, message, tuple(keys))
+
+    def follows(self) -> None:
+        """Another row was read: a short row before it was inside the file."""
+        if self.pending is not None:
+            for key in self.pending[2]:
+                self.dropped[f"{key}:{SHORT_ROW}"] += 1
+            self.pending = None
+
+    def end(self) -> None:
+        """The file ended: a short row pending was its last, the file is cut short."""
+        if self.pending is not None:
+            lineno, message, _ = self.pending
+            raise InputError(self.path, message, lineno)
 
 
 def row_values(
@@ -608,7 +648,7 @@ def iter_table(
     path : file named in errors.
     targets : list of (StreamBuilder, column indices of x, y, z), builders of one recording (one
         ``dropped`` counter).
-    ncol : the number of leading columns every row must have (fewer: a truncated file, InputError).
+    ncol : the number of leading columns every row must have (fewer: :class:`ShortRows`).
     first_line : line number of the stream's next line.
     delimiter : None for whitespace, else e.g. ``","``.
     tcol, t_scale : the time column and its factor to seconds.
@@ -627,10 +667,12 @@ def iter_table(
     most = ncol if most is None else most
     keys = [b.key for b, _ in targets]
     dropped = targets[0][0].dropped  # the recording's counter, which every target counts into
+    short = ShortRows(path, dropped)
     lineno = first_line
     while True:
         lines = list(itertools.islice(fh, chunk))
         if not lines:
+            short.end()
             return
         arr = None
         if all(ln.strip() for ln in lines):
@@ -639,6 +681,7 @@ def iter_table(
             except ValueError:
                 arr = None
         if arr is not None and len(arr) == len(lines) and ncol <= arr.shape[1] <= most:
+            short.follows()
             t = arr[:, tcol] * t_scale if t_scale != 1.0 else arr[:, tcol]
             for b, ix in targets:
                 b.add_block(t, arr[:, ix], first_line=lineno)
@@ -648,11 +691,10 @@ def iter_table(
                 if not line.strip():
                     continue
                 if len(parts) < ncol:
-                    raise InputError(
-                        path,
-                        f"expected at least {ncol} columns, got {len(parts)} (truncated file?)",
-                        lineno + i,
-                    )
+                    why = f"expected at least {ncol} columns, got {len(parts)} (truncated file?)"
+                    short.found(lineno + i, why, keys)
+                    continue
+                short.follows()
                 vals = row_values(parts, most, dropped=dropped, keys=keys)
                 if vals is None:
                     continue

@@ -51,6 +51,7 @@ from pathlib import Path
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import (
+    ShortRows,
     StreamBuilder,
     StreamSpec,
     chunks_of,
@@ -91,8 +92,11 @@ def _parse(p: Path, fh, builders: dict, found: dict):
     ``positions``, the header's ``model``/``maker``/``created`` (the ``Date of creation`` text) and, when
     ``found["os"]`` is a builder, the ``AHRS`` rotation vectors (sensor clock) and their floor
     (``os_offset``)."""
+    short = ShortRows(p, found["dropped"])
     for lineno, line in enumerate(fh, start=1):
         yield
+        if short.pending is not None and line.strip():
+            short.follows()
         if line.startswith("%"):
             body = line.lstrip("% ").strip()
             if body.startswith("Model:"):
@@ -110,9 +114,9 @@ def _parse(p: Path, fh, builders: dict, found: dict):
         key = _TYPES.get(kind)
         if key is not None:
             if len(parts) < 6:
-                raise InputError(
-                    p, f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)", lineno
-                )
+                why = f"{kind}: expected 5 values after the type, got {len(parts) - 1} (truncated?)"
+                short.found(lineno, why, (key,))
+                continue
             vals = row_values(parts[1:], _FIELDS, dropped=found["dropped"], keys=(key,))
             if vals is None:
                 continue
@@ -121,9 +125,9 @@ def _parse(p: Path, fh, builders: dict, found: dict):
                 found["offsets"][key] = min(found["offsets"][key], app - sensor)
         elif kind == "POSI":
             if len(parts) < 5:
-                raise InputError(
-                    p, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)", lineno
-                )
+                short.found(lineno, f"POSI: expected at least 4 values, got {len(parts) - 1} (truncated?)",
+                            ("position",))  # fmt: skip
+                continue
             # only the first four fields must be numbers: the floor and the building may be text
             vals = row_values(parts[1:], _FIELDS, dropped=found["dropped"], keys=("position",), numeric=4)
             if vals is None:
@@ -139,6 +143,7 @@ def _parse(p: Path, fh, builders: dict, found: dict):
             vals += [math.nan] * (_AHRS_FIELDS - len(vals))  # a value missing: counted as os:nan
             if b.add(lineno, vals[1], vals[5:8]):
                 found["os_offset"] = min(found["os_offset"], vals[0] - vals[1])
+    short.end()
 
 
 def _chunks(p: Path, dropped: Counter, found: dict):

@@ -63,6 +63,7 @@ from pathlib import Path
 from replay.errors import InputError
 from replay.formats._attitude import in_output_north, rotation_vector_quat
 from replay.formats._common import (
+    ShortRows,
     StreamBuilder,
     StreamSpec,
     chunks_of,
@@ -177,8 +178,12 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
     # a garbled line is counted in its stream when that is read (a type not chosen: not counted)
     counted = {kind: (_TYPES[kind][0],) if kind in kinds else () for kind in _TYPES}
     counted["TYPE_WAYPOINT"] = ("waypoint",)
+    read_keys = tuple(_TYPES[kind][0] for kind in kinds)
+    short = ShortRows(p, found["dropped"])
     for lineno, line in enumerate(fh, start=1):
         yield
+        if short.pending is not None and line.strip():
+            short.follows()
         if line.startswith("#"):
             try:
                 _header(line, meta, ranges)
@@ -187,8 +192,8 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
             continue
         parts = line.rstrip("\r\n").split("\t")
         if len(parts) < 2:
-            if line.strip():
-                raise InputError(p, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", lineno)
+            if line.strip():  # its type unknown: counted in every stream read
+                short.found(lineno, "expected '<unix ms>\\tTYPE_…\\tvalues', got one column", read_keys)
             continue
         kind = parts[1]
         if kind == "TYPE_ROTATION_VECTOR" and found.get("os") is not None:
@@ -198,7 +203,9 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
             continue
         nval = 2 if kind == "TYPE_WAYPOINT" else 3
         if len(parts) < 2 + nval:
-            raise InputError(p, f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)", lineno)
+            why = f"{kind}: expected {nval} values, got {len(parts) - 2} (truncated?)"
+            short.found(lineno, why, counted[kind])
+            continue
         cells = [parts[0], *parts[2:]]
         vals = row_values(cells, 1 + _MOST[kind], dropped=found["dropped"], keys=counted[kind])
         if vals is None:
@@ -219,6 +226,7 @@ def _parse(p: Path, fh, builders: dict, found: dict, kinds):
         est = found["estimates"].get(kind)
         if b.add(lineno, t, vals[1:4]) and est is not None:
             est.add(t, vals[4:7])
+    short.end()
 
 
 def _rotation_vector(b: StreamBuilder, lineno: int, parts: list[str]) -> None:

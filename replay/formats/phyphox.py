@@ -37,6 +37,7 @@ from pathlib import Path
 from replay.errors import InputError
 from replay.formats._common import (
     Bundle,
+    ShortRows,
     StreamBuilder,
     StreamSpec,
     chunks_of,
@@ -135,17 +136,21 @@ def _member_chunks(p: Path, name: str, key: str, idx: list[int], n_header: int, 
     def rows(fh):
         lines = iter_csv(fh, where, delimiter=delim)
         next(lines)  # the header
+        short = ShortRows(where, dropped)
         for lineno, cells in lines:
             if not cells or all(not c.strip() for c in cells):
                 continue
             if len(cells) < need:
-                raise InputError(where, f"expected {n_header} columns, got {len(cells)} (truncated?)", lineno)
+                short.found(lineno, f"expected {n_header} columns, got {len(cells)} (truncated?)", (key,))
+                continue
+            short.follows()
             if decimal_comma:
                 cells = [c.replace(",", ".") for c in cells]
             vals = row_values(cells, n_header, dropped=dropped, keys=(key,))
             if vals is None:
                 continue
             yield builder.add(lineno, vals[idx[0]], [vals[i] for i in idx[1:]])
+        short.end()
 
     try:
         with b.open(name) as fh:

@@ -29,6 +29,7 @@ import numpy as np
 from pdr_mag.conventions import GRAVITY
 from replay.errors import InputError
 from replay.formats._common import (
+    ShortRows,
     StreamBuilder,
     StreamSpec,
     chunks_of,
@@ -81,6 +82,7 @@ def _header(p: Path, fh) -> tuple[dict[str, list[int]], dict[str, str], int]:
 def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
     """Parse the rows line by line (yielding after each) into the builders; held magnetometer repeats out."""
     last_mag = None
+    short = ShortRows(p, dropped)
     for lineno, line in enumerate(fh, start=2):
         yield
         s = line.strip()
@@ -88,7 +90,10 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
             continue
         parts = s.split(",")
         if len(parts) < ncol:
-            raise InputError(p, f"expected {ncol} columns, got {len(parts)} (truncated file?)", lineno)
+            why = f"expected {ncol} columns, got {len(parts)} (truncated file?)"
+            short.found(lineno, why, tuple(builders))  # garbled: in every stream
+            continue
+        short.follows()
         vals = row_values(parts, ncol, dropped=dropped, keys=tuple(builders))  # garbled: in every stream
         if vals is None:
             continue
@@ -101,6 +106,7 @@ def _rows(p: Path, fh, idx: dict, ncol: int, builders: dict, dropped: Counter):
                     continue
                 last_mag = v
             builders[key].add(lineno, t, v)
+    short.end()
 
 
 def read(path) -> Recording:
