@@ -62,6 +62,18 @@ _BLOCK_FIELDS = ("in_block", "cal_changed", "n_buf0", "n_old0", "hint", "cover_o
 _SAVED_FIELDS = tuple(name for name in K.STATE.names if name not in _BLOCK_FIELDS)
 
 
+def deviating_fields(fields, up, strength: float, tol_uT: float, dip_deg: float | None = None,
+                     dip_tol_deg: float = 0.0) -> np.ndarray:
+    """Which calibrated fields (N × 3, µT, device frame, each with its up vector, N × 3) deviate from a
+    reference field: a strength more than ``tol_uT`` from ``strength``, or, with a reference dip
+    ``dip_deg``, a dip ``asin(−f·u / |f||u|)`` more than ``dip_tol_deg`` from it — the test the buffer's
+    admission and the stale test apply with their own bands, here with the caller's (the fusion filter's
+    detectors: :meth:`pdr_mag.fusion.FusionCore.seed_flag_share`).  Boolean array (N,)."""
+    return K.deviating(np.ascontiguousarray(fields, dtype=float), np.ascontiguousarray(up, dtype=float),
+                       float(strength), float(tol_uT), dip_deg is not None,
+                       0.0 if dip_deg is None else float(dip_deg), float(dip_tol_deg))  # fmt: skip
+
+
 class OnlineCalibrator:
     """The streaming calibration state machine (see the module docstring).
 
@@ -412,9 +424,8 @@ class OnlineCalibrator:
         if f is None:
             ok = np.ones(len(r), dtype=bool)
         else:
-            dip_deg = 0.0 if sd is None else float(np.degrees(np.arcsin(sd)))
-            ok = ~K.deviating(np.ascontiguousarray(mc), np.ascontiguousarray(r["u"]), float(f),
-                              s.add_tol_frac * f, sd is not None, dip_deg, s.add_dip_tol_deg)  # fmt: skip
+            dip_deg = None if sd is None else float(np.degrees(np.arcsin(sd)))
+            ok = ~deviating_fields(mc, r["u"], f, s.add_tol_frac * f, dip_deg, s.add_dip_tol_deg)
         mc, u, n = mc[ok], r["u"][ok], r["n"][ok]
         return r["t"][ok], turned.azimuths(mc, u, n), turned.azimuth_gradients(mc, u, n), mc
 

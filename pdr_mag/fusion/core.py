@@ -91,8 +91,8 @@ import numpy as np
 import scipy.linalg
 
 from pdr_mag._records import settings_record
-from pdr_mag.calibration._online_kernel import deviating
 from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.calibration.online import deviating_fields
 from pdr_mag.calibration.refit import robust_spread
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
@@ -314,7 +314,7 @@ class FusionCore:
         could be 120° off at σ 10° (a tyrex walk restarted 30 s in).  Each field is flagged here as the
         detectors' reference bands would (strength beyond ``max(tol_uT, tol_rel F_ref)`` of the reference
         ``F_ref``, dip beyond ``tol_deg`` of the reference dip where one is known: the calibrator's
-        :func:`~pdr_mag.calibration._online_kernel.deviating` with those bands), the share weighted as
+        :func:`~pdr_mag.calibration.online.deviating_fields` with those bands), the share weighted as
         the span's worth of ``mag.env_tau_s``; the next samples carry it on.  Only for a filter whose
         detectors have seen no field; returns the share set, or None."""
         st = self._st[0]
@@ -329,8 +329,7 @@ class FusionCore:
         det = self.settings.interference
         tol_f = max(det.strength.tol_uT, det.strength.tol_rel * f_ref)
         tol_dip = det.dip.tol_deg if np.isfinite(dip_ref) else 0.0
-        flagged = deviating(np.ascontiguousarray(f), np.ascontiguousarray(u), f_ref, tol_f,
-                            bool(np.isfinite(dip_ref)), dip_ref, tol_dip)  # fmt: skip
+        flagged = deviating_fields(f, u, f_ref, tol_f, dip_ref if np.isfinite(dip_ref) else None, tol_dip)
         share = float(np.mean(flagged))
         st["flag_share"] = share
         st["flag_w"] = -np.expm1(-(t.max() - t.min()) / self.settings.mag.env_tau_s)
