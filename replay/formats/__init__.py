@@ -38,8 +38,8 @@ MagneticField).
 
 Errors and odd samples
 ----------------------
-A file that cannot be right (missing stream, bad header, a row with fewer fields than the format needs —
-a truncated file —, time going backwards — also across chunks —, implausible unit) raises
+A file that cannot be right (missing stream, bad header, a last row with fewer fields than the format needs
+— a truncated file —, time going backwards — also across chunks —, implausible unit) raises
 :class:`~replay.errors.InputError` naming the file and, for text, the line. The unit is judged on a
 stream's first :data:`~replay.formats._common.UNIT_CHECK_SAMPLES` samples (median vector norm), a stream too
 short when it ends (its message then names the odd samples dropped from it). Odd samples are counted in
@@ -50,7 +50,9 @@ short when it ends (its message then names the odd samples dropped from it). Odd
   zero): dropped;
 * ``extra_fields`` (a text row with more fields than the header or the format defines) and ``non_numeric``
   (a field anywhere in the row that is not a number): a garbled row, dropped whole, never read in part —
-  one rule and one count for every text reader, :func:`replay.formats._common.row_values`;
+  one rule and one count for every text reader, :func:`replay.formats._common.row_values`; ``short_row``
+  (a row with fewer fields than the format needs, with more rows after it: a write cut short and resumed,
+  :class:`replay.formats._common.ShortRows`) the same;
 * ``implausible`` (an axis beyond :data:`~replay.formats._common.PHYSICAL_LIMITS`, about twice the widest
   range any sensor of the kind offers: a corrupt number, not a measurement): dropped;
 * ``saturated`` (an accelerometer/gyroscope axis at the sensor's range): **kept**, counted — from the range

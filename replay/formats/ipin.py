@@ -15,7 +15,8 @@ Other records (``PRES``, ``WIFI``, ``GNSS``, ``BLE4``, …) are skipped. Android
 frame and units: nothing is converted. An ``ACCE``, ``GYRO``, ``MAGN`` or ``POSI`` record with more fields
 than its type has (the six above) or with a field that is not a number (the floor and building of a ``POSI``
 may be text) is dropped and counted (``<stream>:extra_fields``, ``<stream>:non_numeric``; ``position:…``);
-one with fewer is a truncated file.
+one with fewer is a truncated file when it is the log's last line, else dropped and counted as well
+(``<stream>:short_row``: :class:`~replay.formats._common.ShortRows`).
 
 Time. ``AppTimestamp`` is the app's clock (seconds since logging started), common to all records but
 stamped on delivery, so jittered; ``SensorTimestamp`` is the sensor's own, precise timestamp on its own

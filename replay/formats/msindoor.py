@@ -36,8 +36,10 @@ segment headings, true north).
 Samples at the sensor's ``maximumRange`` from the header are counted as ``<stream>:saturated``. A line of a
 type read here with more values than the type has (4 with the accuracy, 7 for the uncalibrated types, 2 for a
 waypoint) or with a field that is not a number is dropped and counted (``<stream>:extra_fields``,
-``<stream>:non_numeric``; ``waypoint:…``); one with fewer than the x, y, z (x, y) it needs is a truncated
-file.
+``<stream>:non_numeric``; ``waypoint:…``); one with fewer than the x, y, z (x, y) it needs (or a line of one
+column) is a truncated file when it is the log's last line, else dropped and counted as well
+(``<stream>:short_row``, a line of one column in every stream read:
+:class:`~replay.formats._common.ShortRows`).
 
 The phone's own fusion (``TYPE_ROTATION_VECTOR``) becomes ``references["os"]``
 (:mod:`replay.formats._attitude`: in the pipeline's north, i.e. turned by the WMM declination when the map
