@@ -30,15 +30,25 @@ PEER_COLUMNS = (
 )
 
 
-def on_gyro_grid(rec, mag_cal):
+def on_gyro_grid(rec, mag_cal, period: float | None = None):
     """Accelerometer interpolated and the latest magnetometer sample at the gyroscope's times, from the
-    first time all three streams have a sample."""
+    first time all three streams have a sample.  With ``period`` (s): on a regular grid of that period
+    instead, the latest gyroscope sample held on it too — what a logger that repeats a stalled gyroscope's
+    last value delivers, and what a filter of fixed sample period integrates across a sample left out."""
     start = max(rec.gyro.t[0], rec.accel.t[0], rec.mag.t[0])
-    keep = rec.gyro.t >= start
-    tg = rec.gyro.t[keep]
+    if period is None:
+        keep = rec.gyro.t >= start
+        tg, gyr = rec.gyro.t[keep], rec.gyro.xyz[keep]
+    else:
+        tg = np.arange(start, rec.gyro.t[-1], period)
+        gyr = rec.gyro.xyz[_latest(rec.gyro.t, tg)]
     acc = np.column_stack([np.interp(tg, rec.accel.t, rec.accel.xyz[:, k]) for k in range(3)])
-    j = np.clip(np.searchsorted(rec.mag.t, tg, side="right") - 1, 0, len(rec.mag.t) - 1)
-    return tg, rec.gyro.xyz[keep], acc, mag_cal[j]
+    return tg, gyr, acc, mag_cal[_latest(rec.mag.t, tg)]
+
+
+def _latest(t, grid):
+    """Index of the latest sample of times ``t`` at or before each grid time (the first before any)."""
+    return np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(t) - 1)
 
 
 def _to_true(q_wxyz, declination_deg, pre_yaw_deg=0.0):

@@ -20,13 +20,15 @@ is compared with what it costs them:
     Gaussian noise of 1 µT per axis added to the magnetometer (a noisier magnetometer).
 
 The product: ``replay`` of the degraded recording as ``pdr-mag replay TRACE`` runs it (the raw field and the
-phone's own estimates it carries; walked.py's ``default`` run).  The peers: VQF and imufusion as
-``walked_peers.csv`` ran them — fed the OS-calibrated field (``TYPE_MAGNETIC_FIELD``, degraded alike), the
-accelerometer interpolated and the latest gyroscope sample and field held on a regular grid at the gyroscope's
-median interval (:func:`on_regular_grid`: the mall logger repeats a stalled gyroscope's last value, which the
-reader drops and the peers' fixed sample period needs back), their magnetic north turned to true north with
-the WMM declination.  Every degradation is random only through a
-generator seeded by the trace and the stream, so the product and the peers see the same samples.  Scoring:
+phone's own estimates it carries; walked.py's ``default`` run).  The peers: VQF and imufusion with the
+settings of ``walked_peers.csv``, fed the OS-calibrated field (``TYPE_MAGNETIC_FIELD``, degraded alike) and
+the gyroscope less the OS's bias (``TYPE_GYROSCOPE``), on a regular grid at the gyroscope's median interval
+with the latest gyroscope sample and field held and the accelerometer interpolated
+(``_peers.on_gyro_grid`` with a period: the mall logger repeats a stalled gyroscope's last value, which the
+reader drops and the peers' fixed sample period needs back); their magnetic north turned to true north with
+the WMM declination.  They are not the CSV's run (its runner's grid is not known here): compare each method
+with itself across the degradations.  Every degradation is random only through a generator seeded by the
+trace and the stream, so the product and the peers see the same samples.  Scoring:
 :mod:`replay.heading_scores` (``../shared/tools/walked-direction``'s definitions).
 
 Usage::
@@ -48,7 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_section  # noqa: E402
-from _peers import _to_true, run_imufusion, run_vqf  # noqa: E402
+from _peers import _to_true, on_gyro_grid, run_imufusion, run_vqf  # noqa: E402
 from walked import os_field_copy, traces  # noqa: E402
 
 from pdr_mag.conventions import heading_deg_from_quat  # noqa: E402
@@ -89,21 +91,6 @@ def degrade(rec, name: str, trace: str):
     return rec
 
 
-def on_regular_grid(rec):
-    """The peers' input: a grid at the gyroscope's median interval from the first instant all three streams
-    have a sample, the latest gyroscope sample and field held on it, the accelerometer interpolated — what
-    the logger itself delivers where its gyroscope stalls (a run of one repeated value) and what a filter
-    of fixed sample period integrates across a sample left out."""
-    start = max(rec.gyro.t[0], rec.accel.t[0], rec.mag.t[0])
-    grid = np.arange(start, rec.gyro.t[-1], float(np.median(np.diff(rec.gyro.t))))
-
-    def held(s):
-        return s.xyz[np.clip(np.searchsorted(s.t, grid, side="right") - 1, 0, len(s.t) - 1)]
-
-    acc = np.column_stack([np.interp(grid, rec.accel.t, rec.accel.xyz[:, k]) for k in range(3)])
-    return grid, held(rec.gyro), acc, held(rec.mag)
-
-
 def one_trace(args) -> dict:
     """``{method: [(error_deg, sigma_deg), …]}`` of one trace's segments under one degradation."""
     path, os_path, name = args
@@ -113,7 +100,7 @@ def one_trace(args) -> dict:
     segments = walked_segments(rec.meta["waypoints"])
     cal = degrade(read_recording(os_path), name, path.stem)  # its field is the OS-calibrated one
     declination = earth_field_from_meta(cal.meta).declination_deg
-    tg, gyr, acc, mag = on_regular_grid(cal)
+    tg, gyr, acc, mag = on_gyro_grid(cal, cal.mag.xyz, float(np.median(np.diff(cal.gyro.t))))
     gyr = gyr - np.asarray(cal.meta.get("gyro_os_bias_rad_s", (0.0, 0.0, 0.0)))  # TYPE_GYROSCOPE
     for peer, run in PEERS.items():
         q = _to_true(run(tg, gyr, acc, mag), declination)
@@ -145,8 +132,9 @@ def table(results: dict) -> list[str]:
             f = pooled(res[m])
             fig = f"{f['median_deg']:.2f} / {f['mean_deg']:.2f} / {f['n_over_45']}"
             cells.append(f"**{fig}**" if m == "pdr_mag" else fig)
-            b = base[m] if base else f
-            cells.append(f"{f['median_deg'] - b['median_deg']:+.2f} / {f['mean_deg'] - b['mean_deg']:+.2f}")
+            b = base[m] if base and name != "none" else None
+            cells.append("—" if b is None else
+                         f"{f['median_deg'] - b['median_deg']:+.2f} / {f['mean_deg'] - b['mean_deg']:+.2f}")
             if m == "pdr_mag":
                 cells.append(f"{100 * f['within_2sigma_share']:.1f} %")
         lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
@@ -181,14 +169,11 @@ def main() -> None:
             f"`python benchmarks/walked_degraded.py --write-results` (commit {commit}, "
             f"{time.perf_counter() - t0:.0f} s on {a.jobs} processes): the {len(paths)} mall traces of "
             "`walked.py`, each stream degraded as the script's docstring says (the same samples for every "
-            "method), pdr_mag's default replay against VQF and imufusion run on the same degraded streams; "
-            "|error| of each segment's walked direction over the 158 segments, deg (median / mean / segments "
-            "> 45°), each method's change against its own run on the streams as logged (`none`), pdr_mag's "
-            "share of segments within 2σ. The peers here are fed as the script says (a regular grid, the "
-            "gyroscope's stalls held, TYPE_GYROSCOPE): their `none` figures differ from `walked_peers.csv`'s "
-            "run (per segment median |Δ| 0.85°, 15 segments > 5°: the start and the mall logger's stalls), "
-            "so compare each method with itself across rows; the product's `none` row is `walked.py`'s "
-            "default.",
+            "method); pdr_mag's default replay, VQF and imufusion on the same degraded streams (fed as the "
+            "script says, not as `walked_peers.csv`'s run: compare each method with itself across rows). "
+            f"|error| of the walked direction over the {len(next(iter(results.values()))['pdr_mag'])} "
+            "segments, deg: median / mean / segments > 45°, and "
+            "the change against the method's own `none` row; pdr_mag's share of segments within 2σ.",
             "", *lines,
         ])
         write_section(SECTION, text)

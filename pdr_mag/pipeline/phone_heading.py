@@ -58,17 +58,15 @@ def fill_unknown_heading(
     rows = np.flatnonzero(batch.heading_std_deg >= UNKNOWN_STD_DEG)
     if not len(rows):
         return batch, none
-    k = np.searchsorted(t_phone, batch.t[rows], side="right") - 1
-    fresh = k >= 0
-    fresh[fresh] = batch.t[rows[fresh]] - t_phone[k[fresh]] <= max_age_s
-    q_ph = q_phone[k[fresh]]
+    k = np.searchsorted(t_phone, batch.t[rows], side="right") - 1  # the latest sample at or before
+    q_ph = q_phone[np.maximum(k, 0)]
     norm = np.linalg.norm(q_ph, axis=1)
-    usable = np.all(np.isfinite(q_ph), axis=1) & (norm > 0)
-    fresh[fresh] = usable
-    rows = rows[fresh]
+    use = (k >= 0) & (batch.t[rows] - t_phone[np.maximum(k, 0)] <= max_age_s)
+    use &= np.all(np.isfinite(q_ph), axis=1) & (norm > 0)
+    rows = rows[use]
     if not len(rows):
         return batch, none
-    q_ph = q_ph[usable] / norm[usable, None]  # heading_deg_from_quat takes unit quaternions
+    q_ph = q_ph[use] / norm[use, None]  # heading_deg_from_quat takes unit quaternions
     turn = rotation_about_up(np.radians(batch.heading_deg[rows] - heading_deg_from_quat(q_ph)))
     q = batch.q_wd.copy()
     q[rows] = rotation_to_quat(turn * quat_to_rotation(q[rows]))  # w ≥ 0, the rows' convention
