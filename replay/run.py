@@ -33,6 +33,7 @@ from replay.formats import open_recording
 from replay.heading_scores import HeadingScores, attitude_series
 from replay.recording import Recording
 from replay.source import Merge, RecordingSource
+from replay.stream_gaps import StreamGaps
 
 #: Stream time pushed between polls, s. A file needs no phone-like delivery (an app pushes every second or
 #: two); a poll has a fixed cost (≈ 0.13 ms: the filter's and the calibrator's calls for the slice's last
@@ -249,6 +250,9 @@ class ReplayRun:
         The device store the run started from and leaves its knowledge in.
     store_use : dict
         What was read from and written to the store (the summary's ``device_store``).
+    gaps : StreamGaps
+        The stretches without samples of a stream (the summary's ``stream_gaps``; each a ``stream_gap`` event
+        to the sinks, not among the pipeline's ``events``).
     """
 
     def __init__(self, src: RecordingSource, merge: Merge, pipe: HeadingPipeline, sinks: list,
@@ -267,6 +271,7 @@ class ReplayRun:
         self.n_cal_seen = len(pipe.calibrations)
         self.store = store
         self.store_use = store_use
+        self.gaps = StreamGaps(merge.t0)
         # the phone's own attitude, for the rows whose heading pdr_mag does not know (fill_unknown_heading);
         # not with --ignore-phone-calibration, whose runs start from nothing the phone knows
         osref = os_reference(src) if pipe.settings.prior.use_phone else None
@@ -358,6 +363,7 @@ class ReplayRun:
                 self._emit(self.pipe.flush() if final else self.pipe.poll())
                 if bar is not None:
                     bar.update(self.merge.position - bar.n)
+            self._gap_events(self.gaps.finish())
             _emit_episodes(self.finder.finish(), self.sinks)
         finally:
             if bar is not None:
@@ -374,6 +380,13 @@ class ReplayRun:
                 for s in self.sinks:
                     s.inputs(name, t, xyz)
                 self.n_pushed[name] += len(t)
+                self._gap_events(self.gaps.add(name, t))
+
+    def _gap_events(self, events: list) -> None:
+        """A stream's gaps, found as its samples come, to the sinks (a warning at the gap's start)."""
+        for ev in events:
+            for s in self.sinks:
+                s.event(ev)
 
     def _emit(self, batch: EstimateBatch) -> None:
         """What a poll gave out — calibrated magnetometer samples, output rows, events, the drift episodes
@@ -437,6 +450,7 @@ class ReplayRun:
                 "n_samples": self.n_pushed,
                 "cal_state_rows": dict(sorted(self.state_counts.items())),
                 "phone_heading_rows": self.n_phone_heading,
+                "stream_gaps": self.gaps.summary(),
                 "calibration_given": self.calibration is not None,
                 "device_store": None if self.store_use is None else {
                     k: v for k, v in self.store_use.items() if k != "t_unix"},
@@ -515,6 +529,7 @@ def summary_table(summary: dict) -> str:
     for i, ep in enumerate(worst([Episode.from_dict(e) for e in episodes]), 1):
         rows.append((f"  worst {i}", ep.describe()))
     rows += _score_rows(summary)
+    rows.append(("stream gaps", _gaps_line(summary.get("stream_gaps"))))
     dropped = summary["dropped_samples"]
     rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
     if summary.get("samples_per_s"):
@@ -553,6 +568,31 @@ def _score_rows(summary: dict) -> list[tuple[str, str]]:
     elif w:
         rows.append(("heading vs walked", "no segment (waypoints ≥ 4 m and 3 s apart)"))
     return rows
+
+
+def _gaps_line(gaps: dict | None) -> str:
+    """The summary table's line on the streams' gaps: per stream, how many and how long in all; a stream that
+    starts late or ends early says what the rows lack there."""
+    if not gaps or not gaps["n"]:
+        return "none"
+    parts = []
+    for name, g in gaps["per_stream"].items():
+        text = f"{name} {g['n']} ({g['total_s']:.1f} s)"
+        for x in gaps["gaps"]:
+            if x["stream"] != name or x["where"] == "inside":
+                continue
+            late = x["where"] == "start"
+            text += (f", starts {x['duration_s']:.1f} s after the others: " if late else
+                     f", ends {x['duration_s']:.1f} s before the others: ")
+            text += f"{_GAP_COST.get(name, 'without it')} {'before' if late else 'after'} "
+            text += f"{x['t_to'] if late else x['t_from']:.1f} s"
+        parts.append(text)
+    return "; ".join(parts)
+
+
+#: What the output lacks while a stream has no samples (the console's ``stream gaps``).
+_GAP_COST = {"gyro": "no output rows", "accel": "the tilt on the gyroscope alone",
+             "mag": "the heading on the gyroscope alone"}
 
 
 def _prior_line(summary: dict) -> str:

@@ -282,10 +282,15 @@ def test_drift_episode_rotation_and_one_line_per_calibration(tmp_path):
     gap = Episode("no_reference", 9.8, 20.0, 10.0, 10.2, 20.0, peak_error_deg=14.0, peak_std_deg=3.0)
     sink.event(ep.to_event())
     sink.event(gap.to_event())
+    gap_data = {"stream": "gyro", "t_to": 28.5, "duration_s": 3.5, "where": "inside"}
+    sink.event(Event(25.0, "stream_gap", gap_data))
     sink.close()
     data = _read(path)
-    _, texts = _series(data, "/events", "TextLog:text")
+    t_text, texts = _series(data, "/events", "TextLog:text")
     assert sum("sphere" in x for x in texts) == 1  # the event and the calibration: one line
+    gap_line = [(tt, x) for tt, x in zip(t_text, texts, strict=True) if x.startswith("stream gap")]
+    assert gap_line == [(25e9, "stream gap: no gyro sample for 3.5 s, until its next sample")]
+    texts = [x for x in texts if not x.startswith("stream gap")]
     assert texts[0].startswith("rotation_episode_start") and texts[-1].startswith("drift episode: error")
     t_drift, drift = _series(data, "/state/drift", "StateChange:state")
     assert drift == ["no_reference", "error", "no_reference", ""]  # the worst open kind at each time

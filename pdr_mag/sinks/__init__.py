@@ -31,7 +31,7 @@ import numpy as np
 #: Event kinds the sinks log as warnings (all others are info).
 WARNING_EVENTS = (
     "interference_start", "calibration_rejected", "calibration_suspected", "recalibration_requested",
-    "drift_episode",
+    "drift_episode", "stream_gap",
 )
 
 

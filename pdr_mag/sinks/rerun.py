@@ -90,6 +90,9 @@ from pdr_mag.sinks._rerun_layout import (
 
 __all__ = ["RerunSink", "drift_blueprint", "WARNING_EVENTS"]
 
+#: The event log's words for where a ``stream_gap`` ends.
+_GAP_UNTIL = {"start": "its first sample", "end": "the recording's end"}
+
 
 def _duration_ns(t: np.ndarray) -> np.ndarray:
     """Seconds → ``timedelta64[ns]``, rounded like MCAP's ``round(t·1e9)`` (rerun itself truncates)."""
@@ -352,6 +355,10 @@ class RerunSink:
             ep = Episode.from_dict({**d, "kind": d["episode"], "t_start": d["t"]})
             self._episodes.append((ep.t_start, ep.t_end, ep.kind))
             text = "drift episode: " + ep.describe()
+        elif kind == "stream_gap":
+            d = ev.data
+            until = _GAP_UNTIL.get(d["where"], "its next sample")
+            text = f"stream gap: no {d['stream']} sample for {d['duration_s']:.1f} s, until {until}"
         else:
             details = {k: v for k, v in ev.to_dict().items() if k not in ("t", "kind")}
             text = kind + ("" if not details else " " + ", ".join(f"{k}={v}" for k, v in details.items()))
