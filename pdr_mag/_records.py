@@ -109,11 +109,11 @@ def default_settings(cls):
     return cls()
 
 
-def check_numbers(settings, positive: tuple = ()) -> None:
+def check_numbers(settings, positive: tuple = (), signed: tuple = ()) -> None:
     """``ValueError`` naming the first field of ``settings`` that is wrong: a group of settings (a field
     declared as a dataclass, or as one or None) that is not of its declared class, or a number that is not
-    finite and ≥ 0 — for the names in ``positive``, not > 0 (the numbers inside a group are its own class's
-    to check)."""
+    finite and ≥ 0 — for the names in ``positive``, not > 0; for those in ``signed``, not finite (the numbers
+    inside a group are its own class's to check)."""
     where = type(settings).__name__
     hints = _hints(type(settings))
     for f in fields(settings):
@@ -128,7 +128,7 @@ def check_numbers(settings, positive: tuple = ()) -> None:
             if not isinstance(v, kind):
                 raise ValueError(f"{where}.{f.name}: expected a {kind.__name__}, got {type(v).__name__}")
             continue
-        if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+        if not (isinstance(v, int | float) and math.isfinite(v) and (v >= 0 or f.name in signed)):
             raise ValueError(f"{where}.{f.name}: expected a non-negative finite number, got {v!r}")
         if f.name in positive and not v > 0:
             raise ValueError(f"{where}.{f.name}: expected a positive number, got {v!r}")

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from pdr_mag.calibration.latency import NONE as NO_LATENCY
+from pdr_mag.calibration.latency import Latency, estimate_mag_latency
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
@@ -129,6 +131,40 @@ class MemorySink(QuietSink):
 
     def estimates(self, batch: EstimateBatch) -> None:
         self.batches.append(batch)
+
+
+#: Stream time the magnetometer's latency is estimated on before a run (``--mag-time-offset auto``), s.
+LATENCY_SPAN_S = 60.0
+
+
+def estimate_latency(rec_path, span_s: float = LATENCY_SPAN_S) -> Latency:
+    """The magnetometer's latency against the gyroscope over the recording's first ``span_s`` seconds
+    (:func:`pdr_mag.calibration.latency.estimate_mag_latency`): a pass of its own over the start of the file,
+    before the run (``replay --mag-time-offset auto``). ``rec_path``: a path or a :class:`Recording`."""
+    if isinstance(rec_path, RecordingSource):
+        raise ValueError("estimate_latency: a RecordingSource streams once; give the path (or a Recording)")
+    if isinstance(rec_path, Recording):
+        src = RecordingSource.from_recording(rec_path)
+    else:
+        src = open_recording(rec_path)
+    merge = Merge(src)
+    if "gyro" not in merge.present or "mag" not in merge.present:
+        return NO_LATENCY
+    parts: dict[str, list] = {"gyro": [], "mag": []}
+    for final, blocks in merge.slices(min(span_s, SLICE_S)):
+        for key in parts:
+            if blocks.get(key) is not None:
+                parts[key].append(blocks[key])
+        if final or merge.t_last["mag"] - merge.t0 >= span_s and merge.t_last["gyro"] - merge.t0 >= span_s:
+            break
+    got = {}
+    for key, blocks in parts.items():
+        if not blocks:
+            return NO_LATENCY
+        t, x = np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
+        keep = t < merge.t0 + span_s
+        got[key] = (t[keep], x[keep])
+    return estimate_mag_latency(*got["gyro"], *got["mag"])
 
 
 def load_calibration(path) -> MagCalibration:
@@ -529,6 +565,9 @@ def summary_table(summary: dict) -> str:
     for i, ep in enumerate(worst([Episode.from_dict(e) for e in episodes]), 1):
         rows.append((f"  worst {i}", ep.describe()))
     rows += _score_rows(summary)
+    lag = _latency_line(summary)
+    if lag:
+        rows.append(("mag latency", lag))
     rows.append(("stream gaps", _gaps_line(summary.get("stream_gaps"))))
     dropped = summary["dropped_samples"]
     rows.append(("dropped samples", ", ".join(f"{k} {v}" for k, v in dropped.items()) or "none"))
@@ -568,6 +607,22 @@ def _score_rows(summary: dict) -> list[tuple[str, str]]:
     elif w:
         rows.append(("heading vs walked", "no segment (waypoints ≥ 4 m and 3 s apart)"))
     return rows
+
+
+def _latency_line(summary: dict) -> str:
+    """The summary table's line on the magnetometer's latency: given, estimated and applied, or not
+    determined ("" when none was given or asked for)."""
+    est = summary.get("mag_latency")
+    used = summary.get("mag_time_offset_s") or 0.0
+    if est is None:
+        return f"{1000 * used:.1f} ms given: the magnetometer's stamps moved back by it" if used else ""
+    if est["applied"]:
+        return (f"{1000 * used:.1f} ms (± {1000 * est['std_s']:.1f}) estimated from the first "
+                f"{est['span_s']:.0f} s and applied")
+    why = "too little turning" if est["seconds"] is None or est["std_s"] is None else (
+        f"{1000 * est['seconds']:.1f} ± {1000 * est['std_s']:.1f} ms, explaining {100 * est['gain']:.0f} % "
+        "of the field's turn residual")
+    return f"not determined from the first {est['span_s']:.0f} s ({why}): none applied"
 
 
 def _gaps_line(gaps: dict | None) -> str:

@@ -158,7 +158,8 @@ class HeadingPipeline:
         # the phone's later hard-iron estimates, while its first is the calibration in force: (t, offset)
         self._phone_changes: list[tuple[float, tuple]] = []
         if start is not None and start is (phone.calibration if phone is not None else None):
-            self._phone_changes = phone_changes(self.meta)
+            lag = self.settings.mag_time_offset_s  # the changes are stamped on the magnetometer's clock
+            self._phone_changes = [(t - lag, b) for t, b in phone_changes(self.meta)]
         self.dropped: Counter = Counter()
         self._streams = {k: PendingStream() for k in KINDS}
         self._done_t = -np.inf  # every sample before this time has been processed
@@ -236,6 +237,8 @@ class HeadingPipeline:
             raise ValueError(f"xyz: expected shape ({len(t)}, 3) for {len(t)} times, got {xyz.shape}")
         if not len(t):
             return
+        if name == "mag" and self.settings.mag_time_offset_s:
+            t = t - self.settings.mag_time_offset_s  # onto the IMU's time (PipelineSettings)
         s = self._streams[name]
         if not (
             t[0] >= self._done_t and PK.in_order(t, xyz, s.last_t)
@@ -275,7 +278,8 @@ class HeadingPipeline:
             raise ValueError(
                 f"phone calibration: expected a finite time and 3 finite µT, got {t!r}, {offset_uT!r}"
             )
-        self._phone_changes.append((float(t), tuple(float(v) for v in b)))
+        t_imu = float(t) - self.settings.mag_time_offset_s  # stamped on the magnetometer's clock
+        self._phone_changes.append((t_imu, tuple(float(v) for v in b)))
         self._phone_changes.sort()
 
     # ------------------------------------------------------------------ output
@@ -593,6 +597,7 @@ class HeadingPipeline:
             ],
             "dropped_samples": dict(sorted(self.dropped.items())),
             "prior": None if self.prior is None else self.prior.to_dict(),
+            "mag_time_offset_s": self.settings.mag_time_offset_s,
             "field": None
             if self.field is None
             else {

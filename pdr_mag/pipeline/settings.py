@@ -24,6 +24,11 @@ def fusion_settings(settings, meta: dict):
     return settings
 
 
+#: The largest magnetometer latency :class:`PipelineSettings` takes, s: a sensor's filter delays its samples
+#: by tens of milliseconds, a logger stamping on delivery by up to a few hundred; a second is another clock.
+MAX_MAG_TIME_OFFSET_S = 1.0
+
+
 @dataclass(frozen=True)
 class PipelineSettings:
     """Settings of :class:`HeadingPipeline`.
@@ -48,6 +53,13 @@ class PipelineSettings:
     prior : PriorSettings
         What is taken from the phone's own estimates in the metadata and how sure they are
         (:mod:`pdr_mag.calibration.prior`).
+    mag_time_offset_s : float
+        The magnetometer's latency against the IMU, s: a magnetometer sample stamped t was measured at IMU
+        time t − ``mag_time_offset_s`` (the simulator's and ``diagnose``'s ``time_offset``: a sensor's own
+        filter delay, a logger stamping on delivery). The pipeline moves the magnetometer's stamps (and the
+        phone's estimate changes, stamped on them) back by it. A field measured 30 ms before its stamp is
+        turned by 30 ms of rotation: 3.4° at a swinging hand's 2 rad/s. At most ``MAX_MAG_TIME_OFFSET_S``
+        either way.
     """
 
     block_s: float = 0.5
@@ -58,7 +70,11 @@ class PipelineSettings:
     fusion: FusionSettings | None = None
     keep_mag_calibrated: bool = False
     prior: PriorSettings = field(default_factory=PriorSettings)
+    mag_time_offset_s: float = 0.0
 
     def __post_init__(self):
         # a group of another class (a dict, say) would fail deep inside a run
-        check_numbers(self, positive=("block_s", "max_lag_s", "max_pending"))
+        check_numbers(self, positive=("block_s", "max_lag_s", "max_pending"), signed=("mag_time_offset_s",))
+        if abs(self.mag_time_offset_s) > MAX_MAG_TIME_OFFSET_S:
+            raise ValueError(f"PipelineSettings.mag_time_offset_s: {self.mag_time_offset_s!r} s is beyond "
+                             f"±{MAX_MAG_TIME_OFFSET_S} s (a clock problem, not a sensor's latency)")

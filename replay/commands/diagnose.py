@@ -175,6 +175,10 @@ def summary(d: dict, rec) -> str:
                      f"{best['score']}, gap {best['gap']:.3f} µT) — {mark}")
     lines.append(f"  missing effects: {', '.join(d['missing_effects']) or 'none'}")
     lines.append(f"  final {'+'.join(d['final']['effects'])}: gap {d['final']['gap']:.3f} µT")
+    lag = d["final"].get("estimate", {}).get("time_offset")
+    if lag is not None:  # the one effect the heading pipeline takes as a setting
+        lines.append(f"  the magnetometer's latency {lag['seconds']:.4f} s (± {lag['std']:.4f}): "
+                     f"pdr-mag replay --mag-time-offset {lag['seconds']:.3f} applies it")
     lines += identifiability_lines(d.get("identifiability", {}))
     return "\n".join(lines)
 

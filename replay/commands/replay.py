@@ -1,6 +1,6 @@
 """``pdr-mag replay REC [--calibration FILE] [--device-store DIR] [--ignore-phone-calibration]
-[--latitude DEG --longitude DEG [--altitude M]] [--date YYYY-MM-DD] [--out-csv FILE] [--mcap FILE
-[--mcap-rate HZ]] [--rrd FILE] [--json FILE]``.
+[--mag-time-offset S] [--latitude DEG --longitude DEG [--altitude M]] [--date YYYY-MM-DD] [--out-csv FILE]
+[--mcap FILE [--mcap-rate HZ]] [--rrd FILE] [--json FILE]``.
 
 ``--latitude``/``--longitude`` (``--altitude``) and ``--date`` say where and when the recording was made
 when it does not (:mod:`replay.commands._place`).  With them the field model gives the reference field and
@@ -19,12 +19,39 @@ import click
 from pdr_mag.calibration.prior import PriorSettings
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.pipeline import PipelineSettings
+from pdr_mag.pipeline.settings import MAX_MAG_TIME_OFFSET_S
 from replay.commands._output import writable_file
 from replay.commands._place import apply_place, place_of, place_options
 from replay.compiling import announced
 from replay.errors import InputError
 from replay.formats import open_recording
-from replay.run import CsvSink, load_calibration, make_sink, replay, summary_table
+from replay.run import (
+    LATENCY_SPAN_S,
+    CsvSink,
+    estimate_latency,
+    load_calibration,
+    make_sink,
+    replay,
+    summary_table,
+)
+
+
+class _LatencyParam(click.ParamType):
+    """``--mag-time-offset``: seconds within ±``MAX_MAG_TIME_OFFSET_S``, or ``auto``."""
+
+    name = "latency"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, float) or value == "auto":
+            return value
+        try:
+            x = float(value)
+        except ValueError:
+            self.fail(f"{value!r} is neither a number of seconds nor 'auto'", param, ctx)
+        if not abs(x) <= MAX_MAG_TIME_OFFSET_S:
+            self.fail(f"{value} s is beyond ±{MAX_MAG_TIME_OFFSET_S} s (a clock problem, not a latency)",
+                      param, ctx)
+        return x
 
 
 @click.command()
@@ -41,6 +68,15 @@ from replay.run import CsvSink, load_calibration, make_sink, replay, summary_tab
     "--ignore-phone-calibration",
     is_flag=True,
     help="Do not start from the phone's own hard-iron and gyro estimates that the recording carries.",
+)
+@click.option(
+    "--mag-time-offset",
+    type=_LatencyParam(),
+    default="0",
+    metavar="S|auto",
+    help="The magnetometer's latency against the IMU, s: a sample stamped t was measured at t − S "
+    "(diagnose's time_offset); auto: estimated from the recording's first 60 s, used when determined. "
+    "Default 0.",
 )
 @place_options
 @click.option("--out-csv", type=click.Path(path_type=Path), help="Estimates, one row per output epoch.")
@@ -61,8 +97,8 @@ from replay.run import CsvSink, load_calibration, make_sink, replay, summary_tab
     "--progress/--no-progress", default=None, help="Progress bar (default: long recordings on a tty)."
 )
 @click.option("--quiet", "-q", is_flag=True, help="No summary table.")
-def command(rec, calibration, device_store, ignore_phone_calibration, latitude, longitude, altitude, date,
-            out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
+def command(rec, calibration, device_store, ignore_phone_calibration, mag_time_offset, latitude, longitude,
+            altitude, date, out_csv, mcap, mcap_rate, rrd, viewer, json_path, progress, quiet):
     """Replay recording REC through the heading pipeline (online calibration unless --calibration)."""
     cal = load_calibration(calibration) if calibration is not None else None
     if cal is not None and not cal.accepted:
@@ -75,7 +111,8 @@ def command(rec, calibration, device_store, ignore_phone_calibration, latitude, 
     with announced():
         summary = run(rec, cal, out_csv=out_csv, json_path=json_path, mcap=mcap, mcap_rate=mcap_rate,
                       rrd=rrd, viewer=viewer, progress=progress, device_store=device_store,
-                      use_phone=not ignore_phone_calibration, place=place, date=day)
+                      use_phone=not ignore_phone_calibration, place=place, date=day,
+                      mag_time_offset=mag_time_offset)
     if not quiet:
         click.echo(summary_table(summary))
     return 0
@@ -83,7 +120,7 @@ def command(rec, calibration, device_store, ignore_phone_calibration, latitude, 
 
 def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=None, rrd=None, viewer=False,
         progress=None, sinks=(), source=None, device_store=None, use_phone=True, place=None,
-        date=None) -> dict:
+        date=None, mag_time_offset=0.0) -> dict:
     """What ``pdr-mag replay`` does with one recording: replay it into the requested files.
 
     Parameters
@@ -113,6 +150,10 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
         ``--latitude``, ``--longitude`` (degrees) and ``--altitude`` (metres, or None).
     date : str or None
         ``--date``: ``"YYYY-MM-DD"``.
+    mag_time_offset : float or "auto"
+        ``--mag-time-offset``: the magnetometer's latency against the IMU, s
+        (:attr:`~pdr_mag.pipeline.PipelineSettings.mag_time_offset_s`); ``"auto"``: the one
+        :func:`replay.run.estimate_latency` finds, when determined (the summary's ``mag_latency``).
 
     Returns
     -------
@@ -129,6 +170,10 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
         files.append(make_sink("rrd", rrd, spawn=viewer))
     if out_csv is not None:
         files.append(CsvSink(out_csv))
+    latency = None
+    if mag_time_offset == "auto":
+        latency = estimate_latency(rec)
+        mag_time_offset = latency.seconds if latency.determined else 0.0
     if source is not None or place is not None or date is not None:
         rec = open_recording(rec)
         if source is not None:
@@ -140,9 +185,14 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
             store = DeviceStore(device_store)
         except ValueError as exc:
             raise InputError(device_store, str(exc).split(": ", 1)[-1]) from None
-    settings = None if use_phone else PipelineSettings(prior=PriorSettings(use_phone=False))
+    settings = None
+    if not use_phone or mag_time_offset:
+        prior = PriorSettings(use_phone=use_phone)
+        settings = PipelineSettings(prior=prior, mag_time_offset_s=mag_time_offset)
     summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress, settings=settings,
                      device_store=store)
+    summary["mag_latency"] = None if latency is None else {**latency.to_dict(), "span_s": LATENCY_SPAN_S,
+                                                           "applied": latency.determined}
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
