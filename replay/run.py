@@ -619,6 +619,9 @@ def _latency_line(summary: dict) -> str:
     if est["applied"]:
         return (f"{1000 * used:.1f} ms (± {1000 * est['std_s']:.1f}) estimated from the first "
                 f"{est['span_s']:.0f} s and applied")
+    if est["determined"]:  # an IMU later than the magnetometer: not corrected (latency.applies)
+        return (f"{1000 * est['seconds']:.1f} ms (± {1000 * est['std_s']:.1f}) estimated from the first "
+                f"{est['span_s']:.0f} s: the IMU is the later stream, none applied")
     why = "too little turning" if est["seconds"] is None or est["std_s"] is None else (
         f"{1000 * est['seconds']:.1f} ± {1000 * est['std_s']:.1f} ms, explaining {100 * est['gain']:.0f} % "
         "of the field's turn residual")

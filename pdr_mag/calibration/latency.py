@@ -148,6 +148,19 @@ def estimate_mag_latency(t_gyro, gyro, t_mag, mag, settings: LatencySettings | N
     return Latency(tau, std, gain, n, determined)
 
 
+def applies(latency: Latency) -> bool:
+    """Whether a latency found is one to correct: determined, and the magnetometer the later stream.
+
+    The output rows follow the IMU's stamps.  A negative latency says the IMU is the later stream (or the
+    magnetometer's own filtering leads its stamps): moving the magnetometer onto the IMU's clock leaves the
+    output as late as before, and moving the IMU back did not help either — measured on six tyrex iPhone 4S
+    walks (−10 to −14 ms; the walks' mean errors summed, mode a / b: 21.0 / 17.0° as they are, 22.1 / 18.2°
+    with the magnetometer moved, 21.5 / 16.9° with the IMU moved) and the mall traces (−8 to −23 ms: the
+    walked median 8.89 → 9.07° with the magnetometer moved) (benchmarks/NOTES.md).  A positive one (the
+    Nexus 5's 25–33 ms) is a magnetometer that reports late, which moving its stamps back mends."""
+    return bool(latency.determined and latency.seconds > 0.0)
+
+
 def _resample(grid, t, x):
     return np.column_stack([np.interp(grid, t, x[:, k]) for k in range(3)])
 

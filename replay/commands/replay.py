@@ -16,6 +16,7 @@ from pathlib import Path
 
 import click
 
+from pdr_mag.calibration.latency import applies
 from pdr_mag.calibration.prior import PriorSettings
 from pdr_mag.calibration.store import DeviceStore
 from pdr_mag.pipeline import PipelineSettings
@@ -75,8 +76,8 @@ class _LatencyParam(click.ParamType):
     default="0",
     metavar="S|auto",
     help="The magnetometer's latency against the IMU, s: a sample stamped t was measured at t − S "
-    "(diagnose's time_offset); auto: estimated from the recording's first 60 s, used when determined. "
-    "Default 0.",
+    "(diagnose's time_offset); auto: estimated from the recording's first 60 s, used when determined and "
+    "positive. Default 0.",
 )
 @place_options
 @click.option("--out-csv", type=click.Path(path_type=Path), help="Estimates, one row per output epoch.")
@@ -153,7 +154,8 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
     mag_time_offset : float or "auto"
         ``--mag-time-offset``: the magnetometer's latency against the IMU, s
         (:attr:`~pdr_mag.pipeline.PipelineSettings.mag_time_offset_s`); ``"auto"``: the one
-        :func:`replay.run.estimate_latency` finds, when determined (the summary's ``mag_latency``).
+        :func:`replay.run.estimate_latency` finds, when :func:`~pdr_mag.calibration.latency.applies` (the
+        summary's ``mag_latency``).
 
     Returns
     -------
@@ -173,7 +175,7 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
     latency = None
     if mag_time_offset == "auto":
         latency = estimate_latency(rec)
-        mag_time_offset = latency.seconds if latency.determined else 0.0
+        mag_time_offset = latency.seconds if applies(latency) else 0.0
     if source is not None or place is not None or date is not None:
         rec = open_recording(rec)
         if source is not None:
@@ -192,7 +194,7 @@ def run(rec, cal=None, *, out_csv=None, json_path=None, mcap=None, mcap_rate=Non
     summary = replay(rec, calibration=cal, sinks=[*files, *sinks], progress=progress, settings=settings,
                      device_store=store)
     summary["mag_latency"] = None if latency is None else {**latency.to_dict(), "span_s": LATENCY_SPAN_S,
-                                                           "applied": latency.determined}
+                                                           "applied": applies(latency)}
     if json_path is not None:
         try:
             json_path.write_text(json.dumps(_clean(summary), indent=1, allow_nan=False) + "\n")
