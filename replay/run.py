@@ -150,21 +150,11 @@ def estimate_latency(rec_path, span_s: float = LATENCY_SPAN_S) -> Latency:
     merge = Merge(src)
     if "gyro" not in merge.present or "mag" not in merge.present:
         return NO_LATENCY
-    parts: dict[str, list] = {"gyro": [], "mag": []}
-    for final, blocks in merge.slices(min(span_s, SLICE_S)):
-        for key in parts:
-            if blocks.get(key) is not None:
-                parts[key].append(blocks[key])
-        if final or merge.t_last["mag"] - merge.t0 >= span_s and merge.t_last["gyro"] - merge.t0 >= span_s:
-            break
-    got = {}
-    for key, blocks in parts.items():
-        if not blocks:
-            return NO_LATENCY
-        t, x = np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
-        keep = t < merge.t0 + span_s
-        got[key] = (t[keep], x[keep])
-    return estimate_mag_latency(*got["gyro"], *got["mag"])
+    # the first slice holds the samples before t0 + span_s (all of them in a shorter recording)
+    _, blocks = next(merge.slices(span_s))
+    if blocks.get("gyro") is None or blocks.get("mag") is None:
+        return NO_LATENCY
+    return estimate_mag_latency(*blocks["gyro"], *blocks["mag"])
 
 
 def load_calibration(path) -> MagCalibration:

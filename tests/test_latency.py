@@ -107,6 +107,16 @@ def test_a_latency_the_pipeline_cannot_take_is_refused():
     assert PipelineSettings(mag_time_offset_s=-0.02).mag_time_offset_s == -0.02
 
 
+def test_the_estimate_before_a_run_reads_the_first_60_s():
+    res = simulate("swing", seed=9, duration_s=90.0, effects={"time_offset": 0.03})
+    rec = Recording(**{k: Stream(*getattr(res, k)) for k in ("mag", "accel", "gyro")}, meta=dict(res.meta))
+    t0 = min(res.accel[0][0], res.gyro[0][0], res.mag[0][0])
+    (tg, g), (tm, m) = res.gyro, res.mag
+    first = estimate_mag_latency(tg[tg < t0 + 60], g[tg < t0 + 60], tm[tm < t0 + 60], m[tm < t0 + 60])
+    assert estimate_latency(rec) == first and first.determined
+    assert estimate_latency(rec, span_s=200.0) == estimate_mag_latency(tg, g, tm, m)
+
+
 def test_replay_auto_estimates_applies_and_reports_it(late, tmp_path, capsys):
     res = late["late"]
     rec = Recording(**{k: Stream(*getattr(res, k)) for k in ("mag", "accel", "gyro")}, meta=dict(res.meta),
