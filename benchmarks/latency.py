@@ -6,8 +6,9 @@ applies`), and the shared scorer's mean |heading error| of ``replay`` in mode a 
 mode b (none) as it runs by default and with the latency applied; per phone. Then the simulated swinging
 hand of ``tests/test_latency.py`` with its magnetometer 0, 40, 80 and 120 ms late: the estimate and the
 mean and p90 |heading error| against the truth after the first calibration, without and with ``auto``.
-And the mall traces of ``../shared/datasets/ms-indoor-location-2020``: the latencies found (their walked
-direction is ``walked.py``'s: none is applied, see the table).
+The BROAD trials (``../shared/datasets/broad``, a lab IMU with optical truth): the latency and the median
+and p90 error without and with it. And the mall traces of ``../shared/datasets/ms-indoor-location-2020``: the
+latencies found (their walked direction is ``walked.py``'s: none is applied, see the table).
 
 Usage::
 
@@ -31,6 +32,7 @@ from heading import DATA, Truth, day_files, discover_walks  # noqa: E402
 
 SECTION = "## The magnetometer's latency (`replay --mag-time-offset auto`)"
 MALL = DATA.parent / "ms-indoor-location-2020"
+BROAD = DATA.parent / "broad" / "data_mat"
 SIM_LAGS_S = (0.0, 0.04, 0.08, 0.12)
 #: The simulated walk is scored from here on (its first calibration comes within the first 20 s), s.
 SIM_FROM_S = 20.0
@@ -93,6 +95,21 @@ def run_sim(lag: float) -> dict:
     return {"lag": lag, "latency": lat, "applied": applies(lat), **err}
 
 
+def run_broad(path: str) -> dict:
+    """A BROAD trial (a lab IMU, optical truth): the latency found; median / p90 error without and with it."""
+    from pdr_mag.calibration.latency import applies
+    from pdr_mag.pipeline import PipelineSettings
+    from replay.run import estimate_latency, replay
+
+    lat = estimate_latency(path)
+    out = {"trial": Path(path).stem, "latency": lat, "applied": applies(lat)}
+    for tag, off in (("default", 0.0), ("auto", lat.seconds if applies(lat) else 0.0)):
+        summary = replay(path, progress=False, settings=PipelineSettings(mag_time_offset_s=off))
+        e = summary["heading_error"]["truth"]
+        out[tag] = f"{e['median_deg']:.2f} / {e['p90_deg']:.2f}"
+    return out
+
+
 def run_trace(path: str) -> tuple[str, object]:
     from replay.run import estimate_latency
 
@@ -118,6 +135,7 @@ def main() -> None:
         rows = list(ex.map(run_walk, [(w, made[w][0]) for w in walks]))
         sims = list(ex.map(run_sim, SIM_LAGS_S))
         mall = list(ex.map(run_trace, traces))
+        broad = list(ex.map(run_broad, sorted(str(p) for p in BROAD.glob("*.mat")))) if BROAD.is_dir() else []
 
     lines = [SECTION, "", f"`python benchmarks/latency.py --jobs {a.jobs} --write-results` ({len(walks)} "
              f"tyrex walks, {len(traces)} mall traces). Latency over the first 60 s "
@@ -146,6 +164,14 @@ def main() -> None:
         lat = s["latency"]
         lines.append(f"| {1000 * s['lag']:.0f} | {_ms(lat.seconds)} ({_ms(lat.std_s)}) | "
                      f"{'yes' if s['applied'] else 'no'} | {s['default']} | {s['auto']} |")
+    if broad:
+        lines += ["", "BROAD (a lab IMU, optical truth; `replay` of the trial file, no calibration given): "
+                  "median / p90 |heading error|, degrees:", "",
+                  "| trial | found, ms (σ) | applied | default | auto |", "| --- | --- | --- | --- | --- |"]
+        for r in broad:
+            lat = r["latency"]
+            lines.append(f"| {r['trial']} | {_ms(lat.seconds)} ({_ms(lat.std_s)}) | "
+                         f"{'yes' if r['applied'] else 'no'} | {r['default']} | {r['auto']} |")
     if mall:
         found = [lat.seconds for _, lat in mall if lat.determined]
         span = f"{_ms(min(found))} … {_ms(max(found))} ms (median {_ms(np.median(found))}), " if found else ""
