@@ -116,6 +116,18 @@ def run_trace(path: str) -> tuple[str, object]:
     return Path(path).stem, estimate_latency(path)
 
 
+def _found_table(title: str, first: str, rows: list[tuple[str, dict]]) -> list[str]:
+    """A results table: per row, the latency found (σ), whether applied, the errors without and with it."""
+    lines = ["", title, "", f"| {first} | found, ms (σ) | applied | default | auto |",
+             "| --- | --- | --- | --- | --- |"]
+    for name, r in rows:
+        lat = r["latency"]
+        applied = "yes" if r["applied"] else "no"
+        lines.append(f"| {name} | {_ms(lat.seconds)} ({_ms(lat.std_s)}) | {applied} | {r['default']} | "
+                     f"{r['auto']} |")
+    return lines
+
+
 def _ms(x) -> str:
     return "—" if x is None or not np.isfinite(x) else f"{1000 * x:.1f}"
 
@@ -155,23 +167,14 @@ def main() -> None:
         lines.append(f"| {phone} | {len(rs)} | {len(found)} ({sum(r['applied'] for r in rs)}) | {rng} | "
                      f"{m['a', 'default']:.3f} → {m['a', 'auto']:.3f} | {m['b', 'default']:.3f} → "
                      f"{m['b', 'auto']:.3f} |")
-    lines += ["", "Simulated swinging hand (seed 7, 120 s), its magnetometer late by the simulator's "
-              f"`time_offset`; mean / p90 |heading error| against the truth from {SIM_FROM_S:.0f} s on, "
-              "degrees:",
-              "",
-              "| late by, ms | found, ms (σ) | applied | default | auto |", "| --- | --- | --- | --- | --- |"]
-    for s in sims:
-        lat = s["latency"]
-        lines.append(f"| {1000 * s['lag']:.0f} | {_ms(lat.seconds)} ({_ms(lat.std_s)}) | "
-                     f"{'yes' if s['applied'] else 'no'} | {s['default']} | {s['auto']} |")
+    sim_title = ("Simulated swinging hand (seed 7, 120 s), its magnetometer late by the simulator's "
+                 f"`time_offset`; mean / p90 |heading error| against the truth from {SIM_FROM_S:.0f} s on, "
+                 "degrees:")
+    lines += _found_table(sim_title, "late by, ms", [(f"{1000 * s['lag']:.0f}", s) for s in sims])
     if broad:
-        lines += ["", "BROAD (a lab IMU, optical truth; `replay` of the trial file, no calibration given): "
-                  "median / p90 |heading error|, degrees:", "",
-                  "| trial | found, ms (σ) | applied | default | auto |", "| --- | --- | --- | --- | --- |"]
-        for r in broad:
-            lat = r["latency"]
-            lines.append(f"| {r['trial']} | {_ms(lat.seconds)} ({_ms(lat.std_s)}) | "
-                         f"{'yes' if r['applied'] else 'no'} | {r['default']} | {r['auto']} |")
+        lines += _found_table("BROAD (a lab IMU, optical truth; `replay` of the trial file, no calibration "
+                              "given): median / p90 |heading error|, degrees:", "trial",
+                              [(r["trial"], r) for r in broad])
     if mall:
         found = [lat.seconds for _, lat in mall if lat.determined]
         span = f"{_ms(min(found))} … {_ms(max(found))} ms (median {_ms(np.median(found))}), " if found else ""
