@@ -153,3 +153,17 @@ def test_a_bad_latency_option_is_a_usage_error(bad, tmp_path, capsys):
     assert main(["replay", str(tmp_path / "r"), "--mag-time-offset", bad]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--mag-time-offset" in err[0]
+
+
+def test_batch_replay_takes_the_latency_option_per_recording(late, tmp_path):
+    """``pdr-mag batch replay --mag-time-offset auto``: each recording's own latency, as ``replay``'s."""
+    for name, res in late.items():
+        streams = {k: Stream(*getattr(res, k)) for k in ("mag", "accel", "gyro")}
+        pdrcsv.write(Recording(**streams, meta=dict(res.meta)), tmp_path / "in" / name)
+    out = tmp_path / "out"
+    assert main(["batch", "replay", str(tmp_path / "in"), "--out", str(out), "--workers", "1",
+                 "--mag-time-offset", "auto", "--no-progress"]) == 0
+    got = {name: json.loads((out / "in" / name / "replay.json").read_text()) for name in late}
+    assert got["late"]["mag_latency"]["applied"]
+    assert got["late"]["mag_time_offset_s"] == pytest.approx(LAG_S, abs=0.005)
+    assert not got["on_time"]["mag_latency"]["applied"] and got["on_time"]["mag_time_offset_s"] == 0.0

@@ -48,7 +48,7 @@ ROW_FILE = "batch.json"
 
 #: Commands and their options with defaults (the single command's option names, as flags for files).
 OPTIONS = {
-    "replay": {"mcap": False, "rrd": False, "place": None, "date": None},
+    "replay": {"mcap": False, "rrd": False, "place": None, "date": None, "mag_time_offset": 0.0},
     "calibrate": {"method": "auto", "place": None, "date": None},
     "diagnose": {"report": False, "use_truth": False},
 }
@@ -223,7 +223,8 @@ def _run_replay(task: Task, stage: Path) -> dict:
         Path(task.path), cal, out_csv=stage / "heading.csv", json_path=stage / "replay.json",
         mcap=stage / "replay.mcap" if o.get("mcap") else None,
         rrd=stage / "replay.rrd" if o.get("rrd") else None,
-        progress=False, sinks=[metrics], source=task.label, **_where(o),
+        progress=False, sinks=[metrics], source=task.label, mag_time_offset=o.get("mag_time_offset", 0.0),
+        **_where(o),
     )
     row = empty_row(task.label, task.key)
     row["format"] = summary.get("format") or None

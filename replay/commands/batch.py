@@ -28,6 +28,7 @@ from replay.batch.engine import Interrupted
 from replay.commands._place import place_of, place_options
 from replay.commands.calibrate import METHODS
 from replay.commands.diagnose import need_matplotlib
+from replay.commands.replay import LatencyParam
 from replay.errors import InputError
 from replay.run import load_calibration
 
@@ -67,12 +68,15 @@ def command() -> None:
               help="calibrate --json file for every recording a manifest gives none.")
 @click.option("--mcap", is_flag=True, help="Also write replay.mcap per recording.")
 @click.option("--rrd", is_flag=True, help="Also write replay.rrd (rerun) per recording.")
+@click.option("--mag-time-offset", type=LatencyParam(), default="0", metavar="S|auto",
+              help="The magnetometer's latency against the IMU, s, or auto: estimated per recording "
+              "(pdr-mag replay's option).")
 @place_options
 def replay_cmd(inputs, out_dir, workers, scheduler, force, progress, top, dashboard, calibration, mcap, rrd,
-               latitude, longitude, altitude, date):
+               mag_time_offset, latitude, longitude, altitude, date):
     """Replay every recording: heading.csv and replay.json per recording (pdr-mag replay's files)."""
     place, day = place_of(latitude, longitude, altitude, date)
-    opts = {"mcap": mcap, "rrd": rrd, "place": place, "date": day}
+    opts = {"mcap": mcap, "rrd": rrd, "place": place, "date": day, "mag_time_offset": mag_time_offset}
     return _run("replay", inputs, out_dir, opts, calibration, workers, scheduler, force, progress, top,
                 dashboard)
 

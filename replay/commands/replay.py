@@ -37,7 +37,7 @@ from replay.run import (
 )
 
 
-class _LatencyParam(click.ParamType):
+class LatencyParam(click.ParamType):
     """``--mag-time-offset``: seconds within ±``MAX_MAG_TIME_OFFSET_S``, or ``auto``."""
 
     name = "latency"
@@ -72,7 +72,7 @@ class _LatencyParam(click.ParamType):
 )
 @click.option(
     "--mag-time-offset",
-    type=_LatencyParam(),
+    type=LatencyParam(),
     default="0",
     metavar="S|auto",
     help="The magnetometer's latency against the IMU, s: a sample stamped t was measured at t − S "
