@@ -58,6 +58,8 @@ def test_a_phone_that_does_not_turn_determines_no_latency():
     assert not lat.determined and lat.n < 4 * 50
     few = np.arange(10.0)
     assert not estimate_mag_latency(few, np.zeros((10, 3)), few, np.ones((10, 3))).determined
+    same_t = np.zeros(100)  # no time between samples: nothing to fit, no error
+    assert not estimate_mag_latency(same_t, np.zeros((100, 3)), same_t, np.ones((100, 3))).determined
 
 
 def test_a_latency_beyond_the_search_is_not_reported_as_found(late):

@@ -16,7 +16,8 @@ of what lag 0 leaves (:attr:`LatencySettings.min_gain`).
 
 The same effect is ``time_offset`` of the simulator and of ``diagnose``
 (:mod:`pdr_mag.modelcheck`), whose full model fit finds it on the tyrex Nexus 5 walks at 28–33 ms; this
-estimator is the fast one, to run on every recording.
+estimator is the fast one (a tenth of a second over a minute of a phone's data), which
+``replay --mag-time-offset auto`` runs before the replay.
 """
 
 from __future__ import annotations
@@ -109,9 +110,11 @@ def estimate_mag_latency(t_gyro, gyro, t_mag, mag, settings: LatencySettings | N
     if len(t_mag) < 50 or len(t_gyro) < 50:
         return NONE
     period = float(np.median(np.diff(t_mag)))
+    if not period > 0:
+        return NONE
     fs = 1.0 / period
     lo, hi = max(t_mag[0], t_gyro[0]) + s.max_lag_s, min(t_mag[-1], t_gyro[-1]) - s.max_lag_s
-    if not (period > 0 and hi - lo > 10 * period and s.cutoff_hz < 0.45 * fs):
+    if not (hi - lo > 10 * period and s.cutoff_hz < 0.45 * fs):
         return NONE
     grid = np.arange(lo, hi, period)
     sos = butter(2, s.cutoff_hz / (fs / 2), output="sos")
@@ -156,8 +159,10 @@ def applies(latency: Latency) -> bool:
     output as late as before, and moving the IMU back did not help either — measured on six tyrex iPhone 4S
     walks (−10 to −14 ms; the walks' mean errors summed, mode a / b: 21.0 / 17.0° as they are, 22.1 / 18.2°
     with the magnetometer moved, 21.5 / 16.9° with the IMU moved) and the mall traces (−8 to −23 ms: the
-    walked median 8.89 → 9.07° with the magnetometer moved) (benchmarks/NOTES.md).  A positive one (the
-    Nexus 5's 25–33 ms) is a magnetometer that reports late, which moving its stamps back mends."""
+    walked median 8.89 → 9.07° with the magnetometer moved) (benchmarks/NOTES.md).  A positive one is a
+    magnetometer that reports late, which moving its stamps back mends on the simulator's late phones and on
+    the tyrex Nexus 5 (25–33 ms; its walks 5.02 → 4.94° in mode a) — but not on BROAD's lab IMU (9–13 ms: five
+    of six trials worse), which is why ``auto`` is an option of ``replay``, not its default."""
     return bool(latency.determined and latency.seconds > 0.0)
 
 
