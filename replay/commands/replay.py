@@ -1,6 +1,6 @@
 """``pdr-mag replay REC [--calibration FILE] [--device-store DIR] [--ignore-phone-calibration]
-[--mag-time-offset S] [--latitude DEG --longitude DEG [--altitude M]] [--date YYYY-MM-DD] [--out-csv FILE]
-[--mcap FILE [--mcap-rate HZ]] [--rrd FILE] [--json FILE]``.
+[--mag-time-offset S|auto] [--latitude DEG --longitude DEG [--altitude M]] [--date YYYY-MM-DD]
+[--out-csv FILE] [--mcap FILE [--mcap-rate HZ]] [--rrd FILE] [--json FILE]``.
 
 ``--latitude``/``--longitude`` (``--altitude``) and ``--date`` say where and when the recording was made
 when it does not (:mod:`replay.commands._place`).  With them the field model gives the reference field and
