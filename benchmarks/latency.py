@@ -12,7 +12,7 @@ latencies found (their walked direction is ``walked.py``'s: none is applied, see
 
 Usage::
 
-    python benchmarks/latency.py [--walks PATTERN] [--jobs N] [--write-results]
+    python benchmarks/latency.py [--walks PATTERN] [--jobs N] [--write-results] [--commit HASH]
 """
 
 from __future__ import annotations
@@ -137,6 +137,7 @@ def main() -> None:
     ap.add_argument("--walks", help="walk name pattern(s), comma-separated")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--write-results", action="store_true")
+    ap.add_argument("--commit", default="", help="the commit measured, for the section's preamble")
     a = ap.parse_args()
     walks = discover_walks(a.walks)
     if not walks:
@@ -149,8 +150,9 @@ def main() -> None:
         mall = list(ex.map(run_trace, traces))
         broad = list(ex.map(run_broad, sorted(str(p) for p in BROAD.glob("*.mat")))) if BROAD.is_dir() else []
 
+    stamp = f", commit {a.commit}" if a.commit else ""
     lines = [SECTION, "", f"`python benchmarks/latency.py --jobs {a.jobs} --write-results` ({len(walks)} "
-             f"tyrex walks, {len(traces)} mall traces). Latency over the first 60 s "
+             f"tyrex walks, {len(traces)} mall traces{stamp}). Latency over the first 60 s "
              "(`replay.run.estimate_latency`); applied when determined (σ < 5 ms, a gain beyond noise) and "
              "positive. Mean |heading error| per walk (shared scorer), the mean over a phone's walks, as "
              "`replay` runs by default and with `--mag-time-offset auto`.", "",
