@@ -35,7 +35,6 @@ from replay.formats import open_recording
 from replay.heading_scores import HeadingScores, attitude_series
 from replay.recording import Recording
 from replay.source import Merge, RecordingSource
-from replay.stream_gaps import StreamGaps
 
 #: Stream time pushed between polls, s. A file needs no phone-like delivery (an app pushes every second or
 #: two); a poll has a fixed cost (≈ 0.13 ms: the filter's and the calibrator's calls for the slice's last
@@ -276,9 +275,6 @@ class ReplayRun:
         The device store the run started from and leaves its knowledge in.
     store_use : dict
         What was read from and written to the store (the summary's ``device_store``).
-    gaps : StreamGaps
-        The stretches without samples of a stream (the summary's ``stream_gaps``; each a ``stream_gap`` event
-        to the sinks, not among the pipeline's ``events``).
     """
 
     def __init__(self, src: RecordingSource, merge: Merge, pipe: HeadingPipeline, sinks: list,
@@ -297,7 +293,6 @@ class ReplayRun:
         self.n_cal_seen = len(pipe.calibrations)
         self.store = store
         self.store_use = store_use
-        self.gaps = StreamGaps(merge.t0)
         # the phone's own attitude, for the rows whose heading pdr_mag does not know (fill_unknown_heading);
         # not with --ignore-phone-calibration, whose runs start from nothing the phone knows
         osref = os_reference(src) if pipe.settings.prior.use_phone else None
@@ -389,7 +384,6 @@ class ReplayRun:
                 self._emit(self.pipe.flush() if final else self.pipe.poll())
                 if bar is not None:
                     bar.update(self.merge.position - bar.n)
-            self._gap_events(self.gaps.finish())
             _emit_episodes(self.finder.finish(), self.sinks)
         finally:
             if bar is not None:
@@ -406,13 +400,6 @@ class ReplayRun:
                 for s in self.sinks:
                     s.inputs(name, t, xyz)
                 self.n_pushed[name] += len(t)
-                self._gap_events(self.gaps.add(name, t))
-
-    def _gap_events(self, events: list) -> None:
-        """A stream's gaps, found as its samples come, to the sinks (a warning at the gap's start)."""
-        for ev in events:
-            for s in self.sinks:
-                s.event(ev)
 
     def _emit(self, batch: EstimateBatch) -> None:
         """What a poll gave out — calibrated magnetometer samples, output rows, events, the drift episodes
@@ -436,7 +423,8 @@ class ReplayRun:
                 else:
                     s.estimates(batch)
         for ev in evs:
-            self.events.append(ev.to_dict())
+            if ev.kind != "stream_gap":  # the summary's own ``stream_gaps`` lists those
+                self.events.append(ev.to_dict())
             for s in sinks:
                 s.event(ev)
         _emit_episodes(self.finder.update(batch, evs), sinks)
@@ -476,7 +464,6 @@ class ReplayRun:
                 "n_samples": self.n_pushed,
                 "cal_state_rows": dict(sorted(self.state_counts.items())),
                 "phone_heading_rows": self.n_phone_heading,
-                "stream_gaps": self.gaps.summary(),
                 "calibration_given": self.calibration is not None,
                 "device_store": None if self.store_use is None else {
                     k: v for k, v in self.store_use.items() if k != "t_unix"},

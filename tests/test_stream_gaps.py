@@ -1,5 +1,6 @@
-"""Gaps in a recording's streams (``replay/stream_gaps.py``): found inside, at the start and at the end,
-the same however the samples are chunked, in the summary, on the console and to the sinks."""
+"""Gaps in a recording's streams (``pdr_mag/pipeline/stream_gaps.py``): found inside, at the start and at
+the end, the same however the samples are chunked, by the library's pipeline (events, summary, resumable
+state), in ``replay``'s summary, on the console and to the sinks."""
 
 from __future__ import annotations
 
@@ -8,12 +9,13 @@ import json
 import numpy as np
 import pytest
 
+from pdr_mag.pipeline import HeadingPipeline
+from pdr_mag.pipeline.stream_gaps import MIN_GAP_S, RATE_SAMPLES, StreamGaps
 from pdr_mag.sinks import QuietSink
 from replay.cli import main
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
 from replay.run import replay
-from replay.stream_gaps import MIN_GAP_S, RATE_SAMPLES, StreamGaps
 from tests.test_online import synth_walk
 from tests.test_pipeline import META
 
@@ -115,3 +117,68 @@ def test_a_recording_without_gaps_says_none():
     rec = Recording(**{k: Stream(*d[k]) for k in ("mag", "accel", "gyro")}, meta=dict(META))
     summary = replay(rec, progress=False)
     assert summary["stream_gaps"]["n"] == 0 and summary["stream_gaps"]["gaps"] == []
+
+
+def _gappy_walk() -> dict:
+    """A 40-s simulated walk whose gyroscope pauses 3 s at 15 s and whose magnetometer stops at 30 s."""
+    d = synth_walk(duration=40.0, seed=5)
+    tg, wg = d["gyro"]
+    keep = (tg < 15.0) | (tg >= 18.0)
+    tm, xm = d["mag"]
+    return {"accel": d["accel"], "gyro": (tg[keep], wg[keep]), "mag": (tm[tm < 30.0], xm[tm < 30.0])}
+
+
+def _push_in_slices(pipe: HeadingPipeline, streams: dict, t_from: float, t_to: float, step: float) -> list:
+    """Push the streams' samples in [t_from, t_to) in slices of ``step`` s, polling after each; the events."""
+    events = []
+    for lo in np.arange(t_from, t_to, step):
+        for name, (t, x) in streams.items():
+            m = (t >= lo) & (t < min(lo + step, t_to))
+            pipe.push_arrays(name, t[m], x[m])
+        pipe.poll()
+        events += pipe.pop_events()
+    return events
+
+
+def test_the_library_pipeline_reports_gaps_as_events_and_in_its_summary():
+    """A backend pushing samples learns of a paused gyroscope when it resumes and of a magnetometer that
+    stopped at the end, as ``stream_gap`` events, and its summary counts them however it pushed."""
+    walk = _gappy_walk()
+    pipe = HeadingPipeline(meta=dict(META))
+    events = _push_in_slices(pipe, walk, 0.0, 40.0, 0.7)
+    inside = [e for e in events if e.kind == "stream_gap"]
+    assert [(e.data["stream"], e.data["where"]) for e in inside] == [("gyro", "inside")]
+    assert inside[0].t == pytest.approx(15.0, abs=0.02)
+    assert inside[0].data["t_to"] == pytest.approx(18.0, abs=0.02)
+    pipe.flush()
+    end = [e for e in pipe.pop_events() if e.kind == "stream_gap"]
+    assert [(e.data["stream"], e.data["where"]) for e in end] == [("mag", "end")]
+    assert end[0].t == pytest.approx(30.0, abs=0.03)
+    assert end[0].data["duration_s"] == pytest.approx(10.0, abs=0.05)
+    summary = pipe.summary()["stream_gaps"]
+    assert summary["n"] == 2 and set(summary["per_stream"]) == {"gyro", "mag"}
+
+    once = HeadingPipeline(meta=dict(META))
+    once.run(walk)
+    assert once.summary()["stream_gaps"] == summary
+    assert sorted((e.t, e.data["stream"]) for e in once.pop_events() if e.kind == "stream_gap") == sorted(
+        (e.t, e.data["stream"]) for e in inside + end)
+
+
+def test_a_pipeline_resumed_from_its_state_inside_a_gap_finds_the_same_gaps():
+    """The gap tracker is part of the resumable state: a pipeline stopped during the gyroscope's pause and
+    resumed from its JSON state reports the same gaps as one that ran through."""
+    walk = _gappy_walk()
+    through = HeadingPipeline(meta=dict(META))
+    _push_in_slices(through, walk, 0.0, 40.0, 1.0)
+    through.flush()
+    first = HeadingPipeline(meta=dict(META))
+    _push_in_slices(first, walk, 0.0, 16.0, 1.0)
+    state = json.loads(json.dumps(first.get_state()))
+    resumed = HeadingPipeline(meta=dict(META))
+    resumed.set_state(state)
+    events = _push_in_slices(resumed, walk, 16.0, 40.0, 1.0)
+    resumed.flush()
+    events += resumed.pop_events()
+    assert [e.data["stream"] for e in events if e.kind == "stream_gap"] == ["gyro", "mag"]
+    assert resumed.summary()["stream_gaps"] == through.summary()["stream_gaps"]

@@ -70,6 +70,7 @@ from pdr_mag.fusion.kinds import KINDS, MAG, NAMES
 from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline import state as state_json
 from pdr_mag.pipeline.settings import PipelineSettings, fusion_settings
+from pdr_mag.pipeline.stream_gaps import StreamGaps
 from pdr_mag.pipeline.streams import PendingStream, take_merged
 
 _NO_OFFSET = np.zeros(3)
@@ -161,6 +162,9 @@ class HeadingPipeline:
             lag = self.settings.mag_time_offset_s  # the changes are stamped on the magnetometer's clock
             self._phone_changes = [(t - lag, b) for t, b in phone_changes(self.meta)]
         self.dropped: Counter = Counter()
+        #: stretches in which one stream delivered no sample (a ``stream_gap`` event each; the summary's
+        #: ``stream_gaps``)
+        self.stream_gaps = StreamGaps()
         self._streams = {k: PendingStream() for k in KINDS}
         self._done_t = -np.inf  # every sample before this time has been processed
         self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
@@ -228,7 +232,9 @@ class HeadingPipeline:
 
         Rows with NaN, times not after the stream's previous sample or before what has been processed, and
         a stalled sensor's repeated values (:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are
-        dropped and counted (``<stream>:nan``, ``:non_monotonic``, ``:late``, ``:repeated``).
+        dropped and counted (``<stream>:nan``, ``:non_monotonic``, ``:late``, ``:repeated``).  A stretch
+        without samples (before the repeated values are dropped: a stalled sensor still delivers) longer than
+        :class:`~pdr_mag.pipeline.stream_gaps.StreamGaps`' threshold is a ``stream_gap`` event.
         """
         name = kind if type(kind) is str and kind in KINDS else _kind_name(kind)
         t = np.asarray(t, dtype=float).reshape(-1)
@@ -258,6 +264,7 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
+            self._events += self.stream_gaps.add(name, t)
             stale = s.stale(xyz)
             if stale.any():
                 self.dropped[f"{name}:repeated"] += int(np.count_nonzero(stale))
@@ -295,13 +302,15 @@ class HeadingPipeline:
         return max(min(last), newest - self.settings.max_lag_s) if math.isfinite(newest) else min(last)
 
     def flush(self) -> EstimateBatch:
-        """Process everything pending (end of stream) and return the remaining estimates."""
+        """Process everything pending (end of stream) and return the remaining estimates; the streams'
+        gaps at their start and end become events."""
         self._process(np.inf, final=True)
+        self._events += self.stream_gaps.finish()
         return self._take_out()
 
     def pop_events(self) -> list[Event]:
         """Events since the last call (interference_start/_end, calibration_accepted/_rejected,
-        recalibration_requested, recalibrated, rotation_episode_start/_end)."""
+        recalibration_requested, recalibrated, rotation_episode_start/_end, stream_gap)."""
         ev, self._events = self._events, []
         return ev
 
@@ -598,6 +607,7 @@ class HeadingPipeline:
             "dropped_samples": dict(sorted(self.dropped.items())),
             "prior": None if self.prior is None else self.prior.to_dict(),
             "mag_time_offset_s": self.settings.mag_time_offset_s,
+            "stream_gaps": self.stream_gaps.summary(),
             "field": None
             if self.field is None
             else {

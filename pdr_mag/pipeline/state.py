@@ -1,9 +1,9 @@
 """What :meth:`pdr_mag.pipeline.HeadingPipeline.get_state` keeps, as JSON, and how
 :meth:`~pdr_mag.pipeline.HeadingPipeline.set_state` puts it back: each stream's pending samples and its
 stalled-sensor check, how far the merge has gone, the calibrator's open block (its magnetometer rows and
-the context the next chunk needs), the calibrations in force so far, the output counters, and the filter's
-and the calibrator's own states.  Non-finite floats go through :func:`pdr_mag._json.state_float`, so the
-round trip is exact."""
+the context the next chunk needs), the calibrations in force so far, the output counters, the streams' gaps
+found so far, and the filter's and the calibrator's own states.  Non-finite floats go through
+:func:`pdr_mag._json.state_float`, so the round trip is exact."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.pipeline import _kernel as PK
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 10
+STATE_VERSION = 11
 
 
 def to_json(pipe) -> dict:
@@ -43,6 +43,7 @@ def to_json(pipe) -> dict:
         "fusion": pipe.fusion.get_state(),
         "online": pipe.online.get_state(),
         "phone_changes": [[t, list(b)] for t, b in pipe._phone_changes],
+        "stream_gaps": pipe.stream_gaps.get_state(),
     }
     json.dumps(st)  # fail here, not at the caller's, if something is not serialisable
     return st
@@ -75,5 +76,6 @@ def from_json(pipe, state: dict) -> None:
         pipe.fusion.set_state(state["fusion"])  # with its reference strength
         pipe.online.set_state(state["online"])
         pipe._phone_changes = [(float(t), tuple(float(v) for v in b)) for t, b in state["phone_changes"]]
+        pipe.stream_gaps.set_state(state["stream_gaps"])
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"state: malformed ({exc!r})") from exc

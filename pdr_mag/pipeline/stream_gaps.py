@@ -1,5 +1,12 @@
 """Gaps in a recording's streams: stretches in which one stream has no sample while the recording goes on.
 
+:class:`~pdr_mag.pipeline.HeadingPipeline` keeps one (``stream_gaps``): each gap is a ``stream_gap`` event of
+:meth:`~pdr_mag.pipeline.HeadingPipeline.pop_events` when it ends (a gap at a stream's start or end at
+:meth:`~pdr_mag.pipeline.HeadingPipeline.flush`), and the pipeline's summary counts them — so a backend that
+pushes samples learns that the phone stopped delivering one sensor (an app put in the background) as
+``replay`` does.  The times are those the pipeline accepted (finite, in order; the magnetometer's on the
+IMU's clock when ``mag_time_offset_s`` moves it).
+
 What a gap does to the heading (``INTERFACE.md``): the output rows follow the gyroscope, so a gyroscope gap
 has no rows and the heading turns by nothing through it (its σ grows by the gyro's uncertainty over the
 gap, and the magnetometer takes it back); an accelerometer gap leaves the tilt to the gyroscope alone; a
@@ -37,12 +44,14 @@ class StreamGaps:
 
     Parameters
     ----------
-    t0 : float
-        The recording's first sample time, of any stream, s.
+    t0 : float, optional
+        The recording's first sample time, of any stream, s; None: the earliest first sample of the streams
+        added (known at :meth:`finish`, whatever order the streams came in).
     """
 
-    def __init__(self, t0: float):
-        self.t0 = float(t0)
+    def __init__(self, t0: float | None = None):
+        self.t0 = None if t0 is None else float(t0)
+        self.finished = False  # finish() has run: the start and end gaps are in
         self.gaps: list[dict] = []
         self.threshold: dict[str, float] = {}  # per stream, s, once its rate is known
         self._head: dict[str, list[np.ndarray]] = {}  # times before the rate is known
@@ -68,7 +77,11 @@ class StreamGaps:
 
     def finish(self) -> list[Event]:
         """The gaps left: inside the streams too short to have set their rate, and at each stream's start
-        and end against the recording's first and last sample; returns their events."""
+        and end against the recording's first and last sample; returns their events (none after the first
+        call: the recording has ended)."""
+        if self.finished:
+            return []
+        self.finished = True
         events = []
         for name in list(self._head):
             t = self._set_threshold(name)
@@ -77,9 +90,10 @@ class StreamGaps:
         if not self._last:
             return events
         t_end = max(self._last.values())
+        t0 = min(self._first.values()) if self.t0 is None else self.t0
         for name, first in self._first.items():
-            if first - self.t0 > self.threshold[name]:
-                events.append(self._gap(name, self.t0, first, "start"))
+            if first - t0 > self.threshold[name]:
+                events.append(self._gap(name, t0, first, "start"))
         for name, last in self._last.items():
             if t_end - last > self.threshold[name]:
                 events.append(self._gap(name, last, t_end, "end"))
@@ -98,6 +112,24 @@ class StreamGaps:
             "threshold_s": {k: round(v, 3) for k, v in sorted(self.threshold.items())},
             "gaps": self.gaps[:MAX_LISTED],
         }
+
+    def get_state(self) -> dict:
+        """JSON-serialisable state (:meth:`set_state` puts it back; non-finite times cannot occur: every
+        time kept is a sample's)."""
+        return {"t0": self.t0, "finished": self.finished, "gaps": [dict(g) for g in self.gaps],
+                "threshold": dict(self.threshold),
+                "head": {k: np.concatenate(v).tolist() for k, v in self._head.items()},
+                "first": dict(self._first), "last": dict(self._last)}
+
+    def set_state(self, state: dict) -> None:
+        """Restore from :meth:`get_state` (KeyError, TypeError or ValueError when it is not such a state)."""
+        self.t0 = None if state["t0"] is None else float(state["t0"])
+        self.finished = bool(state["finished"])
+        self.gaps = [dict(g) for g in state["gaps"]]
+        self.threshold = {str(k): float(v) for k, v in state["threshold"].items()}
+        self._head = {str(k): [np.asarray(v, dtype=float)] for k, v in state["head"].items()}
+        self._first = {str(k): float(v) for k, v in state["first"].items()}
+        self._last = {str(k): float(v) for k, v in state["last"].items()}
 
     def _set_threshold(self, name: str) -> np.ndarray:
         """Set the stream's threshold from its first intervals; returns the times held until then."""
