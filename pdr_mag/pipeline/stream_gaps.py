@@ -142,6 +142,8 @@ class StreamGaps:
     def _inside(self, name: str, t: np.ndarray) -> list[Event]:
         """Gaps between the stream's samples ``t`` and after its last sample before them."""
         prev = self._last.get(name)
+        if t[-1] - (t[0] if prev is None else prev) <= self.threshold[name]:
+            return []  # the times increase, so no interval among them is longer (a sample pushed alone)
         tt = t if prev is None else np.concatenate(([prev], t))
         at = np.flatnonzero(np.diff(tt) > self.threshold[name])
         return [self._gap(name, float(tt[i]), float(tt[i + 1]), "inside") for i in at]
