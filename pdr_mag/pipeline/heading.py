@@ -39,10 +39,12 @@ Memory is bounded: the pending buffers hold at most about ``max_lag_s`` of data 
 processes on its own beyond ``max_pending`` samples), the online calibrator's buffers are fixed-size, and
 estimates leave at every :meth:`HeadingPipeline.poll`.
 
-Errors at the boundary, flags in the loop: a wrong shape or unknown stream name raises ``ValueError``; a
-NaN row, a repeated or backward timestamp, and a stalled sensor's value delivered a third time in a row
-(:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are dropped and counted in
-:attr:`HeadingPipeline.dropped`.
+Errors at the boundary, flags in the loop: a wrong shape, an unknown stream name, and a stream whose first
+samples are not in the contract's units (:class:`pdr_mag.units.UnitCheck`: accelerations in g, a field in
+gauss, times in nanoseconds, … — judged on its first 50 samples, or on the 3 or more there are when the
+pipeline first processes) raise ``ValueError``; a NaN row, a repeated or backward timestamp, and a stalled
+sensor's value delivered a third time in a row (:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are
+dropped and counted in :attr:`HeadingPipeline.dropped`.
 """
 
 from __future__ import annotations
@@ -72,6 +74,7 @@ from pdr_mag.pipeline import state as state_json
 from pdr_mag.pipeline.settings import PipelineSettings, fusion_settings
 from pdr_mag.pipeline.stream_gaps import StreamGaps
 from pdr_mag.pipeline.streams import PendingStream, take_merged
+from pdr_mag.units import UnitCheck
 
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
@@ -166,6 +169,7 @@ class HeadingPipeline:
         #: ``stream_gaps``)
         self.stream_gaps = StreamGaps()
         self._streams = {k: PendingStream() for k in KINDS}
+        self._units = {k: UnitCheck(k) for k in KINDS}  # each stream's unit, judged on its first samples
         self._done_t = -np.inf  # every sample before this time has been processed
         self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
         self._pend = np.empty(0, dtype=PK.MAG_ROW)  # magnetometer rows of the open block, not yet closed
@@ -234,7 +238,9 @@ class HeadingPipeline:
         a stalled sensor's repeated values (:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are
         dropped and counted (``<stream>:nan``, ``:non_monotonic``, ``:late``, ``:repeated``).  A stretch
         without samples (before the repeated values are dropped: a stalled sensor still delivers) longer than
-        :class:`~pdr_mag.pipeline.stream_gaps.StreamGaps`' threshold is a ``stream_gap`` event.
+        :class:`~pdr_mag.pipeline.stream_gaps.StreamGaps`' threshold is a ``stream_gap`` event.  Raises
+        ``ValueError`` when the stream's first samples are not in the contract's units
+        (:class:`pdr_mag.units.UnitCheck`).
         """
         name = kind if type(kind) is str and kind in KINDS else _kind_name(kind)
         t = np.asarray(t, dtype=float).reshape(-1)
@@ -264,6 +270,7 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
+            self._units[name].add(t, xyz)
             self._events += self.stream_gaps.add(name, t)
             stale = s.stale(xyz)
             if stale.any():
@@ -341,6 +348,8 @@ class HeadingPipeline:
         """Fuse every pending sample before ``horizon`` (all of them when ``final``), span by span, and close
         the blocks that ended; the phone's later hard-iron estimates (:meth:`push_phone_calibration`) take
         effect at the end of the block they fall in, as a calibration found by the online calibrator does."""
+        for check in self._units.values():  # a stream's unit judged before its samples are used
+            check.settle()
         b = self.settings.block_s
         while self._phone_changes:
             t_change, offset = self._phone_changes[0]

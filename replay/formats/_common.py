@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pdr_mag.units import time_unit_problem, unit_problem
 from replay.errors import InputError
 
 #: Rows (text lines, messages) a parser reads before it hands its cleaned rows on; tests make it tiny.
@@ -70,14 +71,6 @@ EXTRA_FIELDS = "extra_fields"
 NON_NUMERIC = "non_numeric"
 #: … and a row with fewer fields than the format needs that more rows follow (:class:`ShortRows`)
 SHORT_ROW = "short_row"
-
-# Plausible medians of the vector norm per stream, in the contract's units; outside → wrong unit.
-UNIT_RANGES = {
-    "mag": (5.0, 2000.0, "µT"),
-    "accel": (3.0, 30.0, "m/s²"),
-    "gyro": (0.0, 20.0, "rad/s"),
-}
-
 
 #: An attitude row (``width=4``: truth, the phone's own) is a quaternion of norm 1 up to its rounding; one
 #: outside this band (an all-zero row, a logging glitch) is no attitude: dropped (``"<key>:not_unit"``).
@@ -183,38 +176,19 @@ def open_text(path: Path):
 
 
 def check_units(path, key: str, xyz: np.ndarray, unit_hint: str = "") -> None:
-    """InputError when the median vector norm is outside the plausible range of ``key``."""
-    lo, hi, unit = UNIT_RANGES[key]
-    with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308 among them: its norm is inf
-        med = float(np.median(np.linalg.norm(xyz, axis=1)))
-    if not (lo <= med <= hi):
-        what = f" (read as {unit_hint})" if unit_hint else ""
-        raise InputError(
-            path,
-            f"median |{key}| is {med:.4g} {unit}{what}, outside the plausible {lo:g}–{hi:g} {unit} "
-            "(wrong unit?)",
-        )
-
-
-#: Plausible median interval between a sensor stream's samples, s: 100 kHz to 1/1.5 Hz.  Phones log 5–500 Hz,
-#: IMUs up to a few kHz; a file whose time is in milliseconds (at up to 660 Hz), microseconds or nanoseconds
-#: falls above, and a replay of it would treat each sample interval as seconds of motion.
-SAMPLE_INTERVAL_S = (1.0e-5, 1.5)
+    """InputError when the median vector norm is outside the plausible range of ``key``
+    (:func:`pdr_mag.units.unit_problem`)."""
+    problem = unit_problem(key, xyz, unit_hint)
+    if problem is not None:
+        raise InputError(path, problem)
 
 
 def check_time_unit(path, key: str, t: np.ndarray) -> None:
     """InputError when the median interval between the (cleaned, increasing) times ``t`` of a sensor stream is
-    outside :data:`SAMPLE_INTERVAL_S` (time not in seconds)."""
-    if len(t) < 3:
-        return
-    med = float(np.median(np.diff(t)))
-    lo, hi = SAMPLE_INTERVAL_S
-    if not (lo <= med <= hi):
-        raise InputError(
-            path,
-            f"{key}: median interval between samples is {med:.4g} s, outside the plausible {lo:g}–{hi:g} s "
-            "(time not in seconds?)",
-        )
+    outside :data:`pdr_mag.units.SAMPLE_INTERVAL_S` (time not in seconds)."""
+    problem = time_unit_problem(key, t)
+    if problem is not None:
+        raise InputError(path, problem)
 
 
 class StreamBuilder:

@@ -1,0 +1,86 @@
+"""The contract's units checked on a stream's first samples (``pdr_mag/units.py``): by the library's pipeline
+(a ``ValueError`` naming the stream and the unit its numbers look like, before they are used) and by the
+readers (the same rule, an ``InputError`` naming the file)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pdr_mag.conventions import GRAVITY
+from pdr_mag.estimates import EstimateBatch
+from pdr_mag.pipeline import HeadingPipeline
+from pdr_mag.units import UnitCheck, time_unit_problem, unit_problem
+from tests.test_online import synth_walk
+from tests.test_pipeline import META
+
+
+def _walk() -> dict:
+    d = synth_walk(duration=10.0, seed=3)
+    return {k: d[k] for k in ("accel", "gyro", "mag")}
+
+
+@pytest.mark.parametrize(("stream", "scale", "said"), [
+    ("accel", 1.0 / GRAVITY, "(wrong unit? in g, × 9.80665 gives 10"),  # iOS CoreMotion's unit
+    ("mag", 0.01, "in gauss, × 100 gives"),
+    ("mag", 1000.0, "in nT, × 0.001 gives"),
+    ("mag", 1e-6, "in T, × 1e+06 gives"),  # ROS sensor_msgs/MagneticField
+    ("gyro", 1000.0, "wrong unit?"),  # mrad/s
+])
+def test_the_pipeline_refuses_a_stream_in_another_unit_and_names_it(stream, scale, said):
+    walk = _walk()
+    t, xyz = walk[stream]
+    walk[stream] = (t, xyz * scale)
+    with pytest.raises(ValueError, match=stream) as err:
+        HeadingPipeline(meta=dict(META)).run(walk)
+    assert said in str(err.value) and "outside the plausible" in str(err.value)
+
+
+def test_the_pipeline_refuses_times_in_nanoseconds_before_using_them():
+    """Android's ``SensorEvent.timestamp`` pushed as seconds: the first poll with samples raises, so no row
+    is made of intervals read as millions of seconds."""
+    walk = _walk()
+    pipe = HeadingPipeline(meta=dict(META))
+    for name, (t, xyz) in walk.items():
+        pipe.push_arrays(name, (t[:20] + 1000.0) * 1e9, xyz[:20])  # fewer than UnitCheck.SAMPLES
+    with pytest.raises(ValueError, match=r"median interval between samples is .* \(time not in seconds\? "
+                                         r"in ns, × 1e-09 gives 0\.01 s\)"):
+        pipe.poll()
+    assert pipe.n_outputs == 0
+
+
+def test_the_same_pushes_in_the_contracts_units_pass_in_any_chunking():
+    """The check looks at the first samples only, and the rows do not depend on how they were pushed."""
+    walk = _walk()
+    once = HeadingPipeline(meta=dict(META)).run(walk)
+    pipe = HeadingPipeline(meta=dict(META))
+    rows = []
+    edges = np.arange(0.0, 10.05, 0.05)
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):  # 2- to 5-sample pushes, a poll after each
+        for name, (t, xyz) in walk.items():
+            m = (t >= lo) & (t < hi)
+            pipe.push_arrays(name, t[m], xyz[m])
+        rows.append(pipe.poll())
+    rows.append(pipe.flush())
+    assert not pipe.dropped
+    np.testing.assert_array_equal(EstimateBatch.concat(rows).heading_deg, once.heading_deg)
+
+
+def test_the_rules_on_their_own():
+    rng = np.random.default_rng(0)
+    field = rng.normal(0.0, 1.0, (100, 3))
+    field *= 45.0 / np.linalg.norm(field, axis=1, keepdims=True)
+    assert unit_problem("mag", field) is None
+    assert "(wrong unit? in gauss, × 100 gives 45 µT)" in unit_problem("mag", field / 100.0, unit_hint="µT")
+    assert "(read as µT)" in unit_problem("mag", field / 100.0, unit_hint="µT")
+    assert time_unit_problem("gyro", np.arange(0.0, 1.0, 0.005)) is None
+    in_ms = time_unit_problem("gyro", np.arange(0.0, 1000.0, 5.0))
+    assert "(time not in seconds? in ms, × 0.001 gives 0.005 s)" in in_ms
+    assert time_unit_problem("gyro", np.array([0.0, 1e9])) is None  # two times say nothing
+    check = UnitCheck("accel")
+    check.add(np.arange(2) * 0.01, np.tile([0.0, 0.0, 1.0], (2, 1)))
+    check.settle()  # two samples: not judged yet
+    assert not check.done
+    with pytest.raises(ValueError, match="accel: median .accel. is 1 m/s²"):
+        check.add(np.arange(2, 60) * 0.01, np.tile([0.0, 0.0, 1.0], (58, 1)))
+    assert check.done
