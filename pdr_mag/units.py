@@ -1,4 +1,5 @@
-"""The contract's units, checked: is a stream plausibly in µT, m/s² or rad/s, and its time in seconds?
+"""The contract's units, checked: is a stream plausibly in µT, m/s² or rad/s, its time in seconds, and are
+the streams stamped by one clock?
 
 A stream in another unit is not noisy data but a different quantity: the accelerometer in g (iOS CoreMotion's
 unit) has no gravity of 9.8 to tilt by, a magnetometer in gauss or nT no field of the Earth's strength, a
@@ -43,19 +44,33 @@ _OTHER_UNITS = {
 }
 _OTHER_TIME_UNITS = (("ms", 1e-3), ("µs", 1e-6), ("ns", 1e-9))
 
+#: Streams whose first samples lie further apart than this (s) were not stamped by one clock (a logger mixing
+#: the time since boot with the time since the epoch): an input error, not a recording.
+MAX_START_SPREAD_S = 600.0
+
+#: An accelerometer's per-axis median over its first samples is mostly gravity (its direction holds while the
+#: phone is carried); below this share of the median norm the samples have no common direction: gravity was
+#: taken out (Android's ``TYPE_LINEAR_ACCELERATION``, iOS's ``userAcceleration``).
+_GRAVITY_SHARE = 0.5
+
 
 def unit_problem(key: str, xyz: np.ndarray, unit_hint: str = "") -> str | None:
     """What is wrong with the unit of samples ``xyz`` (N, 3) of stream ``key`` (``"mag"``, ``"accel"``,
     ``"gyro"``), or None: their median norm outside :data:`UNIT_RANGES`, with the unit they look like when
     one fits.  ``unit_hint``: the unit the caller read them as, named in the message."""
     lo, hi, unit = UNIT_RANGES[key]
+    v = np.asarray(xyz, dtype=float).reshape(-1, 3)
     with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308 among them: its norm is inf
-        med = float(np.median(np.linalg.norm(np.asarray(xyz, dtype=float).reshape(-1, 3), axis=1)))
+        med = float(np.median(np.linalg.norm(v, axis=1)))
+        common = float(np.linalg.norm(np.median(v, axis=0)))  # the samples' shared vector (gravity)
     if lo <= med <= hi:
         return None
     what = f" (read as {unit_hint})" if unit_hint else ""
-    guess = next((f" in {name}, × {k:.6g} gives {med * k:.4g} {unit}" for name, k in _OTHER_UNITS[key]
-                  if lo <= med * k <= hi and med > 0), "")
+    if key == "accel" and med > 0 and common < _GRAVITY_SHARE * med:
+        guess = " gravity taken out? the accelerometer must measure gravity too"
+    else:
+        guess = next((f" in {name}, × {k:.6g} gives {med * k:.4g} {unit}" for name, k in _OTHER_UNITS[key]
+                      if lo <= med * k <= hi and med > 0), "")
     return (f"median |{key}| is {med:.4g} {unit}{what}, outside the plausible {lo:g}–{hi:g} {unit} "
             f"(wrong unit?{guess})")
 
@@ -74,6 +89,18 @@ def time_unit_problem(key: str, t: np.ndarray) -> str | None:
                   if lo <= med * k <= hi), "")
     return (f"{key}: median interval between samples is {med:.4g} s, outside the plausible {lo:g}–{hi:g} s "
             f"(time not in seconds?{guess})")
+
+
+def clock_problem(starts: dict) -> str | None:
+    """What is wrong with the streams' first sample times ``starts`` ({stream: t, s}), or None: further apart
+    than :data:`MAX_START_SPREAD_S` (two clocks)."""
+    if len(starts) < 2:
+        return None
+    spread = max(starts.values()) - min(starts.values())
+    if spread <= MAX_START_SPREAD_S:
+        return None
+    at = ", ".join(f"{k} at {t:.6g} s" for k, t in starts.items())
+    return f"the streams start {spread:.4g} s apart ({at}): not one clock?"
 
 
 class UnitCheck:

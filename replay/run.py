@@ -29,6 +29,7 @@ from pdr_mag.episodes import Episode, EpisodeFinder, EpisodeSettings, worst
 from pdr_mag.estimates import CSV_COLUMNS, EstimateBatch
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings, fill_unknown_heading
 from pdr_mag.sinks import QuietSink
+from pdr_mag.units import clock_problem
 from replay.compiling import CompileWatch
 from replay.errors import InputError
 from replay.formats import open_recording
@@ -41,9 +42,6 @@ from replay.source import Merge, RecordingSource
 #: span, the episode finder's batch) against ≈ 0.1–0.25 ms per second of 100–200 Hz data, so 30 s keeps it
 #: to a few per cent, and a slice in memory stays ≈ 15 000 samples at 200 Hz.
 SLICE_S = 30.0
-#: Streams whose first samples lie further apart than this (s) were not stamped by one clock (a logger mixing
-#: the time since boot with the time since the epoch): an input error, not a recording.
-MAX_START_SPREAD_S = 600.0
 
 #: Recordings of more input bytes than this get a progress bar (≈ 200 000 samples of text).
 PROGRESS_MIN_BYTES = 8_000_000
@@ -317,10 +315,9 @@ class ReplayRun:
         for key in ("accel", "gyro"):
             if key not in merge.present:
                 raise InputError(where, f"no {key} stream (heading needs accel, gyro and mag)")
-        spread = max(merge.starts.values()) - min(merge.starts.values())
-        if spread > MAX_START_SPREAD_S:
-            at = ", ".join(f"{k} at {t:.6g} s" for k, t in merge.starts.items())
-            raise InputError(where, f"the streams start {spread:.4g} s apart ({at}): not one clock?")
+        problem = clock_problem(merge.starts)
+        if problem is not None:
+            raise InputError(where, problem)
         if calibration is not None and not isinstance(calibration, MagCalibration):
             calibration = load_calibration(calibration)
         scores = HeadingScores()  # against the walked direction and the references: the summary's figures

@@ -37,16 +37,20 @@ def test_the_pipeline_refuses_a_stream_in_another_unit_and_names_it(stream, scal
 
 
 def test_the_pipeline_refuses_times_in_nanoseconds_before_using_them():
-    """Android's ``SensorEvent.timestamp`` pushed as seconds: the first poll with samples raises, so no row
-    is made of intervals read as millions of seconds."""
+    """Android's ``SensorEvent.timestamp`` pushed as seconds: fewer samples than a check waits for, yet the
+    first poll raises, so no row is made of intervals read as millions of seconds; pushed together, the three
+    streams' starts (milliseconds apart: millions of "seconds") raise the same, not "two clocks"."""
     walk = _walk()
+    said = r"median interval between samples is .* \(time not in seconds\? in ns, × 1e-09 gives 0\.01 s\)"
     pipe = HeadingPipeline(meta=dict(META))
-    for name, (t, xyz) in walk.items():
-        pipe.push_arrays(name, (t[:20] + 1000.0) * 1e9, xyz[:20])  # fewer than UnitCheck.SAMPLES
-    with pytest.raises(ValueError, match=r"median interval between samples is .* \(time not in seconds\? "
-                                         r"in ns, × 1e-09 gives 0\.01 s\)"):
+    pipe.push_arrays("accel", (walk["accel"][0][:20] + 1000.0) * 1e9, walk["accel"][1][:20])
+    with pytest.raises(ValueError, match=said):
         pipe.poll()
     assert pipe.n_outputs == 0
+    pipe = HeadingPipeline(meta=dict(META))
+    with pytest.raises(ValueError, match=said):
+        for name, (t, xyz) in walk.items():
+            pipe.push_arrays(name, (t[:20] + 1000.0) * 1e9, xyz[:20])  # fewer than UnitCheck.SAMPLES
 
 
 def test_the_same_pushes_in_the_contracts_units_pass_in_any_chunking():
@@ -84,3 +88,32 @@ def test_the_rules_on_their_own():
     with pytest.raises(ValueError, match="accel: median .accel. is 1 m/s²"):
         check.add(np.arange(2, 60) * 0.01, np.tile([0.0, 0.0, 1.0], (58, 1)))
     assert check.done
+
+
+def test_an_accelerometer_without_gravity_is_named_as_such():
+    """Android's ``TYPE_LINEAR_ACCELERATION`` pushed as the accelerometer: its median norm is a g's size
+    too, but its samples share no direction — the message says gravity was taken out, not "in g"."""
+    walk = _walk()
+    t, acc = walk["accel"]
+    rng = np.random.default_rng(1)
+    walk["accel"] = (t, rng.normal(0.0, 0.8, acc.shape))  # a walker's accelerations, gravity removed
+    with pytest.raises(ValueError, match="gravity taken out") as err:
+        HeadingPipeline(meta=dict(META)).run(walk)
+    assert "in g," not in str(err.value)
+
+
+def test_streams_stamped_by_two_clocks_are_refused_by_the_pipeline():
+    """The magnetometer stamped with the time since the epoch, the IMU with the time since boot: the
+    pipeline raises when the three streams' first samples are in (replay says the same, exit 2)."""
+    walk = _walk()
+    t, mag = walk["mag"]
+    walk["mag"] = (t + 1.7e9, mag)
+    pipe = HeadingPipeline(meta=dict(META))
+    pipe.push_arrays("accel", *walk["accel"])
+    pipe.push_arrays("gyro", *walk["gyro"])
+    with pytest.raises(ValueError, match=r"the streams start 1\.7e\+09 s apart .*: not one clock\?"):
+        pipe.push_arrays("mag", *walk["mag"])
+    ok = HeadingPipeline(meta=dict(META))
+    ok.push_arrays("mag", t + 500.0, mag)  # less than ten minutes after the others: one clock
+    ok.push_arrays("accel", *walk["accel"])
+    ok.push_arrays("gyro", *walk["gyro"])

@@ -42,9 +42,11 @@ estimates leave at every :meth:`HeadingPipeline.poll`.
 Errors at the boundary, flags in the loop: a wrong shape, an unknown stream name, and a stream whose first
 samples are not in the contract's units (:class:`pdr_mag.units.UnitCheck`: accelerations in g, a field in
 gauss, times in nanoseconds, … — judged on its first 50 samples, or on the 3 or more there are when the
-pipeline first processes) raise ``ValueError``; a NaN row, a repeated or backward timestamp, and a stalled
-sensor's value delivered a third time in a row (:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are
-dropped and counted in :attr:`HeadingPipeline.dropped`.
+pipeline first processes), and streams whose first samples lie more than ten minutes apart (two clocks,
+:func:`pdr_mag.units.clock_problem`) raise ``ValueError``; a NaN row, a repeated or backward timestamp,
+and a stalled sensor's value delivered a third time in a row
+(:meth:`~pdr_mag.pipeline.streams.PendingStream.stale`) are dropped and counted in
+:attr:`HeadingPipeline.dropped`.
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ from pdr_mag.pipeline import state as state_json
 from pdr_mag.pipeline.settings import PipelineSettings, fusion_settings
 from pdr_mag.pipeline.stream_gaps import StreamGaps
 from pdr_mag.pipeline.streams import PendingStream, take_merged
-from pdr_mag.units import UnitCheck
+from pdr_mag.units import UnitCheck, clock_problem
 
 _NO_OFFSET = np.zeros(3)
 _EYE3 = np.eye(3)
@@ -170,6 +172,7 @@ class HeadingPipeline:
         self.stream_gaps = StreamGaps()
         self._streams = {k: PendingStream() for k in KINDS}
         self._units = {k: UnitCheck(k) for k in KINDS}  # each stream's unit, judged on its first samples
+        self._starts: dict[str, float] = {}  # each stream's first sample time, s, until all three are in
         self._done_t = -np.inf  # every sample before this time has been processed
         self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
         self._pend = np.empty(0, dtype=PK.MAG_ROW)  # magnetometer rows of the open block, not yet closed
@@ -271,6 +274,12 @@ class HeadingPipeline:
             t, xyz = t[keep], xyz[keep]
         if len(t):
             self._units[name].add(t, xyz)
+            if len(self._starts) < len(KINDS) and name not in self._starts:
+                self._starts[name] = float(t[0])
+                if len(self._starts) == len(KINDS) and (problem := clock_problem(self._starts)) is not None:
+                    for check in self._units.values():  # times in ns also start far apart: say that first
+                        check.settle()
+                    raise ValueError(problem)
             self._events += self.stream_gaps.add(name, t)
             stale = s.stale(xyz)
             if stale.any():
