@@ -62,10 +62,11 @@ def unit_problem(key: str, xyz: np.ndarray, unit_hint: str = "") -> str | None:
     v = np.asarray(xyz, dtype=float).reshape(-1, 3)
     with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308 among them: its norm is inf
         med = float(np.median(np.linalg.norm(v, axis=1)))
-        common = float(np.linalg.norm(np.median(v, axis=0)))  # the samples' shared vector (gravity)
     if lo <= med <= hi:
         return None
     what = f" (read as {unit_hint})" if unit_hint else ""
+    with np.errstate(over="ignore", invalid="ignore"):
+        common = float(np.linalg.norm(np.median(v, axis=0)))  # the samples' shared vector (gravity)
     if key == "accel" and med > 0 and common < _GRAVITY_SHARE * med:
         guess = " gravity taken out? the accelerometer must measure gravity too"
     else:
