@@ -250,7 +250,7 @@ def test_replay_real_tyrex_walk_online_only():
 def test_summary_table_says_when_no_field_strength_was_estimated():
     """A calibration without the field's norm (the phone's stated offset, an offset-only fit) prints no
     made-up strength; one with it prints the strength."""
-    from replay.run import summary_table
+    from replay.console import summary_table
 
     base = {"n_outputs": 1, "duration_s": 1.0, "north": "magnetic", "events": [], "dropped_samples": {}}
     cal = {"method": "phone", "offset_uT": [-12.0, -11.1, -361.1], "field_uT": None}

@@ -24,6 +24,7 @@ from pdr_mag.pipeline.settings import MAX_MAG_TIME_OFFSET_S
 from replay.commands._output import writable_file
 from replay.commands._place import apply_place, place_of, place_options
 from replay.compiling import announced
+from replay.console import summary_table
 from replay.errors import InputError
 from replay.formats import open_recording
 from replay.run import (
@@ -33,7 +34,6 @@ from replay.run import (
     load_calibration,
     make_sink,
     replay,
-    summary_table,
 )
 
 
