@@ -72,6 +72,18 @@ def in_order(t, xyz, after):
 
 
 @njit(cache=True, error_model="numpy")
+def longest_interval(t, after):
+    """The longest interval, s, between consecutive times of ``t`` (increasing, at least one) and from
+    ``after`` to ``t[0]`` (``after`` −inf: that one left out): what a push's gap check needs first."""
+    longest = t[0] - after if np.isfinite(after) else 0.0
+    for i in range(1, len(t)):
+        d = t[i] - t[i - 1]
+        if d > longest:
+            longest = d
+    return longest
+
+
+@njit(cache=True, error_model="numpy")
 def take_merged(streams, t_end):
     """The pending rows of the three streams (``streams``: their :class:`~pdr_mag.pipeline.streams.Pending`
     records, accelerometer, gyroscope, magnetometer) that are before ``t_end``, merged: ``(kind, t, xyz)``

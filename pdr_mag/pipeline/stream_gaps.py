@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from pdr_mag.estimates import Event
+from pdr_mag.pipeline import _kernel as PK
 
 #: The shortest stretch without samples reported, s: shorter ones are the jitter and stalls of phone loggers,
 #: which the filter bridges (a turn of 1 s at a walker's 1 rad/s is what the gyro's σ then has to cover).
@@ -142,8 +143,8 @@ class StreamGaps:
     def _inside(self, name: str, t: np.ndarray) -> list[Event]:
         """Gaps between the stream's samples ``t`` and after its last sample before them."""
         prev = self._last.get(name)
-        if t[-1] - (t[0] if prev is None else prev) <= self.threshold[name]:
-            return []  # the times increase, so no interval among them is longer (a sample pushed alone)
+        if PK.longest_interval(t, -np.inf if prev is None else prev) <= self.threshold[name]:
+            return []  # a push's common case, answered compiled
         tt = t if prev is None else np.concatenate(([prev], t))
         at = np.flatnonzero(np.diff(tt) > self.threshold[name])
         return [self._gap(name, float(tt[i]), float(tt[i + 1]), "inside") for i in at]
