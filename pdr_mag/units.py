@@ -54,6 +54,16 @@ MAX_START_SPREAD_S = 600.0
 _GRAVITY_SHARE = 0.5
 
 
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a finite 1-D array, by a partial sort (a few µs instead of ~20 on 50 values)."""
+    n = len(x)
+    k = n // 2
+    if n % 2:
+        return float(np.partition(x, k)[k])
+    p = np.partition(x, (k - 1, k))
+    return float(0.5 * (p[k - 1] + p[k]))
+
+
 def unit_problem(key: str, xyz: np.ndarray, unit_hint: str = "") -> str | None:
     """What is wrong with the unit of samples ``xyz`` (N, 3) of stream ``key`` (``"mag"``, ``"accel"``,
     ``"gyro"``), or None: their median norm outside :data:`UNIT_RANGES`, with the unit they look like when
@@ -61,7 +71,7 @@ def unit_problem(key: str, xyz: np.ndarray, unit_hint: str = "") -> str | None:
     lo, hi, unit = UNIT_RANGES[key]
     v = np.asarray(xyz, dtype=float).reshape(-1, 3)
     with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308 among them: its norm is inf
-        med = float(np.median(np.linalg.norm(v, axis=1)))
+        med = _median(np.sqrt(np.einsum("ij,ij->i", v, v)))
     if lo <= med <= hi:
         return None
     what = f" (read as {unit_hint})" if unit_hint else ""
@@ -82,7 +92,7 @@ def time_unit_problem(key: str, t: np.ndarray) -> str | None:
     t = np.asarray(t, dtype=float).reshape(-1)
     if len(t) < 3:
         return None
-    med = float(np.median(np.diff(t)))
+    med = _median(np.diff(t))
     lo, hi = SAMPLE_INTERVAL_S
     if lo <= med <= hi:
         return None
