@@ -135,8 +135,9 @@ class UnitCheck:
         """The stream's next samples (cleaned: finite, increasing); checks once :data:`SAMPLES` are in."""
         if self.done or not len(t):
             return
-        self._t.append(np.asarray(t, dtype=float)[: self.SAMPLES - self._n])
-        self._xyz.append(np.asarray(xyz, dtype=float)[: self.SAMPLES - self._n])
+        # copies: a caller may refill its buffers before the check runs
+        self._t.append(np.array(t[: self.SAMPLES - self._n], dtype=float))
+        self._xyz.append(np.array(xyz[: self.SAMPLES - self._n], dtype=float))
         self._n += len(self._t[-1])
         if self._n >= self.SAMPLES:
             self._check()

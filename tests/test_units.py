@@ -117,3 +117,25 @@ def test_streams_stamped_by_two_clocks_are_refused_by_the_pipeline():
     ok.push_arrays("mag", t + 500.0, mag)  # less than ten minutes after the others: one clock
     ok.push_arrays("accel", *walk["accel"])
     ok.push_arrays("gyro", *walk["gyro"])
+
+
+def test_a_backend_that_refills_its_buffers_between_pushes_gets_the_same_rows():
+    """The pipeline keeps what it needs of a push (the unit check's first samples, the gap finder's first
+    times) as copies: one buffer refilled for every push gives the rows of separate arrays."""
+    walk = _walk()
+    once = HeadingPipeline(meta=dict(META)).run(walk)
+    pipe = HeadingPipeline(meta=dict(META))
+    buf_t, buf_x = np.empty(64), np.empty((64, 3))
+    rows = []
+    edges = np.arange(0.0, 10.1, 0.1)
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):  # 0.1 s of each stream, through one buffer
+        for name, (t, xyz) in walk.items():
+            m = (t >= lo) & (t < hi)
+            k = int(m.sum())
+            buf_t[:k], buf_x[:k] = t[m], xyz[m]
+            pipe.push_arrays(name, buf_t[:k], buf_x[:k])
+        rows.append(pipe.poll())
+    rows.append(pipe.flush())
+    got = EstimateBatch.concat(rows)
+    np.testing.assert_array_equal(got.heading_deg, once.heading_deg)
+    assert pipe.summary()["stream_gaps"]["n"] == 0

@@ -68,7 +68,7 @@ class StreamGaps:
             self._first[name] = float(t[0])
         if name not in self.threshold:
             head = self._head.setdefault(name, [])
-            head.append(np.asarray(t, dtype=float))
+            head.append(np.array(t, dtype=float))  # a copy: a caller may refill its buffer
             if sum(len(h) for h in head) <= RATE_SAMPLES:
                 return []
             t = self._set_threshold(name)
