@@ -322,10 +322,11 @@ class ReplayRun:
             calibration = load_calibration(calibration)
         scores = HeadingScores()  # against the walked direction and the references: the summary's figures
         sinks = [*(_SinkFile(s) if getattr(s, "path", None) is not None else s for s in sinks), scores]
-        wants = any(getattr(s, "wants_mag_calibrated", True) for s in sinks)
-        if wants and (settings is None or not settings.keep_mag_calibrated):
+        # the readers judged each stream's unit and the clocks (above) on more samples than the pipeline would
+        settings = replace(settings or PipelineSettings(), check_inputs=False)
+        if any(getattr(s, "wants_mag_calibrated", True) for s in sinks):
             # the heavy sinks draw the calibrated field
-            settings = replace(settings or PipelineSettings(), keep_mag_calibrated=True)
+            settings = replace(settings, keep_mag_calibrated=True)
         prior, store_use = None, None
         if device_store is not None:
             prior, store_use = _load_device(device_store, src.meta)

@@ -139,3 +139,23 @@ def test_a_backend_that_refills_its_buffers_between_pushes_gets_the_same_rows():
     got = EstimateBatch.concat(rows)
     np.testing.assert_array_equal(got.heading_deg, once.heading_deg)
     assert pipe.summary()["stream_gaps"]["n"] == 0
+
+
+def test_replay_leaves_the_units_to_its_readers(tmp_path):
+    """A logger whose accelerometer writes zeros for its first 30 samples: the pipeline alone judges its first
+    50 and refuses them; ``pdr-mag replay`` judges the file's first 4096 (the readers' rule, which the file
+    passes) and runs it, no traceback — the pipeline's own check is off there (``check_inputs``)."""
+    from replay.cli import main
+    from replay.formats import pdrcsv
+    from replay.recording import Recording, Stream
+
+    d = synth_walk(duration=30.0, seed=3)
+    t, acc = d["accel"]
+    acc = acc.copy()
+    acc[:30] = 0.0
+    walk = {"accel": (t, acc), "gyro": d["gyro"], "mag": d["mag"]}
+    with pytest.raises(ValueError, match="accel: median .accel. is 0 m/s²"):
+        HeadingPipeline(meta=dict(META)).run(walk)
+    rec = Recording(accel=Stream(t, acc), gyro=Stream(*d["gyro"]), mag=Stream(*d["mag"]), meta=dict(META))
+    pdrcsv.write(rec, tmp_path / "walk")
+    assert main(["replay", str(tmp_path / "walk"), "--no-progress", "-q"]) == 0

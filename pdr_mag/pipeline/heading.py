@@ -171,8 +171,8 @@ class HeadingPipeline:
         #: ``stream_gaps``)
         self.stream_gaps = StreamGaps()
         self._streams = {k: PendingStream() for k in KINDS}
-        self._units = {k: UnitCheck(k) for k in KINDS}  # each stream's unit, judged on its first samples
-        self._starts: dict[str, float] = {}  # each stream's first sample time, s, until all three are in
+        # each stream's unit, judged on its first samples (none when the caller judged them)
+        self._units = {k: UnitCheck(k) for k in KINDS} if self.settings.check_inputs else {}
         self._done_t = -np.inf  # every sample before this time has been processed
         self._span = _SPAN_MIN  # blocks in the next span (speed only: the results do not depend on it)
         self._pend = np.empty(0, dtype=PK.MAG_ROW)  # magnetometer rows of the open block, not yet closed
@@ -273,14 +273,10 @@ class HeadingPipeline:
             keep = ok & ~late
             t, xyz = t[keep], xyz[keep]
         if len(t):
-            self._units[name].add(t, xyz)
-            if len(self._starts) < len(KINDS) and name not in self._starts:
-                self._starts[name] = float(t[0])
-                if len(self._starts) == len(KINDS) and (problem := clock_problem(self._starts)) is not None:
-                    for check in self._units.values():  # times in ns also start far apart: say that first
-                        check.settle()
-                    raise ValueError(problem)
+            first = name not in self.stream_gaps.first
             self._events += self.stream_gaps.add(name, t)
+            if self._units:
+                self._check_inputs(name, t, xyz, first)
             stale = s.stale(xyz)
             if stale.any():
                 self.dropped[f"{name}:repeated"] += int(np.count_nonzero(stale))
@@ -290,6 +286,17 @@ class HeadingPipeline:
         a, g, m = self._streams.values()
         if a.n + g.n + m.n > self.settings.max_pending:
             self._process(min(a.last_t, g.last_t, m.last_t))
+
+    def _check_inputs(self, name: str, t: np.ndarray, xyz: np.ndarray, first: bool) -> None:
+        """The stream's unit on its first samples; once the last stream's first sample is in, the clocks
+        (the streams' first samples, which the gap finder keeps) — after the units, so that times in
+        nanoseconds, which also start far apart, are named as such."""
+        self._units[name].add(t, xyz)
+        starts = self.stream_gaps.first
+        if first and len(starts) == len(KINDS) and (problem := clock_problem(starts)) is not None:
+            for check in self._units.values():
+                check.settle()
+            raise ValueError(problem)
 
     def push_phone_calibration(self, t: float, offset_uT) -> None:
         """The phone's OS changed its hard-iron estimate at stream time ``t`` (Android's uncalibrated

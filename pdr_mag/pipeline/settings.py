@@ -60,6 +60,10 @@ class PipelineSettings:
         phone's estimate changes, stamped on them) back by it. A field measured 30 ms before its stamp is
         turned by 30 ms of rotation: 3.4° at a swinging hand's 2 rad/s. At most ``MAX_MAG_TIME_OFFSET_S``
         either way.
+    check_inputs : bool
+        Judge each stream's unit on its first samples and the streams' clocks on their first sample times
+        (:mod:`pdr_mag.units`), raising ``ValueError``.  ``replay`` turns it off: its readers judged the same
+        rules on more samples (4096 a stream) and name the file.
     """
 
     block_s: float = 0.5
@@ -71,6 +75,7 @@ class PipelineSettings:
     keep_mag_calibrated: bool = False
     prior: PriorSettings = field(default_factory=PriorSettings)
     mag_time_offset_s: float = 0.0
+    check_inputs: bool = True
 
     def __post_init__(self):
         # a group of another class (a dict, say) would fail deep inside a run

@@ -56,7 +56,7 @@ class StreamGaps:
         self.gaps: list[dict] = []
         self.threshold: dict[str, float] = {}  # per stream, s, once its rate is known
         self._head: dict[str, list[np.ndarray]] = {}  # times before the rate is known
-        self._first: dict[str, float] = {}
+        self.first: dict[str, float] = {}  # each stream's first sample time, s
         self._last: dict[str, float] = {}
 
     def add(self, name: str, t: np.ndarray) -> list[Event]:
@@ -64,8 +64,8 @@ class StreamGaps:
         ``stream_gap`` event for each gap that ends among them."""
         if not len(t):
             return []
-        if name not in self._first:
-            self._first[name] = float(t[0])
+        if name not in self.first:
+            self.first[name] = float(t[0])
         if name not in self.threshold:
             head = self._head.setdefault(name, [])
             head.append(np.array(t, dtype=float))  # a copy: a caller may refill its buffer
@@ -91,8 +91,8 @@ class StreamGaps:
         if not self._last:
             return events
         t_end = max(self._last.values())
-        t0 = min(self._first.values()) if self.t0 is None else self.t0
-        for name, first in self._first.items():
+        t0 = min(self.first.values()) if self.t0 is None else self.t0
+        for name, first in self.first.items():
             if first - t0 > self.threshold[name]:
                 events.append(self._gap(name, t0, first, "start"))
         for name, last in self._last.items():
@@ -120,7 +120,7 @@ class StreamGaps:
         return {"t0": self.t0, "finished": self.finished, "gaps": [dict(g) for g in self.gaps],
                 "threshold": dict(self.threshold),
                 "head": {k: np.concatenate(v).tolist() for k, v in self._head.items()},
-                "first": dict(self._first), "last": dict(self._last)}
+                "first": dict(self.first), "last": dict(self._last)}
 
     def set_state(self, state: dict) -> None:
         """Restore from :meth:`get_state` (KeyError, TypeError or ValueError when it is not such a state)."""
@@ -129,7 +129,7 @@ class StreamGaps:
         self.gaps = [dict(g) for g in state["gaps"]]
         self.threshold = {str(k): float(v) for k, v in state["threshold"].items()}
         self._head = {str(k): [np.asarray(v, dtype=float)] for k, v in state["head"].items()}
-        self._first = {str(k): float(v) for k, v in state["first"].items()}
+        self.first = {str(k): float(v) for k, v in state["first"].items()}
         self._last = {str(k): float(v) for k, v in state["last"].items()}
 
     def _set_threshold(self, name: str) -> np.ndarray:
