@@ -128,3 +128,41 @@ def test_the_std_covers_the_calibrations_offset_error_at_a_steady_orientation():
         z2.append(np.mean((e / s) ** 2))
     assert np.mean(within) >= 0.85
     assert np.sqrt(np.mean(z2)) <= 1.5
+
+
+def _c_after(rates: np.ndarray, dt: float) -> float:
+    """c after the gyroscope prediction of a flat device turning about up at ``rates`` (rad/s, one per step of
+    ``dt``), from c = 1."""
+    from pdr_mag._records import settings_record
+    from pdr_mag.fusion.gyro import PREDICT_WORK, predict
+    from pdr_mag.fusion.state import new_state
+
+    st = new_state()
+    rec = st[0]
+    rec["c"] = 1.0
+    p = settings_record(FusionSettings())[0]
+    R = np.empty((3, 3))
+    work = np.zeros(1, dtype=PREDICT_WORK)
+    for w in rates:
+        predict(rec, R, work, 0.0, 0.0, float(w), dt, p)
+    return float(rec["c"])
+
+
+def test_c_decorrelates_with_the_walkers_turns_not_with_a_strides_yaw():
+    """c's correlation falls by ``exp(−Δt/τ_c)`` standing still and by ``exp(−|Δψ|/θ_c)`` more for a net turn
+    (a half turn: e^(−2) at θ_c = 90°, to 3 %: the stride average's lag leaves a little of the turn after the
+    run), while a ±20° yaw back and forth at 1 Hz — a swinging phone's — counts for less than a quarter of the
+    angle it sweeps (the stride average takes it out)."""
+    m = FusionSettings().mag
+    tau, theta = m.error_tau_s, np.radians(m.error_turn_deg)
+    dt = 0.01
+    n = 600  # 6 s
+    still = _c_after(np.zeros(n), dt)
+    assert abs(still - np.exp(-n * dt / tau)) < 1e-9
+    turn = np.zeros(n)
+    turn[:200] = np.pi / 2.0  # half a turn in 2 s, then 4 s without turning
+    assert abs(_c_after(turn, dt) / still - np.exp(-np.pi / theta)) < 0.03 * np.exp(-np.pi / theta)
+    t = np.arange(n) * dt
+    sway = np.radians(20.0) * 2.0 * np.pi * np.cos(2.0 * np.pi * t)  # the rate of ±20° at 1 Hz
+    swept = float(np.sum(np.abs(sway)) * dt)
+    assert -np.log(_c_after(sway, dt) / still) < 0.25 * swept / theta

@@ -106,7 +106,7 @@ from pdr_mag.fusion.settings import FusionSettings
 from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 14
+STATE_VERSION = 15
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -351,17 +351,18 @@ class FusionCore:
         The Earth's field keeps one azimuth ``a`` in that frame, so each ``α_k = a + ε_k``, the errors
         correlated through four causes, each with the filter's own model of it (the covariance ``Σ``):
         white noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process
-        ``σ_c² e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``); the frame's drift since
-        the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro bias about up, of the filter's variance ``σ_ḃ²``;
-        and the calibration's offset error, ``g_k Σ_b g_lᵀ`` (its covariance in force).  ``a`` is the
-        generalised least-squares mean, ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where
-        the fields scatter more than the model says (a field that turned, a calibration worse than its
-        covariance), by the larger of the residuals' ``χ² / (N − 1)`` and their robust spread's square over
-        one field's ``σ_h² + σ_c²``.  Taken from :data:`HISTORY_MIN` fields or more spanning two of c's
-        correlation times or more; a first fix from the next field would take that one field's error — or,
-        when it is disturbed, only a guess — and the next clean field now updates the heading instead, the
-        two weighed by their variances.  Returns the :class:`HistoryFix` made, or None when the heading was
-        not set."""
+        ``σ_c² e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``; c's decorrelation by
+        turning, ``mag.error_turn_deg``, left out: the fields count as more alike than the filter counts
+        them, the safe side); the frame's drift since the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro
+        bias about up, of the filter's variance ``σ_ḃ²``; and the calibration's offset error,
+        ``g_k Σ_b g_lᵀ`` (its covariance in force).  ``a`` is the generalised least-squares mean,
+        ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where the fields scatter more than
+        the model says (a field that turned, a calibration worse than its covariance), by the larger of the
+        residuals' ``χ² / (N − 1)`` and their robust spread's square over one field's ``σ_h² + σ_c²``.
+        Taken from :data:`HISTORY_MIN` fields or more spanning two of c's correlation times or more; a first
+        fix from the next field would take that one field's error — or, when it is disturbed, only a guess —
+        and the next clean field now updates the heading instead, the two weighed by their variances.
+        Returns the :class:`HistoryFix` made, or None when the heading was not set."""
         st = self._st[0]
         if st["init"] != 1:
             return None

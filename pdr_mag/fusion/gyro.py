@@ -4,7 +4,7 @@ Prediction, per gyroscope sample after an interval Δt::
 
     q ← q ⊗ Exp((ω̄ − b) Δt)          ω̄ the mean of this and the previous raw rate
     P ← Φ P Φᵀ + Q
-    Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c)
+    Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c − |ω̄_up| Δt / θ_c)
     Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))
     c ← φ c
     U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))    (at its next use: pdr_mag.fusion.eskf.settle_u)
@@ -13,7 +13,11 @@ with ``R = R(q)`` (the attitude error is in the world frame, the bias in the dev
 error turns the attitude by ``−R δb Δt``), σ_g ``gyro.noise``, σ_b ``gyro.bias_rw``, and ``c`` a first-order
 Gauss–Markov process (τ_c ``mag.error_tau_s``, stationary σ_c ``mag.error_std_deg``): the heading error
 of a calibrated magnetometer indoors — residual calibration error, the building's own field — is
-correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.
+correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.  It
+decorrelates as the device turns too (θ_c ``mag.error_turn_deg``): an offset residual's heading error goes
+as the cosine of the heading change, and a walker who turns leaves the anomaly walked along.  ``ω̄_up`` is
+the rate about the world's up averaged over :data:`TURN_TAU_S` (``turn_rate``), so the yaw a stride swings
+back and forth cancels and only the walker's net turning counts.
 ``U`` is the consider covariance (:mod:`pdr_mag.fusion.eskf`): the error that the part ``V_u`` of c's
 stationary variance the filter's weighting leaves out causes (:func:`unmodelled_var`).
 An unknown heading is uniform: ``P[δθ_z, δθ_z]`` is capped at π² by scaling its row and column (which
@@ -48,6 +52,9 @@ from pdr_mag.fusion.state import BIAS, NX, TH_Z
 GAP_DT = 0.05
 #: largest tilt-error variance a gap may add up to, rad² (30°)
 TILT_VAR_MAX = (np.pi / 6.0) ** 2
+#: time over which the rate about up is averaged for c's turn decorrelation, s: about a stride (a walker's
+#: two steps), over which a swinging or pocketed phone's yaw oscillation averages out
+TURN_TAU_S = 1.0
 
 #: Scratch space of :func:`predict` (a one-record array made once per kernel call, rather than arrays
 #: allocated per gyroscope sample): the blocks A, B, C of the old ``P``, the products ``G C`` and
@@ -71,7 +78,12 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     rotate_body(s.q, wx * dt, wy * dt, wz * dt)
     rotate_body(s.q_gyro, wx * dt, wy * dt, wz * dt)
     rotation_matrix(s.q, R)
-    phi = np.exp(-dt / p.mag.error_tau_s)
+    w_up = R[2, 0] * wx + R[2, 1] * wy + R[2, 2] * wz
+    s.turn_rate += ew_alpha(dt, TURN_TAU_S) * (w_up - s.turn_rate)
+    x = dt / p.mag.error_tau_s
+    if p.mag.error_turn_rad > 0.0:
+        x += abs(s.turn_rate) * dt / p.mag.error_turn_rad
+    phi = np.exp(-x)
     qc = magerr_var(s, p) * (1.0 - phi * phi)
     propagate(s.P, R, work, dt, phi, p.gyro.noise**2 * dt, p.gyro.bias_rw**2 * dt, qc)
     # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)

@@ -77,12 +77,12 @@ def calibration_floor(f, n, suspect_cov):
     test suspects and has yet to confirm (``suspect_cov`` = ``ΔΔᵀ``); 0 before the first heading.  The row
     holds ``g Σ_b gᵀ`` and g (:data:`~pdr_mag.fusion.rows.VAR_PARTS`, written by :func:`_write_row`).  The
     calibration's offset error is one constant vector in the device frame, so the heading error it causes
-    stays while the device keeps its orientation; the filter carries it in c, whose Gauss–Markov model lets
-    it average out over a few ``mag.error_tau_s``, and the reported variance ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)``
-    restores what does not (an uncertain prior's offset — the phone's, a store's — and a first fit's).  The
-    suspected shift is in the std only, not in the filter's weights: most candidates are a building's field
-    that the test then drops (on the shared recordings about one in ten is confirmed), and until then the
-    heading is what the calibration in force makes it."""
+    stays while the device keeps its orientation; the filter carries it in c, whose Gauss–Markov model lets it
+    average out over a few ``mag.error_tau_s`` or quarter turns (``mag.error_turn_deg``), and the reported
+    variance ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)`` restores what does not (an uncertain prior's offset — the
+    phone's, a store's — and a first fit's).  The suspected shift is in the std only, not in the filter's
+    weights: most candidates are a building's field that the test then drops (on the shared recordings about
+    one in ten is confirmed), and until then the heading is what the calibration in force makes it."""
     g = (f[COL.cal_gx, n], f[COL.cal_gy, n], f[COL.cal_gz, n])
     return f[COL.var_cal, n] + offset_heading_var(g, suspect_cov)
 

@@ -215,6 +215,14 @@ class MagSettings:
         the filter does not take correlated errors for gyro bias.
     error_tau_s : float
         Correlation time of c, s.
+    error_turn_deg : float
+        Turn over which c decorrelates as well, deg (0 = time only): c is also a function of the device's
+        heading — a calibration's offset residual δb turns the field by ``δb⊥ / B_h``, whose sign changes
+        as the device turns (correlation ``cos Δψ`` between two headings) — and a walker who turns walks
+        into another part of the building.  Each gyroscope step multiplies c's correlation by
+        ``exp(−|ω̄_up| Δt / θ_c)``, ``ω̄_up`` the rate about the world's up averaged over a stride
+        (:data:`pdr_mag.fusion.gyro.TURN_TAU_S`), so a swinging or pocketed phone's yaw back and forth
+        within each stride does not count as turning.  90°: a quarter turn, where ``cos Δψ`` is 0.
     env_k : float
         Where the recent field was disturbed, a field that looks clean may still be turned: steel that
         changes strength and dip by ``|d|`` nearby turns the horizontal field by up to ``|d| / B_h``
@@ -260,6 +268,7 @@ class MagSettings:
     tilt_k: float = 1.0
     error_std_deg: float = _radians("error_std_rad", 6.0)
     error_tau_s: float = 5.0
+    error_turn_deg: float = _radians("error_turn_rad", 90.0)
     env_k: float = 0.3
     env_tau_s: float = 30.0
     env_prior_uT: float = 5.0

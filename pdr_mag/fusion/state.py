@@ -39,6 +39,7 @@ STATE = np.dtype(
         ("b", np.float64, (3,)),  # gyroscope bias, device frame, rad/s
         ("bias0_var", np.float64),  # variance per axis of the bias prior, (rad/s)² (NaN: gyro.bias0_std²)
         ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
+        ("turn_rate", np.float64),  # rate about the world's up, averaged over a stride (c's turn), rad/s
         ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
         ("U", np.float64, (NX, NX)),  # consider covariance: the part of the error the weighting leaves out
         ("u_G", np.float64, (3, 3)),  # prediction not yet applied to U: −Σ R Δt over the steps since
