@@ -28,7 +28,8 @@ error state ``δx = (δθ, δb, δc)``, 7 values
     :func:`~pdr_mag.fusion.kernel.calibration_floor`), ``b_true = b + δb``,
     ``c_true = c + δc``.
 prediction (:mod:`~pdr_mag.fusion.gyro`)
-    ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``, ``φ = exp(−Δt/τ_c)``;
+    ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``,
+    ``φ = exp(−Δt/τ_c − |ω̄_up| Δt/θ_c)`` (c decorrelates in time and as the walker turns);
     ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``; ``c ← φ c`` (first-order Gauss–Markov); gaps add
     their unknown rotation to ``P``; a zero-rate update ``ω_m = b + δb + n`` while the device is still.
 accelerometer (:mod:`~pdr_mag.fusion.accel`)
