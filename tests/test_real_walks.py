@@ -44,6 +44,7 @@ import io
 import json
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -131,6 +132,19 @@ def _known_miss(request, xfails: dict, walk: str, mean: float, bound: float, cei
 
 
 # ------------------------------------------------------------------------------------------ machinery
+class Figures(NamedTuple):
+    """One walk replayed in one mode, over the frames the shared scorer scores: its mean |heading error|
+    (deg), the share of frames beyond 3σ, Σ (error/σ)², the number of frames, those within 2σ, and those more
+    than 45° off at σ ≤ 20° (what a user keeping σ ≤ 20° would keep wrongly)."""
+
+    mean: float
+    beyond: float
+    sum_z2: float
+    n: int
+    within_2sigma: int
+    kept_wrong: int
+
+
 def _scorer():
     if not SCORER.is_file():
         absent(f"shared scorer {SCORER} not found (../shared is not beside this checkout)")
@@ -167,13 +181,13 @@ def day_file(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def run(day_file):
-    """``run(walk, mode)`` → (mean |heading error|, share of frames beyond 3σ); each replay done once."""
+    """``run(walk, mode)`` → its :class:`Figures`; each replay done once."""
     from replay.run import MemorySink, replay
 
     score = _scorer()
     cache: dict = {}
 
-    def figures(b, t_ref, q_ref, t0):
+    def figures(b, t_ref, q_ref, t0) -> Figures:
         mean = score.score_arrays(t_ref, q_ref, b.t, b.q_wd, t0)["heading_err_mean"]
         # the frames score_arrays scores: in the window, inside the estimate, no estimate gap > 1 s
         w = (t_ref >= t0 + score.WINDOW[0]) & (t_ref <= t0 + score.WINDOW[1])
@@ -181,9 +195,16 @@ def run(day_file):
         i = np.clip(np.searchsorted(b.t, t_ref[w], side="right") - 1, 0, len(b.t) - 2)
         valid &= b.t[i + 1] - b.t[i] <= 1.0
         _, head, _ = score.error_angles(qi[valid], q_ref[w][valid])
+        err = np.abs(head)
         sd = np.interp(t_ref[w][valid], b.t, b.heading_std_deg)
-        beyond = float(np.mean(np.abs(head) > 3.0 * sd))
-        return mean, beyond
+        return Figures(
+            mean=mean,
+            beyond=float(np.mean(err > 3.0 * sd)),
+            sum_z2=float(np.sum((err / sd) ** 2)),
+            n=len(err),
+            within_2sigma=int(np.sum(err <= 2.0 * sd)),
+            kept_wrong=int(np.sum((err > 45.0) & (sd <= 20.0))),
+        )
 
     def go(walk: str, mode: str):
         if (walk, mode) not in cache:  # both modes at once: the recording is read once
@@ -223,7 +244,7 @@ def _best(p: dict, suffix: str) -> float:
 
 @pytest.mark.parametrize("walk", WALKS)
 def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run, request):
-    mean, _ = run(walk, "a")
+    mean = run(walk, "a").mean
     bound = min(max(_best(peers[walk], "_cal_gcal") + MARGIN_DEG, FLOOR_DEG), FAIL_A_DEG)
     _known_miss(request, XFAIL_A, walk, mean, bound, FAIL_A_DEG)
     assert mean <= bound, f"{walk}: mode a {mean:.1f}° > {bound:.1f}°"
@@ -231,7 +252,7 @@ def test_mode_a_within_the_best_peer_given_the_day_calibration(walk, peers, run,
 
 @pytest.mark.parametrize("walk", WALKS)
 def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run, request):
-    mean, _ = run(walk, "b")
+    mean = run(walk, "b").mean
     p = peers[walk]
     bound = min(max(p["os"], _best(p, "_cal")) + MARGIN_DEG, FAIL_B_DEG)
     _known_miss(request, XFAIL_B, walk, mean, bound, FAIL_B_DEG)
@@ -243,8 +264,32 @@ def test_mode_b_not_worse_than_both_the_phone_and_the_peers(walk, peers, run, re
 def test_heading_std_warns_when_the_heading_is_wrong(walk, mode, run, request):
     if (walk, mode) in XFAIL_STD:
         request.applymarker(_xfail(XFAIL_STD[(walk, mode)]))
-    _, beyond = run(walk, mode)
+    beyond = run(walk, mode).beyond
     assert beyond <= BEYOND_3SIGMA_MAX, f"{walk} mode {mode}: {beyond:.0%} of the frames beyond 3σ"
+
+
+#: issue 19's band for the RMS of error/σ: σ neither loose (a backend weighting by 1/σ² under-uses a heading
+#: whose σ is twice its error) nor tight
+RMS_Z_BAND = (0.8, 1.25)
+#: where each mode stands today, below the band: the floor a change may not fall under (pooled over the 42
+#: walks: mode a 0.64, mode b 0.57 — benchmarks/RESULTS.md; 0.51 and 0.49 with c decorrelating in time only)
+RMS_Z_FLOOR = 0.55
+
+
+@pytest.mark.parametrize("mode", ["a", "b"])
+def test_the_std_is_safe_and_as_sharp_as_today_over_the_walks(mode, run):
+    """Issue 19's σ targets pooled over every frame of the 42 walks: truth within 2σ in ≥ 93 % of the frames
+    and no frame 45° off at σ ≤ 20°, and the RMS of error/σ no higher than the band's top; its bottom (0.8) is
+    not met (benchmarks/NOTES.md, "c decorrelates as the walker turns"), so the test holds the sharpness
+    reached, :data:`RMS_Z_FLOOR` — a σ that grows back towards twice the error fails."""
+    figs = [run(w, mode) for w in WALKS]
+    n = sum(f.n for f in figs)
+    rms = float(np.sqrt(sum(f.sum_z2 for f in figs) / n))
+    within = sum(f.within_2sigma for f in figs) / n
+    kept = sum(f.kept_wrong for f in figs)
+    assert within >= 0.93, f"mode {mode}: within 2σ in {within:.1%} of the frames"
+    assert kept == 0, f"mode {mode}: {kept} frames 45° off at σ ≤ 20°"
+    assert RMS_Z_FLOOR <= rms <= RMS_Z_BAND[1], f"mode {mode}: RMS of error/σ {rms:.3f}"
 
 
 def test_the_groups_meet_issue_10s_targets(peers, run):
@@ -267,14 +312,14 @@ def test_the_groups_meet_issue_10s_targets(peers, run):
         assert walks, group
         cols = [c for c in peers[walks[0]] if c.endswith("_cal_gcal")]
         col = min(cols, key=lambda c: np.mean([peers[w][c] for w in walks]))
-        mine = float(np.mean([run(w, "a")[0] for w in walks]))
+        mine = float(np.mean([run(w, "a").mean for w in walks]))
         theirs = float(np.mean([peers[w][col] for w in walks]))
         if mine > theirs:
             failed.append(f"mode a, {group}: mean {mine:.2f}° > {col} {theirs:.2f}°")
     for phone in ("Nexus5", "iPhone4S", "iPhone5"):
         walks = [w for w in WALKS if w.split("_")[1] == phone]
         assert walks, phone
-        mine = np.array([run(w, "b")[0] for w in walks])
+        mine = np.array([run(w, "b").mean for w in walks])
         theirs = np.array([peers[w]["os"] for w in walks])
         for name, f in (("mean", np.mean), ("median", np.median)):
             if f(mine) > f(theirs):
