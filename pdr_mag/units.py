@@ -151,6 +151,8 @@ class UnitCheck:
         t, xyz = np.concatenate(self._t), np.concatenate(self._xyz)
         self.done = True
         self._t, self._xyz = [], []
-        problem = time_unit_problem(self.key, t) or unit_problem(self.key, xyz)
+        problem = time_unit_problem(self.key, t)  # its message names the stream
+        if problem is None and (unit := unit_problem(self.key, xyz)) is not None:
+            problem = f"{self.key}: {unit}"
         if problem is not None:
-            raise ValueError(problem if problem.startswith(f"{self.key}:") else f"{self.key}: {problem}")
+            raise ValueError(problem)

@@ -41,17 +41,11 @@ MAX_LISTED = 100
 
 
 class StreamGaps:
-    """Find the gaps of each stream as its samples come (:meth:`add`), and at the end (:meth:`finish`).
+    """Find the gaps of each stream as its samples come (:meth:`add`), and at the end (:meth:`finish`); the
+    recording starts at the earliest first sample of the streams added (known at :meth:`finish`, whatever
+    order the streams came in)."""
 
-    Parameters
-    ----------
-    t0 : float, optional
-        The recording's first sample time, of any stream, s; None: the earliest first sample of the streams
-        added (known at :meth:`finish`, whatever order the streams came in).
-    """
-
-    def __init__(self, t0: float | None = None):
-        self.t0 = None if t0 is None else float(t0)
+    def __init__(self):
         self.finished = False  # finish() has run: the start and end gaps are in
         self.gaps: list[dict] = []
         self.threshold: dict[str, float] = {}  # per stream, s, once its rate is known
@@ -91,7 +85,7 @@ class StreamGaps:
         if not self._last:
             return events
         t_end = max(self._last.values())
-        t0 = min(self.first.values()) if self.t0 is None else self.t0
+        t0 = min(self.first.values())
         for name, first in self.first.items():
             if first - t0 > self.threshold[name]:
                 events.append(self._gap(name, t0, first, "start"))
@@ -117,14 +111,13 @@ class StreamGaps:
     def get_state(self) -> dict:
         """JSON-serialisable state (:meth:`set_state` puts it back; non-finite times cannot occur: every
         time kept is a sample's)."""
-        return {"t0": self.t0, "finished": self.finished, "gaps": [dict(g) for g in self.gaps],
+        return {"finished": self.finished, "gaps": [dict(g) for g in self.gaps],
                 "threshold": dict(self.threshold),
                 "head": {k: np.concatenate(v).tolist() for k, v in self._head.items()},
                 "first": dict(self.first), "last": dict(self._last)}
 
     def set_state(self, state: dict) -> None:
         """Restore from :meth:`get_state` (KeyError, TypeError or ValueError when it is not such a state)."""
-        self.t0 = None if state["t0"] is None else float(state["t0"])
         self.finished = bool(state["finished"])
         self.gaps = [dict(g) for g in state["gaps"]]
         self.threshold = {str(k): float(v) for k, v in state["threshold"].items()}
