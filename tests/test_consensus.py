@@ -230,6 +230,24 @@ def test_a_contradicting_refit_on_fewer_independent_samples_does_not_replace():
     assert not refit.contradicts_with_less_evidence(few, prior)
 
 
+def test_a_refit_that_says_nothing_new_may_still_stand_for_the_device():
+    """``replaces`` is ``may_stand_for`` and the rule against noise: a refit 1 µT from the calibration in
+    force at a σ only 8 % smaller does not replace it (the filter would turn its heading for nothing) but may
+    stand for the device (what a device store keeps); a refit that contradicts the one in force on less
+    evidence, or an offset-only fit of an ellipsoid calibration, does neither."""
+    none = np.zeros((0, 3))
+    old = _fit(B_TRUE, 3.8, 19, inflation=1.3)
+    later = _fit(B_TRUE + [1.0, 0.0, 0.0], 3.5, 26, inflation=1.3)
+    assert not refit.replaces(later, old, False, none)
+    assert refit.may_stand_for(later, old, False, none)
+    few = _fit(B_TRUE + [60.0, -30.0, -13.0], 3.1, 17, inflation=5.4)
+    assert not refit.may_stand_for(few, old, False, none) and not refit.replaces(few, old, False, none)
+    shaped = replace(old, soft_iron=((1.05, 0.0, 0.0), (0.0, 0.97, 0.0), (0.0, 0.0, 0.98)))
+    assert not refit.may_stand_for(later, shaped, False, none)
+    # a calibration the user gave stands against gravity and sphere refits, in both senses
+    assert not refit.may_stand_for(later, old, True, none)
+
+
 #: a walk past steel (30–90 s) that once replaced a good first calibration (σ 3.6–3.8 µT, within 2 µT):
 #: with the magnetometer at 100 Hz, a consensus of 17 of 313 samples from 4 s of the pass (the reference
 #: strength and dip by chance), 68 µT off, the heading then 160° off to the end; at São Paulo (22.8 µT), a

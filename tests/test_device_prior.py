@@ -15,6 +15,7 @@ from pdr_mag.estimates import EstimateBatch
 from pdr_mag.field import earth_field
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from pdr_mag.sim import simulate
+from pdr_mag.sim.effects import parse_effect_value
 from pdr_mag.sim.simulator import DEFAULT_SITE
 
 #: a phone's hard iron of the size the mall traces start with (≈ 300 µT), and a real phone's gyro offset
@@ -239,3 +240,29 @@ def test_a_store_entry_days_old_gives_way_to_the_first_fit(tmp_path, walk):
         e, _ = _within(rows, err, rows.t[0] + 10.0, rows.t[0] + 30.0)
         assert np.median(e) < 15.0
         assert np.linalg.norm(p.calibration.offset_array - other) < 5.0
+
+
+def test_the_store_gets_the_sessions_latest_fit_not_the_first_one_the_filter_kept():
+    """The filter keeps its calibration against a refit that says nothing new (a shift within 2 σ, a σ less
+    than 20 % smaller: each change turns the heading); a device store gets the latest refit that may stand
+    for it, fitted on the buffer as the session left it — more samples, more of the building's places.
+    Simulated walks through a building's field (dipoles, 8 µT peak), seeds 1–12: the horizontal offset error
+    of what the store gets, mean 0.84 µT, against the calibration in force's 0.95 µT (measured: 4 seeds
+    gain 0.14–1.05 µT, 4 lose 0.03–0.33 µT, 4 had no later refit).  The latest fit survives a saved and
+    restored state."""
+    err_kept, err_stored = [], []
+    for seed in range(1, 13):
+        effects = {"hard_iron": HARD_IRON, "gyro_bias": GYRO_BIAS,
+                   "local_anomaly": parse_effect_value("local_anomaly", "8")}  # fmt: skip
+        rec = simulate("walk", seed=seed, duration_s=120.0, effects=effects)
+        pipe = HeadingPipeline(meta=dict(rec.meta), settings=NO_PHONE)
+        pipe.run({"accel": rec.accel, "gyro": rec.gyro, "mag": rec.mag})
+        kept, stored = pipe.calibration, pipe.device_knowledge().calibration
+        assert pipe.cal_state == "offset" and stored.accepted and stored.n_samples >= kept.n_samples
+        assert stored is pipe.online.best_estimate
+        err_kept.append(np.linalg.norm((kept.offset_array - HARD_IRON)[:2]))
+        err_stored.append(np.linalg.norm((stored.offset_array - HARD_IRON)[:2]))
+        again = HeadingPipeline(meta=dict(rec.meta), settings=NO_PHONE)
+        again.set_state(pipe.get_state())
+        assert again.device_knowledge().calibration.offset == stored.offset
+    assert np.mean(err_stored) < np.mean(err_kept)

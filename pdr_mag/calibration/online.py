@@ -165,6 +165,23 @@ class OnlineCalibrator:
         return None
 
     @property
+    def best_estimate(self) -> MagCalibration | None:
+        """The device's calibration as this session's data say it best: the latest accepted refit that may
+        stand for the calibration in force (:func:`pdr_mag.calibration.refit.may_stand_for`) but did not
+        replace it — it said nothing the filter had to act on, a shift within 2 σ or a σ less than 20 %
+        smaller (:func:`pdr_mag.calibration.refit.replaces`) — else the calibration in force.  The filter
+        keeps its calibration against such a refit, as each change turns the heading; a device store keeps
+        the refit, which rests on the buffer as the session left it — more samples, a longer time base, the
+        building's field averaged over more of its places — where the calibration in force rests on the
+        buffer of when it was taken (the first fits after a hard-iron jump: ten seconds of one corridor).
+        None before any calibration, and during a recalibration (its provisional offset is not yet a
+        calibration); a prior in force (the phone's, a store's) is returned as it is unless a refit of this
+        session may stand for it."""
+        if self.calibration is None or self.cal_state == "recalibrating":
+            return None
+        return self._latest_fit if self._latest_fit is not None else self.calibration
+
+    @property
     def suspected_shift(self) -> np.ndarray | None:
         """The offset shift a stale test found and has yet to confirm or drop, in the raw field's frame
         (``M⁻¹δ``, µT, as a recalibration would move the offset), or None."""
@@ -294,6 +311,7 @@ class OnlineCalibrator:
         s = self.settings
         self.calibration = cal
         self.cal_state = cal_state
+        self._latest_fit = None  # a later refit that may stand for cal (not in force: it said nothing new)
         f = self.field_ref
         sd = self.sin_dip_ref
         c = self._cal[0]
@@ -353,6 +371,8 @@ class OnlineCalibrator:
         recalibrating = self.cal_state == "recalibrating"
         buf = self._buf["m"][:n]
         if not recalibrating and not refit.replaces(chosen, self.calibration, self.provided, buf):
+            if refit.may_stand_for(chosen, self.calibration, self.provided, buf):
+                self._latest_fit = refit.with_dip(chosen, buf, self._buf["u"][:n])
             return
         cal = refit.with_dip(chosen, buf, self._buf["u"][:n])
         if recalibrating:
@@ -575,6 +595,7 @@ class OnlineCalibrator:
             "provided": self.provided,
             "recal_t": state_float(self._recal_t),
             "n_refits": self._n_refits,
+            "latest_fit": None if self._latest_fit is None else self._latest_fit.to_dict(),
             "last_reject_t": state_float(self._last_reject_t),
             "gyro_heading_t": state_float(self._gyro_heading_t),
             "loop": {name: _to_json(self._state[0][name]) for name in _SAVED_FIELDS},
@@ -590,6 +611,7 @@ class OnlineCalibrator:
         self.provided = bool(st["provided"])
         self._recal_t = float(st["recal_t"])
         self._n_refits = int(st["n_refits"])
+        self._latest_fit = None if st["latest_fit"] is None else MagCalibration.from_dict(st["latest_fit"])
         self._last_reject_t = float(st["last_reject_t"])
         self._gyro_heading_t = float(st["gyro_heading_t"])
         loop = self._state[0]

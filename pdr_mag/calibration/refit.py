@@ -286,36 +286,48 @@ def judge(
 
 
 def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m: np.ndarray) -> bool:
-    """Whether an accepted refit replaces the calibration in force (outside a recalibration).
-
-    Never a soft-iron shape by an offset-only fit, nor a calibration given by the user by a gravity or
-    sphere fit; not when the residual got worse (``> 1.5 · old + 0.3`` µT: disturbed samples in the
-    buffer); not on noise: the offset must move by 2 σ (σ at least 0.2 µT) or its σ shrink by 20 %.  An
-    upgrade to a soft-iron shape passes the last two rules.  The old calibration's residual is the larger
-    of its own and the spread (:func:`robust_spread`) of the strength it gives ``m``, the buffer's raw
-    samples the refit fitted — a calibration fitted on a few samples and wrong by tens of µT explains the
-    buffer worse than the refit that replaces it, whatever its own small residual said, while one sample of
-    a disturbance in the buffer makes no calibration look bad (the spread is computed only when the old
-    residual alone would refuse the refit).
-    """
+    """Whether an accepted refit replaces the calibration in force (outside a recalibration): it may stand
+    for the device (:func:`may_stand_for`) and it is not noise — the offset must move by 2 σ (σ at least
+    0.2 µT) or its σ shrink by 20 %; an upgrade to a soft-iron shape passes that rule.  The filter changes
+    its calibration only for a fit that says something new: each change turns the heading."""
     if old is None:
         return True
+    if not may_stand_for(new, old, provided, m):
+        return False
+    shift = np.linalg.norm(new.offset_array - old.offset_array)
+    std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
+    std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
+    upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
+    return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+
+
+def may_stand_for(new: MagCalibration, old: MagCalibration, provided: bool, m: np.ndarray) -> bool:
+    """Whether an accepted refit ``new`` may stand for the device in place of the calibration in force
+    ``old`` — every rule of :func:`replaces` but the one against noise.
+
+    Never a soft-iron shape by an offset-only fit, nor a calibration given by the user by a gravity or
+    sphere fit, nor a fit that contradicts an online fit on clearly less evidence
+    (:func:`contradicts_with_less_evidence`); not when the residual got worse (``> 1.5 · old + 0.3`` µT:
+    disturbed samples in the buffer).  The old calibration's residual is the larger of its own and the
+    spread (:func:`robust_spread`) of the strength it gives ``m``, the buffer's raw samples the refit
+    fitted — a calibration fitted on a few samples and wrong by tens of µT explains the buffer worse than the
+    refit that replaces it, whatever its own small residual said, while one sample of a disturbance in the
+    buffer makes no calibration look bad (the spread is computed only when the old residual alone would
+    refuse the refit).
+    """
     if state_of(old) == "ellipsoid" and state_of(new) == "offset":
         return False
     if provided and new.method in ("gravity", "sphere"):
         return False
     if contradicts_with_less_evidence(new, old):
         return False
-    shift = np.linalg.norm(new.offset_array - old.offset_array)
-    std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
-    std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
     upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
     if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
         f = np.linalg.norm(old.apply(m), axis=1)
         if new.residual_rms_uT > 1.5 * robust_spread(f) + 0.3:
             return False
-    return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+    return True
 
 
 def robust_spread(x: np.ndarray) -> float:

@@ -599,11 +599,13 @@ class HeadingPipeline:
 
     def device_knowledge(self) -> DevicePrior:
         """What this run knows of the device now, for a device store (:class:`~pdr_mag.calibration.store.
-        DeviceStore`): the calibration in force when it is one the data support — an accepted fit, or the
-        given / prior one the stale test let stand — but not the phone's own estimate (the phone states it
-        again next time), nor a provisional one during a recalibration; and the filter's gyro bias with its
-        σ (the larger of the three axes').  A part not known is None."""
-        cal = self.calibration
+        DeviceStore`): the calibration the session's data support best
+        (:attr:`~pdr_mag.calibration.online.OnlineCalibrator.best_estimate`: the latest accepted refit that
+        may stand for the calibration in force, else that calibration — an accepted fit, or the given /
+        prior one the stale test let stand) — but not the phone's own estimate (the phone states it again
+        next time), nor a provisional one during a recalibration; and the filter's gyro bias with its σ (the
+        larger of the three axes').  A part not known is None."""
+        cal = self.online.best_estimate
         phone = prior_source(cal) == "phone"
         if cal is None or phone or self.cal_state in ("none", "recalibrating") or not cal.accepted:
             cal = None
