@@ -71,9 +71,8 @@ def test_the_stores_entries_stay_near_the_phones_own_estimate(chain):
 
 
 def test_a_stale_entry_is_replaced_by_the_sessions_own_fit(chain):
-    """After each of the five jumps of the phone's offset (the entry 53–92 µT from the phone's estimate), the
-    session leaves an entry at least 2.5 times nearer to it (measured: 4–21 µT from 53–92 µT, ratio
-    0.05–0.27)."""
+    """After each of the five jumps of the phone's offset (the entry 67–89 µT from the phone's estimate), the
+    session leaves an entry at least 2.5 times nearer to it (measured: 4–21 µT, ratio 0.05–0.27)."""
     jumps = [(np.linalg.norm(before - phone0), np.linalg.norm(after - phone1))
              for phone0, phone1, before, after, _ in chain
              if before is not None and np.linalg.norm(before - phone0) >= JUMP_UT]  # fmt: skip
