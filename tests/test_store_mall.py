@@ -12,8 +12,6 @@ must replace it.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -52,10 +50,9 @@ def chain(tmp_path_factory):
 
 
 def _entry(store: DeviceStore, meta: dict) -> np.ndarray | None:
-    f = store.path(meta)
-    if f is None or not f.exists():
-        return None
-    return np.array(json.loads(f.read_text())["calibration"]["offset_uT"])
+    """The offset the store holds for this device (its age does not move it), µT; None: no entry."""
+    prior = store.load(meta, DeviceStore.recording_time(meta))
+    return None if prior is None or prior.calibration is None else prior.calibration.offset_array
 
 
 def test_the_stores_entries_stay_near_the_phones_own_estimate(chain):

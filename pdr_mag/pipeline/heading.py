@@ -605,9 +605,8 @@ class HeadingPipeline:
         prior one the stale test let stand) — but not the phone's own estimate (the phone states it again
         next time), nor a provisional one during a recalibration; and the filter's gyro bias with its σ (the
         larger of the three axes').  A part not known is None."""
-        cal = self.online.best_estimate
-        phone = prior_source(cal) == "phone"
-        if cal is None or phone or self.cal_state in ("none", "recalibrating") or not cal.accepted:
+        cal = self.online.best_estimate  # None before a calibration and during a recalibration
+        if cal is not None and (prior_source(cal) == "phone" or not cal.accepted):
             cal = None
         b, var = self.fusion.gyro_bias()
         ok = bool(np.all(np.isfinite(b)) and np.all(np.isfinite(var)))
