@@ -1,9 +1,10 @@
-"""The turned-field test (:mod:`pdr_mag.calibration.turned`): without a reference field, a first calibration
-whose field turns against the gyroscope is refused."""
+"""Without a reference field (no place known): a first calibration whose field turns against the gyroscope is
+refused (:mod:`pdr_mag.calibration.turned`), and one from yaw turns alone is judged by its offset across up."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from test_online import first_calibration
 
@@ -101,3 +102,64 @@ def test_a_walk_near_the_magnetic_pole_without_a_place_is_calibrated():
     t, cal, truth = first_calibration("pocket", 2, latitude_deg=74.7, longitude_deg=-94.8, place=False)
     assert t < 30.0
     assert np.all(np.abs(cal.offset_array - truth) < 3 * np.asarray(cal.offset_std_uT))
+
+
+def test_the_offset_across_up_is_what_a_heading_reads():
+    """An offset covariance of 30 µT along the device's z and 2 µT across it: a phone held flat (up along
+    z) reads 2 µT of it, a phone tilted 20° about x reads 30 sin 20° ≈ 10 µT more."""
+    from pdr_mag.calibration.refit import horizontal_std
+
+    cov = np.diag([2.0**2, 2.0**2, 30.0**2])
+    flat = np.tile([0.0, 0.0, 1.0], (5, 1))
+    assert np.isclose(horizontal_std(cov, flat), 2.0)
+    a = np.radians(20.0)
+    tilted = np.vstack([flat, [0.0, np.sin(a), np.cos(a)]])
+    assert np.isclose(horizontal_std(cov, tilted), np.hypot(2.0 * np.cos(a), 30.0 * np.sin(a)), rtol=1e-9)
+    assert horizontal_std(cov, np.full((3, 3), np.nan)) == np.inf
+
+
+@pytest.mark.parametrize("latitude_deg, longitude_deg", [(47.38, 8.54), (-33.87, 151.21)])
+def test_a_phone_held_flat_without_a_place_gets_its_heading_from_yaw_turns(latitude_deg, longitude_deg):
+    """A texting walk (the phone held flat, turning about up) with the meta withheld: the gravity-aided fit,
+    F and the dip free, cannot tell the offset along up from F (σ 17–28 µT there), and the first fit's bound
+    on every axis refused every fit for the 120 s (the heading unknown, 140–156° off).  Judged by the σ
+    across up at the buffer's poses, the first calibration comes within 20 s; after 30 s the median heading
+    error (against magnetic north) is below 6°, and no frame is 45° off at σ ≤ 20°."""
+    from pdr_mag.conventions import quat_slerp
+    from pdr_mag.pipeline import HeadingPipeline
+    from pdr_mag.sim import simulate
+
+    site = {"latitude_deg": latitude_deg, "longitude_deg": longitude_deg, "altitude_m": 10.0,
+            "date": "2026-06-15"}  # fmt: skip
+    res = simulate("walk", seed=1, site=site)
+    pipe = HeadingPipeline(meta={})
+    b = pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
+    assert pipe.calibrations, "never calibrated"
+    t_cal, cal = pipe.calibrations[0]
+    assert t_cal - res.mag[0][0] < 20.0
+    assert cal.extra.get("horizontal_only")
+    tt, qt = res.truth
+    r_true = Rotation.from_quat(quat_slerp(tt, qt, b.t)[:, [1, 2, 3, 0]])
+    r_est = Rotation.from_quat(np.asarray(b.q_wd)[:, [1, 2, 3, 0]])
+    e = (r_est * r_true.inv()).as_quat()
+    head = np.degrees(2.0 * np.arctan2(e[:, 2], e[:, 3])) - res.meta["simulation"]["declination_deg"]
+    head = np.abs((head + 180.0) % 360.0 - 180.0)  # magnetic north: no place, no declination
+    late = b.t > b.t[0] + 30.0
+    assert np.median(head[late]) < 6.0, np.median(head[late])
+    assert not np.any(late & (head > 45.0) & (b.heading_std_deg <= 20.0))
+
+
+def test_a_horizontal_only_fit_gives_no_reference_field():
+    """Such a fit's radius and dip traded against its undetermined offset along up: the next fits and the
+    stale test get no reference from it (``field_ref``, ``sin_dip_ref`` None), as before any calibration."""
+    from dataclasses import replace
+
+    from pdr_mag.calibration.model import MagCalibration
+    from pdr_mag.calibration.online import OnlineCalibrator
+
+    cal = MagCalibration(method="gravity", offset=(10.0, 20.0, 30.0), field_uT=33.0,
+                         extra={"sin_dip": 0.8})  # fmt: skip
+    c = OnlineCalibrator(calibration=cal)
+    assert c.field_ref == 33.0 and c.sin_dip_ref == 0.8
+    c = OnlineCalibrator(calibration=replace(cal, extra={"sin_dip": 0.8, "horizontal_only": True}))
+    assert c.field_ref is None and c.sin_dip_ref is None

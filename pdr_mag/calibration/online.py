@@ -146,11 +146,13 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------ reading
     @property
     def field_ref(self) -> float | None:
-        """F, µT: the WMM strength, else the radius of the calibration in force."""
+        """F, µT: the WMM strength, else the radius of the calibration in force (unless it is a
+        ``horizontal_only`` fit, whose radius traded against its undetermined offset along up)."""
         if self.strength_wmm is not None:
             return self.strength_wmm
-        if self.calibration is not None and np.isfinite(self.calibration.field_uT):
-            return float(self.calibration.field_uT)
+        cal = self.calibration
+        if cal is not None and np.isfinite(cal.field_uT) and not cal.extra.get("horizontal_only"):
+            return float(cal.field_uT)
         return None
 
     @property
@@ -158,7 +160,7 @@ class OnlineCalibrator:
         """sin I: the WMM's, else the calibration's ``extra["sin_dip"]``."""
         if self.sin_dip_wmm is not None:
             return self.sin_dip_wmm
-        if self.calibration is not None:
+        if self.calibration is not None and not self.calibration.extra.get("horizontal_only"):
             v = self.calibration.extra.get("sin_dip") if isinstance(self.calibration.extra, dict) else None
             if v is not None and np.isfinite(v):
                 return float(v)

@@ -94,7 +94,9 @@ def candidates(
             cands.append(full)
     first = current is None or provisional(current, s, vague_prior=True)
     # the gravity verdict does not read its coverage: judged, the coverage set in the same copy
-    judged = [judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None) for c in cands]
+    judged = [
+        judge(c, s, field_ref, first, coverage=cov if c.method == "gravity" else None, up=u) for c in cands
+    ]
     if _consensus_wanted(judged, current, field_ref, sin_dip_ref, times, s):
         found = consensus_offset(m, u, times, current, field_ref, sin_dip_ref, s)
         if found is not None:
@@ -105,7 +107,8 @@ def candidates(
                 return judged
             g = with_consensus(with_correlated_errors(g, times[mask], s.field_corr_s), mask, best_n)
             # its coverage: the inliers' directions about its own offset, not the polluted buffer's
-            judged.append(judge(g, s, field_ref, first, coverage=direction_coverage(g.apply(m[mask]))))
+            inl = direction_coverage(g.apply(m[mask]))
+            judged.append(judge(g, s, field_ref, first, coverage=inl, up=u[mask]))
     return judged
 
 
@@ -238,6 +241,7 @@ def judge(
     field_ref: float | None,
     first: bool = False,
     coverage: float | None = None,
+    up: np.ndarray | None = None,
 ) -> MagCalibration:
     """Acceptance verdict for an online refit (returns a copy with ``accepted``/``reasons`` set).
 
@@ -253,6 +257,17 @@ def judge(
     reference strength (without one, of the Earth's range, 22–67 µT: no Earth field has 14 µT); the
     residual and the radius are named once, by the core's rules when they named them (theirs are tighter).
     ``coverage`` given: the copy also gets it (for the gravity-aided refit, whose rules do not read it).
+
+    Without a reference field (no place known) a gravity-aided fit estimates F and the dip itself, and from
+    yaw turns alone (a phone held flat) the offset along the device's up is not determined: F, the dip and
+    that component trade against each other.  A heading needs only the offset across up, so a first such
+    fit is judged by the σ its offset has across the up vector of any of the buffer's poses
+    (:func:`horizontal_std`, ``up`` the buffer's up vectors) and, accepted so, marked ``horizontal_only``
+    in its ``extra``: its radius and dip are not the place's (they traded against that component), so
+    neither the detectors nor the next fits take them as references
+    (:meth:`pdr_mag.fusion.FusionCore.use_calibration`, :attr:`.online.OnlineCalibrator.field_ref`); its
+    covariance goes to the fusion as it is, whose calibration floor ``g Σ_b gᵀ`` counts the undetermined part
+    at every pose the device takes.
     """
     reasons: list[str] = []
     if cal.method != "gravity":
@@ -262,7 +277,14 @@ def judge(
     f = cal.field_uT
     s = settings
     bound = s.max_offset_std_uT if not first else max(s.first_offset_std_uT, s.max_offset_std_uT)
-    if not all(map(math.isfinite, cal.offset_std_uT)) or max(cal.offset_std_uT) > bound:
+    across_up = first and field_ref is None and cal.method == "gravity" and up is not None
+    if across_up and cal.offset_covariance is not None and np.all(np.isfinite(cal.offset_covariance)):
+        std_h = horizontal_std(cal.offset_covariance, up)
+        if std_h > bound:
+            reasons.append(f"offset σ across up {std_h:.2f} µT above {bound:g} µT")
+        elif max(cal.offset_std_uT) > bound:
+            cal = replace(cal, extra={**cal.extra, "horizontal_only": True})
+    elif not all(map(math.isfinite, cal.offset_std_uT)) or max(cal.offset_std_uT) > bound:
         std = np.asarray(cal.offset_std_uT, dtype=float)
         reasons.append(f"offset σ {np.nanmax(std):.2f} µT above {bound:g} µT")
     if not np.isfinite(f) or f <= 0:
@@ -283,6 +305,19 @@ def judge(
     if coverage is not None:
         return replace(cal, coverage=coverage, accepted=not reasons, reasons=tuple(reasons))
     return cal.with_acceptance(not reasons, reasons)
+
+
+def horizontal_std(cov: np.ndarray, up: np.ndarray) -> float:
+    """The largest σ (µT) of an offset error of covariance ``cov`` (device frame) across the up vector of
+    any of the poses ``up`` (N × 3, unit): ``max_i √λ_max(P_i C P_i)``, ``P_i = I − u_i u_iᵀ`` — what a
+    heading reads of the offset's error at those poses (its part along up leaves the horizontal field)."""
+    u = np.asarray(up, dtype=float).reshape(-1, 3)
+    u = u[np.all(np.isfinite(u), axis=1)]
+    if not len(u):
+        return math.inf
+    eye = np.eye(3)
+    proj = eye[None, :, :] - u[:, :, None] * u[:, None, :]
+    return float(np.sqrt(max(np.linalg.eigvalsh(proj @ cov @ proj).max(), 0.0)))
 
 
 def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m: np.ndarray) -> bool:

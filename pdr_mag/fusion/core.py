@@ -291,7 +291,9 @@ class FusionCore:
         * a change is noted (:meth:`note_calibration_change`), so the heading taken from the old fields
           gets the variance of what the change removes;
         * its radius becomes the detectors' reference strength (:meth:`set_reference_strength`; a
-          calibration without a radius leaves the reference as it was);
+          calibration without a radius leaves the reference as it was, as does a ``horizontal_only`` fit,
+          whose radius traded against its undetermined offset along up:
+          :func:`pdr_mag.calibration.refit.judge`);
         * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`);
         * none after one (a prior refused): the heading it gave is forgotten (:meth:`forget_heading`).
         """
@@ -299,7 +301,8 @@ class FusionCore:
             self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
         if cal is None and previous is not None:
             self.forget_heading()
-        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0:
+        radius = cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0
+        if radius and not cal.extra.get("horizontal_only"):
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
