@@ -1,5 +1,6 @@
-"""Without a reference field (no place known): a first calibration whose field turns against the gyroscope is
-refused (:mod:`pdr_mag.calibration.turned`), and one from yaw turns alone is judged by its offset across up."""
+"""Without a reference field (no place known): a first calibration whose field turns against the gyroscope
+is refused (:mod:`pdr_mag.calibration.turned`), and one from yaw turns alone is judged by its offset across
+up."""
 
 from __future__ import annotations
 
