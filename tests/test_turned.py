@@ -139,6 +139,8 @@ def test_a_phone_held_flat_without_a_place_gets_its_heading_from_yaw_turns(latit
     t_cal, cal = pipe.calibrations[0]
     assert t_cal - res.mag[0][0] < 20.0
     assert cal.extra.get("horizontal_only")
+    accepted = [ev.data for ev in pipe.pop_events() if ev.kind == "calibration_accepted"]
+    assert accepted and accepted[0].get("horizontal_only") is True
     tt, qt = res.truth
     r_true = Rotation.from_quat(quat_slerp(tt, qt, b.t)[:, [1, 2, 3, 0]])
     r_est = Rotation.from_quat(np.asarray(b.q_wd)[:, [1, 2, 3, 0]])

@@ -440,7 +440,8 @@ def is_identity(a, atol: float) -> bool:
 def summary(cal: MagCalibration) -> dict:
     """The figures of a calibration for an event's data (with the consensus fit's inlier count and share,
     :mod:`pdr_mag.calibration.consensus`, when it is one; ``figure8``: a full fit of an unasked figure-8's
-    recent samples, :meth:`pdr_mag.calibration.online.OnlineCalibrator._figure8_fit`)."""
+    recent samples, :meth:`pdr_mag.calibration.online.OnlineCalibrator._figure8_fit`; ``horizontal_only``: a
+    fit without a place judged by its offset across up, :func:`judge`)."""
     return {
         "method": cal.method,
         "offset_uT": [round(float(v), 3) for v in cal.offset],
@@ -452,4 +453,5 @@ def summary(cal: MagCalibration) -> dict:
         **({"consensus": {k: cal.extra["consensus"][k] for k in ("inliers", "share")}}
            if "consensus" in cal.extra else {}),
         **({"figure8": True} if cal.extra.get("figure8") else {}),
+        **({"horizontal_only": True} if cal.extra.get("horizontal_only") else {}),
     }
