@@ -151,7 +151,7 @@ class OnlineCalibrator:
         if self.strength_wmm is not None:
             return self.strength_wmm
         cal = self.calibration
-        if cal is not None and np.isfinite(cal.field_uT) and not cal.extra.get("horizontal_only"):
+        if cal is not None and np.isfinite(cal.field_uT) and not refit.horizontal_only(cal):
             return float(cal.field_uT)
         return None
 
@@ -160,8 +160,8 @@ class OnlineCalibrator:
         """sin I: the WMM's, else the calibration's ``extra["sin_dip"]``."""
         if self.sin_dip_wmm is not None:
             return self.sin_dip_wmm
-        if self.calibration is not None and not self.calibration.extra.get("horizontal_only"):
-            v = self.calibration.extra.get("sin_dip") if isinstance(self.calibration.extra, dict) else None
+        if self.calibration is not None and not refit.horizontal_only(self.calibration):
+            v = self.calibration.extra.get("sin_dip")
             if v is not None and np.isfinite(v):
                 return float(v)
         return None

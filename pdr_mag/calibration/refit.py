@@ -307,6 +307,12 @@ def judge(
     return cal.with_acceptance(not reasons, reasons)
 
 
+def horizontal_only(cal: MagCalibration | None) -> bool:
+    """Whether ``cal`` is a fit judged by its offset across up alone (:func:`judge`, no place known): its
+    radius and dip traded against its undetermined offset along up and are no reference."""
+    return cal is not None and bool(cal.extra.get("horizontal_only"))
+
+
 def horizontal_std(cov: np.ndarray, up: np.ndarray) -> float:
     """The largest σ (µT) of an offset error of covariance ``cov`` (device frame) across the up vector of
     any of the poses ``up`` (N × 3, unit): ``max_i √λ_max(P_i C P_i)``, ``P_i = I − u_i u_iᵀ`` — what a
@@ -332,8 +338,7 @@ def replaces(new: MagCalibration, old: MagCalibration | None, provided: bool, m:
     shift = np.linalg.norm(new.offset_array - old.offset_array)
     std_new = float(max(new.offset_std_uT))  # finite: an accepted refit
     std_old = float(max(old.offset_std_uT)) if all(map(math.isfinite, old.offset_std_uT)) else np.inf
-    upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
-    return upgrade or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
+    return _upgrade(new, old) or not (shift < 2 * max(std_new, 0.2) and std_new > 0.8 * std_old)
 
 
 def may_stand_for(new: MagCalibration, old: MagCalibration, provided: bool, m: np.ndarray) -> bool:
@@ -356,13 +361,17 @@ def may_stand_for(new: MagCalibration, old: MagCalibration, provided: bool, m: n
         return False
     if contradicts_with_less_evidence(new, old):
         return False
-    upgrade = state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
     rms_old = old.residual_rms_uT if np.isfinite(old.residual_rms_uT) else np.inf
-    if not upgrade and new.residual_rms_uT > 1.5 * rms_old + 0.3:
+    if not _upgrade(new, old) and new.residual_rms_uT > 1.5 * rms_old + 0.3:
         f = np.linalg.norm(old.apply(m), axis=1)
         if new.residual_rms_uT > 1.5 * robust_spread(f) + 0.3:
             return False
     return True
+
+
+def _upgrade(new: MagCalibration, old: MagCalibration) -> bool:
+    """A soft-iron shape where an offset-only calibration was in force."""
+    return state_of(new) == "ellipsoid" and state_of(old) != "ellipsoid"
 
 
 def robust_spread(x: np.ndarray) -> float:
@@ -453,5 +462,5 @@ def summary(cal: MagCalibration) -> dict:
         **({"consensus": {k: cal.extra["consensus"][k] for k in ("inliers", "share")}}
            if "consensus" in cal.extra else {}),
         **({"figure8": True} if cal.extra.get("figure8") else {}),
-        **({"horizontal_only": True} if cal.extra.get("horizontal_only") else {}),
+        **({"horizontal_only": True} if horizontal_only(cal) else {}),
     }

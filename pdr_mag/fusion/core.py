@@ -93,7 +93,7 @@ import scipy.linalg
 from pdr_mag._records import settings_record
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.online import deviating_fields
-from pdr_mag.calibration.refit import robust_spread
+from pdr_mag.calibration.refit import horizontal_only, robust_spread
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EARTH_STRENGTH_RANGE_UT, EarthField
 from pdr_mag.fusion import kernel
@@ -301,8 +301,7 @@ class FusionCore:
             self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
         if cal is None and previous is not None:
             self.forget_heading()
-        radius = cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0
-        if radius and not cal.extra.get("horizontal_only"):
+        if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not horizontal_only(cal):
             self.set_reference_strength(float(cal.field_uT))
         self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
 
