@@ -196,7 +196,7 @@ def cluster(site, tmp_path_factory):
             p.send_signal(signal.SIGTERM)
         for p in reversed(procs):
             try:
-                p.wait(timeout=20)
+                p.wait(timeout=5)  # an idle Dask process leaves in well under a second
             except subprocess.TimeoutExpired:
                 p.kill()
 
