@@ -226,7 +226,7 @@ def test_state_round_trip_through_json(walk):
         second.set_state(broken)
     broken = json.loads(json.dumps(saved))
     broken["state"]["P"] = broken["state"]["P"][:3]
-    with pytest.raises(ValueError, match=r"P: expected shape \(7, 7\)"):
+    with pytest.raises(ValueError, match=r"P: expected shape \(10, 10\)"):
         second.set_state(broken)
 
 

@@ -84,14 +84,9 @@ XFAIL_A: dict[str, tuple[str, bool, float]] = {
         7.1,
     ),
 }
-#: walk → its mode-b figure against its bound today, strict, the figure (only walks that miss their bound)
-XFAIL_B: dict[str, tuple[str, bool, float]] = {
-    "Thibaud_iPhone4S_NoDist_Texting": (
-        "7.1° > 6.4° (os 4.4° + 2°): the first online calibrations of the 590-µT offset are 5–15 µT off",
-        False,
-        7.1,
-    ),
-}
+#: walk → its mode-b figure against its bound today, strict, the figure (only walks that miss their bound;
+#: none today)
+XFAIL_B: dict[str, tuple[str, bool, float]] = {}
 #: (walk, mode) → the share of its frames beyond 3σ today, strict (none today: Thibaud_iPhone5_Dist_AR
 #: mode b, 27 % without the consider covariance of the place's disturbance, is at 2 %)
 XFAIL_STD: dict[tuple[str, str], tuple[str, bool]] = {}

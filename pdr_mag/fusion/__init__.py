@@ -20,29 +20,33 @@ Model: an error-state (multiplicative) extended Kalman filter.
 
 nominal state
     ``q`` attitude, device → ENU (true north when a declination is given), w-first; ``b`` gyroscope bias,
-    device frame, rad/s; ``c`` the slowly varying error of the magnetometer heading, rad.
-error state ``δx = (δθ, δb, δc)``, 7 values
+    device frame, rad/s; ``c`` the slowly varying error of the magnetometer heading, rad; ``o`` the error
+    of the calibration's offset that the filter has found, device frame, µT (the field it takes is the
+    calibrated one less ``o``; ``mag.offset_states``).
+error state ``δx = (δθ, δb, δc, δo)``, 10 values
     ``R_true = Exp(δθ) R`` with ``δθ`` in the world frame (so ``δθ_z`` is the heading error and
-    ``heading_std = √max((P + U)[δθ_z, δθ_z], g Σ_b gᵀ)``, ``U`` the consider covariance below, the
-    floor the calibration's offset covariance ``Σ_b`` seen in the heading,
-    :func:`~pdr_mag.fusion.kernel.calibration_floor`), ``b_true = b + δb``,
-    ``c_true = c + δc``.
+    ``heading_std = √max((P + U)[δθ_z, δθ_z], g ΔΔᵀ gᵀ)``, ``U`` the consider covariance below, the
+    floor an offset shift Δ the stale test suspects, seen in the heading,
+    :func:`~pdr_mag.fusion.kernel.calibration_floor`), ``b_true = b + δb``, ``c_true = c + δc``,
+    ``o_true = o + δo``.
 prediction (:mod:`~pdr_mag.fusion.gyro`)
-    ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``,
+    ``q ← q ⊗ Exp((ω̄ − b) Δt)``; ``Φ = [[I, −R Δt, 0, 0], [0, I, 0, 0], [0, 0, φ, 0], [0, 0, 0, I]]``,
     ``φ = exp(−Δt/τ_c − |ω̄_up| Δt/θ_c)`` (c decorrelates in time and as the walker turns);
-    ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))``; ``c ← φ c`` (first-order Gauss–Markov); gaps add
-    their unknown rotation to ``P``; a zero-rate update ``ω_m = b + δb + n`` while the device is still.
+    ``Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²), σ_o² Δt I)``; ``c ← φ c`` (first-order Gauss–Markov),
+    ``o`` constant but for a slow random walk; gaps add their unknown rotation to ``P``; a zero-rate
+    update ``ω_m = b + δb + n`` while the device is still.
 accelerometer (:mod:`~pdr_mag.fusion.accel`)
     tilt only: the direction of the specific force averaged in the world frame observes the window's mean
     ``(−δθ_y, δθ_x)`` (hence also ``δb``); its noise grows with the measured dynamics and with clipped
     samples; gated on ``||ā| − g|``; the tilt starts only once the gyroscope streams.
 magnetometer (:mod:`~pdr_mag.fusion.mag`)
-    heading only: ``r = wrap(atan2(m_w,x, m_w,y) − D − c)`` observes ``h_t·δθ_xy + δθ_z + δc`` with the
-    tilt errors as consider states; noise from the field's horizontal strength and the smallest
-    disturbance that explains the detectors' deviations; skipped while the interference flag
-    (:mod:`pdr_mag.fusion.detectors`) is up, when the caller disallows it or beyond a χ² gate.  The
-    stationary variance of ``c`` grows with the recent environment's disturbance level and with the
-    heading error the calibration's offset covariance causes; a field that stays clean but keeps failing
+    heading only: ``r = wrap(atan2(m_w,x, m_w,y) − D − c)`` of the field ``m − o`` observes
+    ``h_t·δθ_xy + δθ_z + δc + g·δo`` (``g = ∂ψ/∂m_d``) with the tilt errors as consider states; noise
+    from the field's horizontal strength and the smallest disturbance that explains the detectors'
+    deviations; skipped while the interference flag (:mod:`pdr_mag.fusion.detectors`) is up, when the
+    caller disallows it or beyond a χ² gate.  The stationary variance of ``c`` grows with the recent
+    environment's disturbance level; a calibration in force sets ``δo``'s covariance (and ``o`` to zero);
+    a field that stays clean but keeps failing
     the gate for ``mag.reacquire_s`` (or as long as the fields behind the heading span, if shorter, but two
     of c's correlation times at least) re-acquires the heading (``heading_reset``).
 consider covariance ``U`` (:mod:`~pdr_mag.fusion.eskf`, :mod:`~pdr_mag.fusion.gyro`)

@@ -71,7 +71,7 @@ from pdr_mag.fusion.eskf import LINEAR_RAD, inject, settle_u, tilt_unsettled, up
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import bias_prior_var, ew_stats_step
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix
-from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_X, TH_Y, TH_Z
 
 #: largest starting tilt variance per axis, rad² (a quarter turn: the linearised updates say nothing beyond)
 TILT0_VAR_MAX = (np.pi / 2) ** 2
@@ -138,6 +138,10 @@ def init_tilt(s, ax, ay, az, p):
     for i in range(BIAS, BIAS + 3):
         P[i, i] = b0
     P[C_ERR, C_ERR] = p.mag.error_std_rad**2
+    if p.mag.offset_states:
+        for i in range(3):
+            for m in range(3):
+                P[OFFSET + i, OFFSET + m] = s.cal_cov[i, m]
     s.c = 0.0
     s.init = 1
 

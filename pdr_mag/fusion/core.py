@@ -103,10 +103,10 @@ from pdr_mag.fusion.mag import offset_heading_var
 from pdr_mag.fusion.quat import rotation_matrix
 from pdr_mag.fusion.rows import DIAG_NAMES, Rows, columns, new_rows
 from pdr_mag.fusion.settings import FusionSettings
-from pdr_mag.fusion.state import BIAS, STATE, TH_Z, new_state, state_from_json, state_to_json
+from pdr_mag.fusion.state import BIAS, OFFSET, STATE, TH_Z, new_state, state_from_json, state_to_json
 
 #: format of :meth:`FusionCore.get_state`
-STATE_VERSION = 15
+STATE_VERSION = 16
 _NO_CUTS = np.empty(0, dtype=np.intp)
 _NO_SNAPS = np.empty(0, dtype=STATE)
 
@@ -220,12 +220,15 @@ class FusionCore:
         self._apply_strength()
 
     def set_calibration_covariance(self, cov_uT2) -> None:
-        """Covariance of the calibration's offset (3×3, device frame, µT²; None = exact).  The heading error
-        it causes, ``g Σ_b gᵀ`` at each sample's orientation, joins the stationary variance of the
-        magnetometer error state c: a coarse early calibration (σ of a few µT against a horizontal field of
-        ~20 µT: ~10°) then weighs as little as it deserves (from the next usable sample on), and the std
-        says so at once (its floor, :func:`pdr_mag.fusion.kernel.calibration_floor`, is the new covariance at
-        the latest usable sample's orientation: a flagged stretch may be long)."""
+        """Covariance of the error the calibration's offset makes in the calibrated field (3×3, device frame,
+        µT²; None = exact): ``M Σ_b Mᵀ`` for an offset covariance ``Σ_b`` and the calibration's matrix M.  A
+        coarse early calibration (σ of a few µT against a horizontal field of ~20 µT: ~10°) then weighs as
+        little as it deserves.  With the offset states (``mag.offset_states``) it is the offset error's
+        covariance when a calibration comes into force (:meth:`use_calibration`) and the first heading's
+        from history; without them the heading error it causes, ``g Σ_b gᵀ`` at each sample's orientation,
+        joins the stationary variance of the magnetometer error state c (from the next usable sample on), and
+        the std says so at once (its floor, :func:`pdr_mag.fusion.kernel.calibration_floor`, is the new
+        covariance at the latest usable sample's orientation: a flagged stretch may be long)."""
         if cov_uT2 is None:
             self._st["cal_cov"] = 0.0
             return
@@ -294,16 +297,40 @@ class FusionCore:
           calibration without a radius leaves the reference as it was, as does a ``horizontal_only`` fit,
           whose radius traded against its undetermined offset along up:
           :func:`pdr_mag.calibration.refit.judge`);
-        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`);
+        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`),
+          with the offset states the covariance of their error, anew (:meth:`_reset_offset_states`);
         * none after one (a prior refused): the heading it gave is forgotten (:meth:`forget_heading`).
         """
         if cal is not None and previous is not None and cal is not previous:
             self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
+        changed = cal is not previous
         if cal is None and previous is not None:
             self.forget_heading()
         if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not horizontal_only(cal):
             self.set_reference_strength(float(cal.field_uT))
-        self.set_calibration_covariance(None if cal is None else cal.offset_covariance)
+        cov = None if cal is None else cal.offset_covariance
+        if cov is not None:
+            m = cal.matrix
+            cov = m @ cov @ m.T  # the offset's error as it moves the calibrated field
+        self.set_calibration_covariance(cov)
+        if changed and self.settings.mag.offset_states:
+            self._reset_offset_states()
+
+    def _reset_offset_states(self) -> None:
+        """A new calibration in force: the offset error found under the old one is dropped — the field the
+        filter takes moves by it, a change of the calibrated field that :meth:`note_calibration_change`
+        counts with the calibrations' own — and the offset error's covariance is the new calibration's,
+        uncorrelated with the rest (a refit's offset rests on the same samples as the heading, but its
+        errors are the fit's, not the filter's)."""
+        st = self._st[0]
+        st["cal_jump_e"] += st["offset"]
+        st["offset"] = 0.0
+        o = slice(OFFSET, OFFSET + 3)
+        for m in (st["P"], st["U"]):
+            m[o, :] = 0.0
+            m[:, o] = 0.0
+        if st["init"] >= 1:
+            st["P"][o, o] = st["cal_cov"]
 
     def seed_flag_share(self, t, field, up) -> float | None:
         """The share of flagged samples (the consider part's weight of the detectors' tolerance,
@@ -351,19 +378,20 @@ class FusionCore:
         the next usable one is judged by (:mod:`pdr_mag.fusion.mag`).
 
         The Earth's field keeps one azimuth ``a`` in that frame, so each ``α_k = a + ε_k``, the errors
-        correlated through four causes, each with the filter's own model of it (the covariance ``Σ``):
-        white noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process
-        ``σ_c² e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``; c's decorrelation by
-        turning, ``mag.error_turn_deg``, left out: the fields count as more alike than the filter counts
-        them, the safe side); the frame's drift since the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro
-        bias about up, of the filter's variance ``σ_ḃ²``; and the calibration's offset error,
-        ``g_k Σ_b g_lᵀ`` (its covariance in force).  ``a`` is the generalised least-squares mean,
-        ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where the fields scatter more than
-        the model says (a field that turned, a calibration worse than its covariance), by the larger of the
-        residuals' ``χ² / (N − 1)`` and their robust spread's square over one field's ``σ_h² + σ_c²``.
-        Taken from :data:`HISTORY_MIN` fields or more spanning two of c's correlation times or more; a first
-        fix from the next field would take that one field's error — or, when it is disturbed, only a guess —
-        and the next clean field now updates the heading instead, the two weighed by their variances.
+        correlated through four causes, each with the filter's own model of it (the covariance ``Σ``): white
+        noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process ``σ_c²
+        e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``; c's decorrelation by turning,
+        ``mag.error_turn_deg``, left out: the fields count as more alike than the filter counts them, the safe
+        side); the frame's drift since the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro bias about up, of
+        the filter's variance ``σ_ḃ²``; and the calibration's offset error, ``g_k Σ_b g_lᵀ`` (its covariance
+        in force; with the offset states, the heading's error is then correlated with theirs through the
+        fields' weighted mean gradient ``ḡ``: ``P[δθ_z, δo] = −Σ_b ḡ``).  ``a`` is the generalised
+        least-squares mean, ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where the fields
+        scatter more than the model says (a field that turned, a calibration worse than its covariance), by
+        the larger of the residuals' ``χ² / (N − 1)`` and their robust spread's square over one field's ``σ_h²
+        + σ_c²``. Taken from :data:`HISTORY_MIN` fields or more spanning two of c's correlation times or more;
+        a first fix from the next field would take that one field's error — or, when it is disturbed, only a
+        guess — and the next clean field now updates the heading instead, the two weighed by their variances.
         Returns the :class:`HistoryFix` made, or None when the heading was not set."""
         st = self._st[0]
         if st["init"] != 1:
@@ -404,6 +432,12 @@ class FusionCore:
         st["cal_var"] = offset_heading_var(g[latest], st["cal_cov"])
         span = float(t_now - t.min())
         kernel.fix_from_history(self._st, self._p, r, var, span, t_now)
+        if m.offset_states:  # the fields' mean azimuth errs by ḡ·o (ḡ their weighted mean gradient)
+            g_bar = (w @ g) / w.sum()
+            o = slice(OFFSET, OFFSET + 3)
+            c = -st["P"][o, o] @ g_bar
+            st["P"][TH_Z, o] = c
+            st["P"][o, TH_Z] = c
         std = float(np.degrees(np.sqrt(min(var, np.pi**2))))
         return HistoryFix(t_now, len(t), span, float(np.degrees(r)), std)
 

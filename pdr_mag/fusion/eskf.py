@@ -22,7 +22,7 @@ from numba import njit
 
 from pdr_mag.fusion.detectors import turn
 from pdr_mag.fusion.quat import rotate_vector, rotate_world
-from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_X, TH_Y, TH_Z
 
 #: the largest tilt error the linearised updates treat as small (the accelerometer's bias terms, the
 #: magnetometer's heading row), rad
@@ -196,6 +196,8 @@ def inject(s, dx):
     for i in range(3):
         s.b[i] += dx[BIAS + i]
     s.c += dx[C_ERR]
+    for i in range(3):
+        s.offset[i] += dx[OFFSET + i]
     for i in range(NX):
         dx[i] = 0.0
     P = s.P

@@ -4,8 +4,8 @@ Prediction, per gyroscope sample after an interval Δt::
 
     q ← q ⊗ Exp((ω̄ − b) Δt)          ω̄ the mean of this and the previous raw rate
     P ← Φ P Φᵀ + Q
-    Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]],   φ = exp(−Δt / τ_c − |ω̄_up| Δt / θ_c)
-    Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²))
+    Φ = [[I, −R Δt, 0, 0], [0, I, 0, 0], [0, 0, φ, 0], [0, 0, 0, I]],   φ = exp(−Δt / τ_c − |ω̄_up| Δt / θ_c)
+    Q = diag(σ_g² Δt I, σ_b² Δt I, σ_c² (1 − φ²), σ_o² Δt I)
     c ← φ c
     U ← Φ U Φᵀ + diag(0, 0, V_u (1 − φ²))    (at its next use: pdr_mag.fusion.eskf.settle_u)
 
@@ -14,8 +14,9 @@ error turns the attitude by ``−R δb Δt``), σ_g ``gyro.noise``, σ_b ``gyro.
 Gauss–Markov process (τ_c ``mag.error_tau_s``, stationary σ_c ``mag.error_std_deg``): the heading error
 of a calibrated magnetometer indoors — residual calibration error, the building's own field — is
 correlated over seconds, and modelling it keeps the filter from reading its slow drift as gyro bias.  It
-decorrelates as the device turns too (θ_c ``mag.error_turn_deg``): an offset residual's heading error goes
-as the cosine of the heading change, and a walker who turns leaves the anomaly walked along.  ``ω̄_up`` is
+decorrelates as the device turns too (θ_c ``mag.error_turn_deg``): a walker who turns leaves the anomaly
+walked along.  The calibration's offset error ``o`` (device frame, µT; σ_o ``mag.offset_rw_uT``) is
+constant but for a slow random walk (``mag.offset_states``; :mod:`pdr_mag.fusion.mag`).  ``ω̄_up`` is
 the rate about the world's up averaged over :data:`TURN_TAU_S` (``turn_rate``), so the yaw a stride swings
 back and forth cancels and only the walker's net turning counts.
 ``U`` is the consider covariance (:mod:`pdr_mag.fusion.eskf`): the error that the part ``V_u`` of c's
@@ -46,7 +47,7 @@ from numba import njit
 from pdr_mag.fusion.eskf import inject, update
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.quat import rotate_body, rotation_matrix
-from pdr_mag.fusion.state import BIAS, NX, TH_Z
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_Z
 
 #: gyro sample intervals longer than this are gaps (any phone gyroscope runs at ≥ 20 Hz), s
 GAP_DT = 0.05
@@ -86,6 +87,8 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     phi = np.exp(-x)
     qc = magerr_var(s, p) * (1.0 - phi * phi)
     propagate(s.P, R, work, dt, phi, p.gyro.noise**2 * dt, p.gyro.bias_rw**2 * dt, qc)
+    if p.mag.offset_states:
+        _propagate_offset(s.P, R, dt, phi, p.mag.offset_rw_uT**2 * dt)
     # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)
     for i in range(3):
         for m in range(3):
@@ -93,6 +96,24 @@ def predict(s, R, work, wx, wy, wz, dt, p):
     s.u_phi *= phi
     s.u_pending = True
     s.c *= phi
+
+
+@njit(cache=True, error_model="numpy")
+def _propagate_offset(P, R, dt, phi, qo):
+    """The offset error's rows and columns of ``P`` through the same step (:func:`propagate` leaves them as
+    they were): o is constant but for a random walk of variance ``qo`` per step; ``P[δθ, δo] ← P[δθ, δo] −
+    R Δt P[δb, δo]`` (the bias rows unchanged), ``P[δc, δo] ← φ P[δc, δo]``.  (``U``'s follow from the same
+    Φ in :func:`pdr_mag.fusion.eskf.settle_u`, whose rows of δo are Φ's identity.)"""
+    for j in range(OFFSET, OFFSET + 3):
+        for i in range(3):
+            s1 = 0.0
+            for k in range(3):
+                s1 += R[i, k] * P[3 + k, j]
+            P[i, j] -= dt * s1
+            P[j, i] = P[i, j]
+        P[C_ERR, j] *= phi
+        P[j, C_ERR] = P[C_ERR, j]
+        P[j, j] += qo
 
 
 @njit(cache=True, error_model="numpy")
@@ -164,10 +185,11 @@ def bias_prior_var(s, p):
 
 @njit(cache=True, error_model="numpy")
 def magerr_var(s, p):
-    """Stationary variance of c, rad²: ``σ_c² + (mag.env_k · d_env / B_h)² + g Σ_b gᵀ`` (the environment's
-    recent disturbance level ``d_env`` and the calibration's offset covariance ``Σ_b`` seen in the heading
-    at the latest sample, see :mod:`pdr_mag.fusion.mag`)."""
-    v = p.mag.error_std_rad**2 + s.cal_var
+    """Stationary variance of c, rad²: ``σ_c² + (mag.env_k · d_env / B_h)²`` (the environment's recent
+    disturbance level ``d_env``, see :mod:`pdr_mag.fusion.mag`), and without the offset states
+    (``mag.offset_states``) ``g Σ_b gᵀ``, the calibration's offset covariance seen in the heading at the
+    latest sample."""
+    v = p.mag.error_std_rad**2 + (0.0 if p.mag.offset_states else s.cal_var)
     if p.mag.env_k > 0.0 and s.env_d2 > 0.0 and s.bh_ref > 0.0:
         v += p.mag.env_k**2 * s.env_d2 / (s.bh_ref * s.bh_ref)
     return v

@@ -64,7 +64,7 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
                 while nxt <= ti:
                     nxt += p.out_dt_s
                 st.t_next_out = nxt
-            _write_row(st, ti, out, n_out)
+            _write_row(st, ti, out, n_out, p)
             n_out += 1
     return n_out - k0
 
@@ -72,17 +72,16 @@ def run(kind, t, xyz, allowed, st, p, out, k0):
 @njit(cache=True, error_model="numpy")
 def calibration_floor(f, n, suspect_cov):
     """The least heading variance the calibration in force allows at row ``n`` of the float columns ``f``
-    (:class:`~pdr_mag.fusion.rows.Rows`), rad²: ``g (Σ_b + ΔΔᵀ) gᵀ`` with g the heading gradient at the
-    latest usable sample (``cal_g``), ``Σ_b`` the offset covariance in force and Δ an offset shift the stale
-    test suspects and has yet to confirm (``suspect_cov`` = ``ΔΔᵀ``); 0 before the first heading.  The row
-    holds ``g Σ_b gᵀ`` and g (:data:`~pdr_mag.fusion.rows.VAR_PARTS`, written by :func:`_write_row`).  The
-    calibration's offset error is one constant vector in the device frame, so the heading error it causes
-    stays while the device keeps its orientation; the filter carries it in c, whose Gauss–Markov model lets it
-    average out over a few ``mag.error_tau_s`` or quarter turns (``mag.error_turn_deg``), and the reported
-    variance ``max(P + U, g (Σ_b + ΔΔᵀ) gᵀ)`` restores what does not (an uncertain prior's offset — the
-    phone's, a store's — and a first fit's).  The suspected shift is in the std only, not in the filter's
-    weights: most candidates are a building's field that the test then drops (on the shared recordings about
-    one in ten is confirmed), and until then the heading is what the calibration in force makes it."""
+    (:class:`~pdr_mag.fusion.rows.Rows`), rad²: ``g ΔΔᵀ gᵀ`` with g the heading gradient at the latest usable
+    sample (``cal_g``) and Δ an offset shift the stale test suspects and has yet to confirm (``suspect_cov``
+    = ``ΔΔᵀ``), plus the row's ``var_cal``; 0 before the first heading.  The row holds ``var_cal`` and g
+    (:data:`~pdr_mag.fusion.rows.VAR_PARTS`, written by :func:`_write_row`).  The suspected shift is in the
+    std only, not in the filter's weights: most candidates are a building's field that the test then drops
+    (on the shared recordings about one in ten is confirmed), and until then the heading is what the
+    calibration in force makes it.  ``var_cal`` is 0 with the offset states (``mag.offset_states``: the
+    filter carries the calibration's offset error in ``P``); without them it is ``g Σ_b gᵀ``, ``Σ_b`` the
+    offset covariance in force — the filter then carries that error in c, whose Gauss–Markov model lets it
+    average out over a few ``mag.error_tau_s`` or quarter turns, and the floor restores what does not."""
     g = (f[COL.cal_gx, n], f[COL.cal_gy, n], f[COL.cal_gz, n])
     return f[COL.var_cal, n] + offset_heading_var(g, suspect_cov)
 
@@ -95,7 +94,7 @@ def _write_std(f, n, suspect_cov):
 
 
 @njit(cache=True, error_model="numpy")
-def _write_row(st, ti, out, n):
+def _write_row(st, ti, out, n, p):
     """Row ``n`` of ``out`` (:class:`~pdr_mag.fusion.rows.Rows`) from the state at gyroscope time ti; resets
     the since-last-row flags."""
     f = out.floats
@@ -104,7 +103,9 @@ def _write_row(st, ti, out, n):
         out.q[n, c] = st.q[c]
     f[COL.var_filter, n] = st.P[TH_Z, TH_Z] + heading_var_u(st)
     floor = st.init >= 2  # no floor before the first heading
-    f[COL.var_cal, n] = offset_heading_var(st.cal_g, st.cal_cov) if floor else 0.0
+    # an offset error the filter does not carry (without the offset states) floors the std
+    carried = p.mag.offset_states
+    f[COL.var_cal, n] = offset_heading_var(st.cal_g, st.cal_cov) if floor and not carried else 0.0
     f[COL.cal_gx, n] = st.cal_g[0] if floor else 0.0
     f[COL.cal_gy, n] = st.cal_g[1] if floor else 0.0
     f[COL.cal_gz, n] = st.cal_g[2] if floor else 0.0

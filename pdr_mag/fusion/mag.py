@@ -5,17 +5,22 @@ detector — strength, dip against the filter's up direction, variance, gyro con
 direction ``m_w = R m_d`` — and the hold timer), whatever the caller allows; their state is the record
 ``det`` inside the filter's state, the sample in ``det.x``.
 
-Measurement.  Heading only: ``ψ = atan2(m_w,x, m_w,y)``; the residual ``r = wrap(ψ − D − c)`` (D the
-declination, 0 for magnetic north) observes
+Measurement.  Heading only: ``ψ = atan2(m_w,x, m_w,y)`` of the calibrated field less the offset error
+found, ``m − o``; the residual ``r = wrap(ψ − D − c)`` (D the declination, 0 for magnetic north) observes
 
-    h = (h_t, 1 on δθ_z, 0 on δb, 1 on δc),    h_t = −k_t (m_x m_z, m_y m_z) / B_h²
+    h = (h_t, 1 on δθ_z, 0 on δb, 1 on δc, g on δo),    h_t = −k_t (m_x m_z, m_y m_z) / B_h²
 
-``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag.tilt_k``).  The tilt
-errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a disturbed
-field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
-accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is
-unsettled (``tr P_tilt > 2 accel.tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion),
-the heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
+``h_t`` being the sensitivity of ψ to tilt errors (× tan I about north; ``k_t`` = ``mag.tilt_k``) and
+``g = ∂ψ/∂m_d`` (:func:`_heading_gradient`) its sensitivity to the field in the device frame, through which
+the calibration's offset error turns the heading.  That error is constant in the device frame, so its turn
+``g·δo`` changes with the device's orientation — its sign reverses between opposite headings — while the
+gyroscope says the device turned by what it turned: over a walker's turns the updates tell ``δo`` from the
+heading and from c (``mag.offset_states``; without them g is 0 and the offset's error joins c's variance).
+The tilt errors are *consider* states (Schmidt–Kalman: in the gain and in ``P``, never corrected), so a
+disturbed field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
+accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is unsettled
+(``tr P_tilt > 2 accel.tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion), the
+heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
 
 Noise::
 
@@ -71,11 +76,12 @@ rate that the jump implies over the time Δt since the last heading update (σ_b
 (a ``heading_reset`` event in the pipeline).
 
 First fix.  The first usable sample sets the heading directly (``q ← Exp(r e_z) ⊗ q``, the averaged
-specific force turned with it).  The residual is then zero, so ``δθ_z = −(δc + h_t·δθ_xy + n)``: the
-heading error *is* that sample's correlated field error, and
+specific force turned with it).  The residual is then zero, so ``δθ_z = −(h′·δx′ + n)``, with ``h′`` and
+``δx′`` the row and the states other than δθ_z (the tilt, c and the offset error): the heading error *is*
+that sample's correlated field error, and
 
-    P[δθ_z, ·] = −P[c, ·] − h_t P[δθ_xy, ·]
-    P[δθ_z, δθ_z] = σ_ψ² + P_cc + h_t P_tilt h_tᵀ + 2 h_t P[δθ_xy, c]
+    P[δθ_z, ·] = −h′ P[δx′, ·]
+    P[δθ_z, δθ_z] = σ_ψ² + h′ P[δx′, δx′] h′ᵀ
 
 so a later field with the same offset — a disturbance present since the start — is not read as drift (that is,
 as gyro bias about up). A first sample that the detectors flag against an absolute reference (strength or dip:
@@ -121,14 +127,16 @@ it; the turn reported in ``heading_reset_deg`` as a re-acquisition's) rather tha
 residual is an ordinary update.
 
 Calibration change.  When the calibration in force changes the calibrated field by ``dm`` (device frame,
-:meth:`pdr_mag.fusion.FusionCore.note_calibration_change`), the heading so far was taken from fields turned
-by the change — to first order ``g · dm`` (``g = ∂ψ/∂m_d``, :func:`_heading_gradient`), exactly the turn
-between the horizontal fields ``R m`` and ``R (m − dm)``, which may be anything for a change as large as the
-horizontal field (one along the field that reversed it has ``g · dm`` = 0): at the next sample the square of
-the larger joins ``P[δθ_z, δθ_z]`` (capped at π²), so the corrected field is within the gate at once — a
-flagged sample too, with the latest usable one's field and gradient (``cal_m``, ``cal_g``), so that a heading
-taken through a wrong calibration does not keep its small σ while the flags hold the corrected field out.
-(A change of the soft-iron matrix makes ``dm`` depend on the field: ``dm = D m + e``, see the method.)
+:meth:`pdr_mag.fusion.FusionCore.note_calibration_change`; the offset error found under the old calibration,
+dropped then, is part of ``dm``: :meth:`pdr_mag.fusion.FusionCore.use_calibration`), the heading so far was
+taken from fields turned by the change — to first order ``g · dm`` (``g = ∂ψ/∂m_d``,
+:func:`_heading_gradient`), exactly the turn between the horizontal fields ``R m`` and ``R (m − dm)``, which
+may be anything for a change as large as the horizontal field (one along the field that reversed it has
+``g · dm`` = 0): at the next sample the square of the larger joins ``P[δθ_z, δθ_z]`` (capped at π²), so the
+corrected field is within the gate at once — a flagged sample too, with the latest usable one's field and
+gradient (``cal_m``, ``cal_g``), so that a heading taken through a wrong calibration does not keep its small σ
+while the flags hold the corrected field out. (A change of the soft-iron matrix makes ``dm`` depend on the
+field: ``dm = D m + e``, see the method.)
 """
 
 from __future__ import annotations
@@ -142,7 +150,7 @@ from pdr_mag.fusion.eskf import LINEAR_RAD, inject, settle_u, tilt_beyond_linear
 from pdr_mag.fusion.ew import ew_alpha
 from pdr_mag.fusion.gyro import bias_prior_var, magerr_var, unmodelled_var
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
-from pdr_mag.fusion.state import BIAS, C_ERR, NX, TH_X, TH_Y, TH_Z
+from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_X, TH_Y, TH_Z
 
 #: the weight of a first field's guess that says nothing of north (its disturbance at least the horizontal
 #: field): the next flagged field that can carry a heading replaces it
@@ -157,6 +165,8 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     heading update from it.  ``R`` scratch 3×3."""
     if not (np.isfinite(mx) and np.isfinite(my) and np.isfinite(mz)) or s.init == 0:
         return
+    if p.mag.offset_states:  # the field less the offset error the filter has found
+        mx, my, mz = mx - s.offset[0], my - s.offset[1], mz - s.offset[2]
     rotation_matrix(s.q, R)
     f = np.sqrt(mx * mx + my * my + mz * mz)
     if f <= 0.0:
@@ -217,6 +227,9 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     h[TH_Y] = -p.mag.tilt_k * mwy * mwz / bh2
     h[TH_Z] = 1.0
     h[C_ERR] = 1.0
+    if p.mag.offset_states:
+        for i in range(3):
+            h[OFFSET + i] = g[i]
     if s.init < 2:
         guess = flag and not det.score_absolute < 1.0
         if guess:
@@ -601,17 +614,24 @@ def _turn_world_frame(s, angle):
 
 @njit(cache=True, error_model="numpy")
 def _heading_from_field(P, h, rv):
-    """Covariance ``P`` after a heading taken from the field: the residual is then zero, so
-    ``δθ_z = −(δc + h_t·δθ_xy + n)``, uncorrelated with anything else (the module docstring); rv = 0 for
-    the consider covariance ``U`` (the noise the weighting leaves out is all in its c)."""
-    x, y, z = TH_X, TH_Y, TH_Z
+    """Covariance ``P`` after a heading taken from the field (row h, noise rv): the residual is then zero, so
+    ``δθ_z = −(h′·δx′ + n)`` over the other states (the tilt, c and the offset error; the module docstring);
+    rv = 0 for the consider covariance ``U`` (the noise the weighting leaves out is all in its c)."""
+    z = TH_Z
     for i in range(NX):
         P[z, i] = 0.0
         P[i, z] = 0.0
-    rt = h[x] * h[x] * P[x, x] + 2.0 * h[x] * h[y] * P[x, y] + h[y] * h[y] * P[y, y]
-    P[z, z] = rv + P[C_ERR, C_ERR] + rt + 2.0 * (h[x] * P[x, C_ERR] + h[y] * P[y, C_ERR])
+    col = np.zeros(NX)  # P h over the states other than the heading (h_z = 1)
+    for j in range(NX):
+        for k in range(NX):
+            if k != z:
+                col[j] += P[j, k] * h[k]
+    v = rv
     for j in range(NX):
         if j != z:
-            v = -P[C_ERR, j] - h[x] * P[x, j] - h[y] * P[y, j]
-            P[z, j] = v
-            P[j, z] = v
+            v += h[j] * col[j]
+    P[z, z] = v
+    for j in range(NX):
+        if j != z:
+            P[z, j] = -col[j]
+            P[j, z] = -col[j]

@@ -223,6 +223,21 @@ class MagSettings:
         ``exp(−|ω̄_up| Δt / θ_c)``, ``ω̄_up`` the rate about the world's up averaged over a stride
         (:data:`pdr_mag.fusion.gyro.TURN_TAU_S`), so a swinging or pocketed phone's yaw back and forth
         within each stride does not count as turning.  90°: a quarter turn, where ``cos Δψ`` is 0.
+        (With ``offset_states`` the offset residual is a state of its own; the turn then stands for the
+        building's part of c, which a walker who turns leaves behind.)
+    offset_states : bool
+        The calibration's offset error as three states of the filter, ``δo`` (device frame, µT), started
+        at the calibration's covariance (``M Σ_b Mᵀ``: the calibrated field's error) whenever a calibration
+        comes into force, and observed by the heading row through the field's gradient ``g = ∂ψ/∂m_d``: a
+        constant offset error turns the field by ``g·o``, one way at one heading and the other way at the
+        opposite one, while the gyroscope says the device turned by neither — so the walker's turns tell it
+        apart from the heading and from c (the body-frame magnetometer biases of ArduPilot's EKF3 and PX4's
+        EKF2).  The field the filter takes is the calibrated one less the estimate ``o``.  False: the offset
+        error is part of c's stationary variance (``g Σ_b gᵀ``, as noise that decorrelates) and floors the
+        reported std.
+    offset_rw_uT : float
+        Random walk of the offset error, µT/√s: a phone's hard iron drifts with its temperature and its
+        currents (0.05: 0.4 µT a minute, 3 µT an hour).
     env_k : float
         Where the recent field was disturbed, a field that looks clean may still be turned: steel that
         changes strength and dip by ``|d|`` nearby turns the horizontal field by up to ``|d| / B_h``
@@ -269,6 +284,8 @@ class MagSettings:
     error_std_deg: float = _radians("error_std_rad", 6.0)
     error_tau_s: float = 5.0
     error_turn_deg: float = _radians("error_turn_rad", 90.0)
+    offset_states: bool = True
+    offset_rw_uT: float = 0.05
     env_k: float = 0.3
     env_tau_s: float = 30.0
     env_prior_uT: float = 5.0

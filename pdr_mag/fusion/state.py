@@ -8,7 +8,8 @@ fields are read by name at native speed, a copy of the record is a snapshot, and
 :func:`state_from_json` turn it into a JSON dict and back exactly.
 
 Error state (the rows and columns of ``P`` and ``U``): ``δθ`` (3, world frame; ``δθ_z`` is the heading
-error), ``δb`` (3, device frame, rad/s), ``δc`` (1, rad) — see :mod:`pdr_mag.fusion` for the model.
+error), ``δb`` (3, device frame, rad/s), ``δc`` (1, rad), ``δo`` (3, device frame, µT) — see
+:mod:`pdr_mag.fusion` for the model.
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ from pdr_mag._records import copy_record, settings_dtype
 from pdr_mag.fusion.detectors import DETECTOR_STATE, new_detector_state
 from pdr_mag.fusion.settings import FusionSettings
 
-#: size of the error state (δθ, δb, δc)
-NX = 7
+#: size of the error state (δθ, δb, δc, δo)
+NX = 10
 #: rows of ``P``: attitude error about east, north, up (world frame), the first of the three gyro-bias errors
-#: (device x, y, z), the magnetometer heading error c
-TH_X, TH_Y, TH_Z, BIAS, C_ERR = 0, 1, 2, 3, 6
+#: (device x, y, z), the magnetometer heading error c, the first of the three offset errors (device frame, µT)
+TH_X, TH_Y, TH_Z, BIAS, C_ERR, OFFSET = 0, 1, 2, 3, 6, 7
 
 #: exponentially weighted mean and mean square deviation of a 3-vector stream (the still detector)
 EW_STATS = np.dtype([("mean", np.float64, (3,)), ("var", np.float64)], align=True)
@@ -39,8 +40,9 @@ STATE = np.dtype(
         ("b", np.float64, (3,)),  # gyroscope bias, device frame, rad/s
         ("bias0_var", np.float64),  # variance per axis of the bias prior, (rad/s)² (NaN: gyro.bias0_std²)
         ("c", np.float64),  # magnetometer heading error (Gauss–Markov), rad
+        ("offset", np.float64, (3,)),  # the calibration's offset error o: the field taken is m − o, µT
         ("turn_rate", np.float64),  # rate about the world's up, averaged over a stride (c's turn), rad/s
-        ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc)
+        ("P", np.float64, (NX, NX)),  # covariance of (δθ, δb, δc, δo)
         ("U", np.float64, (NX, NX)),  # consider covariance: the part of the error the weighting leaves out
         ("u_G", np.float64, (3, 3)),  # prediction not yet applied to U: −Σ R Δt over the steps since
         ("u_phi", np.float64),  # … and Π φ over them (pdr_mag.fusion.eskf.settle_u)

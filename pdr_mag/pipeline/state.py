@@ -17,7 +17,7 @@ from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.pipeline import _kernel as PK
 
 #: format of :meth:`HeadingPipeline.get_state` (it nests the filter's, :data:`pdr_mag.fusion.STATE_VERSION`)
-STATE_VERSION = 14
+STATE_VERSION = 15
 
 
 def to_json(pipe) -> dict:

@@ -1,0 +1,66 @@
+"""The calibration's offset error as three states of the filter (``mag.offset_states``): learnt from the
+turns of a walk, where a constant offset error turns the field one way at one heading and the other way at
+the opposite one while the gyroscope says the device turned by neither."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pdr_mag.calibration.model import MagCalibration
+from pdr_mag.conventions import quat_slerp
+from pdr_mag.fusion import FusionSettings, MagSettings
+from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
+from pdr_mag.sim import simulate
+
+ERROR_UT = np.array([7.0, -5.0, 3.0])  # the given calibration's offset error, µT
+SIGMA_UT = 6.0  # … and the σ per axis it states (a phone's own estimate's, pdr_mag/calibration/prior.py)
+
+
+def _run(res, offset_states: bool):
+    """The walk with the calibration ERROR_UT off standing throughout (no online refit replaces it): |heading
+    error| (deg) and σ after 30 s, and the pipeline."""
+    eff = res.meta["simulation"]["effects"]
+    cal = MagCalibration.from_arrays(np.asarray(eff["hard_iron"]) + ERROR_UT,
+                                     np.linalg.inv(np.asarray(eff["soft_iron"])), method="given",
+                                     offset_std_uT=(SIGMA_UT,) * 3)  # fmt: skip
+    fusion = FusionSettings(mag=replace(MagSettings(), offset_states=offset_states))
+    pipe = HeadingPipeline(PipelineSettings(online=False, fusion=fusion), calibration=cal, meta=res.meta)
+    b = pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
+    tt, qt = res.truth
+    r_true = Rotation.from_quat(quat_slerp(tt, qt, b.t)[:, [1, 2, 3, 0]])
+    r_est = Rotation.from_quat(np.asarray(b.q_wd)[:, [1, 2, 3, 0]])
+    e = (r_est * r_true.inv()).as_quat()
+    head = np.abs(np.degrees(2.0 * np.arctan2(e[:, 2], e[:, 3])))
+    head = np.minimum(head, 360.0 - head)
+    late = b.t > b.t[0] + 30.0
+    return head[late], b.heading_std_deg[late], pipe
+
+
+@pytest.fixture(scope="module")
+def walks():
+    """Two simulated walks of 120 s, each run with the offset states and without."""
+    return [(res, _run(res, True), _run(res, False)) for res in (simulate("walk", seed=s) for s in (1, 2))]
+
+
+def test_a_given_offset_error_is_learnt_from_the_turns(walks):
+    """The calibration 9.1 µT off: after 30 s of walking the median |heading error| is below a third of what
+    it is with that error as c's noise (measured 1.9° and 2.0° against 16.2° and 9.4°), and the offset error
+    found is within 3 µT of the one made (the field taken is the calibrated one less it: ``−S⁻¹ e`` for a soft
+    iron S; measured 1.2 and 1.1 µT)."""
+    for res, (on, _, pipe), (off, _, _) in walks:
+        assert np.median(on) < np.median(off) / 3.0, (np.median(on), np.median(off))
+        soft = np.asarray(res.meta["simulation"]["effects"]["soft_iron"])
+        found = np.asarray(pipe.fusion.get_state()["state"]["offset"], dtype=float)
+        assert np.linalg.norm(found + np.linalg.inv(soft) @ ERROR_UT) < 3.0, found
+
+
+def test_the_std_counts_the_offset_error_until_it_is_learnt(walks):
+    """The std stays honest meanwhile: the truth within 2σ in 95 % of the frames after 30 s (measured 100 %),
+    none 45° off at σ ≤ 20°."""
+    for _, (on, sd, _), _ in walks:
+        assert np.mean(on <= 2.0 * sd) >= 0.95
+        assert not np.any((on > 45.0) & (sd <= 20.0))
