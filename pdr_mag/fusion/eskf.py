@@ -71,7 +71,9 @@ def carry(U, k, uh, hu):
 def update_h(s, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bias=False):
     """Scalar update of record ``s`` with a general ``H = h``; with ``consider_tilt`` the tilt errors
     (δθ_x, δθ_y), with ``consider_heading`` the heading errors (δθ_z and δc), with ``consider_bias`` the gyro
-    bias are consider states (zero gain, Joseph form); ``U`` carried with the same gain."""
+    bias and the calibration's offset error (the slow states that a correction of a heading found wrong
+    would otherwise be taught) are consider states (zero gain, Joseph form); ``U`` carried with the same
+    gain."""
     settle_u(s)
     P = s.P
     col = np.empty(NX)
@@ -96,9 +98,9 @@ def update_h(s, dx, h, r, rv, consider_tilt, consider_heading=False, consider_bi
         k[TH_Z] = 0.0
         k[C_ERR] = 0.0
     if consider_bias:
-        k[BIAS] = 0.0
-        k[BIAS + 1] = 0.0
-        k[BIAS + 2] = 0.0
+        for i in range(3):
+            k[BIAS + i] = 0.0
+            k[OFFSET + i] = 0.0
     for i in range(NX):
         dx[i] += k[i] * r
     for i in range(NX):

@@ -20,7 +20,8 @@ The tilt errors are *consider* states (Schmidt–Kalman: in the gain and in ``P`
 disturbed field can never tilt the attitude, yet a tilt error is not taken for a heading error, and a later
 accelerometer correction of the tilt carries over to the heading through ``P``.  While the tilt is unsettled
 (``tr P_tilt > 2 accel.tilt0_std²``, :func:`pdr_mag.fusion.eskf.tilt_unsettled`: a start in motion), the
-heading's changes say more about the tilt than about the gyroscope, and the bias is a consider state too.
+heading's changes say more about the tilt than about the gyroscope, and the bias and the offset error are
+consider states too.
 
 Noise::
 
@@ -45,10 +46,11 @@ heading the gyroscope vouches for is more likely turned (an offset that moved, a
 heading lost, and a lost heading is re-acquired (below). (``mag.reject_inflate_deg`` > 0 adds that squared
 per second to ``P[δθ_z, δθ_z]`` during such a run, the heading's alone, so the bias is not dragged when the
 gate opens: a faster recovery that lets a turned field in as well.) The update that ends such a run takes the
-bias as a consider state, whatever the run's length: a heading that was wrong from its start (a first fix
-through a tilt 40° off) and is corrected after seconds of rejections would otherwise teach the gyro bias
-``Δψ / Δt`` (15–18 °/s on two tyrex walks started 20 s in, more than any phone's offset), where
-re-acquisition lets the bias variance grow by that rate at most.
+bias and the offset error as consider states, whatever the run's length: a heading that was wrong from its
+start (a first fix through a tilt 40° off) and is corrected after seconds of rejections would otherwise teach
+the gyro bias ``Δψ / Δt`` (15–18 °/s on two tyrex walks started 20 s in, more than any phone's offset), and
+the offset error a turn ``g·δo`` it did not make, where re-acquisition lets the bias variance grow by that
+rate at most.
 No heading update (the first fix aside, whose variance carries ``h_t P_tilt h_tᵀ``) while the tilt's
 variance exceeds ``2 · LINEAR_RAD²`` (:mod:`pdr_mag.fusion.accel`: a start in motion whose first sample's
 tilt is that uncertain): the heading row ``h_t`` is linearised about a tilt that may be tens of degrees
@@ -265,7 +267,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
     dx = np.zeros(NX)
     # while the tilt is unsettled (a start in motion), the heading's changes say more about the tilt than
     # about the gyroscope; the first update after a run of rejections corrects a heading found wrong (the
-    # module docstring): in either case the bias is a consider state
+    # module docstring): in either case the bias and the offset error are consider states
     update_h(s, dx, h, r, rv, True, False, tilt_unsettled(P, p) or after_run)
     inject(s, dx)
     s.t_mag_update = t
