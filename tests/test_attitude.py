@@ -664,13 +664,14 @@ def test_calibration_covariance_makes_the_std_honest():
 
 
 def test_a_new_calibration_covariance_counts_before_the_next_field():
-    """A calibration known to 0.1 µT, then an uncertain one (σ 10 µT per axis: a recalibration's provisional
-    offset) while no field comes (a flagged stretch): the std's floor takes the new covariance at once — 10 µT
-    against the horizontal field turns the heading by up to ``10 / B_h`` rad — where it used to wait for the
-    next usable field; and an exact calibration (None) takes the floor away again."""
+    """Without the offset states (``mag.offset_states`` False: the offset's error is c's noise, and the std is
+    floored by it): a calibration known to 0.1 µT, then an uncertain one (σ 10 µT per axis: a recalibration's
+    provisional offset) while no field comes (a flagged stretch): the std's floor takes the new covariance at
+    once — 10 µT against the horizontal field turns the heading by up to ``10 / B_h`` rad — where it used to
+    wait for the next usable field; and an exact calibration (None) takes the floor away again."""
     w = simulate("walk", seed=11, effects={"hard_iron": None, "soft_iron": None})
     kind, t, xyz = merge(w)
-    core = FusionCore(field=w.field)
+    core = FusionCore(FusionSettings(mag=MagSettings(offset_states=False)), field=w.field)
     core.set_calibration_covariance(np.eye(3) * 0.01)
     first = t < t[0] + 30.0
     before = core.process(kind[first], t[first], xyz[first]).heading_std_deg[-1]

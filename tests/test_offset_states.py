@@ -9,10 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_attitude import merge, twist_error_deg
 
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.conventions import quat_slerp
-from pdr_mag.fusion import FusionSettings, MagSettings
+from pdr_mag.fusion import FusionCore, FusionSettings, MagSettings
+from pdr_mag.fusion.state import OFFSET
 from pdr_mag.pipeline import HeadingPipeline, PipelineSettings
 from pdr_mag.sim import simulate
 
@@ -64,3 +66,31 @@ def test_the_std_counts_the_offset_error_until_it_is_learnt(walks):
     for _, (on, sd, _), _ in walks:
         assert np.mean(on <= 2.0 * sd) >= 0.95
         assert not np.any((on > 45.0) & (sd <= 20.0))
+
+
+def test_a_phone_lying_still_learns_no_offset_error():
+    """A phone lying still for a minute, its calibration's offset off by δb ~ N(0, (6 µT)² I) and the filter
+    told that covariance (the draws of ``tests/test_consider_std.py``): without turns nothing tells the offset
+    error from the heading, so its σ along the heading's gradient stays near its prior — measured 0.77–0.94
+    of it over the twelve draws (what it loses is the linearisation's: the gradient moves with the field's
+    noise) — and the truth is within 2σ in 92 % of the frames from 10 s on.  Bounds 0.7 and 85 %."""
+    sig = 6.0
+    kept, within = [], []
+    for seed in range(20, 32):
+        w = simulate("still", seed=seed, effects={"hard_iron": None, "soft_iron": None,
+                                                  "gyro_bias": (0.02, -0.03, 0.07)})  # fmt: skip
+        db = np.random.default_rng(seed).normal(0.0, sig, 3)
+        kind, t, xyz = merge(w, mag=w.mag[1] + db)
+        core = FusionCore(field=w.field)
+        core.set_calibration_covariance(np.eye(3) * sig**2)
+        tr, err, std = twist_error_deg(core.process(kind, t, xyz), w.truth)
+        st = core.get_state()["state"]
+        g = np.asarray(st["cal_g"], dtype=float)
+        g /= np.linalg.norm(g)
+        o = slice(OFFSET, OFFSET + 3)
+        p_oo = np.asarray(st["P"], dtype=float)[o, o]
+        kept.append(np.sqrt(g @ p_oo @ g) / sig)
+        k = tr > tr[0] + 10.0
+        within.append(np.mean(np.abs(err[k]) <= 2.0 * std[k]))
+    assert min(kept) >= 0.7, np.round(kept, 3)
+    assert np.mean(within) >= 0.85

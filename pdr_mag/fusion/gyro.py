@@ -86,9 +86,8 @@ def predict(s, R, work, wx, wy, wz, dt, p):
         x += abs(s.turn_rate) * dt / p.mag.error_turn_rad
     phi = np.exp(-x)
     qc = magerr_var(s, p) * (1.0 - phi * phi)
-    propagate(s.P, R, work, dt, phi, p.gyro.noise**2 * dt, p.gyro.bias_rw**2 * dt, qc)
-    if p.mag.offset_states:
-        _propagate_offset(s.P, R, dt, phi, p.mag.offset_rw_uT**2 * dt)
+    qo = p.mag.offset_rw_uT**2 * dt if p.mag.offset_states else 0.0
+    propagate(s.P, R, work, dt, phi, p.gyro.noise**2 * dt, p.gyro.bias_rw**2 * dt, qc, qo)
     # the consider covariance: the same Φ, applied at its next use (pdr_mag.fusion.eskf.settle_u)
     for i in range(3):
         for m in range(3):
@@ -99,11 +98,11 @@ def predict(s, R, work, wx, wy, wz, dt, p):
 
 
 @njit(cache=True, error_model="numpy")
-def _propagate_offset(P, R, dt, phi, qo):
-    """The offset error's rows and columns of ``P`` through the same step (:func:`propagate` leaves them as
-    they were): o is constant but for a random walk of variance ``qo`` per step; ``P[δθ, δo] ← P[δθ, δo] −
-    R Δt P[δb, δo]`` (the bias rows unchanged), ``P[δc, δo] ← φ P[δc, δo]``.  (``U``'s follow from the same
-    Φ in :func:`pdr_mag.fusion.eskf.settle_u`, whose rows of δo are Φ's identity.)"""
+def propagate(P, R, work, dt, phi, qa, qb, qc, qo):
+    """``P ← Φ P Φᵀ + diag(qa I, qb I, qc, qo I)`` with ``Φ = [[I, −R Δt, 0, 0], [0, I, 0, 0], [0, 0, φ, 0],
+    [0, 0, 0, I]]``; the heading's variance capped at π² (an unknown heading is uniform)."""
+    # the offset error's columns first (the rows of δb they read are Φ's identity): P[δθ, δo] ← P[δθ, δo] −
+    # R Δt P[δb, δo], P[δc, δo] ← φ P[δc, δo]
     for j in range(OFFSET, OFFSET + 3):
         for i in range(3):
             s1 = 0.0
@@ -114,12 +113,6 @@ def _propagate_offset(P, R, dt, phi, qo):
         P[C_ERR, j] *= phi
         P[j, C_ERR] = P[C_ERR, j]
         P[j, j] += qo
-
-
-@njit(cache=True, error_model="numpy")
-def propagate(P, R, work, dt, phi, qa, qb, qc):
-    """``P ← Φ P Φᵀ + diag(qa I, qb I, qc)`` with ``Φ = [[I, −R Δt, 0], [0, I, 0], [0, 0, φ]]``; the
-    heading's variance capped at π² (an unknown heading is uniform)."""
     # P's rows: 0–2 δθ, 3–5 δb, 6 δc.  Blocks A (attitude), B (attitude–bias), C (bias); G = −R Δt
     scratch = work[0]
     A = scratch.A
