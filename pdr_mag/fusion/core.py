@@ -378,20 +378,21 @@ class FusionCore:
         the next usable one is judged by (:mod:`pdr_mag.fusion.mag`).
 
         The Earth's field keeps one azimuth ``a`` in that frame, so each ``α_k = a + ε_k``, the errors
-        correlated through four causes, each with the filter's own model of it (the covariance ``Σ``): white
-        noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process ``σ_c²
-        e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``; c's decorrelation by turning,
-        ``mag.error_turn_deg``, left out: the fields count as more alike than the filter counts them, the safe
-        side); the frame's drift since the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro bias about up, of
-        the filter's variance ``σ_ḃ²``; and the calibration's offset error, ``g_k Σ_b g_lᵀ`` (its covariance
-        in force; with the offset states, the heading's error is then correlated with theirs through the
-        fields' weighted mean gradient ``ḡ``: ``P[δθ_z, δo] = −Σ_b ḡ``).  ``a`` is the generalised
-        least-squares mean, ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` — scaled up where the fields
-        scatter more than the model says (a field that turned, a calibration worse than its covariance), by
-        the larger of the residuals' ``χ² / (N − 1)`` and their robust spread's square over one field's ``σ_h²
-        + σ_c²``. Taken from :data:`HISTORY_MIN` fields or more spanning two of c's correlation times or more;
-        a first fix from the next field would take that one field's error — or, when it is disturbed, only a
-        guess — and the next clean field now updates the heading instead, the two weighed by their variances.
+        correlated through four causes, each with the filter's own model of it (the covariance ``Σ``):
+        white noise ``σ_h²`` (``mag.noise_deg``); the field's own error c, an Ornstein–Uhlenbeck process
+        ``σ_c² e^(−|t_k − t_l| / τ_c)`` (``mag.error_std_deg``, ``mag.error_tau_s``; c's decorrelation by
+        turning, ``mag.error_turn_deg``, left out: the fields count as more alike than the filter counts
+        them, the safe side); the frame's drift since the sample, ``(t_now − t_k) ḃ`` with ``ḃ`` the gyro
+        bias about up, of the filter's variance ``σ_ḃ²``; and the calibration's offset error,
+        ``g_k Σ_b g_lᵀ`` (its covariance in force; with the offset states the heading's error is then
+        correlated with theirs through the fields' weighted mean gradient ``ḡ``, ``P[δθ_z, δo] = −Σ_b ḡ``).
+        ``a`` is the generalised least-squares mean, ``â = 1ᵀΣ⁻¹α / 1ᵀΣ⁻¹1``, of variance ``1 / 1ᵀΣ⁻¹1`` —
+        scaled up where the fields scatter more than the model says (a field that turned, a calibration
+        worse than its covariance), by the larger of the residuals' ``χ² / (N − 1)`` and their robust
+        spread's square over one field's ``σ_h² + σ_c²``.  Taken from :data:`HISTORY_MIN` fields or more
+        spanning two of c's correlation times or more; a first fix from the next field would take that one
+        field's error — or, when it is disturbed, only a guess — and the next clean field now updates the
+        heading instead, the two weighed by their variances.
         Returns the :class:`HistoryFix` made, or None when the heading was not set."""
         st = self._st[0]
         if st["init"] != 1:
