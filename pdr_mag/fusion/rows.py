@@ -40,10 +40,11 @@ DIAG_NAMES = tuple(DIAG_COLUMNS)
 INTERNAL_DIAG = ("consistency_deg", "heading_reset_deg")
 
 #: the parts of a row's reported variance (:func:`pdr_mag.fusion.kernel.calibration_floor`): the filter's
-#: ``(P + U)[δθ_z, δθ_z]``, the calibration's ``g Σ_b gᵀ`` and the heading gradient g (rad/µT) it was taken
-#: at (both 0 before the first heading: no floor) — what the std is made of besides the suspected shift
-#: ``ΔΔᵀ``, which the filter's weights do not see, so that a shift suspected after the rows were made can be
-#: put into their std (:meth:`pdr_mag.fusion.FusionCore.suspect_from`)
+#: ``(P + U)[δθ_z, δθ_z]``, the calibration's ``g Σ_b gᵀ`` (0 with the offset states, which carry it in P)
+#: and the heading gradient g (rad/µT) it was taken at (both 0 before the first heading: no floor) — what
+#: the std is made of besides the suspected shift ``ΔΔᵀ``, which the filter's weights do not see, so that a
+#: shift suspected after the rows were made can be put into their std
+#: (:meth:`pdr_mag.fusion.FusionCore.suspect_from`)
 VAR_PARTS = ("var_filter", "var_cal", "cal_gx", "cal_gy", "cal_gz")
 #: the float columns: time (the gyroscope sample's, s), heading std (deg), the arguments
 #: ``h_y = 2 (x y − w z)``, ``h_x = 1 − 2 (x² + z²)`` of the heading's ``arctan2``, the variance's parts and
