@@ -545,6 +545,16 @@ class FusionCore:
         """Current gyroscope bias estimate, rad/s (device frame)."""
         return self._st["b"][0].copy()
 
+    def offset_error(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The calibration's offset error the filter has found, in the calibrated field (µT, device frame:
+        the field it takes is the calibrated one less it), and its covariance (µT²); None without the offset
+        states or before the filter has started."""
+        st = self._st[0]
+        if not self.settings.mag.offset_states or st["init"] == 0:
+            return None
+        o = slice(OFFSET, OFFSET + 3)
+        return st["offset"].copy(), st["P"][o, o].copy()
+
     def gyro_bias(self) -> tuple[np.ndarray, np.ndarray]:
         """The gyroscope bias estimate (rad/s, device frame) and its variance per axis, (rad/s)² — NaN before
         the filter has started (no accelerometer sample yet)."""
