@@ -254,9 +254,21 @@ def _stds(cal: MagCalibration) -> list | None:
     return [round(float(np.sqrt(max(v, 0.0))), 3) for v in np.diag(cov)]
 
 
+def with_offset_error(cal: MagCalibration, o: np.ndarray, cov_o: np.ndarray) -> MagCalibration:
+    """``cal`` corrected by an offset error ``o`` found in its calibrated field (µT, device frame, of
+    covariance ``cov_o``: :meth:`pdr_mag.fusion.FusionCore.offset_error`): the field ``M (r − b) − o`` is
+    ``M (r − b − M⁻¹ o)``, so the offset becomes ``b + M⁻¹ o`` at the covariance ``M⁻¹ cov_o M⁻ᵀ`` (its other
+    parameters' rows kept), and ``extra["filter_offset_uT"]`` says what was added."""
+    m_inv = np.linalg.inv(cal.matrix)
+    cov = m_inv @ cov_o @ m_inv.T
+    extra = {**cal.extra, "filter_offset_uT": [round(float(v), 3) for v in o]}
+    moved = replace(cal, offset=tuple((cal.offset_array + m_inv @ o).tolist()), extra=extra)
+    return _with_offset_covariance(moved, 0.5 * (cov + cov.T))
+
+
 def _with_offset_covariance(cal: MagCalibration, cov: np.ndarray) -> MagCalibration:
     """``cal`` with its offset covariance replaced (in a full-parameter covariance, its offset block; the
-    other rows are kept)."""
+    other rows are kept; without one, the offset's own)."""
     std = tuple(float(np.sqrt(max(v, 0.0))) if np.isfinite(v) else float("nan") for v in np.diag(cov))
     if cal.covariance is not None:
         c = np.asarray(cal.covariance, dtype=float)
@@ -264,4 +276,4 @@ def _with_offset_covariance(cal: MagCalibration, cov: np.ndarray) -> MagCalibrat
             c = c.copy()
             c[:3, :3] = cov
             return replace(cal, offset_std_uT=std, covariance=tuple(map(tuple, c.tolist())))
-    return replace(cal, offset_std_uT=std)
+    return replace(cal, offset_std_uT=std, covariance=tuple(map(tuple, np.asarray(cov, float).tolist())))

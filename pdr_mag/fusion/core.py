@@ -301,9 +301,9 @@ class FusionCore:
           with the offset states the covariance of their error, anew (:meth:`_reset_offset_states`);
         * none after one (a prior refused): the heading it gave is forgotten (:meth:`forget_heading`).
         """
-        if cal is not None and previous is not None and cal is not previous:
-            self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
         changed = cal is not previous
+        if changed and cal is not None and previous is not None:
+            self.note_calibration_change(previous.matrix, previous.offset_array, cal.matrix, cal.offset_array)
         if cal is None and previous is not None:
             self.forget_heading()
         if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not horizontal_only(cal):

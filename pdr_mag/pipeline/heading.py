@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import replace
 
 import numpy as np
 
@@ -67,6 +66,7 @@ from pdr_mag.calibration.prior import (
     phone_changes,
     phone_prior,
     prior_source,
+    with_offset_error,
 )
 from pdr_mag.estimates import EstimateBatch, Event
 from pdr_mag.field import EarthField, earth_field_from_meta
@@ -611,8 +611,10 @@ class HeadingPipeline:
         if cal is not None and (prior_source(cal) == "phone" or not cal.accepted):
             cal = None
         found = self.fusion.offset_error()
-        if cal is not None and cal is self.online.calibration and found is not None:
-            cal = _with_offset_error(cal, *found)
+        if cal is not None and cal is self.online.calibration and found is not None and (
+            cal.offset_covariance is not None  # a calibration as sure as its user says stays so
+        ):
+            cal = with_offset_error(cal, *found)
         b, var = self.fusion.gyro_bias()
         ok = bool(np.all(np.isfinite(b)) and np.all(np.isfinite(var)))
         return DevicePrior(
@@ -672,17 +674,3 @@ def _kind_name(kind) -> str:
         return NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
-
-
-def _with_offset_error(cal: MagCalibration, o: np.ndarray, cov: np.ndarray) -> MagCalibration:
-    """``cal`` with the offset error the filter found under it: the field the filter took is ``M (r − b) − o``
-    = ``M (r − b − M⁻¹ o)``, so the offset is ``b + M⁻¹ o``, of covariance ``M⁻¹ P_oo M⁻ᵀ`` (the filter's
-    knowledge of it, which started at the calibration's own)."""
-    m_inv = np.linalg.inv(cal.matrix)
-    c = m_inv @ cov @ m_inv.T
-    c = 0.5 * (c + c.T)
-    extra = {**cal.extra, "covariance_params": ["offset_x", "offset_y", "offset_z"],
-             "filter_offset_uT": [round(float(v), 3) for v in o]}
-    return replace(cal, offset=tuple((cal.offset_array + m_inv @ o).tolist()),
-                   covariance=tuple(map(tuple, c.tolist())),
-                   offset_std_uT=tuple(np.sqrt(np.maximum(np.diag(c), 0.0)).tolist()), extra=extra)
