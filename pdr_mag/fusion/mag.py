@@ -623,15 +623,13 @@ def _heading_from_field(P, h, rv):
     for i in range(NX):
         P[z, i] = 0.0
         P[i, z] = 0.0
-    col = np.zeros(NX)  # P h over the states other than the heading (h_z = 1)
+    col = np.zeros(NX)  # P h′: the heading's row and column are zero now, so P h
     for j in range(NX):
         for k in range(NX):
-            if k != z:
-                col[j] += P[j, k] * h[k]
+            col[j] += P[j, k] * h[k]
     v = rv
     for j in range(NX):
-        if j != z:
-            v += h[j] * col[j]
+        v += h[j] * col[j]
     P[z, z] = v
     for j in range(NX):
         if j != z:
