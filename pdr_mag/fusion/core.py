@@ -430,7 +430,8 @@ class FusionCore:
         r = float(np.angle(np.exp(1j * (centre + mean - st["declination"]))))
         st["cal_g"] = g[latest]
         st["cal_m"] = f[latest]
-        st["cal_var"] = offset_heading_var(g[latest], st["cal_cov"])
+        if not m.offset_states:  # c's stationary variance reads it (mag._calibration_variance)
+            st["cal_var"] = offset_heading_var(g[latest], st["cal_cov"])
         span = float(t_now - t.min())
         kernel.fix_from_history(self._st, self._p, r, var, span, t_now)
         if m.offset_states:  # the fields' mean azimuth errs by ḡ·o (ḡ their weighted mean gradient)

@@ -209,7 +209,7 @@ def mag_step(s, R, mx, my, mz, t, allowed, p):
         return
     g = np.empty(3)
     _heading_gradient(R, mwx * f, mwy * f, g)
-    _calibration_variance(s, g)
+    _calibration_variance(s, g, p)
     _calibration_jump(s, g, mx, my, mz, R, t, p, True)
     s.cal_m[0], s.cal_m[1], s.cal_m[2] = mx, my, mz
     psi = np.arctan2(mwx, mwy)
@@ -346,13 +346,17 @@ def _heading_gradient(R, ex, ny, g):
 
 
 @njit(cache=True, error_model="numpy")
-def _calibration_variance(s, g):
-    """``cal_var = g Σ_b gᵀ``: the heading variance that the calibration's offset uncertainty ``Σ_b``
-    (device frame) causes at this orientation (g from :func:`_heading_gradient`, kept in ``cal_g``: the
-    reported std's floor takes a new ``Σ_b`` at once, :func:`pdr_mag.fusion.kernel.calibration_floor`)."""
+def _calibration_variance(s, g, p):
+    """The heading gradient g of this sample (:func:`_heading_gradient`) kept in ``cal_g`` (the std's floor
+    takes a new ``Σ_b`` or a suspected shift at once: :func:`pdr_mag.fusion.kernel.calibration_floor`), and
+    without the offset states ``cal_var = g Σ_b gᵀ``, the heading variance that the
+    calibration's offset uncertainty ``Σ_b`` (device frame) causes at this orientation (c's stationary
+    variance then carries it, :func:`pdr_mag.fusion.gyro.magerr_var`; with them the filter carries that error
+    in ``P`` and reads no ``cal_var``)."""
     for i in range(3):
         s.cal_g[i] = g[i]
-    s.cal_var = offset_heading_var(g, s.cal_cov)
+    if not p.mag.offset_states:
+        s.cal_var = offset_heading_var(g, s.cal_cov)
 
 
 @njit(cache=True, error_model="numpy")

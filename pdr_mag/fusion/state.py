@@ -86,7 +86,7 @@ STATE = np.dtype(
         ("fix_beyond_linear", np.bool_),  # the first fix may be beyond the linear range (tilt, history)
         ("reset_jump", np.float64),  # heading re-acquisitions since the last row: their summed jump, rad
         ("cal_cov", np.float64, (3, 3)),  # covariance of the calibration's offset, device frame, µT²
-        ("cal_var", np.float64),  # heading variance that offset error causes at the latest sample, rad²
+        ("cal_var", np.float64),  # g Σ_b gᵀ at the latest sample, rad² (read without offset states only)
         ("cal_g", np.float64, (3,)),  # ∂ψ/∂m_d at that sample, rad/µT (the std's floor, g Σ_b gᵀ, from it)
         ("cal_m", np.float64, (3,)),  # that sample's calibrated field, device frame, µT (NaN: none yet)
         ("suspect_cov", np.float64, (3, 3)),  # ΔΔᵀ of an offset shift the stale test suspects, µT² (0: none)
