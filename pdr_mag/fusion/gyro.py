@@ -189,6 +189,16 @@ def magerr_var(s, p):
 
 
 @njit(cache=True, error_model="numpy")
+def horizontal_ref(s):
+    """The horizontal strength the place's terms are scaled by, µT: the local reference's ``B_h`` once the
+    detectors have learnt it, else the reference field's ``F_ref cos I_ref`` (``F_ref`` while its dip is
+    unknown); not positive (or NaN) when there is none."""
+    if s.bh_ref > 0.0:
+        return s.bh_ref
+    return s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
+
+
+@njit(cache=True, error_model="numpy")
 def unmodelled_var(s, p):
     """The part of c's stationary variance the filter's weighting leaves out, rad², carried in ``U``:
     ``V_u = [max(k_u² d_seen² − k_e² d_env², 0) + k_f · s_flag · d_tol² / 2] / B_h²`` (``k_u``, ``k_f``
@@ -197,9 +207,7 @@ def unmodelled_var(s, p):
     flagged samples, ``d_tol`` the detectors' tolerance as a disturbance; ``B_h`` the local reference's
     horizontal strength, or until the detectors have learnt it the reference field's ``F_ref cos I_ref``
     (``F_ref`` while its dip is unknown): the first fix of a start is made before they learn)."""
-    b = s.bh_ref
-    if not b > 0.0:
-        b = s.f_ref * np.cos(np.radians(s.dip_ref)) if np.isfinite(s.dip_ref) else s.f_ref
+    b = horizontal_ref(s)
     if not b > 0.0:
         return 0.0
     v = max(p.uncertainty.env_k**2 * s.env_seen2 - p.mag.env_k**2 * s.env_d2, 0.0)

@@ -86,18 +86,25 @@ that sample's correlated field error, and
     P[δθ_z, δθ_z] = σ_ψ² + h′ P[δx′, δx′] h′ᵀ
 
 so a later field with the same offset — a disturbance present since the start — is not read as drift (that is,
-as gyro bias about up). A first sample that the detectors flag against an absolute reference (strength or dip:
-a start next to steel) is still taken, as a guess with ``σ_ψ² = π²``: a disturbance may turn the field by
-anything, so the std says 180° until a clean field comes, which the gate then lets in whatever its innovation,
-but the heading meanwhile is the field's rather than the device's +y, which a backend that must start
-somewhere prefers.  Until that clean field, each flagged field that can still carry a heading — its smallest
-disturbance below the expected horizontal strength B (``d < B``: a disturbance as strong as the
-horizontal field may turn it by anything) — refines the guess (:func:`_refine_guess`): the heading is the
-weighted mean of those fields' headings, weights ``1 / (σ_h² + d² / B²)``, one a ``mag.interval_s`` at
-most (d the larger of ``d_min`` and the field's deviation from the reference: a flagged start has learnt no
-local reference).  A walker passing steel sees its disturbances change while the Earth's field stays, so
-the mean is nearer north than any one of them; the variance stays π² and no covariance changes (a guess
-teaches the bias nothing), only the attitude is corrected.
+as gyro bias about up).  c's variance there is at least ``σ_c² + d₀² / (2 B_h²)``, d₀ ``mag.env_prior_uT``:
+nothing of the place is known yet, and the first field may be turned by the unseen component of a disturbance
+at the level an indoor place has before the detectors have seen it (``UNSEEN_SHARE``; the filter's
+environment term weighs later fields with its smaller ``mag.env_k``).  The corrections that follow a first
+field that was turned then go to the heading rather than to the bias about up, which would carry the error on
+through the next stretch on the gyroscope.
+
+A first sample that the detectors flag against an absolute reference (strength or dip: a start next to steel)
+is still taken, as a guess with ``σ_ψ² = π²``: a disturbance may turn the field by anything, so the std says
+180° until a clean field comes, which the gate then lets in whatever its innovation, but the heading meanwhile
+is the field's rather than the device's +y, which a backend that must start somewhere prefers.  Until that
+clean field, each flagged field that can still carry a heading — its smallest disturbance below the expected
+horizontal strength B (``d < B``: a disturbance as strong as the horizontal field may turn it by anything) —
+refines the guess (:func:`_refine_guess`): the heading is the weighted mean of those fields' headings, weights
+``1 / (σ_h² + d² / B²)``, one a ``mag.interval_s`` at most (d the larger of ``d_min`` and the field's
+deviation from the reference: a flagged start has learnt no local reference).  A walker passing steel sees its
+disturbances change while the Earth's field stays, so the mean is nearer north than any one of them; the
+variance stays π² and no covariance changes (a guess teaches the bias nothing), only the attitude is
+corrected.
 The consider covariance ``U`` (:mod:`pdr_mag.fusion.gyro`) takes the same form with its own c and no white
 noise, ``U_cc`` starting at the place's unmodelled variance.
 
@@ -150,7 +157,7 @@ from pdr_mag.fusion.detectors import detect_step, disturbance2, reference_horizo
 from pdr_mag.fusion.detectors.dip import dip_of
 from pdr_mag.fusion.eskf import LINEAR_RAD, inject, settle_u, tilt_beyond_linear, tilt_unsettled, update_h
 from pdr_mag.fusion.ew import ew_alpha
-from pdr_mag.fusion.gyro import bias_prior_var, magerr_var, unmodelled_var
+from pdr_mag.fusion.gyro import bias_prior_var, horizontal_ref, magerr_var, unmodelled_var
 from pdr_mag.fusion.quat import rotate_world, rotation_matrix, wrap
 from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_X, TH_Y, TH_Z
 
@@ -159,6 +166,10 @@ from pdr_mag.fusion.state import BIAS, C_ERR, NX, OFFSET, TH_X, TH_Y, TH_Z
 GUESS_W_NONE = 1e-9
 #: a lost heading's innovations drift at most this many times the filter's bias σ about up (re-acquisition)
 DRIFT_K = 3.0
+#: the share of a disturbance's variance in its unseen component, the one that turns the horizontal field: a
+#: disturbance with no preferred direction has it as large as the mean of the two the detectors see (strength,
+#: dip), half their sum (the first fix's c; ``UncertaintySettings.env_k`` = √0.5 is the same for the std)
+UNSEEN_SHARE = 0.5
 
 
 @njit(cache=True, error_model="numpy")
@@ -487,6 +498,10 @@ def _first_fix(s, h, r, rv, t, p):
     """Set the heading from the first usable sample (residual r, noise rv; the module docstring)."""
     P = s.P
     P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], magerr_var(s, p))  # a coarse calibration's error from the start
+    b = horizontal_ref(s)
+    if b > 0.0:  # and the place's turning, unseen yet (the module docstring)
+        place = p.mag.error_std_rad**2 + UNSEEN_SHARE * (p.mag.env_prior_uT / b) ** 2
+        P[C_ERR, C_ERR] = max(P[C_ERR, C_ERR], place)
     settle_u(s)
     s.U[C_ERR, C_ERR] = max(s.U[C_ERR, C_ERR], s.u_var)  # and the place's, from the start too
     rotate_world(s.q_gyro, 0.0, 0.0, r)
