@@ -249,7 +249,9 @@ class MagSettings:
     env_prior_uT : float
         The environment level before anything is known of it, µT: a walk starts where the field may already
         be turned (indoor fields deviate from the model by several µT), so ``d_env`` starts at no less than
-        this and learns the place's own level over ``env_tau_s``.
+        this and learns the place's own level over ``env_tau_s``; and the first fix's c counts the unseen
+        component of a disturbance at this level, ``σ_c² + d₀² / (2 B_h²)``
+        (:func:`pdr_mag.fusion.mag._first_fix`).
     interval_s : float
         At most one magnetometer update per this interval, s (the errors are correlated in time; 0 = all).
     gate : float
