@@ -30,6 +30,23 @@ def merge(res, mag=None):
     return kind[o], t[o], xyz[o]
 
 
+def turned_about_up(res, angle):
+    """A SimResult's magnetometer with its field turned about the world's up by ``angle`` (rad, one per
+    magnetometer sample; strength and dip kept, so the detectors pass it): the turned field (N × 3, device
+    frame) and the true attitudes at the magnetometer's times (a scipy ``Rotation``, device → world), with
+    which a caller adds a world-frame disturbance."""
+    from scipy.spatial.transform import Rotation
+
+    from pdr_mag.conventions import quat_slerp
+
+    tm, m = res.mag
+    tt, qt = res.truth
+    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    z = np.zeros_like(angle)
+    turn = Rotation.from_rotvec(np.column_stack([z, z, angle]))
+    return (rt.inv() * turn * rt).apply(m), rt
+
+
 def twist_error_deg(batch, truth):
     """Signed heading error (twist about up of q_est q_true⁻¹, as the tyrex scorer), truth at output times."""
     tt, qt = truth
@@ -421,20 +438,12 @@ def test_unflagged_field_rotation_at_the_start_does_not_become_gyro_bias(walk):
     the ramp (A over T/2) is a rate 2A/T along up; the bias may take at most half of it (|δb| < A/T) at the
     end of the anomaly, and must converge afterwards as on the undisturbed walk (0.2 °/s, see
     test_raw_gyro_offset_is_estimated).  Measured: |δb| 2.0 / 4.3 °/s for (A, T) = (20°, 4 s) / (30°, 6 s)."""
-    from scipy.spatial.transform import Rotation
-
-    from pdr_mag.conventions import quat_slerp
-
-    tm, m = walk.mag
-    tt, qt = walk.truth
+    tm = walk.mag[0]
     true_bias = np.array([0.02, -0.03, 0.07])
-    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
     for amp_deg, dur in ((20.0, 4.0), (30.0, 6.0)):
         t0 = tm[0] + 1.0
         a = np.radians(amp_deg) * np.sin(np.pi * np.clip((tm - t0) / dur, 0.0, 1.0)) ** 2
-        turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
-        m_dist = (rt.inv() * turn * rt).apply(m)
-        kind, t, xyz = merge(walk, mag=m_dist)
+        kind, t, xyz = merge(walk, mag=turned_about_up(walk, a)[0])
         core = FusionCore(field=walk.field)
         during = t <= t0 + dur
         b = core.process(kind[during], t[during], xyz[during])
@@ -517,17 +526,11 @@ def test_lost_heading_is_reacquired_with_an_event(walk):
     After ``reacquire_s`` of such rejections the heading is re-acquired (one ``heading_reset``
     of about 90°, within 2 × reacquire_s), and then it is as accurate as the undisturbed walk (< 3°); without
     re-acquisition it is still tens of degrees off at that time."""
-    from scipy.spatial.transform import Rotation
-
-    from pdr_mag.conventions import quat_slerp
     from pdr_mag.fusion import heading_reset_events
 
-    tm, m = walk.mag
-    tt, qt = walk.truth
-    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    tm = walk.mag[0]
     a = np.where(tm < tm[0] + 40.0, np.radians(90.0), 0.0)
-    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
-    kind, t, xyz = merge(walk, mag=(rt.inv() * turn * rt).apply(m))
+    kind, t, xyz = merge(walk, mag=turned_about_up(walk, a)[0])
     settings = FusionSettings()
     b = FusionCore(settings, field=walk.field).process(kind, t, xyz)
     events = heading_reset_events(b)

@@ -7,9 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_attitude import merge, twist_error_deg
+from test_attitude import merge, turned_about_up, twist_error_deg
 
-from pdr_mag.conventions import quat_slerp
 from pdr_mag.fusion import FusionCore
 from pdr_mag.fusion.settings import FusionSettings, MagSettings, UncertaintySettings
 from pdr_mag.sim import simulate
@@ -25,15 +24,11 @@ def _steel_area(seed: int):
     (strength and dip kept, slowly: the detectors pass it) and every 5 s a 40-µT spike for 2 s (flagged) —
     the iPhone 5 AR walk's situation, where the detectors pass a turned field between flagged spots."""
     w = simulate("walk", seed=seed, effects=EFFECTS)
-    tm, m = w.mag
-    tt, qt = w.truth
-    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    tm = w.mag[0]
     t0 = tm[0]
     area = (tm > t0 + 15.0) & (tm < t0 + 45.0)
     ramp = np.sin(np.pi * np.clip((tm - t0 - 15.0) / 30.0, 0.0, 1.0)) ** 2
-    a = np.where(area, np.radians(35.0) * ramp, 0.0)
-    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
-    md = (rt.inv() * turn * rt).apply(m)
+    md, rt = turned_about_up(w, np.where(area, np.radians(35.0) * ramp, 0.0))
     spike = area & (((tm - t0 - 15.0) % 5.0) < 2.0)
     md[spike] += rt[spike].inv().apply(np.array([0.0, 40.0, 0.0]))
     return w, md, t0

@@ -5,10 +5,8 @@ go to the heading, not to the gyro bias about up that the next stretch on the gy
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-from test_attitude import merge, twist_error_deg
+from test_attitude import merge, turned_about_up, twist_error_deg
 
-from pdr_mag.conventions import quat_slerp
 from pdr_mag.fusion import FusionCore
 from pdr_mag.sim import simulate
 
@@ -22,13 +20,9 @@ def _turned_start(seed: int, turn_deg: float = 30.0):
     within 2 s (strength and dip kept: the detectors pass it), then flagged from 20 to 40 s by a 40-µT
     disturbance, through which the heading runs on the gyroscope."""
     w = simulate("walk", seed=seed, effects=EFFECTS)
-    tm, m = w.mag
-    tt, qt = w.truth
-    rt = Rotation.from_quat(quat_slerp(tt, qt, np.clip(tm, tt[0], tt[-1]))[:, [1, 2, 3, 0]])
+    tm = w.mag[0]
     x = tm - tm[0]
-    a = np.radians(turn_deg) * np.clip((2.0 - x) / 2.0, 0.0, 1.0)
-    turn = Rotation.from_rotvec(np.column_stack([np.zeros_like(a), np.zeros_like(a), a]))
-    md = (rt.inv() * turn * rt).apply(m)
+    md, rt = turned_about_up(w, np.radians(turn_deg) * np.clip((2.0 - x) / 2.0, 0.0, 1.0))
     flagged = (x > 20.0) & (x < 40.0)
     md[flagged] += rt[flagged].inv().apply(np.array([0.0, 40.0, 0.0]))
     return w, md, tm[0]
