@@ -108,13 +108,41 @@ def test_store_keeps_the_part_a_new_save_lacks(tmp_path):
     store.save(META, DevicePrior(calibration=None, gyro_bias=(0.02, 0.0, 0.0), gyro_bias_std=1e-3), 60.0)
     back = store.load(META, 60.0)
     assert back.calibration is not None and back.calibration.offset == (-57.0, -91.0, -302.0)
-    assert back.gyro_bias == (0.02, 0.0, 0.0)
+    # two sessions of the same gyro, equally sure, 0.57 °/s apart (within their power-ups' σ): their mean
+    assert back.gyro_bias == pytest.approx((0.015, 0.0, 0.0), abs=1e-12)
+    stored = back.gyro_bias_std
     # saves that bring only a calibration keep the gyro part as it was stored: one power-up's σ at the load,
     # not one more per save
     for t in (120.0, 180.0, 240.0):
         store.save(META, DevicePrior(calibration=_stored_cal(0.5), gyro_bias=None), t)
     again = store.load(META, 240.0)
-    assert again.gyro_bias_std == pytest.approx(math.hypot(1e-3, store.settings.gyro_turn_on_std), rel=1e-12)
+    assert again.gyro_bias == back.gyro_bias and again.gyro_bias_std == pytest.approx(stored, rel=1e-12)
+
+
+def test_the_stored_gyro_bias_is_the_devices_mean_over_its_sessions(tmp_path):
+    """Sessions of one gyro: each powers up at ``b_dev + ε`` (ε of the power-up σ) and its filter ends with
+    that offset ± 0.3 °/s.  The store keeps their information-weighted mean: after 30 sessions it is within
+    3 σ of ``b_dev`` (σ = √((0.3² + τ²) / 30) °/s per axis) — nearer than one session's estimate can be
+    sure of — and the next load's σ has shrunk to little more than one power-up's.  A session whose bias
+    the mean cannot explain (another gyro under the key) starts the estimate afresh."""
+    store = DeviceStore(tmp_path)
+    tau = store.settings.gyro_turn_on_std
+    sd = math.radians(0.3)
+    b_dev = np.radians([0.4, -0.2, 0.1])
+    rng = np.random.default_rng(3)
+    for k in range(30):
+        b_k = b_dev + rng.normal(0.0, tau, 3) + rng.normal(0.0, sd, 3)
+        store.save(META, DevicePrior(gyro_bias=tuple(b_k), gyro_bias_std=sd), 60.0 * k)
+    back = store.load(META, 1800.0)
+    sigma_mean = math.sqrt((sd**2 + tau**2) / 30)
+    assert np.all(np.abs(np.array(back.gyro_bias) - b_dev) < 3 * sigma_mean)
+    assert back.gyro_bias_std == pytest.approx(math.hypot(sigma_mean, tau), rel=1e-9)
+    # another gyro, 3 °/s off on one axis: its own bias, at one session's σ
+    other = tuple(b_dev + np.radians([3.0, 0.0, 0.0]))
+    store.save(META, DevicePrior(gyro_bias=other, gyro_bias_std=sd), 1900.0)
+    again = store.load(META, 1900.0)
+    assert again.gyro_bias == other
+    assert again.gyro_bias_std == pytest.approx(math.sqrt(sd**2 + 2 * tau**2), rel=1e-9)
 
 
 def test_a_broken_store_file_is_reported_by_name(tmp_path):

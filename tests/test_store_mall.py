@@ -29,12 +29,13 @@ JUMP_UT = 20.0
 @pytest.fixture(scope="module")
 def chain(tmp_path_factory):
     """Per trace, in time order: the phone's estimate at its start and end, the entry it started from and the
-    one it left (offsets, µT; None: no entry), and its segments' |error| against the walked direction."""
+    one it left (offsets, µT; None: no entry), and its segments' |error| against the walked direction; and
+    per trace with an entry, the gyro bias that entry starts it from less the phone's own estimate, °/s."""
     site = dataset("ms-indoor-location-2020", "site1")
     paths = sorted(site.glob("*/path_data_files/*.txt"), key=lambda p: p.stem)
     store = DeviceStore(tmp_path_factory.mktemp("store"))
     settings = PipelineSettings(prior=PriorSettings(use_phone=False))
-    out = []
+    out, gyro = [], []
     for p in paths:
         rec = open_recording(p)
         meta = rec.meta
@@ -42,11 +43,14 @@ def chain(tmp_path_factory):
         phone0 = np.array(meta["mag_os_bias_uT"])
         phone1 = np.array(changes[-1][1:]) if changes else phone0
         before = _entry(store, meta)
+        prior = store.load(meta, DeviceStore.recording_time(meta))
+        if prior is not None and prior.gyro_bias is not None:
+            gyro.append(np.degrees(np.subtract(prior.gyro_bias, meta["gyro_os_bias_rad_s"])))
         summary = replay(rec, settings=settings, device_store=store, progress=False)
         segments = (summary.get("walked_direction") or {}).get("segments", [])
         out.append((phone0, phone1, before, _entry(store, meta), [abs(s["error_deg"]) for s in segments]))
     assert len(out) == 40
-    return out
+    return out, np.array(gyro)
 
 
 def _entry(store: DeviceStore, meta: dict) -> np.ndarray | None:
@@ -56,12 +60,11 @@ def _entry(store: DeviceStore, meta: dict) -> np.ndarray | None:
 
 
 def test_the_stores_entries_stay_near_the_phones_own_estimate(chain):
-    """The 34 traces that do not follow a jump start from an entry 3.5 µT RMS across up from the phone's own
-    estimate, 6.5 µT at most (measured; the store saves each session's latest fit, or the calibration in force
-    with the offset error the filter found under it: 3.7 µT RMS without that error — had it kept the
-    calibration in force at the session's end as it stood, the first fit the filter kept: 4.6 µT RMS, 9.6 µT
-    at most).  Bounds 4.2 and 8 µT."""
-    d = [np.hypot(*(before - phone0)[:2]) for phone0, _, before, _, _ in chain
+    """The 34 traces that do not follow a jump start from an entry 3.6 µT RMS across up from the phone's own
+    estimate, 6.9 µT at most (measured; the store saves each session's latest fit, or the calibration in force
+    with the offset error the filter found under it, rather than the first fit the filter kept).  Bounds 4.2
+    and 8 µT."""
+    d = [np.hypot(*(before - phone0)[:2]) for phone0, _, before, _, _ in chain[0]
          if before is not None and np.linalg.norm(before - phone0) < JUMP_UT]  # fmt: skip
     assert len(d) == 34
     assert np.sqrt(np.mean(np.square(d))) < 4.2
@@ -70,9 +73,9 @@ def test_the_stores_entries_stay_near_the_phones_own_estimate(chain):
 
 def test_a_stale_entry_is_replaced_by_the_sessions_own_fit(chain):
     """After each of the five jumps of the phone's offset (the entry 67–89 µT from the phone's estimate), the
-    session leaves an entry at least 2.5 times nearer to it (measured: 4–20 µT, ratio 0.05–0.25)."""
+    session leaves an entry at least 2.5 times nearer to it (measured: 5–18 µT, ratio 0.05–0.22)."""
     jumps = [(np.linalg.norm(before - phone0), np.linalg.norm(after - phone1))
-             for phone0, phone1, before, after, _ in chain
+             for phone0, phone1, before, after, _ in chain[0]
              if before is not None and np.linalg.norm(before - phone0) >= JUMP_UT]  # fmt: skip
     assert len(jumps) == 5
     for stale, left in jumps:
@@ -80,8 +83,20 @@ def test_a_stale_entry_is_replaced_by_the_sessions_own_fit(chain):
 
 
 def test_the_walked_direction_with_the_store(chain):
-    """158 segments between surveyed waypoints: mean |error| 13.1° with the store (measured; the phone's own
+    """158 segments between surveyed waypoints: mean |error| 12.9° with the store (measured; the phone's own
     estimate 11.5°, nothing known at each start 27.6°).  Bound 15°."""
-    err = np.concatenate([e for *_, e in chain if e])
+    err = np.concatenate([e for *_, e in chain[0] if e])
     assert len(err) == 158
     assert np.mean(err) < 15.0
+
+
+def test_the_stored_gyro_bias_converges_on_the_phones_own(chain):
+    """The gyro bias the store starts a session from is the mean of the sessions before (each session's
+    filter ends 0.2–0.9 °/s off the phone's own estimate: a mall's field turning the heading is partly taught
+    to the bias).  From the fifth entry on it is 0.046 °/s RMS from the phone's estimate about the device's
+    z — the axis that turns the heading of a phone held flat — and 0.41 °/s at most across the three axes
+    (measured; keeping each session's own bias instead: 0.195 °/s and 1.0 °/s).  Bounds 0.08 and 0.6 °/s."""
+    d = chain[1][4:]
+    assert len(d) == 35
+    assert np.sqrt(np.mean(d[:, 2] ** 2)) < 0.08
+    assert np.linalg.norm(d, axis=1).max() < 0.6

@@ -2,8 +2,8 @@
 
 A folder with one JSON file per device (the key: the recording's ``device`` model, and its ``device_id`` when
 the recording has one).  Each file holds the last good magnetometer calibration of that device (refined by
-the sessions that agreed with it) with its offset covariance, the gyroscope bias with its σ, and when they
-were known (Unix time)::
+the sessions that agreed with it) with its offset covariance, the gyroscope's mean power-up bias over its
+sessions with the σ of that mean, and when they were known (Unix time)::
 
     {"format_version": 1, "key": "OPPO PBCM10", "device": "OPPO PBCM10", "device_id": null,
      "t_unix": 1574572530.2,
@@ -15,7 +15,8 @@ recording's start (:func:`~pdr_mag.calibration.prior.aged`: the offset's covaria
 passed, the gyro bias gets a power-up's σ), so a stale entry weighs what it deserves and the pipeline's stale
 test and online fits replace it when the data disagree; :meth:`DeviceStore.save` writes atomically (a
 concurrent reader sees the old file or the new one). A session's fit that agrees with the entry refines it
-(:func:`accumulate`): the device's sessions add up, as a phone's OS keeps refining its own estimate. A file
+(:func:`accumulate`), and each session's gyro bias is averaged into the device's (:func:`device_gyro_bias`):
+the device's sessions add up, as a phone's OS keeps refining its own estimate. A file
 that cannot be read is reported (``ValueError`` naming it), never silently replaced.
 """
 
@@ -142,7 +143,8 @@ class DeviceStore:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps
         the stored one: a calibration aged to ``t_unix``, a gyro bias as it was stored — a power-up's σ is
         added at each load, not at each save; a calibration that agrees with the stored one refines it,
-        :func:`accumulate`); returns the file, or None when the recording names no device."""
+        :func:`accumulate`; a gyro bias is averaged into the device's, :func:`device_gyro_bias`); returns the
+        file, or None when the recording names no device."""
         found = self._locate(meta)
         if found is None:
             return None
@@ -152,8 +154,8 @@ class DeviceStore:
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
         if prior.calibration is not None and old is not None and old.calibration is not None:
             cal = accumulate(old.calibration, prior.calibration)
-        src = stored[0] if prior.gyro_bias is None and stored is not None else prior
-        gyro, std = src.gyro_bias, src.gyro_bias_std
+        tau = self.settings.gyro_turn_on_std
+        gyro, std = device_gyro_bias(None if stored is None else stored[0], prior, tau)
         entry = {
             "format_version": FORMAT_VERSION,
             "key": self.key(meta),
@@ -200,6 +202,41 @@ def accumulate(stored: MagCalibration, new: MagCalibration) -> MagCalibration:
     info_s, info_n = np.linalg.inv(so), np.linalg.inv(sn)
     b = np.linalg.solve(info_s + info_n, info_s @ b_s + info_n @ b_n)
     return replace(new, offset=tuple(float(v) for v in b))
+
+
+#: χ²₃ at 99.9 %: a session's gyro offset this far from the device's mean is another gyro.  Stricter than the
+#: offsets' rule: the mean is worth many sessions, and at 99 % one session in a hundred would end it by chance
+GYRO_AGREE_CHI2 = float(scipy.stats.chi2.ppf(0.999, 3))
+
+
+def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_std: float) -> tuple:
+    """The device's gyro offset the store keeps, ``(bias, σ)``: the offset the device powers up with on
+    average, ``b_dev``, and the σ of that estimate.
+
+    A MEMS gyro's offset is ``b_dev + ε`` at each power-up, ``ε`` of σ ``turn_on_std`` drawn anew
+    (:class:`~pdr_mag.calibration.prior.PriorSettings`); a session's filter estimates that session's offset
+    ``b_k`` with σ_k — in a building its heading corrections teach the bias part of the field's turning
+    too, tenths of a °/s, of either sign from one walk to the next.  Each session is then an estimate of
+    ``b_dev`` of variance ``σ_k² + turn_on_std²``, and the sessions that agree add up as independent
+    measurements: ``b_dev = V (Σ b_k / (σ_k² + τ²))``, ``V = (Σ 1 / (σ_k² + τ²))⁻¹`` — the stored σ is √V,
+    and :func:`~pdr_mag.calibration.prior.aged` adds ``τ²`` again at the next load (the next power-up).  A
+    session whose offset is farther from the stored one than their variances allow (χ²₃ at 99.9 %,
+    :data:`GYRO_AGREE_CHI2`) starts the estimate afresh: another gyro under the same key.  A ``session``
+    without a gyro bias leaves the stored one as it was."""
+    if session.gyro_bias is None:
+        return (None, float("nan")) if stored is None else (stored.gyro_bias, stored.gyro_bias_std)
+    b_n = np.asarray(session.gyro_bias, dtype=float)
+    var_n = session.gyro_bias_std**2 + turn_on_std**2
+    if stored is None or stored.gyro_bias is None:
+        return session.gyro_bias, math.sqrt(var_n)
+    b_s = np.asarray(stored.gyro_bias, dtype=float)
+    var_s = stored.gyro_bias_std**2
+    d = b_n - b_s
+    if float(d @ d) / (var_s + var_n) > GYRO_AGREE_CHI2:
+        return session.gyro_bias, math.sqrt(var_n)
+    var = 1.0 / (1.0 / var_s + 1.0 / var_n)
+    b = var * (b_s / var_s + b_n / var_n)
+    return tuple(float(v) for v in b), math.sqrt(var)
 
 
 def _entry(p: Path, d: dict) -> tuple[DevicePrior, float]:
