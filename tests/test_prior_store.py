@@ -143,6 +143,16 @@ def test_the_stored_gyro_bias_is_the_devices_mean_over_its_sessions(tmp_path):
     again = store.load(META, 1900.0)
     assert again.gyro_bias == other
     assert again.gyro_bias_std == pytest.approx(math.sqrt(sd**2 + 2 * tau**2), rel=1e-9)
+    # an entry that states its bias exactly (σ 0, written by hand) is kept by a session that agrees with it
+    entry = json.loads(store.path(META).read_text())
+    entry["gyro_bias_std_rad_s"] = 0.0
+    store.path(META).write_text(json.dumps(entry))
+    store.save(META, DevicePrior(gyro_bias=tuple(np.add(other, 0.001)), gyro_bias_std=sd), 2000.0)
+    kept = store.load(META, 2000.0)
+    assert kept.gyro_bias == pytest.approx(other, abs=1e-15)
+    assert kept.gyro_bias_std == pytest.approx(tau, rel=1e-12)
+    with pytest.raises(ValueError, match="finite"):
+        store.save(META, DevicePrior(gyro_bias=(0.0, 0.0, 0.0), gyro_bias_std=float("nan")), 2100.0)
 
 
 def test_a_broken_store_file_is_reported_by_name(tmp_path):

@@ -222,10 +222,12 @@ def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_s
     and :func:`~pdr_mag.calibration.prior.aged` adds ``τ²`` again at the next load (the next power-up).  A
     session whose offset is farther from the stored one than their variances allow (χ²₃ at 99.9 %,
     :data:`GYRO_AGREE_CHI2`) starts the estimate afresh: another gyro under the same key.  A ``session``
-    without a gyro bias leaves the stored one as it was."""
+    without a gyro bias leaves the stored one as it was; ``ValueError`` for one that is not finite."""
     if session.gyro_bias is None:
         return (None, float("nan")) if stored is None else (stored.gyro_bias, stored.gyro_bias_std)
     b_n = np.asarray(session.gyro_bias, dtype=float)
+    if b_n.shape != (3,) or not np.all(np.isfinite(b_n)) or not math.isfinite(session.gyro_bias_std):
+        raise ValueError("device store: a gyro bias to save needs 3 finite numbers and a finite σ")
     var_n = session.gyro_bias_std**2 + turn_on_std**2
     if stored is None or stored.gyro_bias is None:
         return session.gyro_bias, math.sqrt(var_n)
@@ -234,6 +236,8 @@ def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_s
     d = b_n - b_s
     if float(d @ d) / (var_s + var_n) > GYRO_AGREE_CHI2:
         return session.gyro_bias, math.sqrt(var_n)
+    if var_s == 0.0:  # an entry that states its bias exactly (a σ of 0 written by hand) stays as it is
+        return stored.gyro_bias, 0.0
     var = 1.0 / (1.0 / var_s + 1.0 / var_n)
     b = var * (b_s / var_s + b_n / var_n)
     return tuple(float(v) for v in b), math.sqrt(var)
