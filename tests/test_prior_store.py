@@ -251,3 +251,35 @@ def test_a_session_that_agrees_with_the_stored_calibration_refines_it(tmp_path):
     again = store.load(META, 0.0)
     store.save(META, again, t_unix=0.0)  # the entry itself, left standing: nothing new
     assert store.load(META, 0.0).calibration.offset == shaped.offset
+
+
+def test_a_stored_part_serves_only_the_stream_it_was_learnt_on(tmp_path):
+    """A raw magnetometer's offset (hundreds of µT) is not the residual offset of the field the OS has
+    already corrected, nor a raw gyro's offset the residual of an OS-calibrated rate: an entry keeps which
+    stream each part was learnt on, a recording of the other stream does not start from that part, and its
+    own fit replaces the part rather than refining it.  A recording (or an entry) that does not say which
+    stream it has is served as before."""
+    store = DeviceStore(tmp_path)
+    raw = {**META, "mag_os_calibrated": False, "gyro_os_calibrated": False}
+    calibrated = {**META, "mag_os_calibrated": True, "gyro_os_calibrated": False}
+    learnt = DevicePrior(calibration=_stored_cal(0.5), gyro_bias=(0.01, 0.0, 0.0), gyro_bias_std=1e-3)
+    store.save(raw, learnt, 0.0)
+    entry = json.loads(store.path(raw).read_text())
+    assert entry["mag_stream"] == "raw" and entry["gyro_stream"] == "raw"
+    assert store.load(raw, 60.0).calibration.offset == (-57.0, -91.0, -302.0)
+    other = store.load(calibrated, 60.0)
+    assert other.calibration is None and other.gyro_bias == (0.01, 0.0, 0.0)
+    assert store.load({**META, "mag_os_calibrated": True, "gyro_os_calibrated": True}, 60.0) is None
+    assert store.load(META, 60.0).calibration is not None  # the recording does not say: served
+    # the OS-calibrated session's own fit, 2 µT from zero: it replaces the raw offset (no mean of the two)
+    residual = MagCalibration.from_arrays([2.0, 0.0, 0.0], field_uT=43.0, method="gravity",
+                                          offset_std_uT=(400.0, 400.0, 400.0))  # fmt: skip
+    store.save(calibrated, DevicePrior(calibration=residual), 120.0)
+    entry = json.loads(store.path(raw).read_text())
+    assert entry["mag_stream"] == "os_calibrated" and entry["gyro_stream"] == "raw"
+    assert store.load(calibrated, 180.0).calibration.offset == (2.0, 0.0, 0.0)
+    assert store.load(raw, 180.0).calibration is None
+    # an entry written without streams serves every recording
+    del entry["mag_stream"], entry["gyro_stream"]
+    store.path(raw).write_text(json.dumps(entry))
+    assert store.load(raw, 180.0).calibration.offset == (2.0, 0.0, 0.0)

@@ -7,8 +7,12 @@ sessions with the σ of that mean, and when they were known (Unix time)::
 
     {"format_version": 1, "key": "OPPO PBCM10", "device": "OPPO PBCM10", "device_id": null,
      "t_unix": 1574572530.2,
-     "calibration": {... the calibrate --json object ...},
-     "gyro_bias_rad_s": [0.0018, 0.0021, 0.0009], "gyro_bias_std_rad_s": 0.0004}
+     "calibration": {... the calibrate --json object ...}, "mag_stream": "raw",
+     "gyro_bias_rad_s": [0.0018, 0.0021, 0.0009], "gyro_bias_std_rad_s": 0.0004, "gyro_stream": "raw"}
+
+Each part names the stream it was learnt on (``raw``, ``os_calibrated``: the recording's
+``<sensor>_os_calibrated``; null when it did not say) and serves only recordings of that stream
+(:func:`_for_streams`).
 
 :meth:`DeviceStore.load` gives it back as a :class:`~pdr_mag.calibration.prior.DevicePrior` aged to the new
 recording's start (:func:`~pdr_mag.calibration.prior.aged`: the offset's covariance grows with the days
@@ -126,7 +130,8 @@ class DeviceStore:
         return (plain, d) if d is None or d["key"] == k else (hashed, None)
 
     def load(self, meta: dict, t_unix: float) -> DevicePrior | None:
-        """The stored prior of this recording's device, aged to ``t_unix`` (None when there is none)."""
+        """The stored prior of this recording's device, aged to ``t_unix``, without the parts learnt on
+        another stream than the recording's (None when nothing is left)."""
         return self.find(meta, t_unix)[1]
 
     def find(self, meta: dict, t_unix: float) -> tuple[Path | None, DevicePrior | None]:
@@ -137,25 +142,35 @@ class DeviceStore:
         if found[1] is None:
             return found[0], None
         prior, t_saved = _entry(*found)
+        prior = _for_streams(prior, _streams(found[1]), meta)
+        if prior.calibration is None and prior.gyro_bias is None:
+            return found[0], None
         return found[0], aged(prior, t_unix - t_saved, self.settings)
 
     def save(self, meta: dict, prior: DevicePrior, t_unix: float) -> Path | None:
         """Store what is known of this recording's device at ``t_unix`` (a part that ``prior`` lacks keeps
         the stored one: a calibration aged to ``t_unix``, a gyro bias as it was stored — a power-up's σ is
         added at each load, not at each save; a calibration that agrees with the stored one refines it,
-        :func:`accumulate`; a gyro bias is averaged into the device's, :func:`device_gyro_bias`); returns the
-        file, or None when the recording names no device."""
+        :func:`accumulate`; a gyro bias is averaged into the device's, :func:`device_gyro_bias` — each only
+        when learnt on the same stream, else the new part replaces the stored one); returns the file, or
+        None when the recording names no device."""
         found = self._locate(meta)
         if found is None:
             return None
         p, d = found
         stored = None if d is None else _entry(p, d)
         old = None if stored is None else aged(stored[0], t_unix - stored[1], self.settings)
+        streams = {"mag": None, "gyro": None} if d is None else _streams(d)
+        now = {sensor: stream_kind(meta, sensor) for sensor in streams}
+        # a stored part of another stream than this recording's is another quantity: replaced, never refined
+        same = {sensor: None in (streams[sensor], now[sensor]) or streams[sensor] == now[sensor]
+                for sensor in streams}  # fmt: skip
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
-        if prior.calibration is not None and old is not None and old.calibration is not None:
+        if prior.calibration is not None and old is not None and old.calibration is not None and same["mag"]:
             cal = accumulate(old.calibration, prior.calibration)
         tau = self.settings.gyro_turn_on_std
-        gyro, std = device_gyro_bias(None if stored is None else stored[0], prior, tau)
+        earlier = None if stored is None or (prior.gyro_bias is not None and not same["gyro"]) else stored[0]
+        gyro, std = device_gyro_bias(earlier, prior, tau)
         entry = {
             "format_version": FORMAT_VERSION,
             "key": self.key(meta),
@@ -163,8 +178,10 @@ class DeviceStore:
             "device_id": meta.get("device_id"),
             "t_unix": float(t_unix),
             "calibration": None if cal is None else cal.to_dict(),
+            "mag_stream": now["mag"] if prior.calibration is not None and now["mag"] else streams["mag"],
             "gyro_bias_rad_s": None if gyro is None else [float(v) for v in gyro],
             "gyro_bias_std_rad_s": None if gyro is None else float(std),
+            "gyro_stream": now["gyro"] if prior.gyro_bias is not None and now["gyro"] else streams["gyro"],
         }
         self.folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=self.folder, prefix=".", suffix=".tmp")
@@ -241,6 +258,42 @@ def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_s
     var = 1.0 / (1.0 / var_s + 1.0 / var_n)
     b = var * (b_s / var_s + b_n / var_n)
     return tuple(float(v) for v in b), math.sqrt(var)
+
+
+#: The kinds of stream a stored part may belong to (``meta["<sensor>_os_calibrated"]`` False / True)
+STREAM_KINDS = ("raw", "os_calibrated")
+
+
+def stream_kind(meta: dict, sensor: str) -> str | None:
+    """Which stream of ``sensor`` (``"mag"``, ``"gyro"``) a recording gives: ``"raw"`` or
+    ``"os_calibrated"`` as its ``<sensor>_os_calibrated`` says (INTERFACE.md), None when it does not say."""
+    v = meta.get(f"{sensor}_os_calibrated")
+    return None if not isinstance(v, bool) else STREAM_KINDS[int(v)]
+
+
+def _streams(d: dict) -> dict:
+    """The streams an entry's parts were learnt on (``mag_stream``, ``gyro_stream``; None: not stated, as
+    in entries written before the store kept them — such a part serves every stream)."""
+    out = {}
+    for sensor in ("mag", "gyro"):
+        v = d.get(f"{sensor}_stream")
+        out[sensor] = v if v in STREAM_KINDS else None
+    return out
+
+
+def _for_streams(prior: DevicePrior, streams: dict, meta: dict) -> DevicePrior:
+    """``prior`` without the parts learnt on another stream than the recording's: a raw magnetometer's
+    hard-iron offset (hundreds of µT) is not the residual offset of the field the OS has already corrected,
+    nor a raw gyro's power-up offset the residual of an OS-calibrated rate — a backend whose app changes
+    which stream it logs would otherwise start the phone from a prior that is sure and wrong.  A part
+    whose stream or whose recording's stream is not stated is kept."""
+    drop = {sensor for sensor, kind in streams.items()
+            if kind is not None and stream_kind(meta, sensor) not in (None, kind)}  # fmt: skip
+    if "mag" in drop:
+        prior = replace(prior, calibration=None)
+    if "gyro" in drop:
+        prior = replace(prior, gyro_bias=None, gyro_bias_std=float("nan"))
+    return prior
 
 
 def _entry(p: Path, d: dict) -> tuple[DevicePrior, float]:
