@@ -92,7 +92,7 @@ def test_the_walked_direction_with_the_store(chain):
 
 def test_the_stored_gyro_bias_converges_on_the_phones_own(chain):
     """The gyro bias the store starts a session from is the mean of the sessions before (each session's
-    filter ends 0.2–0.9 °/s off the phone's own estimate: a mall's field turning the heading is partly taught
+    filter ends 0.1–0.9 °/s off the phone's own estimate: a mall's field turning the heading is partly taught
     to the bias).  From the fifth entry on it is 0.046 °/s RMS from the phone's estimate about the device's
     z — the axis that turns the heading of a phone held flat — and 0.41 °/s at most across the three axes
     (measured; keeping each session's own bias instead: 0.195 °/s and 1.0 °/s).  Bounds 0.08 and 0.6 °/s."""

@@ -30,8 +30,8 @@ def _turned_start(seed: int, turn_deg: float = 30.0):
 
 def test_a_turned_first_field_teaches_the_gyro_bias_little():
     """Six seeds: the mean |heading error| over the flagged stretch is 5.2–9.7° (mean 6.3°) with the place's
-    turning in the first fix's c, and was 9.6–14.5° (mean 11.4°) with c's stationary variance alone, the
-    returning field then read as a turn the gyroscope missed (measured).  Bounds: mean ≤ 8.5°, each ≤ 12°;
+    turning in the first fix's c, 9.6–14.5° (mean 11.4°) with c's stationary variance alone, the returning
+    field then read as a turn the gyroscope missed (measured).  Bounds: mean ≤ 8.5°, each ≤ 12°;
     and no frame of the stretch beyond 3σ."""
     errs = []
     for seed in SEEDS:

@@ -41,6 +41,7 @@ import scipy.stats
 
 from pdr_mag.calibration.model import MagCalibration
 from pdr_mag.calibration.prior import DevicePrior, PriorSettings, aged, is_prior
+from pdr_mag.calibration.refit import CONTRADICTION_CHI2
 
 FORMAT_VERSION = 1
 
@@ -221,11 +222,6 @@ def accumulate(stored: MagCalibration, new: MagCalibration) -> MagCalibration:
     return replace(new, offset=tuple(float(v) for v in b))
 
 
-#: χ²₃ at 99.9 %: a session's gyro offset this far from the device's mean is another gyro.  Stricter than the
-#: offsets' rule: the mean is worth many sessions, and at 99 % one session in a hundred would end it by chance
-GYRO_AGREE_CHI2 = float(scipy.stats.chi2.ppf(0.999, 3))
-
-
 def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_std: float) -> tuple:
     """The device's gyro offset the store keeps, ``(bias, σ)``: the offset the device powers up with on
     average, ``b_dev``, and the σ of that estimate.
@@ -238,7 +234,9 @@ def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_s
     measurements: ``b_dev = V (Σ b_k / (σ_k² + τ²))``, ``V = (Σ 1 / (σ_k² + τ²))⁻¹`` — the stored σ is √V,
     and :func:`~pdr_mag.calibration.prior.aged` adds ``τ²`` again at the next load (the next power-up).  A
     session whose offset is farther from the stored one than their variances allow (χ²₃ at 99.9 %,
-    :data:`GYRO_AGREE_CHI2`) starts the estimate afresh: another gyro under the same key.  A ``session``
+    :data:`~pdr_mag.calibration.refit.CONTRADICTION_CHI2`: two estimates that cannot both be the device's;
+    stricter than the offsets' 99 %, as the mean is worth many sessions and at 99 % one session in a hundred
+    would end it by chance) starts the estimate afresh: another gyro under the same key.  A ``session``
     without a gyro bias leaves the stored one as it was; ``ValueError`` for one that is not finite."""
     if session.gyro_bias is None:
         return (None, float("nan")) if stored is None else (stored.gyro_bias, stored.gyro_bias_std)
@@ -251,7 +249,7 @@ def device_gyro_bias(stored: DevicePrior | None, session: DevicePrior, turn_on_s
     b_s = np.asarray(stored.gyro_bias, dtype=float)
     var_s = stored.gyro_bias_std**2
     d = b_n - b_s
-    if float(d @ d) / (var_s + var_n) > GYRO_AGREE_CHI2:
+    if float(d @ d) / (var_s + var_n) > CONTRADICTION_CHI2:
         return session.gyro_bias, math.sqrt(var_n)
     if var_s == 0.0:  # an entry that states its bias exactly (a σ of 0 written by hand) stays as it is
         return stored.gyro_bias, 0.0
