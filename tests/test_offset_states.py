@@ -107,3 +107,28 @@ def test_the_device_knowledge_carries_the_offset_error_found(walks):
         true = np.asarray(res.meta["simulation"]["effects"]["hard_iron"], dtype=float)
         assert np.linalg.norm(cal.offset_array - true) < 3.0, cal.offset_array - true
         assert max(cal.offset_std_uT[:2]) < SIGMA_UT
+
+
+def test_the_sinks_calibrated_field_is_the_one_the_filter_takes():
+    """The calibrated field the sinks get (``/mag/calibrated`` in the MCAP, the rerun cloud:
+    :meth:`HeadingPipeline.pop_mag_calibrated`) is the calibration in force less the offset error the filter
+    found, the field its heading rests on: on the walk whose given calibration is 9.1 µT off, its mean
+    distance from the field the exact calibration gives is below 3 µT after 60 s (measured 1.8 µT), where the
+    calibration alone is 9.3 µT off (the soft iron's scale on the 9.1 µT)."""
+    res = simulate("walk", seed=1)
+    eff = res.meta["simulation"]["effects"]
+    hard, soft = np.asarray(eff["hard_iron"], dtype=float), np.asarray(eff["soft_iron"], dtype=float)
+    given = MagCalibration.from_arrays(hard + ERROR_UT, np.linalg.inv(soft), method="given",
+                                       offset_std_uT=(SIGMA_UT,) * 3)  # fmt: skip
+    exact = MagCalibration.from_arrays(hard, np.linalg.inv(soft), method="exact")
+    pipe = HeadingPipeline(PipelineSettings(online=False, keep_mag_calibrated=True), calibration=given,
+                           meta=res.meta)  # fmt: skip
+    pipe.run({k: getattr(res, k) for k in ("accel", "gyro", "mag")})
+    t, xyz = pipe.pop_mag_calibrated()
+    t_raw, raw = res.mag
+    assert np.array_equal(t, t_raw[: len(t)]) and len(t) > 0.9 * len(t_raw)
+    late = t > t[0] + 60.0
+    off = np.linalg.norm(xyz[late] - exact.apply(raw[: len(t)][late]), axis=1)
+    before = np.linalg.norm(given.apply(raw[: len(t)][late]) - exact.apply(raw[: len(t)][late]), axis=1)
+    assert np.mean(off) < 3.0, np.mean(off)
+    assert np.mean(before) > 9.0  # the case is what the docstring says

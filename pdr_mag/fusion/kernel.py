@@ -121,6 +121,9 @@ def _write_row(st, ti, out, n, p):
     f[COL.gyro_bias_y, n] = st.b[1]
     f[COL.gyro_bias_z, n] = st.b[2]
     f[COL.heading_reset_deg, n] = np.degrees(st.reset_jump) if st.reset_jump != 0.0 else np.nan
+    f[COL.mag_offset_error_x, n] = st.offset[0]
+    f[COL.mag_offset_error_y, n] = st.offset[1]
+    f[COL.mag_offset_error_z, n] = st.offset[2]
     st.reset_jump = 0.0
 
 

@@ -21,7 +21,9 @@ import numpy as np
 from pdr_mag.fusion.detectors import COLUMNS as DETECTOR_COLUMNS
 
 #: diagnostic columns of the output (name → meaning), in order: the gyroscope-only heading, the detectors'
-#: figures at the latest magnetometer sample and their score, the bias estimate, a re-acquisition's jump
+#: figures at the latest magnetometer sample and their score, the bias estimate, a re-acquisition's jump, the
+#: offset error ``o`` the filter carries (``MagSettings.offset_states``: the field it takes is the calibrated
+#: one less ``o``; 0 without those states)
 DIAG_COLUMNS = {
     "gyro_heading_deg": "heading from gyroscope integration alone (same start), deg",
     **DETECTOR_COLUMNS,
@@ -30,14 +32,21 @@ DIAG_COLUMNS = {
     "gyro_bias_y": "estimated gyroscope bias y, rad/s",
     "gyro_bias_z": "estimated gyroscope bias z, rad/s",
     "heading_reset_deg": "the turn of a heading re-acquisition at that row, deg (NaN at the others)",
+    "mag_offset_error_x": "the filter's estimate of the calibration's offset error, x, µT (device frame)",
+    "mag_offset_error_y": "the filter's estimate of the calibration's offset error, y, µT (device frame)",
+    "mag_offset_error_z": "the filter's estimate of the calibration's offset error, z, µT (device frame)",
 }
 #: the diagnostic columns, in order
 DIAG_NAMES = tuple(DIAG_COLUMNS)
 #: the columns that are not among :data:`pdr_mag.estimates.DIAG_KEYS` (so not in the MCAP's ``/pdr/diag``):
-#: the jump of a re-acquisition, which the pipeline turns into ``heading_reset`` events, and the
-#: gyro-consistency angle (adding it to ``/pdr/diag`` changes that message's layout, which
-#: ``tests/fixtures/pdrmcap_v2_handwritten.mcap`` holds byte for byte)
-INTERNAL_DIAG = ("consistency_deg", "heading_reset_deg")
+#: the jump of a re-acquisition, which the pipeline turns into ``heading_reset`` events, the offset error,
+#: which the pipeline takes out of the calibrated field it gives the sinks
+#: (:meth:`pdr_mag.pipeline.HeadingPipeline.pop_mag_calibrated`), and the gyro-consistency angle (adding
+#: them to ``/pdr/diag`` changes that message's layout, which ``tests/fixtures/pdrmcap_v2_handwritten.mcap``
+#: holds byte for byte)
+INTERNAL_DIAG = (
+    "consistency_deg", "heading_reset_deg", "mag_offset_error_x", "mag_offset_error_y", "mag_offset_error_z",
+)
 
 #: the parts of a row's reported variance (:func:`pdr_mag.fusion.kernel.calibration_floor`): the filter's
 #: ``(P + U)[δθ_z, δθ_z]``, the calibration's ``g Σ_b gᵀ`` (0 with the offset states, which carry it in P)

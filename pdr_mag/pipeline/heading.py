@@ -339,7 +339,10 @@ class HeadingPipeline:
         return ev
 
     def pop_mag_calibrated(self) -> tuple[np.ndarray, np.ndarray]:
-        """Calibrated magnetometer samples (t, xyz) since the last call (``keep_mag_calibrated``)."""
+        """Calibrated magnetometer samples (t, xyz) since the last call (``keep_mag_calibrated``): the field
+        the filter takes — the calibration in force applied, less the offset error the filter has found
+        (:meth:`pdr_mag.fusion.FusionCore.offset_error`, as of the latest output row at or before each
+        sample)."""
         if not self._magcal:
             return np.empty(0), np.empty((0, 3))
         t = np.concatenate([a for a, _ in self._magcal])
@@ -448,6 +451,7 @@ class HeadingPipeline:
             is_mag = kind == MAG
             data[is_mag] = data[is_mag] @ self._mag_matrix_t
         # the filter over the span, keeping its state before each block (``starts``: each one's first sample)
+        o_start = self.fusion.offset_error() if self.settings.keep_mag_calibrated else None
         advanced = self.fusion.advance(Span(kind, t, data, allowed, n_gyro), starts, cal_state)
         batch, snapshots = advanced.rows, advanced.snapshots
         end = len(t)
@@ -503,7 +507,9 @@ class HeadingPipeline:
             self._t_last = float(t[end - 1])
             if self.settings.keep_mag_calibrated and cal is not None:
                 m = kind[:end] == MAG
-                self._magcal.append((t[:end][m], data[:end][m]))
+                tm = t[:end][m]
+                o = _offset_error_at(tm, batch, None if o_start is None else o_start[0])
+                self._magcal.append((tm, data[:end][m] - o))
         return end
 
     def _close_blocks(
@@ -674,3 +680,17 @@ def _kind_name(kind) -> str:
         return NAMES[int(kind)]
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"kind: expected 'accel', 'gyro', 'mag' or 0/1/2, got {kind!r}") from None
+
+
+def _offset_error_at(t: np.ndarray, rows: EstimateBatch, before: np.ndarray | None) -> np.ndarray:
+    """The filter's offset error (N × 3, µT) at times ``t``: the latest of ``rows`` at or before each (their
+    ``mag_offset_error_*`` columns), ``before`` (the filter's at the rows' start; None: none found) ahead of
+    the first row."""
+    out = np.zeros((len(t), 3)) if before is None else np.tile(np.asarray(before, dtype=float), (len(t), 1))
+    cols = [rows.diag.get(f"mag_offset_error_{a}") for a in "xyz"] if len(rows) and rows.diag else [None]
+    if not len(t) or any(c is None for c in cols):
+        return out
+    k = np.searchsorted(rows.t, t, side="right") - 1
+    after = k >= 0
+    out[after] = np.column_stack(cols)[k[after]]
+    return out

@@ -7,7 +7,8 @@ A sink receives, in time order and in chunks, what the replay drives through the
 ``inputs(kind, t, xyz)``
     raw input chunks: ``kind`` in ``{"accel", "gyro", "mag"}`` (contract units, device frame).
 ``mag_calibrated(t, xyz)``
-    the calibrated field at the magnetometer epochs (µT, device frame).
+    the calibrated field at the magnetometer epochs (µT, device frame): the field the filter takes, the
+    calibration in force applied less the offset error the filter has found.
 ``estimates(batch)``
     a :class:`pdr_mag.estimates.EstimateBatch`.
 ``reference(name, t, q_wd)``

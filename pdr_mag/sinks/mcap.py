@@ -37,7 +37,9 @@ The three input topics carry exactly what the pipeline read (the reader's cleane
 the MCAP reproduces the outputs exactly.  A CDR message of those topics is 36 bytes: ``00 01 00 00``
 (CDR, little endian) then the four little-endian float64 ``t, x, y, z``; the reader decodes them in blocks
 relying on that.  Channel metadata: ``time_offset_ns`` on every channel, ``unit`` and ``role`` on the
-vector topics, ``frame_id`` on the poses.
+vector topics, ``frame_id`` on the poses.  ``/mag/calibrated`` is the field the filter takes: the calibration
+in force applied, less the offset error the filter has found
+(:meth:`pdr_mag.pipeline.HeadingPipeline.pop_mag_calibrated`).
 
 Metadata records:
 
