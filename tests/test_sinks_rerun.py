@@ -93,6 +93,8 @@ def written(tmp_path):
     interference = (t_all > 2.0) & (t_all < 4.0)
     diag = {key: rng.normal(45.0, 3.0, len(t_all)) for key in DIAG_KEYS}
     diag["field_strength_uT"][::9] = np.nan
+    for axis in "xyz":  # the filter's offset error: an internal column the pipeline's rows carry
+        diag[f"mag_offset_error_{axis}"] = rng.normal(0.0, 2.0, len(t_all))
     batch = EstimateBatch(
         t=t_all,
         q_wd=q,
@@ -182,6 +184,11 @@ def test_series_read_back_equal(written):
     for kind in ("accel", "gyro"):
         for axis in "xyz":
             assert len(data[f"/inputs/{kind}/{axis}"]["time"]) == len(b.t)
+    for axis in "xyz":  # the filter's estimates, in °/s and µT
+        _, bias = _series(data, f"/estimates/gyro_bias/{axis}")
+        np.testing.assert_allclose(bias, np.degrees(b.diag[f"gyro_bias_{axis}"]), rtol=1e-12)
+        _, offset = _series(data, f"/estimates/offset_error/{axis}")
+        np.testing.assert_array_equal(offset, b.diag[f"mag_offset_error_{axis}"])
     assert written["sink"].rows_sent["heading/ours"] == len(b.t)
 
 
@@ -229,6 +236,8 @@ def test_blueprint_fitted_to_the_data(written):
         assert kinds[origin] == "TimeSeries", origin
     for sensor in ("accel", "gyro", "mag"):  # one plot per sensor
         assert kinds[f"/inputs/{sensor}"] == "TimeSeries"
+    for group in ("gyro_bias", "offset_error"):
+        assert kinds[f"/estimates/{group}"] == "TimeSeries"
     assert kinds["/state"] == "StateTimeline" and kinds["/mag"] == "3D" and kinds["/events"] == "TextLog"
     # every time axis spans the whole recording (absolute, not round the cursor)
     b = written["batch"]

@@ -44,6 +44,10 @@ one group per interference detector (:data:`pdr_mag.fusion.detectors.PLOTS`)
     latest at the cursor.
 ``inputs/accel/{x,y,z}``, ``inputs/gyro/{x,y,z}``, ``inputs/mag/{x,y,z}``
     the raw inputs (one plot per sensor).
+``estimates/gyro_bias/{x,y,z}``, ``estimates/offset_error/{x,y,z}``
+    what the filter has learnt that turns the heading between magnetometer corrections: its gyro bias
+    estimate (°/s, device frame; diag ``gyro_bias_*``) and the calibration's offset error it found (µT,
+    device frame, the field it takes being the calibrated one less it; diag ``mag_offset_error_*``).
 ``events``
     :class:`rerun.TextLog` — pipeline events, one line per calibration (the ``calibration_accepted`` /
     ``recalibrated`` event and the calibration itself make one line) and one per drift episode, at its
@@ -110,6 +114,12 @@ _DIAG_SERIES = (
     ("interference_score", "detector/score"),
     ("coverage", "coverage/online"),
 )
+#: the filter's estimates drawn per axis: entity group → (diag column prefix, series label, scale to the
+#: plotted unit)
+_ESTIMATES = {
+    "gyro_bias": ("gyro_bias_", "gyro bias", float(np.degrees(1.0))),
+    "offset_error": ("mag_offset_error_", "offset error", 1.0),
+}
 #: drift lane priority where episodes overlap (worst first).
 _DRIFT_ORDER = ("error", "sigma", "no_reference")
 #: strips drawn inside the error plot (exactly on its time axis): (lane, its state, strip entity, height as a
@@ -237,6 +247,10 @@ class RerunSink:
             for axis, color in zip("xyz", (RED, GREEN, BLUE), strict=True):
                 style = rr.SeriesLines(colors=[color], names=[f"{kind} {axis}"])
                 rec.log(f"inputs/{kind}/{axis}", style, static=True)
+        for group, (_, label, _) in _ESTIMATES.items():
+            for axis, color in zip("xyz", (RED, GREEN, BLUE), strict=True):
+                style = rr.SeriesLines(colors=[color], names=[f"{label} {axis}"])
+                rec.log(f"estimates/{group}/{axis}", style, static=True)
         radius = rr.Radius.ui_points(CLOUD_RADIUS_UI)
         rec.log("mag/raw", rr.Points3D.from_fields(colors=[RAW_COLOR], radii=[radius]), static=True)
         rec.log("mag/calibrated", rr.Points3D.from_fields(colors=[CAL_COLOR], radii=[radius]), static=True)
@@ -286,6 +300,11 @@ class RerunSink:
         for key, entity in _DIAG_SERIES:
             if key in d:
                 self._push_scalar(entity, t, d[key])
+        for group, (prefix, _, scale) in _ESTIMATES.items():
+            if all(prefix + axis in d for axis in "xyz"):
+                for axis in "xyz":
+                    values = scale * np.asarray(d[prefix + axis], dtype=float)
+                    self._push_scalar(f"estimates/{group}/{axis}", t, values)
         for name, band in BANDS.items():
             if band.reference in d and band.tolerance in d:
                 group = PLOTS[name].group
