@@ -70,6 +70,8 @@ def written(tmp_path):
                 sink.mag_calibrated(t, xyz - 1.0)
         tb = t_start + 2.0 * c + np.arange(400) / 200.0
         b = _batch(rng, tb)
+        for axis in "xyz":  # the filter's offset error: an internal column of the pipeline's rows
+            b.diag[f"mag_offset_error_{axis}"] = rng.normal(0.0, 2.0, len(tb))
         sink.estimates(b)
         batches.append(b)
     tr = t_start + np.arange(2400) / 200.0
@@ -126,6 +128,7 @@ def test_topics_schemas_and_counts(written):
         "/pdr/orientation": "pose",
         "/pdr/heading": "heading",
         "/pdr/diag": "diag",
+        "/pdr/offset_error": "vector3",
         "/pdr/calibration": "calibration",
         "/pdr/events": "log",
         "/reference/truth/orientation": "pose",
@@ -153,6 +156,7 @@ def test_topics_schemas_and_counts(written):
     assert counts["/imu/accel"] == len(written["inputs"]["accel"][0])
     assert counts["/mag/raw"] == counts["/mag/calibrated"] == len(written["inputs"]["mag"][0])
     assert counts["/pdr/orientation"] == counts["/pdr/heading"] == counts["/pdr/diag"] == n_est
+    assert counts["/pdr/offset_error"] == n_est
     assert counts["/pdr/events"] == 2 and counts["/pdr/calibration"] == 1
     assert summary.statistics.message_count == sum(counts.values())
     assert summary.statistics.chunk_count > 10  # streamed in many bounded chunks
@@ -203,6 +207,10 @@ def test_outputs_values(written):
     np.testing.assert_array_equal(upper, b.diag["field_ref_uT"] + b.diag["strength_tol_uT"])
     lower = np.array([m[2]["dip_lower_deg"] for m in diag])
     np.testing.assert_array_equal(lower, b.diag["dip_ref_deg"] - b.diag["dip_tol_deg"])
+    offset = _messages(written["path"], "/pdr/offset_error")  # the filter's offset error, µT
+    np.testing.assert_array_equal([m[2]["t"] for m in offset], b.t)
+    for axis in "xyz":
+        np.testing.assert_array_equal([m[2][axis] for m in offset], b.diag[f"mag_offset_error_{axis}"])
 
     tr, q_truth = written["truth"]
     ref = _messages(written["path"], "/reference/truth/heading")

@@ -24,6 +24,9 @@ topic                              schema                             message
                                                                       ``dip_lower_deg/…_upper_deg``, field
                                                                       names lower-cased (ROS 2 rule); NaN
                                                                       where not available
+``/pdr/offset_error``              ``pdr_mag/msg/Vector3Stamped``     the calibration's offset error the
+                                                                      filter found, µT, device frame (the
+                                                                      rows' ``mag_offset_error_*``)
 ``/pdr/calibration``               ``pdr_mag.MagCalibration`` (JSON)  ``{"t", **MagCalibration.to_dict()}``
 ``/pdr/events``                    ``foxglove.Log`` (JSON)            one per Event; ``message`` = kind +
                                                                       details
@@ -197,6 +200,9 @@ class McapSink:
             np.asarray(batch.cal_state).astype(str).ravel(),
         )
         diag = {k: np.asarray(v, dtype=float) for k, v in batch.diag.items() if k in DIAG_KEYS}
+        offset = [batch.diag.get(f"mag_offset_error_{axis}") for axis in "xyz"]
+        if all(v is not None for v in offset):  # the rows of a filter with the offset states
+            self._vector3("/pdr/offset_error", t, np.column_stack(offset), {"unit": "uT", "role": "output"})
         for rows, ns in self._kept("/pdr/orientation", t):
             t_rows = t[rows]
             self._pose("/pdr/orientation", ns, q[rows])
