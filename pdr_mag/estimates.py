@@ -153,3 +153,12 @@ class EstimateBatch:
                 interference=bool(self.interference[i]),
                 cal_state=str(self.cal_state[i]),
             )
+
+
+def diag_vectors(batch: EstimateBatch, columns: tuple[str, str, str]) -> np.ndarray | None:
+    """Three diag columns of ``batch`` (x, y, z: :data:`pdr_mag.fusion.rows.GYRO_BIAS_COLUMNS`,
+    :data:`~pdr_mag.fusion.rows.OFFSET_ERROR_COLUMNS`) as one N × 3 array; None when the batch lacks one."""
+    cols = [batch.diag.get(c) for c in columns] if batch.diag else [None]
+    if any(c is None for c in cols):
+        return None
+    return np.column_stack([np.asarray(c, dtype=float) for c in cols])

@@ -164,8 +164,7 @@ class DeviceStore:
         streams = {"mag": None, "gyro": None} if d is None else _streams(d)
         now = {sensor: stream_kind(meta, sensor) for sensor in streams}
         # a stored part of another stream than this recording's is another quantity: replaced, never refined
-        same = {sensor: None in (streams[sensor], now[sensor]) or streams[sensor] == now[sensor]
-                for sensor in streams}  # fmt: skip
+        same = {sensor: _same_stream(streams[sensor], now[sensor]) for sensor in streams}
         cal = prior.calibration if prior.calibration is not None else (old and old.calibration)
         if prior.calibration is not None and old is not None and old.calibration is not None and same["mag"]:
             cal = accumulate(old.calibration, prior.calibration)
@@ -269,6 +268,12 @@ def stream_kind(meta: dict, sensor: str) -> str | None:
     return None if not isinstance(v, bool) else STREAM_KINDS[int(v)]
 
 
+def _same_stream(stored: str | None, recording: str | None) -> bool:
+    """Whether a part learnt on stream ``stored`` belongs to a recording of stream ``recording``: the same
+    kind, or either not stated."""
+    return stored is None or recording is None or stored == recording
+
+
 def _streams(d: dict) -> dict:
     """The streams an entry's parts were learnt on (``mag_stream``, ``gyro_stream``; None: not stated, as
     in entries written before the store kept them — such a part serves every stream)."""
@@ -285,8 +290,7 @@ def _for_streams(prior: DevicePrior, streams: dict, meta: dict) -> DevicePrior:
     nor a raw gyro's power-up offset the residual of an OS-calibrated rate — a backend whose app changes
     which stream it logs would otherwise start the phone from a prior that is sure and wrong.  A part
     whose stream or whose recording's stream is not stated is kept."""
-    drop = {sensor for sensor, kind in streams.items()
-            if kind is not None and stream_kind(meta, sensor) not in (None, kind)}  # fmt: skip
+    drop = {sensor for sensor, kind in streams.items() if not _same_stream(kind, stream_kind(meta, sensor))}
     if "mag" in drop:
         prior = replace(prior, calibration=None)
     if "gyro" in drop:

@@ -20,21 +20,23 @@ import numpy as np
 
 from pdr_mag.fusion.detectors import COLUMNS as DETECTOR_COLUMNS
 
+#: the three columns (x, y, z, device frame) of the filter's gyro bias estimate, rad/s, and of the
+#: calibration's offset error ``o`` it carries, µT (``MagSettings.offset_states``: the field it takes is the
+#: calibrated one less ``o``; 0 without those states)
+GYRO_BIAS_COLUMNS = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z")
+OFFSET_ERROR_COLUMNS = ("mag_offset_error_x", "mag_offset_error_y", "mag_offset_error_z")
+
 #: diagnostic columns of the output (name → meaning), in order: the gyroscope-only heading, the detectors'
 #: figures at the latest magnetometer sample and their score, the bias estimate, a re-acquisition's jump, the
-#: offset error ``o`` the filter carries (``MagSettings.offset_states``: the field it takes is the calibrated
-#: one less ``o``; 0 without those states)
+#: offset error
 DIAG_COLUMNS = {
     "gyro_heading_deg": "heading from gyroscope integration alone (same start), deg",
     **DETECTOR_COLUMNS,
     "interference_score": "detector score (≥ 1 means flagged)",
-    "gyro_bias_x": "estimated gyroscope bias x, rad/s",
-    "gyro_bias_y": "estimated gyroscope bias y, rad/s",
-    "gyro_bias_z": "estimated gyroscope bias z, rad/s",
+    **{c: f"estimated gyroscope bias {c[-1]}, rad/s" for c in GYRO_BIAS_COLUMNS},
     "heading_reset_deg": "the turn of a heading re-acquisition at that row, deg (NaN at the others)",
-    "mag_offset_error_x": "the filter's estimate of the calibration's offset error, x, µT (device frame)",
-    "mag_offset_error_y": "the filter's estimate of the calibration's offset error, y, µT (device frame)",
-    "mag_offset_error_z": "the filter's estimate of the calibration's offset error, z, µT (device frame)",
+    **{c: f"the filter's estimate of the calibration's offset error, {c[-1]}, µT (device frame)"
+       for c in OFFSET_ERROR_COLUMNS},
 }
 #: the diagnostic columns, in order
 DIAG_NAMES = tuple(DIAG_COLUMNS)
@@ -44,9 +46,7 @@ DIAG_NAMES = tuple(DIAG_COLUMNS)
 #: (:meth:`pdr_mag.pipeline.HeadingPipeline.pop_mag_calibrated`), and the gyro-consistency angle (adding
 #: them to ``/pdr/diag`` changes that message's layout, which ``tests/fixtures/pdrmcap_v2_handwritten.mcap``
 #: holds byte for byte)
-INTERNAL_DIAG = (
-    "consistency_deg", "heading_reset_deg", "mag_offset_error_x", "mag_offset_error_y", "mag_offset_error_z",
-)
+INTERNAL_DIAG = ("consistency_deg", "heading_reset_deg", *OFFSET_ERROR_COLUMNS)
 
 #: the parts of a row's reported variance (:func:`pdr_mag.fusion.kernel.calibration_floor`): the filter's
 #: ``(P + U)[δθ_z, δθ_z]``, the calibration's ``g Σ_b gᵀ`` (0 with the offset states, which carry it in P)

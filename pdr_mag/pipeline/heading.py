@@ -68,10 +68,11 @@ from pdr_mag.calibration.prior import (
     prior_source,
     with_offset_error,
 )
-from pdr_mag.estimates import EstimateBatch, Event
+from pdr_mag.estimates import EstimateBatch, Event, diag_vectors
 from pdr_mag.field import EarthField, earth_field_from_meta
 from pdr_mag.fusion import FusionCore, Span, heading_reset_events
 from pdr_mag.fusion.kinds import KINDS, MAG, NAMES
+from pdr_mag.fusion.rows import OFFSET_ERROR_COLUMNS
 from pdr_mag.pipeline import _kernel as PK
 from pdr_mag.pipeline import state as state_json
 from pdr_mag.pipeline.settings import PipelineSettings, fusion_settings
@@ -687,10 +688,10 @@ def _offset_error_at(t: np.ndarray, rows: EstimateBatch, before: np.ndarray | No
     ``mag_offset_error_*`` columns), ``before`` (the filter's at the rows' start; None: none found) ahead of
     the first row."""
     out = np.zeros((len(t), 3)) if before is None else np.tile(np.asarray(before, dtype=float), (len(t), 1))
-    cols = [rows.diag.get(f"mag_offset_error_{a}") for a in "xyz"] if len(rows) and rows.diag else [None]
-    if not len(t) or any(c is None for c in cols):
+    o = diag_vectors(rows, OFFSET_ERROR_COLUMNS) if len(rows) else None
+    if o is None or not len(t):
         return out
     k = np.searchsorted(rows.t, t, side="right") - 1
     after = k >= 0
-    out[after] = np.column_stack(cols)[k[after]]
+    out[after] = o[k[after]]
     return out

@@ -97,7 +97,8 @@ from mcap_ros2._dynamic import serialize_dynamic  # the encoder behind mcap_ros2
 
 from pdr_mag._json import jsonable
 from pdr_mag.conventions import heading_deg_from_quat
-from pdr_mag.estimates import DIAG_KEYS
+from pdr_mag.estimates import DIAG_KEYS, diag_vectors
+from pdr_mag.fusion.rows import OFFSET_ERROR_COLUMNS
 from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._mcap_schemas import BAND_COLUMNS, DIAG_FIELDS, POSE_FRAME, SCHEMAS, Schema
 
@@ -200,9 +201,9 @@ class McapSink:
             np.asarray(batch.cal_state).astype(str).ravel(),
         )
         diag = {k: np.asarray(v, dtype=float) for k, v in batch.diag.items() if k in DIAG_KEYS}
-        offset = [batch.diag.get(f"mag_offset_error_{axis}") for axis in "xyz"]
-        if all(v is not None for v in offset):  # the rows of a filter with the offset states
-            self._vector3("/pdr/offset_error", t, np.column_stack(offset), {"unit": "uT", "role": "output"})
+        offset = diag_vectors(batch, OFFSET_ERROR_COLUMNS)
+        if offset is not None:  # the rows of a filter with the offset states
+            self._vector3("/pdr/offset_error", t, offset, {"unit": "uT", "role": "output"})
         for rows, ns in self._kept("/pdr/orientation", t):
             t_rows = t[rows]
             self._pose("/pdr/orientation", ns, q[rows])

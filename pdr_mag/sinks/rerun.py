@@ -73,7 +73,9 @@ from scipy.spatial.transform import Rotation
 
 from pdr_mag.conventions import heading_deg_from_quat, wrap_deg
 from pdr_mag.episodes import Episode
+from pdr_mag.estimates import diag_vectors
 from pdr_mag.fusion.detectors import BANDS, PLOTS
+from pdr_mag.fusion.rows import GYRO_BIAS_COLUMNS, OFFSET_ERROR_COLUMNS
 from pdr_mag.sinks import WARNING_EVENTS
 from pdr_mag.sinks._rerun_layout import (
     BLUE,
@@ -114,11 +116,11 @@ _DIAG_SERIES = (
     ("interference_score", "detector/score"),
     ("coverage", "coverage/online"),
 )
-#: the filter's estimates drawn per axis: entity group → (diag column prefix, series label, scale to the
+#: the filter's estimates drawn per axis: entity group → (diag columns x, y, z, series label, scale to the
 #: plotted unit)
 _ESTIMATES = {
-    "gyro_bias": ("gyro_bias_", "gyro bias", float(np.degrees(1.0))),
-    "offset_error": ("mag_offset_error_", "offset error", 1.0),
+    "gyro_bias": (GYRO_BIAS_COLUMNS, "gyro bias", float(np.degrees(1.0))),
+    "offset_error": (OFFSET_ERROR_COLUMNS, "offset error", 1.0),
 }
 #: drift lane priority where episodes overlap (worst first).
 _DRIFT_ORDER = ("error", "sigma", "no_reference")
@@ -300,11 +302,11 @@ class RerunSink:
         for key, entity in _DIAG_SERIES:
             if key in d:
                 self._push_scalar(entity, t, d[key])
-        for group, (prefix, _, scale) in _ESTIMATES.items():
-            if all(prefix + axis in d for axis in "xyz"):
-                for axis in "xyz":
-                    values = scale * np.asarray(d[prefix + axis], dtype=float)
-                    self._push_scalar(f"estimates/{group}/{axis}", t, values)
+        for group, (columns, _, scale) in _ESTIMATES.items():
+            xyz = diag_vectors(batch, columns)
+            if xyz is not None:
+                for i, axis in enumerate("xyz"):
+                    self._push_scalar(f"estimates/{group}/{axis}", t, scale * xyz[:, i])
         for name, band in BANDS.items():
             if band.reference in d and band.tolerance in d:
                 group = PLOTS[name].group
