@@ -31,9 +31,10 @@ The inertial sensors (device axes, IMU clock)::
 Effects (:data:`EFFECTS`, in this order)
 -----------------------------------------
 ``hard_iron`` µT (3,), ``soft_iron`` (3, 3) SPD, ``time_offset`` s, ``mag_imu_misalignment`` deg (rotation
-vector (3,)), ``bias_drift`` µT/min (3,), ``local_anomaly`` µT (a field object of position, e.g.
-:class:`DipoleField`), ``gyro_bias`` rad/s (3,), ``noise`` µT (σ per axis, (3,)).  An effect that is
-absent is off (its neutral value: zero, identity or no field).
+vector (3,)), ``bias_drift`` µT/min (3,), ``local_anomaly`` µT (a field object of position:
+:class:`DipoleField` for steel, :class:`~pdr_mag.sim.building.BuildingField` for a building's own weak field,
+:class:`~pdr_mag.sim.building.FieldSum` for both), ``gyro_bias`` rad/s (3,), ``noise`` µT (σ per axis,
+(3,)).  An effect that is absent is off (its neutral value: zero, identity or no field).
 
 Using it
 --------
@@ -70,6 +71,7 @@ from pdr_mag.conventions import (  # noqa: F401  (quaternion helpers re-exported
     quat_slerp,
     rotvec_to_matrix,
 )
+from pdr_mag.sim.building import field_from_json
 from pdr_mag.sim.effects import (  # noqa: F401  (the effects' names re-exported for callers)
     _NEUTRAL,
     EFFECT_SIZES,
@@ -283,7 +285,7 @@ class SensorModel:
     def from_json(cls, obj: Mapping[str, Any], t_ref: float = 0.0) -> SensorModel:
         eff = dict(obj)
         if isinstance(eff.get("local_anomaly"), dict):
-            eff["local_anomaly"] = DipoleField.from_json(eff["local_anomaly"])
+            eff["local_anomaly"] = field_from_json(eff["local_anomaly"])
         return cls(eff, t_ref)
 
 

@@ -1,8 +1,8 @@
 """``simulate()``: a scenario's trajectory through the sensor model into phone-like sample streams.
 
 Random streams are independent children of ``SeedSequence(seed)`` (trajectory, steel layout, the three
-sample clocks, the three noises), so switching an effect on or off changes nothing else: the trajectory,
-the sample times and the noise draws stay the same.
+sample clocks, the three noises, the building's field), so switching an effect on or off changes nothing
+else: the trajectory, the sample times and the noise draws stay the same.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from pdr_mag.field import EarthField, earth_field
+from pdr_mag.sim.building import BuildingField, FieldSum
 from pdr_mag.sim.phones import PHONES, Phone
 from pdr_mag.sim.sampling import sample_times
 from pdr_mag.sim.scenarios import DEFAULT_EFFECTS, SCENARIOS, Plan, layout_dipoles
@@ -89,10 +90,9 @@ def _json_safe(x):
 ANOMALY_THRESHOLD_UT = 1.0
 
 
-def _anomaly_windows(model: SensorModel, traj: Trajectory, duration: float) -> list[dict]:
-    """Time intervals (10 Hz grid) where the local anomaly at the phone exceeds ANOMALY_THRESHOLD_UT,
-    with the peak |B| in each."""
-    anomaly = model.value("local_anomaly")
+def _anomaly_windows(anomaly, traj: Trajectory, duration: float) -> list[dict]:
+    """Time intervals (10 Hz grid) where the local anomaly at the phone (a field object; None: none)
+    exceeds ANOMALY_THRESHOLD_UT, with the peak |B| in each."""
     if anomaly is None:
         return []
     t = np.arange(0.0, duration + 1e-9, 0.1)
@@ -121,6 +121,7 @@ def simulate(
     site: Mapping[str, object] | None = None,
     field_w=None,
     truth_rate_hz: float = 25.0,
+    building: tuple[float, float] | None = None,
 ) -> SimResult:
     """Simulate a phone recording.
 
@@ -149,6 +150,10 @@ def simulate(
         would imply another field) and north is the world +y axis.
     truth_rate_hz : float
         Rate of the (uniform) truth samples.
+    building : (rms_uT, length_m), optional
+        A building's own field everywhere along the walk (:class:`~pdr_mag.sim.building.BuildingField`:
+        horizontal RMS µT at 1 m above the floor, correlation length m), added to ``local_anomaly``'s steel;
+        ``meta["simulation"]["anomaly_windows"]`` stay the steel's.
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"scenario: unknown {scenario!r}; known: {', '.join(SCENARIOS)}")
@@ -168,7 +173,7 @@ def simulate(
     phone = phone or PhoneSpec()
     site = dict(DEFAULT_SITE if site is None else site)
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(9)]
-    r_traj, r_steel, r_ta, r_tg, r_tm, r_na, r_ng, r_nm, _ = rngs
+    r_traj, r_steel, r_ta, r_tg, r_tm, r_na, r_ng, r_nm, r_building = rngs
 
     plan = sc.build(duration, r_traj)
     traj = plan.trajectory
@@ -178,6 +183,11 @@ def simulate(
         peak = float(np.asarray(eff["local_anomaly"], dtype=float).reshape(-1)[0])
         anomaly_layout = layout_dipoles(plan, peak, r_steel)
         eff["local_anomaly"] = anomaly_layout
+    steel = eff.get("local_anomaly")
+    if building is not None:
+        rms, length = (float(v) for v in building)
+        own = BuildingField.random(rms, length, r_building)
+        eff["local_anomaly"] = own if steel is None else FieldSum((steel, own))
     model = SensorModel(eff)
 
     if field_w is not None:
@@ -222,9 +232,11 @@ def simulate(
         **({"phone_name": phone_name} if phone_name else {}),
         "segments": [{"mode": m, "t0": a, "t1": b} for m, a, b in plan.segments],
         "steel_windows": [{"t0": a, "t1": b} for a, b in plan.anomaly_windows] if anomaly_layout else [],
-        "anomaly_windows": _anomaly_windows(model, traj, duration),
+        "anomaly_windows": _anomaly_windows(steel, traj, duration),
         "north": "true",
     }
+    if building is not None:
+        sim_meta["building"] = {"rms_uT": rms, "length_m": length}
     meta = {"device": "simulated phone (pdr-mag simulate)"}
     if field_w is None:  # with a plain field vector the site would imply a different (WMM) field: left out
         meta.update(

@@ -5,7 +5,9 @@
 
 Options beyond the contract: ``--phone NAME`` (a named phone of ``--list``: rates, accelerometer range,
 its own hard iron), ``--imu-rate``/``--mag-rate`` (Hz), the site (``--latitude``, ``--longitude``,
-``--altitude``, ``--date``) or a plain ``--field E,N,U`` (µT) instead of the WMM.
+``--altitude``, ``--date``) or a plain ``--field E,N,U`` (µT) instead of the WMM, and ``--building
+RMS[,LENGTH]``: a building's own weak field everywhere along the walk (:class:`pdr_mag.sim.building.
+BuildingField`), on top of the scenario's steel.
 
 Effect values: a number, comma-separated numbers, or ``off`` (see ``--list``).  The same arguments give
 byte-identical files.
@@ -26,6 +28,10 @@ from replay.commands._output import writable_dir
 from replay.errors import InputError
 from replay.formats import pdrcsv
 from replay.recording import Recording, Stream
+
+#: Correlation length of ``--building``'s field when not given, m: what the tyrex room shows
+#: (benchmarks/NOTES.md, "A building's own field").
+BUILDING_LENGTH_M = 3.0
 
 #: Value format of mag.csv and accel.csv (0.1 mµT / 0.1 mm/s² — finer than the sensors' resolution).
 VALUE_FMT = "%.4f"
@@ -77,6 +83,22 @@ def _columns(rows: list[tuple[str, ...]], right: tuple[int, ...] = ()) -> list[s
         cells = [c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(padded)]
         lines.append("  " + "  ".join([*cells, r[-1]]))
     return lines
+
+
+def _parse_building(text: str) -> tuple[float, float]:
+    """``--building RMS[,LENGTH]``: (µT ≥ 0, m > 0), the length :data:`BUILDING_LENGTH_M` when omitted."""
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) == 1:
+        vals.append(BUILDING_LENGTH_M)
+    if len(vals) != 2 or not (np.isfinite(vals[0]) and vals[0] >= 0 and np.isfinite(vals[1]) and vals[1] > 0):
+        raise click.BadParameter(
+            f"expected RMS[,LENGTH]: an RMS ≥ 0 in µT and a length > 0 in m, got {text!r}",
+            param_hint="--building",
+        )
+    return vals[0], vals[1]
 
 
 def _parse_effects(items: tuple[str, ...]) -> dict:
@@ -135,6 +157,14 @@ def _parse_effects(items: tuple[str, ...]) -> dict:
     metavar="E,N,U",
     help="plain ENU field vector in µT instead of the WMM",
 )
+@click.option(
+    "--building",
+    "building_text",
+    default=None,
+    metavar="RMS[,LENGTH]",
+    help="a building's own field everywhere along the walk: horizontal RMS in µT, correlation length in m"
+    f" (default {BUILDING_LENGTH_M:g})",
+)
 @click.option("--list", "list_", is_flag=True, help="list scenarios and effects with their units")
 def command(
     scenario,
@@ -150,6 +180,7 @@ def command(
     altitude,
     date,
     field_text,
+    building_text,
     list_,
 ) -> int:
     if list_:
@@ -182,6 +213,7 @@ def command(
             raise click.BadParameter(
                 f"expected 3 comma-separated numbers in µT ({exc})", param_hint="--field"
             ) from None
+    building = None if building_text is None else _parse_building(building_text)
     spec = PhoneSpec() if phone_name is None else PHONES[phone_name].spec
     if imu_rate is not None:
         spec = replace(spec, accel_rate_hz=imu_rate, gyro_rate_hz=imu_rate)
@@ -190,8 +222,9 @@ def command(
     phone = spec if phone_name is None else replace(PHONES[phone_name], spec=spec)
     writable_dir(out)
     res = simulate(
-        scenario, seed=seed, duration_s=duration, effects=overrides, phone=phone, site=site, field_w=field_w
-    )
+        scenario, seed=seed, duration_s=duration, effects=overrides, phone=phone, site=site, field_w=field_w,
+        building=building,
+    )  # fmt: skip
     rec = Recording(
         mag=Stream(*res.mag),
         accel=Stream(*res.accel),
