@@ -20,6 +20,11 @@ FORMAT_VERSION = 1
 IDENTITY_SOFT_IRON = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
+#: ``extra`` key of the offset error a fit's model leaves out, µT² (3 × 3 nested lists): an offset-only fit's
+#: unseen soft iron; the fusion filter counts it with the fit's covariance (``offset_error_covariance``).
+SHAPE_COVARIANCE = "shape_offset_cov_uT2"
+
+
 @dataclass(frozen=True)
 class MagCalibration:
     """A magnetometer calibration.
@@ -120,6 +125,17 @@ class MagCalibration:
         if self.mag_to_imu is not None:
             a = np.asarray(self.mag_to_imu, dtype=float) @ a
         return a
+
+    @property
+    def offset_error_covariance(self) -> np.ndarray | None:
+        """The offset's error as the fusion filter counts it, 3×3 µT²: :attr:`offset_covariance` plus what
+        the fit's model leaves out, ``extra[SHAPE_COVARIANCE]`` (an offset-only fit's unseen soft iron,
+        :func:`pdr_mag.calibration.gravity.soft_iron_offset_covariance`)."""
+        cov = self.offset_covariance
+        shape = self.extra.get(SHAPE_COVARIANCE)
+        if cov is None or shape is None:
+            return cov
+        return cov + np.asarray(shape, dtype=float)
 
     @property
     def offset_covariance(self) -> np.ndarray | None:

@@ -120,6 +120,17 @@ class OnlineSettings:
         Time over which the errors of buffered samples stay correlated (the local field of the place, the
         priors' error), s: a gravity-aided fit's offset covariance is scaled by ``N / N_eff``,
         ``N_eff = min(N, 1 + span / field_corr_s)`` (:func:`.refit.with_correlated_errors`).
+    soft_iron_std : float
+        The soft iron an offset-only fit cannot see, per element of ``A − I`` (1-σ).  The offset error it
+        leaves (:func:`pdr_mag.calibration.gravity.soft_iron_offset_covariance`) goes with a gravity-aided
+        fit made while no sure fit of the walk's own is in force (nothing, a prior, a first fit above
+        ``max_offset_std_uT``) to the fusion filter, whose offset states start from it
+        (``extra["shape_offset_cov_uT2"]``,
+        :attr:`~pdr_mag.calibration.model.MagCalibration.offset_error_covariance`); acceptance and
+        replacement are judged on the fit's own covariance, as every fit's.  Later refits are not given it:
+        each resets the offset states, and a shape term there reopens them to any change of the field (a
+        25-µT hard-iron jump then let into the heading, benchmarks/NOTES.md).  0.03: the shared phones'
+        (the tyrex iPhones' figure-8 fits, the mall phone's 1.07 horizontal axis ratio); 0 = off.
     prior_band_frac, prior_band_dip_deg, prior_min_samples : float, float, int
         A prior calibration (the phone's, a store's: :mod:`.prior`) is refused when, over at least
         ``prior_min_samples`` buffered samples, the median strength of the field it calibrates is farther
@@ -181,6 +192,7 @@ class OnlineSettings:
     episode_tau_s: float = 1.0
     recal_fallback_s: float = 20.0
     field_corr_s: float = 2.0
+    soft_iron_std: float = 0.03
     prior_band_frac: float = 0.4
     prior_band_dip_deg: float = 25.0
     prior_min_samples: int = 10

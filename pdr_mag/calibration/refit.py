@@ -35,8 +35,8 @@ from pdr_mag.calibration.coverage import AcceptanceSettings
 from pdr_mag.calibration.coverage import accept as core_accept
 from pdr_mag.calibration.coverage import coverage as core_coverage
 from pdr_mag.calibration.diversity import direction_coverage
-from pdr_mag.calibration.gravity import gravity_aided_offset
-from pdr_mag.calibration.model import IDENTITY_SOFT_IRON, MagCalibration
+from pdr_mag.calibration.gravity import fit_model, gravity_aided_offset, soft_iron_offset_covariance
+from pdr_mag.calibration.model import IDENTITY_SOFT_IRON, SHAPE_COVARIANCE, MagCalibration
 from pdr_mag.calibration.online_settings import OnlineSettings
 from pdr_mag.calibration.prior import is_prior
 from pdr_mag.calibration.select import calibrate
@@ -211,11 +211,21 @@ def gravity_fit_keeping_shape(
     plain = current is None or (current.soft_iron is IDENTITY_SOFT_IRON and current.mag_to_imu is None)
     mm = None if plain else current.matrix
     shaped = not plain and not is_identity(mm.tolist(), 1e-12)
+    sin_dip = sin_dip_ref if field_ref is not None else None
     g = gravity_aided_offset(
-        m @ mm.T if shaped else m, u, field_ref, sin_dip_ref if field_ref is not None else None,
-        s.sigma_strength_uT, s.sigma_tilt_deg, prior_strength_std_uT=s.prior_strength_std_uT,
-        prior_dip_std_deg=s.prior_dip_std_deg,
+        m @ mm.T if shaped else m, u, field_ref, sin_dip, s.sigma_strength_uT, s.sigma_tilt_deg,
+        prior_strength_std_uT=s.prior_strength_std_uT, prior_dip_std_deg=s.prior_dip_std_deg,
     )  # fmt: skip
+    # no shape known, and no sure fit of the walk's own in force yet: the soft iron the fit cannot see
+    first = current is None or is_prior(current) or provisional(current, s)
+    if not shaped and first and s.soft_iron_std > 0:
+        model = fit_model(
+            None if field_ref is None else float(field_ref), None if sin_dip is None else float(sin_dip),
+            float(s.sigma_strength_uT), float(s.sigma_tilt_deg), float(s.prior_strength_std_uT),
+            float(s.prior_dip_std_deg),
+        )  # fmt: skip
+        shape_cov = soft_iron_offset_covariance(m, u, g, model, s.soft_iron_std)
+        g = replace(g, extra={**g.extra, SHAPE_COVARIANCE: shape_cov.tolist()})
     if not shaped:
         return g
     a = current.soft_iron_array

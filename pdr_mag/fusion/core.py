@@ -297,8 +297,10 @@ class FusionCore:
           calibration without a radius leaves the reference as it was, as does a ``horizontal_only`` fit,
           whose radius traded against its undetermined offset along up:
           :func:`pdr_mag.calibration.refit.judge`);
-        * its offset covariance becomes a source of heading error (:meth:`set_calibration_covariance`),
-          with the offset states the covariance of their error, anew (:meth:`_reset_offset_states`);
+        * its offset's error (:attr:`~pdr_mag.calibration.MagCalibration.offset_error_covariance`: the fit's
+          covariance and, for an offset-only fit, the soft iron it cannot see) becomes a source of heading
+          error (:meth:`set_calibration_covariance`), with the offset states the covariance of their error,
+          anew (:meth:`_reset_offset_states`);
         * none after one (a prior refused): the heading it gave is forgotten (:meth:`forget_heading`).
         """
         changed = cal is not previous
@@ -308,7 +310,7 @@ class FusionCore:
             self.forget_heading()
         if cal is not None and np.isfinite(cal.field_uT) and cal.field_uT > 0 and not horizontal_only(cal):
             self.set_reference_strength(float(cal.field_uT))
-        cov = None if cal is None else cal.offset_covariance
+        cov = None if cal is None else cal.offset_error_covariance
         if cov is not None:
             m = cal.matrix
             cov = m @ cov @ m.T  # the offset's error as it moves the calibrated field
