@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from field_truth import own_offset, walk_samples  # noqa: E402
 from heading import DATA, day_files, discover_walks  # noqa: E402
 from heading_sim import errors  # noqa: E402
 
@@ -54,12 +55,8 @@ T_SKIP_S = 20.0
 def field_stats(t: np.ndarray, m: np.ndarray, rot: np.ndarray, soft: np.ndarray) -> dict:
     """Part 1's figures of one walk: ``t`` (N,) s, raw ``m`` (N, 3) µT, ``rot`` (N, 3, 3) device → world."""
     n = len(m)
-    jac = np.zeros((3 * n, 6))
-    jac[:, :3] = rot.reshape(-1, 3)
-    jac[:, 3:] = np.tile(np.eye(3), (n, 1))
-    y = np.einsum("nij,nj->ni", rot, m @ soft.T)
-    sol = np.linalg.lstsq(jac, y.reshape(-1), rcond=None)[0]  # R_i A m_i = R_i (A b_w) + B̄
-    b = y - np.einsum("nij,j->ni", rot, sol[:3])
+    b_w, _ = own_offset(m, rot, soft)
+    b = np.einsum("nij,nj->ni", rot, (m - b_w) @ soft.T)
     rms = np.sqrt(np.mean((b - b.mean(axis=0)) ** 2, axis=0))
     direction = np.degrees(np.arctan2(b[:, 0], b[:, 1]))
     sf = []
@@ -72,21 +69,8 @@ def field_stats(t: np.ndarray, m: np.ndarray, rot: np.ndarray, soft: np.ndarray)
 
 
 def tyrex_walk(job: tuple[str, str]) -> tuple[str, dict]:
-    from scipy.spatial.transform import Rotation
-
-    from pdr_mag import MagCalibration
-    from replay.formats import read_recording
-
     walk, cal_path = job
-    cal = MagCalibration.from_json(cal_path)
-    rec = read_recording(DATA / walk)
-    tr, qr = rec.truth
-    ok = np.all(np.isfinite(qr), axis=1)
-    tr, qr = tr[ok], qr[ok]
-    t, m = rec.mag.t, rec.mag.xyz
-    inside = (t > tr[0] + 5.0) & (t < tr[-1]) & np.all(np.isfinite(m), axis=1)
-    t, m = t[inside], m[inside]
-    rot = Rotation.from_quat(qr[np.clip(np.searchsorted(tr, t), 0, len(tr) - 1)][:, [1, 2, 3, 0]]).as_matrix()
+    cal, t, m, rot = walk_samples(walk, cal_path, skip_s=5.0)
     return walk, field_stats(t, m, rot, cal.soft_iron_array)
 
 

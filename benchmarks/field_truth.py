@@ -41,36 +41,49 @@ NOTES = ROOT / "benchmarks" / "NOTES.md"
 SECTION = "## Field truth: what the tyrex walks' field really was"
 
 
-def walk_field(job: tuple[str, str]) -> dict:
-    """The figures of the module docstring for one walk (``job``: walk name, day's calibration file)."""
+def walk_samples(walk: str, cal_path: str, skip_s: float = 0.0):
+    """A walk's magnetometer under its truth: ``(cal, t, m, R)`` — the day's calibration, the samples' times
+    (s) and raw fields (µT) from ``skip_s`` after the truth's start to its end, and the truth attitude at or
+    after each (device → mocap ENU, (N, 3, 3))."""
     from scipy.spatial.transform import Rotation
 
     from pdr_mag import MagCalibration
     from replay.formats import read_recording
 
-    walk, cal_path = job
     cal = MagCalibration.from_json(cal_path)
     rec = read_recording(DATA / walk)
     tr, qr = rec.truth
     ok = np.all(np.isfinite(qr), axis=1)
     tr, qr = tr[ok], qr[ok]
     tm, m = rec.mag.t, rec.mag.xyz
-    inside = (tm > tr[0]) & (tm < tr[-1]) & np.all(np.isfinite(m), axis=1)
+    inside = (tm > tr[0] + skip_s) & (tm < tr[-1]) & np.all(np.isfinite(m), axis=1)
     tm, m = tm[inside], m[inside]
-    R = Rotation.from_quat(qr[np.clip(np.searchsorted(tr, tm), 0, len(tr) - 1)][:, [1, 2, 3, 0]]).as_matrix()
+    q = qr[np.clip(np.searchsorted(tr, tm), 0, len(tr) - 1)]
+    return cal, tm, m, Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+
+
+def own_offset(m: np.ndarray, rot: np.ndarray, soft: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The walk's own constant offset ``b_w`` and field ``B̄``: ``R_i A m_i − R_i c − B̄ = 0`` in least
+    squares, ``c = A b_w`` (raw ``m`` (N, 3) µT, ``rot`` (N, 3, 3) device → world, soft iron ``A``)."""
+    n = len(m)
+    jac = np.zeros((3 * n, 6))
+    jac[:, :3] = rot.reshape(-1, 3)
+    jac[:, 3:] = np.tile(np.eye(3), (n, 1))
+    sol = np.linalg.lstsq(jac, np.einsum("nij,nj->ni", rot, m @ soft.T).reshape(-1), rcond=None)[0]
+    return np.linalg.solve(soft, sol[:3]), sol[3:]
+
+
+def walk_field(job: tuple[str, str]) -> dict:
+    """The figures of the module docstring for one walk (``job``: walk name, day's calibration file)."""
+    walk, cal_path = job
+    cal, _, m, R = walk_samples(walk, cal_path)
     a = cal.soft_iron_array
     bw = np.einsum("nij,nj->ni", R, (m - cal.offset_array) @ a.T)
     f = np.linalg.norm(bw, axis=1)
     dip = np.degrees(np.arcsin(-bw[:, 2] / f))
     dec = np.degrees(np.arctan2(bw[:, 0], bw[:, 1]))
     dec = (dec - np.median(dec) + 180.0) % 360.0 - 180.0  # about its median: the spread, not the room's north
-    # the walk's own constant offset: R_i A m_i − R_i c − B̄ = 0 in least squares, c = A b_w
-    n = len(m)
-    jac = np.zeros((3 * n, 6))
-    jac[:, :3] = R.reshape(-1, 3)
-    jac[:, 3:] = np.tile(np.eye(3), (n, 1))
-    sol = np.linalg.lstsq(jac, np.einsum("nij,nj->ni", R, m @ a.T).reshape(-1), rcond=None)[0]
-    b_walk = np.linalg.solve(a, sol[:3])
+    b_walk, _ = own_offset(m, R, a)
     wmm = trial_info(walk)["wmm"]
     return {
         "walk": walk,
