@@ -219,11 +219,8 @@ def gravity_fit_keeping_shape(
     # no shape known, and no sure fit of the walk's own in force yet: the soft iron the fit cannot see
     first = current is None or is_prior(current) or provisional(current, s)
     if not shaped and first and s.soft_iron_std > 0:
-        model = fit_model(
-            None if field_ref is None else float(field_ref), None if sin_dip is None else float(sin_dip),
-            float(s.sigma_strength_uT), float(s.sigma_tilt_deg), float(s.prior_strength_std_uT),
-            float(s.prior_dip_std_deg),
-        )  # fmt: skip
+        model = fit_model(field_ref, sin_dip, s.sigma_strength_uT, s.sigma_tilt_deg, s.prior_strength_std_uT,
+                          s.prior_dip_std_deg)  # fmt: skip
         shape_cov = soft_iron_offset_covariance(m, u, g, model, s.soft_iron_std)
         g = replace(g, extra={**g.extra, SHAPE_COVARIANCE: shape_cov.tolist()})
     if not shaped:
